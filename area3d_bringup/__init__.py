@@ -1,0 +1,1 @@
+"""Launch description, parameters, episode runner and the area3d command."""

@@ -1,0 +1,18 @@
+"""colcon (ament_python) entry for area3d_bringup; pip users install everything from the root pyproject."""
+
+if __name__ == "__main__":
+    from setuptools import setup
+
+    setup(
+        name="area3d_bringup",
+        version="0.1.0",
+        packages=["area3d_bringup"],
+        package_dir={"area3d_bringup": "."},
+        data_files=[
+            ("share/ament_index/resource_index/packages", ["resource/area3d_bringup"]),
+            ("share/area3d_bringup", ["package.xml"]),
+        ],
+        install_requires=["setuptools"],
+        zip_safe=True,
+        entry_points={"console_scripts": []},
+    )

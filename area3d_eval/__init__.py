@@ -1,0 +1,1 @@
+"""TSDF reconstruction, metrics, baselines, benchmarks and reports."""

@@ -1,0 +1,1 @@
+"""Per-frame depth and confidence, geometric uncertainty."""

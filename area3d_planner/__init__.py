@@ -1,0 +1,1 @@
+"""Fused voxel uncertainty grid and the next-best-view service."""

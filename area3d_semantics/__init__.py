@@ -1,0 +1,1 @@
+"""Vision-language region analysis, weight maps and semantic uncertainty."""
