@@ -11,8 +11,10 @@ if __name__ == "__main__":
         data_files=[
             ("share/ament_index/resource_index/packages", ["resource/area3d_bringup"]),
             ("share/area3d_bringup", ["package.xml"]),
+            ("share/area3d_bringup/config", ["config/area3d.yaml"]),
+            ("share/area3d_bringup/launch", ["launch/area3d.launch.py"]),
         ],
         install_requires=["setuptools"],
         zip_safe=True,
-        entry_points={"console_scripts": []},
+        entry_points={"console_scripts": ["area3d = area3d_bringup.cli:main"]},
     )

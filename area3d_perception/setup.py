@@ -14,5 +14,5 @@ if __name__ == "__main__":
         ],
         install_requires=["setuptools"],
         zip_safe=True,
-        entry_points={"console_scripts": []},
+        entry_points={"console_scripts": ["perception_node = area3d_perception.node:main"]},
     )

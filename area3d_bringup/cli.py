@@ -1,0 +1,192 @@
+"""The `area3d` command: run episodes, launch the graph, write reports, run benchmarks."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="AREA3D: active 3D reconstruction over a ROS 2 node graph.")
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: print measured figures beside their targets.")
+app.add_typer(bench_app, name="bench")
+console = Console(stderr=True)
+
+PARAM_HELP = "NODE.NAME=VALUE parameter override, repeatable (e.g. planner.eta=0.3)"
+
+
+def _overrides(params: list[str]) -> dict[str, dict]:
+    from area3d_bringup.launch_description import parse_override
+
+    out: dict[str, dict] = {}
+    for text in params:
+        node, name, value = parse_override(text)
+        out.setdefault(node, {})[name] = value
+    return out
+
+
+def _fail(message: str) -> None:
+    console.print(f"[bold red]error:[/] {message}")
+    raise typer.Exit(code=2)
+
+
+@app.command()
+def run(
+    scene: str = typer.Option("single_object", help="bundled scene name or path to a MuJoCo MJCF file"),
+    policy: str = typer.Option("area3d", help="area3d | random | uniform | vlm_naive | volumetric_ig | no_vlm | no_ff | gamma0"),
+    budget: int = typer.Option(None, help="view budget T after O_0 (default: the paper's, 25 object / 40 room)"),
+    mode: str = typer.Option("closed_loop", help="closed_loop (re-plan after each view) | batch (paper)"),
+    seed: int = typer.Option(0),
+    out: Path = typer.Option(Path("runs"), help="where run directories are created"),
+    resume: Path = typer.Option(None, help="continue an interrupted run directory"),
+    record: bool = typer.Option(True, help="record the episode as rosbag2 (MCAP)"),
+    evaluate: bool = typer.Option(True, help="reconstruct, score and write the report after the episode"),
+    params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
+    param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
+    domain_id: int = typer.Option(None, help="ROS_DOMAIN_ID for the graph (default: $ROS_DOMAIN_ID or 0)"),
+) -> None:
+    """Run one episode over the node graph, then evaluate it and write the report."""
+    from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
+
+    config = EpisodeConfig(scene=scene, policy=policy, budget=budget, mode=mode, seed=seed, out_dir=out,
+                           record=record, params_file=params, overrides=_overrides(param), domain_id=domain_id)
+    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+               TimeElapsedColumn())
+    try:
+        with Progress(*columns, console=console) as progress:
+            run_dir = run_episode(config, resume=resume, progress=progress)
+    except (EpisodeError, ValueError, FileNotFoundError, FileExistsError) as err:
+        _fail(str(err))
+    console.print(f"episode written to [bold]{run_dir}[/]")
+    if evaluate:
+        report_paths = _evaluate_and_report([run_dir], run_dir / "report")
+        print(f"report: {report_paths[1]}")
+
+
+def _evaluate_and_report(run_dirs: list[Path], out_dir: Path) -> tuple[Path, Path]:
+    from area3d_eval.report import evaluate_runs, write_report
+
+    evaluate_runs(run_dirs, console=console)
+    return write_report(run_dirs, out_dir)
+
+
+@app.command()
+def report(
+    run_dirs: list[Path] = typer.Argument(..., help="run directories written by `area3d run`"),
+    out: Path = typer.Option(None, help="report directory (default: RUN_DIR/report for one run, ./report otherwise)"),
+) -> None:
+    """Evaluate run directories (if not yet) and write a Markdown + HTML report."""
+    for run_dir in run_dirs:
+        if not (run_dir / "episode.json").is_file():
+            _fail(f"run dir: got {str(run_dir)!r}, expected a directory containing episode.json")
+    out = out or (run_dirs[0] / "report" if len(run_dirs) == 1 else Path("report"))
+    md, html = _evaluate_and_report(run_dirs, out)
+    print(f"report: {html}\nmarkdown: {md}")
+
+
+@app.command()
+def launch(
+    params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
+    param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
+    loopback: bool = typer.Option(False, help="pin Cyclone DDS to 127.0.0.1 (default: your normal DDS network)"),
+    domain_id: int = typer.Option(None, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)"),
+) -> None:
+    """Start the node graph and keep it running (Ctrl-C stops every node)."""
+    import os
+    import tempfile
+
+    from area3d_bringup.launch_description import build_graph, load_parameters
+    from area3d_bringup.launcher import Launcher, NodeDied
+
+    env = {}
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    if loopback:
+        from area3d_msgs_py.dds_config import loopback_config
+
+        env["CYCLONEDDS_URI"] = loopback_config(int(env.get("ROS_DOMAIN_ID", os.environ.get("ROS_DOMAIN_ID", "0"))))
+    specs = build_graph(load_parameters(params), _overrides(param))
+    with tempfile.TemporaryDirectory(prefix="area3d-launch-") as workdir:
+        launcher = Launcher(specs, Path(workdir), env=env)
+        launcher.start()
+        console.print(f"started {', '.join(s.name for s in specs)}; Ctrl-C stops them")
+        code = 0
+        try:
+            launcher.wait()
+        except NodeDied as err:
+            console.print(f"[bold red]{err}[/]")
+            code = 1
+        finally:
+            launcher.stop()
+    raise typer.Exit(code)
+
+
+@app.command()
+def node(name: str = typer.Argument(..., help="sim_bridge | perception | semantics | planner"),
+         args: list[str] = typer.Argument(None, help="ROS-style arguments: --ros-args -p name:=value ...")) -> None:
+    """Run a single node in the foreground."""
+    from area3d_bringup.launch_description import GRAPH_NODES
+
+    modules = dict(GRAPH_NODES)
+    if name not in modules:
+        _fail(f"node: got {name!r}, expected one of {sorted(modules)}")
+    importlib.import_module(modules[name]).main(list(args or []))
+
+
+@app.command()
+def scenes() -> None:
+    """List the bundled scenes."""
+    from sim_bridge.scenes import list_scenes, load_scene
+
+    for name in list_scenes():
+        scene = load_scene(name)
+        print(f"{name:16s} {scene.level:7s} |O_0|={len(scene.initial_views):2d} held-out={len(scene.eval_views)}")
+
+
+BENCHES = {
+    "transport": "area3d_msgs_py.bench",
+    "render": "sim_bridge.bench",
+    "perception": "area3d_perception.bench",
+    "semantics": "area3d_semantics.bench",
+    "planner": "area3d_planner.bench",
+    "eval": "area3d_eval.bench",
+}
+
+
+def _bench_command(name: str, module: str) -> None:
+    def command() -> None:
+        importlib.import_module(module).run_bench()
+
+    command.__doc__ = f"Benchmark: {name} (see {module})."
+    bench_app.command(name)(command)
+
+
+for _name, _module in BENCHES.items():
+    _bench_command(_name, _module)
+
+
+@bench_app.command("episode")
+def bench_episode(
+    seeds: int = typer.Option(3),
+    policies: str = typer.Option("area3d,random,uniform,vlm_naive,volumetric_ig,no_vlm,no_ff,gamma0"),
+    scenes_: str = typer.Option("", "--scenes", help="comma list (default: all object-level scenes)"),
+    budget: int = typer.Option(None),
+    out: Path = typer.Option(Path("runs/bench")),
+) -> None:
+    """Every policy on every object-level scene with several seeds; prints the table."""
+    from area3d_bringup.episode_bench import run_episode_bench
+
+    run_episode_bench(seeds=seeds, policies=policies.split(","), scenes=[s for s in scenes_.split(",") if s],
+                      budget=budget, out=out, console=console)
+
+
+def main() -> None:
+    app(prog_name="area3d")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,77 @@
+"""The AREA3D node graph as data: which nodes run, from which module, with which parameters."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import yaml
+
+#: (node name, python module with `main(argv)`) in start order: the camera first, the planner last.
+GRAPH_NODES: tuple[tuple[str, str], ...] = (
+    ("sim_bridge", "sim_bridge.node"),
+    ("perception", "area3d_perception.node"),
+    ("semantics", "area3d_semantics.node"),
+    ("planner", "area3d_planner.node"),
+)
+
+
+@dataclass
+class NodeSpec:
+    """One node process: its ROS name, the module whose `main` runs it, its parameters."""
+
+    name: str
+    module: str
+    parameters: dict = field(default_factory=dict)
+
+
+def default_params_file() -> Path:
+    """The bundled parameter file (`area3d_bringup/config/area3d.yaml`)."""
+    return Path(str(resources.files("area3d_bringup") / "config" / "area3d.yaml"))
+
+
+def load_parameters(path: Path | None = None) -> dict[str, dict]:
+    """{node_name: {param: value}} from a ROS 2 parameter YAML file (`ros__parameters` sections)."""
+    path = Path(path) if path is not None else default_params_file()
+    if not path.is_file():
+        raise FileNotFoundError(f"params file: got {str(path)!r}, expected an existing ROS 2 parameter YAML file")
+    data = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"params file {path}: expected a mapping of node names, got {type(data).__name__}")
+    out: dict[str, dict] = {}
+    for node_name, section in data.items():
+        params = (section or {}).get("ros__parameters", {}) if isinstance(section, dict) else {}
+        out[str(node_name).lstrip("/")] = dict(params or {})
+    return out
+
+
+def parse_override(text: str) -> tuple[str, str, object]:
+    """`NODE.NAME=VALUE` -> (node, name, yaml-typed value)."""
+    key, sep, raw = text.partition("=")
+    node, dot, name = key.partition(".")
+    if not sep or not dot or not node or not name:
+        raise ValueError(f"--param: got {text!r}, expected NODE.NAME=VALUE, e.g. planner.eta=0.3")
+    return node, name, yaml.safe_load(raw) if raw else ""
+
+
+def build_graph(
+    params: dict[str, dict] | None = None,
+    overrides: dict[str, dict] | None = None,
+    nodes: tuple[tuple[str, str], ...] = GRAPH_NODES,
+) -> list[NodeSpec]:
+    """The node specs for one launch: bundled defaults <- `params` <- `overrides`."""
+    merged = copy.deepcopy(load_parameters() if params is None else params)
+    for node, values in (overrides or {}).items():
+        merged.setdefault(node, {}).update(values)
+    shared = merged.get("**", {})
+    return [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
+
+
+def write_params_file(specs: list[NodeSpec], path: Path) -> Path:
+    """Write the specs' parameters as one ROS 2 parameter YAML file (what each node process reads)."""
+    data = {spec.name: {"ros__parameters": spec.parameters} for spec in specs}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path

@@ -1,0 +1,161 @@
+"""The launcher starts each node as its own process, forwards logs, and leaves no orphans."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from area3d_bringup.launch_description import (
+    GRAPH_NODES,
+    NodeSpec,
+    build_graph,
+    load_parameters,
+    parse_override,
+    write_params_file,
+)
+from area3d_bringup.launcher import Launcher, NodeDied
+
+FAKE_NODE = textwrap.dedent(
+    """
+    import os, sys, time, signal, yaml
+    args = sys.argv[1:]
+    params_file = args[args.index("--params-file") + 1]
+    name = args[args.index("-r") + 1].split(":=")[1]
+    params = yaml.safe_load(open(params_file))[name]["ros__parameters"]
+    print(f"pid={os.getpid()} params={params}", flush=True)
+    if params.get("die_after_s") is not None:
+        time.sleep(params["die_after_s"]); sys.exit(3)
+    signal.signal(signal.SIGINT, lambda *a: (print("clean stop", flush=True), sys.exit(0)))
+    if params.get("ignore_sigint"):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    while True:
+        time.sleep(0.05)
+    """
+)
+
+
+@pytest.fixture()
+def fake_env(tmp_path: Path) -> dict[str, str]:
+    (tmp_path / "fake_node.py").write_text(FAKE_NODE)
+    return {"PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _pids(launcher: Launcher, timeout_s: float = 10.0) -> dict[str, int]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        pids = {n: int(l.split("pid=")[1].split()[0]) for n, lines in launcher.output.items() for l in lines if "pid=" in l}
+        if len(pids) == len(launcher.specs):
+            return pids
+        time.sleep(0.05)
+    raise AssertionError(f"nodes did not start: {launcher.output}")
+
+
+def test_each_node_runs_in_its_own_process_with_its_parameters_and_prefixed_logs(tmp_path, fake_env):
+    lines: list[str] = []
+    specs = [NodeSpec("alpha", "fake_node", {"x": 1}), NodeSpec("beta", "fake_node", {"y": "two"})]
+    launcher = Launcher(specs, tmp_path, env=fake_env, log_sink=lines.append)
+    launcher.start()
+    try:
+        pids = _pids(launcher)
+        assert len(set(pids.values()) | {os.getpid()}) == 3
+        assert any(l.startswith("[alpha] ") and "'x': 1" in l for l in lines)
+        assert any(l.startswith("[beta] ") and "'y': 'two'" in l for l in lines)
+    finally:
+        codes = launcher.stop()
+    assert codes == {"alpha": 0, "beta": 0}, "SIGINT should stop the nodes cleanly"
+    assert not any(_alive(pid) for pid in pids.values())
+
+
+def test_a_node_that_ignores_sigint_is_still_stopped(tmp_path, fake_env):
+    specs = [NodeSpec("stubborn", "fake_node", {"ignore_sigint": True})]
+    launcher = Launcher(specs, tmp_path, env=fake_env, log_sink=lambda _: None)
+    launcher.start()
+    pid = _pids(launcher)["stubborn"]
+    codes = launcher.stop(grace_s=0.5)
+    assert codes["stubborn"] == -signal.SIGTERM
+    assert not _alive(pid)
+
+
+def test_death_of_a_node_is_reported_by_name(tmp_path, fake_env):
+    specs = [NodeSpec("fine", "fake_node", {}), NodeSpec("fragile", "fake_node", {"die_after_s": 0.3})]
+    launcher = Launcher(specs, tmp_path, env=fake_env, log_sink=lambda _: None)
+    launcher.start()
+    try:
+        with pytest.raises(NodeDied) as info:
+            deadline = time.monotonic() + 15
+            while time.monotonic() < deadline:
+                launcher.check()
+                time.sleep(0.05)
+        assert info.value.name == "fragile" and info.value.returncode == 3
+    finally:
+        launcher.stop()
+
+
+def test_children_die_with_a_killed_launcher(tmp_path, fake_env):
+    script = tmp_path / "launch_and_hang.py"
+    script.write_text(textwrap.dedent(
+        f"""
+        import sys, time
+        from pathlib import Path
+        from area3d_bringup.launcher import Launcher
+        from area3d_bringup.launch_description import NodeSpec
+        launcher = Launcher([NodeSpec("orphan", "fake_node", {{}})], Path({str(tmp_path)!r}), env={fake_env!r},
+                            log_sink=lambda l: print(l, flush=True))
+        launcher.start()
+        time.sleep(60)
+        """))
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    line = parent.stdout.readline()
+    child_pid = int(line.split("pid=")[1].split()[0])
+    assert _alive(child_pid)
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 5
+    while _alive(child_pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(child_pid), "a node outlived its killed launcher"
+
+
+def test_graph_has_the_four_nodes_with_bundled_defaults_and_overrides():
+    specs = build_graph(overrides={"planner": {"eta": 0.5}})
+    assert [s.name for s in specs] == [name for name, _ in GRAPH_NODES]
+    planner = next(s for s in specs if s.name == "planner")
+    assert planner.parameters["eta"] == 0.5
+    assert load_parameters()["planner"]["eta"] == 0.3  # the paper's value stays the default
+
+
+def test_params_file_round_trips_in_ros2_format(tmp_path):
+    specs = [NodeSpec("planner", "m", {"eta": 0.3, "policy": "area3d"})]
+    path = write_params_file(specs, tmp_path / "p.yaml")
+    assert load_parameters(path) == {"planner": {"eta": 0.3, "policy": "area3d"}}
+
+
+@pytest.mark.parametrize("bad", ["eta=0.3", "planner.eta", ".eta=1", "planner.=1"])
+def test_malformed_override_names_the_expected_form(bad):
+    with pytest.raises(ValueError, match="NODE.NAME=VALUE"):
+        parse_override(bad)
+
+
+def test_override_values_are_yaml_typed():
+    assert parse_override("planner.budget=12") == ("planner", "budget", 12)
+    assert parse_override("semantics.backend=none") == ("semantics", "backend", "none")
+
+
+def test_missing_params_file_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.yaml"):
+        load_parameters(tmp_path / "nope.yaml")
