@@ -1,0 +1,52 @@
+"""The fused uncertainty grid as a point cloud (one point per non-empty voxel) and as PointCloud2."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from area3d_planner.fusion import OCCUPIED, FusedGrid
+
+CLOUD_DTYPE = np.dtype(
+    [
+        ("x", np.float32),
+        ("y", np.float32),
+        ("z", np.float32),
+        ("uncertainty", np.float32),
+        ("geometric", np.float32),
+        ("semantic", np.float32),
+        ("occupancy", np.float32),
+    ]
+)
+
+# A voxel carrying only the global weight gamma is "empty": publishing every unexplored voxel of a
+# room would drown the display, so the cloud keeps voxels whose fused uncertainty exceeds gamma by
+# this margin, plus every occupied voxel.
+EMPTY_MARGIN = 1e-6
+
+
+def grid_to_cloud(grid: FusedGrid, field: np.ndarray | None = None) -> np.ndarray:
+    """Structured array (CLOUD_DTYPE) of the non-empty voxels, at voxel centres in `world`.
+
+    A voxel is non-empty when it is occupied, or its fused uncertainty (or `field` (N,), e.g. a
+    decayed copy) is > gamma + EMPTY_MARGIN. uncertainty = the fused U, geometric and semantic =
+    the two fields, occupancy = -1 unknown, 0 free, 1 occupied (as float32).
+    """
+    occ = grid.occupancy()
+    u = grid.fused() if field is None else np.asarray(field, np.float32)
+    keep = np.flatnonzero((occ == OCCUPIED) | (u > grid.gamma + EMPTY_MARGIN))
+    ijk = np.stack(np.unravel_index(keep, grid.spec.shape), axis=1)
+    xyz = grid.spec.lower + (ijk + 0.5) * grid.spec.voxel_size
+    cloud = np.empty(keep.size, CLOUD_DTYPE)
+    cloud["x"], cloud["y"], cloud["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    cloud["uncertainty"] = u[keep]
+    cloud["geometric"] = grid.geometric()[keep]
+    cloud["semantic"] = grid.semantic()[keep]
+    cloud["occupancy"] = occ[keep]
+    return cloud
+
+
+def grid_to_msg(grid: FusedGrid, stamp_ns: int, frame_id: str = "world"):
+    """sensor_msgs/PointCloud2 of `grid_to_cloud(grid)` (area3d_msgs_py codecs)."""
+    from area3d_msgs_py.codecs import pointcloud_to_msg
+
+    return pointcloud_to_msg(grid_to_cloud(grid), stamp_ns, frame_id)

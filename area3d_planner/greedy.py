@@ -1,0 +1,161 @@
+"""Budgeted next-best-view selection: plain greedy and lazy greedy (the paper's Algorithm 1).
+
+Objective of a view v under field U: utility(v) = sum_{i in mask(v)} p_i U_i + prior(seed(v)),
+prior = -w_dist * ||seed - start||, a constant per seed. After each committed view the field is
+decayed on the view's mask, U_i <- (1 - eta) U_i, and views near the committed one are suppressed
+(light NMS). Decay and suppression only lower utilities, so a seed's last computed best utility
+is an upper bound of its current one: lazy greedy re-evaluates only the seeds whose stale bound
+reaches the top of the queue and still returns exactly the plain greedy choices.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from area3d_msgs_py.errors import InputError
+from area3d_planner.raycast import decay_view
+from area3d_planner.visibility import VisibilityCache
+
+
+@dataclass(frozen=True)
+class GreedyParams:
+    """Tunables of the selection loop."""
+
+    eta: float = 0.3  # paper, supplement Table "frustum-based decay": decay factor 0.3
+    w_dist: float = 0.0  # distance prior weight per metre from the start (paper: "with distance prior", value not published)
+    nms_radius: float = 0.1  # metres: light NMS, views at seeds this close to a committed one ...
+    nms_angle_deg: float = 30.0  # ... and looking within this angle of it are suppressed
+
+    def validate(self) -> None:
+        if not (0.0 <= self.eta <= 1.0):
+            raise InputError("eta", self.eta, "a decay factor in [0, 1]")
+        if not (np.isfinite(self.w_dist) and self.w_dist >= 0):
+            raise InputError("w_dist", self.w_dist, "a finite value >= 0")
+        if not (np.isfinite(self.nms_radius) and self.nms_radius >= 0):
+            raise InputError("nms_radius", self.nms_radius, "a finite value >= 0 metres")
+        if not (0 <= self.nms_angle_deg <= 180):
+            raise InputError("nms_angle_deg", self.nms_angle_deg, "a value in [0, 180] degrees")
+
+
+@dataclass
+class Selection:
+    """Result of a greedy run: committed view indices (in order), their utilities at commit time,
+    the decayed field, and how many single-view utilities were evaluated."""
+
+    views: list[int] = field(default_factory=list)
+    utilities: list[float] = field(default_factory=list)
+    field: np.ndarray | None = None
+    evaluations: int = 0
+
+
+def seed_prior(cache: VisibilityCache, start: np.ndarray | None, w_dist: float) -> np.ndarray:
+    """(S,) float64 distance prior -w_dist * ||seed - start|| (zeros without a start)."""
+    if start is None or w_dist == 0.0:
+        return np.zeros(cache.num_seeds)
+    return -w_dist * np.linalg.norm(cache.seeds - np.asarray(start, np.float64)[None, :3], axis=1)
+
+
+def _nms_suppress(
+    cache: VisibilityCache, excluded: np.ndarray, view: int, params: GreedyParams
+) -> None:
+    """Mark views (S, B) within nms_radius and nms_angle_deg of `view` as excluded (itself included)."""
+    s, b = divmod(view, cache.num_bins)
+    near_seeds = np.linalg.norm(cache.seeds - cache.seeds[s], axis=1) <= params.nms_radius
+    cos_angle = np.clip(cache.forward @ cache.forward[b], -1.0, 1.0)
+    near_bins = np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9
+    near_bins[b] = True
+    near_seeds[s] = True
+    excluded[np.ix_(near_seeds, near_bins)] = True
+
+
+def _check(cache: VisibilityCache, U: np.ndarray, budget: int, params: GreedyParams) -> np.ndarray:
+    params.validate()
+    U = np.array(U, dtype=np.float64)
+    if U.shape != (cache.spec.num_voxels,):
+        raise InputError("field", U.shape, f"({cache.spec.num_voxels},) flat voxel field")
+    if not np.all(np.isfinite(U)) or np.any(U < 0):
+        raise InputError("field", "non-finite or negative values", "finite uncertainties >= 0")
+    if int(budget) < 0:
+        raise InputError("budget", budget, "an integer >= 0")
+    return U
+
+
+def plain_greedy(
+    cache: VisibilityCache,
+    U: np.ndarray,
+    budget: int,
+    params: GreedyParams | None = None,
+    start: np.ndarray | None = None,
+) -> Selection:
+    """Re-score every unsuppressed view each iteration and commit the best (ties: lowest view index).
+
+    U: (N,) field, copied (the caller's array is not decayed). Returns at most `budget` views.
+    """
+    params = params or GreedyParams()
+    U = _check(cache, U, budget, params)
+    prior = np.repeat(seed_prior(cache, start, params.w_dist), cache.num_bins)
+    excluded = np.zeros((cache.num_seeds, cache.num_bins), bool)
+    out = Selection(field=U)
+    for _ in range(int(budget)):
+        alive = ~excluded.ravel()
+        if not alive.any():
+            break
+        scores = cache.score(U) + prior
+        out.evaluations += int(alive.sum())
+        scores[~alive] = -np.inf
+        v = int(np.argmax(scores))
+        out.views.append(v)
+        out.utilities.append(float(scores[v]))
+        decay_view(cache.indptr, cache.voxel_ids, U, v, 1.0 - params.eta)
+        _nms_suppress(cache, excluded, v, params)
+    return out
+
+
+def lazy_greedy(
+    cache: VisibilityCache,
+    U: np.ndarray,
+    budget: int,
+    params: GreedyParams | None = None,
+    start: np.ndarray | None = None,
+) -> Selection:
+    """Algorithm 1: a max-priority queue over seeds keyed by an upper bound of their best view.
+
+    Pop the top seed, score its fan of orientations from the cached masks; commit its best view
+    if it still beats the next key (ties: lower seed, then lower bin, as plain greedy), otherwise
+    reinsert it with the fresh key. Same result as `plain_greedy`, far fewer evaluations.
+    """
+    params = params or GreedyParams()
+    U = _check(cache, U, budget, params)
+    nb = cache.num_bins
+    prior = seed_prior(cache, start, params.w_dist)
+    excluded = np.zeros((cache.num_seeds, nb), bool)
+    out = Selection(field=U)
+    if cache.num_views == 0 or int(budget) == 0:
+        return out
+    initial = cache.score(U).reshape(cache.num_seeds, nb) + prior[:, None]
+    out.evaluations += cache.num_views
+    heap = [(-float(initial[s].max()), s) for s in range(cache.num_seeds)]
+    heapq.heapify(heap)
+    while heap and len(out.views) < int(budget):
+        _, s = heapq.heappop(heap)
+        alive = ~excluded[s]
+        if not alive.any():
+            continue
+        scores = cache.score_seed(U, s) + prior[s]
+        out.evaluations += int(alive.sum())
+        scores[~alive] = -np.inf
+        b = int(np.argmax(scores))
+        fresh = float(scores[b])
+        if heap and (-fresh, s) > heap[0]:
+            heapq.heappush(heap, (-fresh, s))
+            continue
+        v = s * nb + b
+        out.views.append(v)
+        out.utilities.append(fresh)
+        decay_view(cache.indptr, cache.voxel_ids, U, v, 1.0 - params.eta)
+        _nms_suppress(cache, excluded, v, params)
+        heapq.heappush(heap, (-fresh, s))
+    return out

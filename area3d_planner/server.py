@@ -1,0 +1,265 @@
+"""The planner's state and the next-best-view service logic, without transport.
+
+`NextBestViewServer` fuses frames (paired by stamp upstream), keeps a bounded per-stamp cache so
+semantic maps arriving later can be back-projected with their own depth and pose, and answers
+plan requests with `(poses, reason)`: an empty pose list always comes with the reason.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from area3d_msgs_py.errors import InputError
+from area3d_perception.grid import GridSpec
+from area3d_planner.fusion import FusedGrid
+from area3d_planner.greedy import GreedyParams
+from area3d_planner.policies import PlanningContext, make_policy
+from area3d_planner.visibility import VisibilityParams
+
+MODES = ("batch", "closed_loop")
+
+
+@dataclass
+class PlannerConfig:
+    """All planner parameters; defaults are the paper's object level where it fixes them."""
+
+    workspace_min: tuple = (-1.0, -1.0, 0.0)
+    workspace_max: tuple = (1.0, 1.0, 1.5)
+    roi_min: tuple = (-0.3, -0.3, 0.0)
+    roi_max: tuple = (0.3, 0.3, 0.5)
+    voxel_size: float = 0.01  # metres: 0.01 object level, 0.05 room level (our choice)
+    gamma: float = 0.01  # paper, supplement: 0.01 object level, 0.005 scene level
+    eta: float = 0.3  # paper, supplement: decay factor
+    semantic_weight: float = 1.0  # 0 = the "without VLM" ablation
+    unobserved_uncertainty: float = 1.0  # DESIGN.md: unobserved space = high uncertainty
+    seed_spacing: float = 0.1  # metres: 0.1 object level, 0.5 room level (our choice)
+    clearance: float = 0.05  # metres, as sim_bridge.validity.check_pose
+    yaw_bins: int = 12
+    pitch_bins: int = 5
+    mc_rays: int = 256
+    hfov_deg: float = 90.0  # paper: FOV 90 degrees
+    max_range: float = 5.0  # paper: max depth 5 m
+    width: int = 640
+    height: int = 480
+    w_dist: float = 0.0
+    nms_radius: float = 0.1
+    nms_angle_deg: float = 30.0
+    carve_stride: int = 2
+    policy: str = "area3d"
+    mode: str = "batch"
+    budget: int = 25  # paper: T = 25 object level, 40 scene level (total, initial views included)
+    seed: int = 0
+    frame_cache: int = 64  # frames kept per stamp for late semantic maps
+
+    def validate(self) -> None:
+        if self.mode not in MODES:
+            raise InputError("mode", self.mode, f"one of {', '.join(MODES)}")
+        make_policy(self.policy)
+        if int(self.budget) < 1:
+            raise InputError(
+                "budget", self.budget, "an integer >= 1 (total views, initial ones included)"
+            )
+        lo, hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
+            raise InputError(
+                "workspace_min/workspace_max", [lo.tolist(), hi.tolist()], "min < max on every axis"
+            )
+
+
+@dataclass
+class PlanRequest:
+    """A next-best-view request: current camera pose, the stamp of the last captured frame
+    (0 = do not wait), and how many views (0 = all that the remaining budget allows)."""
+
+    start: np.ndarray | None
+    stamp_ns: int = 0
+    num_views: int = 0
+
+
+@dataclass
+class _Frame:
+    depth: np.ndarray
+    K: np.ndarray
+    T: np.ndarray
+
+
+@dataclass
+class NextBestViewServer:
+    config: PlannerConfig
+    scene: object | None = None
+    grid: FusedGrid = field(init=False)
+    committed: int = field(init=False, default=0)
+    initial_frames: int | None = field(init=False, default=None)
+    last_fused_stamp: int = field(init=False, default=0)
+
+    def __post_init__(self) -> None:
+        c = self.config
+        c.validate()
+        lo = np.minimum(np.asarray(c.workspace_min, float), np.asarray(c.roi_min, float))
+        hi = np.maximum(np.asarray(c.workspace_max, float), np.asarray(c.roi_max, float))
+        spec = GridSpec.from_bounds(lo, hi, c.voxel_size)
+        self.grid = FusedGrid(
+            spec, c.roi_min, c.roi_max, c.gamma, c.unobserved_uncertainty, c.semantic_weight
+        )
+        self.context = PlanningContext(
+            grid=self.grid,
+            workspace_lo=np.asarray(c.workspace_min, float),
+            workspace_hi=np.asarray(c.workspace_max, float),
+            seed_spacing=c.seed_spacing,
+            clearance=c.clearance,
+            visibility=VisibilityParams(
+                yaw_bins=c.yaw_bins,
+                pitch_bins=c.pitch_bins,
+                mc_rays=c.mc_rays,
+                hfov_deg=c.hfov_deg,
+                width=c.width,
+                height=c.height,
+                max_range=c.max_range,
+                rng_seed=c.seed,
+            ),
+            greedy=GreedyParams(
+                eta=c.eta, w_dist=c.w_dist, nms_radius=c.nms_radius, nms_angle_deg=c.nms_angle_deg
+            ),
+            rng_seed=c.seed,
+            scene=self.scene,
+        )
+        self.context.visibility.validate()
+        self.context.greedy.validate()
+        self.policy = make_policy(c.policy)
+        self._lock = threading.RLock()
+        self._fused = threading.Condition(self._lock)
+        self._frames: OrderedDict[int, _Frame] = OrderedDict()
+        self._pending_semantic: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._fused_stamps: set[int] = set()
+
+    # ------------------------------------------------------------------ fusion
+    def add_frame(
+        self, stamp_ns: int, depth: np.ndarray, conf: np.ndarray, K: np.ndarray, T: np.ndarray
+    ) -> None:
+        """Fuse one frame and remember its depth/pose for a semantic map of the same stamp."""
+        with self._lock:
+            self.grid.integrate_depth(
+                depth, conf, K, T, self.config.max_range, self.config.carve_stride
+            )
+            self._frames[int(stamp_ns)] = _Frame(
+                np.asarray(depth, np.float32), np.asarray(K, float), np.asarray(T, float)
+            )
+            while len(self._frames) > self.config.frame_cache:
+                self._frames.popitem(last=False)
+            self._fused_stamps.add(int(stamp_ns))
+            self.last_fused_stamp = max(self.last_fused_stamp, int(stamp_ns))
+            self.context.invalidate()
+            pending = self._pending_semantic.pop(int(stamp_ns), None)
+            if pending is not None:
+                self.grid.integrate_semantic(pending, depth, K, T)
+            self._fused.notify_all()
+
+    def add_semantic(self, stamp_ns: int, u_sem: np.ndarray) -> bool:
+        """Fuse U_sem (H, W) with the depth and pose of the same stamp; held back (bounded) until
+        that frame arrives. Returns True if it was fused now."""
+        with self._lock:
+            frame = self._frames.get(int(stamp_ns))
+            if frame is None:
+                self._pending_semantic[int(stamp_ns)] = np.asarray(u_sem, np.float32)
+                while len(self._pending_semantic) > self.config.frame_cache:
+                    self._pending_semantic.popitem(last=False)
+                return False
+            self.grid.integrate_semantic(u_sem, frame.depth, frame.K, frame.T)
+            return True
+
+    def wait_fused(self, stamp_ns: int, timeout_s: float) -> bool:
+        """Block until the frame `stamp_ns` (0 = none) has been fused, or timeout; True if it has."""
+        with self._fused:
+            return self._fused.wait_for(
+                lambda: stamp_ns <= 0 or stamp_ns in self._fused_stamps, timeout_s
+            )
+
+    # ------------------------------------------------------------------ planning
+    def remaining_budget(self) -> int:
+        """Views the budget still allows: budget - max(frames fused, initial frames + committed)."""
+        initial = self.grid.frames if self.initial_frames is None else self.initial_frames
+        return max(0, int(self.config.budget) - max(self.grid.frames, initial + self.committed))
+
+    def status(self) -> dict:
+        return {
+            "frames_fused": self.grid.frames,
+            "last_fused_stamp_ns": self.last_fused_stamp,
+            "semantic_frames_fused": self.grid.semantic_frames,
+            "mode": self.config.mode,
+            "policy": self.config.policy,
+            "committed_views": self.committed,
+            "remaining_budget": self.remaining_budget(),
+        }
+
+    def plan(self, request: PlanRequest) -> tuple[list[np.ndarray], str]:
+        """Poses (T_world_cam, optical frame) for the request, and a reason ("" when all is well).
+
+        Empty plan when: no frame fused yet, the budget is spent, the request asks for more views
+        than there are candidates, no valid candidate seed, a non-finite field or a bad start pose.
+        """
+        with self._lock:
+            if self.grid.frames == 0:
+                return [], "no frame fused yet: capture the initial views first"
+            if request.start is not None:
+                s = np.asarray(request.start, float)
+                if s.shape != (4, 4) or not np.all(np.isfinite(s)):
+                    return (
+                        [],
+                        f"start: got {s.shape} with non-finite values, expected a finite (4, 4) pose",
+                    )
+            try:
+                num = int(request.num_views)
+            except (TypeError, ValueError):
+                return [], f"num_views: got {request.num_views!r}, expected an integer >= 0"
+            if num < 0:
+                return (
+                    [],
+                    f"num_views: got {num}, expected an integer >= 0 (0 = the remaining budget)",
+                )
+            if self.initial_frames is None:
+                self.initial_frames = self.grid.frames
+            remaining = self.remaining_budget()
+            if remaining == 0:
+                return [], f"budget: all {self.config.budget} views are spent"
+            if num == 0:
+                # batch: the whole remaining budget at once; closed loop: the next best view only.
+                want = remaining if self.config.mode == "batch" else 1
+            else:
+                want = num
+            if want > remaining:
+                return (
+                    [],
+                    f"num_views: got {num}, expected at most the remaining budget {remaining}",
+                )
+            for name, arr in (("geometric", self.grid.conf_sum), ("semantic", self.grid.sem_sum)):
+                if not np.all(np.isfinite(arr)):
+                    return [], f"{name} uncertainty: got NaN voxels, expected finite values"
+            self.context.start = None if request.start is None else np.asarray(request.start, float)
+            try:
+                seeds = self.context.seeds()
+                if seeds.shape[0] == 0:
+                    return (
+                        [],
+                        "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
+                    )
+                candidates = (
+                    seeds.shape[0]
+                    * self.context.visibility.yaw_bins
+                    * self.context.visibility.pitch_bins
+                )
+                if want > candidates:
+                    return (
+                        [],
+                        f"num_views: got {want}, expected at most the {candidates} candidate views",
+                    )
+                poses = self.policy.select_views(self.context, want)
+            except InputError as exc:
+                return [], str(exc)
+            if not poses:
+                return [], "no candidate view sees the region of interest"
+            self.committed += len(poses)
+            return poses, ""

@@ -1,0 +1,121 @@
+import numpy as np
+import pytest
+
+from area3d_msgs_py.errors import InputError
+from area3d_perception.grid import GridSpec
+from area3d_planner.cloud import CLOUD_DTYPE, grid_to_cloud
+from area3d_planner.fusion import FusedGrid
+from area3d_planner.visibility import look_at
+
+K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])  # 64x48 image, 90 degree hfov
+
+
+def wall_frame():
+    """Camera at x = 0.1 looking along +x at a wall at x = 0.625 (mid-voxel)."""
+    T = look_at(np.array([0.1, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
+    depth = np.full((48, 64), 0.525, np.float32)
+    return depth, T
+
+
+def make_grid(**kw):
+    spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.05)
+    return FusedGrid(spec, np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, 1.0]), **kw)
+
+
+def at(grid, point):
+    return grid.spec.flat_index(np.asarray([point]))[0][0]
+
+
+def test_depth_frame_marks_wall_occupied_space_before_it_free_and_behind_it_unknown():
+    grid = make_grid(gamma=0.01)
+    depth, T = wall_frame()
+    grid.integrate_depth(depth, np.full_like(depth, 0.75), K, T, max_range=5.0, stride=1)
+    occ = grid.occupancy()
+    assert occ[at(grid, [0.62, 0.5, 0.5])] == 1
+    assert occ[at(grid, [0.35, 0.5, 0.5])] == 0
+    assert occ[at(grid, [0.85, 0.5, 0.5])] == -1
+    geo = grid.geometric()
+    assert geo[at(grid, [0.62, 0.5, 0.5])] == pytest.approx(0.25)
+    assert geo[at(grid, [0.35, 0.5, 0.5])] == 0.0
+    assert geo[at(grid, [0.85, 0.5, 0.5])] == 1.0
+
+
+def test_pixels_without_return_carve_free_space_to_max_range():
+    grid = make_grid(gamma=0.01)
+    depth, T = wall_frame()
+    depth[:] = np.nan
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=0.6, stride=1)
+    occ = grid.occupancy()
+    assert occ[at(grid, [0.45, 0.5, 0.5])] == 0
+    assert occ[at(grid, [0.9, 0.5, 0.5])] == -1  # beyond z = 0.6 m from the camera
+    assert not np.any(occ == 1)
+
+
+def test_fused_adds_gamma_to_every_non_free_roi_voxel_and_is_zero_outside_the_roi():
+    spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.05)
+    grid = FusedGrid(spec, np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, 0.5]), gamma=0.01)
+    depth, T = wall_frame()
+    grid.integrate_depth(depth, np.full_like(depth, 0.75), K, T, stride=1)
+    u, occ, geo = grid.fused(), grid.occupancy(), grid.geometric()
+    inside = grid.roi_mask
+    non_free = occ != 0
+    np.testing.assert_allclose(u[inside & non_free], geo[inside & non_free] + 0.01, rtol=1e-6)
+    assert np.all(u[inside & ~non_free] == 0)
+    assert np.all(u[~inside] == 0)
+    assert inside.any() and (~inside).any()
+
+
+def test_gamma_zero_ablation_leaves_unobserved_uncertainty_only():
+    grid = make_grid(gamma=0.0)
+    depth, T = wall_frame()
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, stride=1)
+    u = grid.fused()
+    assert u[at(grid, [0.62, 0.5, 0.5])] == 0.0  # full confidence surface, no gamma
+    assert u[at(grid, [0.85, 0.5, 0.5])] == 1.0
+
+
+def test_semantic_is_the_mean_of_the_splatted_maps_and_weighted_into_the_field():
+    grid = make_grid(gamma=0.0, semantic_weight=0.5)
+    depth, T = wall_frame()
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, stride=1)
+    grid.integrate_semantic(np.full_like(depth, 0.2), depth, K, T)
+    grid.integrate_semantic(np.full_like(depth, 0.6), depth, K, T)
+    v = at(grid, [0.62, 0.5, 0.5])
+    assert grid.semantic()[v] == pytest.approx(0.4)
+    assert grid.fused()[v] == pytest.approx(0.5 * 0.4)
+    assert grid.semantic()[at(grid, [0.35, 0.5, 0.5])] == 0.0
+
+
+def test_bad_frames_are_rejected_naming_the_field():
+    grid = make_grid(gamma=0.01)
+    depth, T = wall_frame()
+    with pytest.raises(InputError, match="confidence"):
+        grid.integrate_depth(depth, np.ones((4, 4), np.float32), K, T)
+    bad = T.copy()
+    bad[:3, :3] *= 2
+    with pytest.raises(InputError, match="T_world_cam"):
+        grid.integrate_depth(depth, np.ones_like(depth), K, bad)
+
+
+def test_cloud_holds_occupied_and_uncertain_voxels_with_their_fields():
+    grid = make_grid(gamma=0.01)
+    depth, T = wall_frame()
+    grid.integrate_depth(depth, np.full_like(depth, 0.75), K, T, stride=1)
+    cloud = grid_to_cloud(grid)
+    assert cloud.dtype == CLOUD_DTYPE
+    occ, u = grid.occupancy(), grid.fused()
+    expected = np.flatnonzero((occ == 1) | (u > 0.01 + 1e-6))
+    assert cloud.size == expected.size
+    v = at(grid, [0.62, 0.5, 0.5])
+    row = np.flatnonzero(
+        np.all(
+            np.abs(np.stack([cloud["x"], cloud["y"], cloud["z"]], 1) - grid.spec.centers()[v])
+            < 1e-5,
+            axis=1,
+        )
+    )
+    assert row.size == 1
+    r = cloud[row[0]]
+    assert r["occupancy"] == 1 and r["geometric"] == pytest.approx(0.25)
+    assert r["uncertainty"] == pytest.approx(0.26)
+    assert not np.any(cloud["occupancy"] == 0)  # known free voxels carry nothing

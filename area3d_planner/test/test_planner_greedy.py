@@ -1,0 +1,85 @@
+import numpy as np
+import pytest
+
+from area3d_perception.grid import GridSpec
+from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy
+from area3d_planner.visibility import VisibilityCache, VisibilityParams
+
+SMALL = VisibilityParams(yaw_bins=6, pitch_bins=2, pitch_min_deg=-30, pitch_max_deg=15, mc_rays=48)
+
+
+def random_instance(seed: int, quantised: bool = False):
+    rng = np.random.default_rng(seed)
+    spec = GridSpec.from_bounds(np.zeros(3), np.full(3, 0.6), 0.05)
+    occ = rng.choice(np.array([-1, 0, 1], np.int8), size=spec.num_voxels, p=[0.4, 0.55, 0.05])
+    seeds = rng.random((int(rng.integers(5, 25)), 3)) * 0.6
+    cache = VisibilityCache.build(spec, occ, seeds, SMALL, threads=1)
+    U = rng.random(spec.num_voxels)
+    if quantised:  # many exact ties
+        U = np.round(U * 2) / 2
+    U[occ == 0] = 0
+    return cache, U, rng
+
+
+def test_decay_lowers_exactly_the_committed_views_mask_by_one_minus_eta():
+    cache, U, _ = random_instance(0)
+    sel = plain_greedy(cache, U, 1, GreedyParams(eta=0.3))
+    ids, _ = cache.mask(sel.views[0])
+    changed = np.flatnonzero(sel.field != U)
+    np.testing.assert_array_equal(np.sort(changed), np.sort(ids[U[ids] > 0]))
+    np.testing.assert_allclose(sel.field[ids], 0.7 * U[ids])
+    others = np.setdiff1d(np.arange(U.size), ids)
+    np.testing.assert_array_equal(sel.field[others], U[others])
+
+
+def test_the_callers_field_is_not_decayed():
+    cache, U, _ = random_instance(1)
+    before = U.copy()
+    lazy_greedy(cache, U, 3)
+    np.testing.assert_array_equal(U, before)
+
+
+@pytest.mark.parametrize("instance", range(24))
+def test_lazy_greedy_returns_exactly_the_plain_greedy_views(instance):
+    cache, U, rng = random_instance(instance, quantised=instance % 3 == 0)
+    params = GreedyParams(
+        eta=float(rng.choice([0.3, 0.0, 1.0, 0.5])),
+        w_dist=float(rng.choice([0.0, 0.2])),
+        nms_radius=float(rng.choice([0.0, 0.1, 0.3])),
+        nms_angle_deg=float(rng.choice([0.0, 30.0, 90.0])),
+    )
+    start = rng.random(3) * 0.6
+    budget = int(rng.integers(1, 15))
+    plain = plain_greedy(cache, U, budget, params, start)
+    lazy = lazy_greedy(cache, U, budget, params, start)
+    assert lazy.views == plain.views
+    assert lazy.utilities == plain.utilities
+    np.testing.assert_array_equal(lazy.field, plain.field)
+
+
+def test_lazy_greedy_evaluates_far_fewer_views_than_plain_greedy():
+    cache, U, _ = random_instance(5)
+    cache_big = cache
+    plain = plain_greedy(cache_big, U, 10)
+    lazy = lazy_greedy(cache_big, U, 10)
+    assert lazy.views == plain.views
+    assert lazy.evaluations < plain.evaluations / 2
+
+
+def test_nms_never_commits_the_same_view_twice_and_stops_when_nothing_is_left():
+    cache, U, _ = random_instance(2)
+    sel = lazy_greedy(
+        cache, U, cache.num_views + 5, GreedyParams(nms_radius=0.0, nms_angle_deg=0.0)
+    )
+    assert len(sel.views) == cache.num_views
+    assert len(set(sel.views)) == len(sel.views)
+
+
+def test_negative_or_nan_fields_are_rejected():
+    cache, U, _ = random_instance(3)
+    bad = U.copy()
+    bad[0] = np.nan
+    with pytest.raises(ValueError, match="field"):
+        lazy_greedy(cache, bad, 2)
+    with pytest.raises(ValueError, match="eta"):
+        plain_greedy(cache, U, 2, GreedyParams(eta=1.5))

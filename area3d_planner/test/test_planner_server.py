@@ -1,0 +1,122 @@
+import threading
+
+import numpy as np
+import pytest
+
+from area3d_msgs_py.errors import InputError
+from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+from area3d_planner.visibility import look_at
+
+K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
+
+
+def config(**kw):
+    base = dict(
+        workspace_min=(0.0, 0.0, 0.0),
+        workspace_max=(1.0, 1.0, 1.0),
+        roi_min=(0.3, 0.0, 0.0),
+        roi_max=(1.0, 1.0, 1.0),
+        voxel_size=0.05,
+        seed_spacing=0.2,
+        yaw_bins=6,
+        pitch_bins=2,
+        mc_rays=32,
+        budget=6,
+    )
+    base.update(kw)
+    return PlannerConfig(**base)
+
+
+def frame():
+    T = look_at(np.array([0.1, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
+    depth = np.full((48, 64), 0.525, np.float32)
+    return depth, np.full_like(depth, 0.8), K, T
+
+
+def test_request_before_any_frame_gives_an_empty_plan_with_a_reason():
+    poses, reason = NextBestViewServer(config()).plan(PlanRequest(None))
+    assert poses == [] and "no frame" in reason
+
+
+def test_batch_request_for_zero_views_plans_the_remaining_budget_then_reports_it_spent():
+    srv = NextBestViewServer(config(budget=6))
+    srv.add_frame(1, *frame())
+    poses, reason = srv.plan(PlanRequest(frame()[3], 1, 0))
+    assert reason == "" and len(poses) == 5  # 6 in total, 1 captured
+    for T in poses:
+        np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9)
+        assert np.all(T[:3, 3] >= 0) and np.all(T[:3, 3] <= 1)
+    poses, reason = srv.plan(PlanRequest(None, 1, 1))
+    assert poses == [] and "budget" in reason
+
+
+def test_closed_loop_counts_captured_and_committed_views_against_the_budget():
+    srv = NextBestViewServer(config(budget=4, mode="closed_loop"))
+    srv.add_frame(1, *frame())
+    poses, _ = srv.plan(PlanRequest(None, 1, 0))
+    assert len(poses) == 1 and srv.remaining_budget() == 2
+    srv.add_frame(2, *frame())  # the planned view was captured: still 2 left
+    assert srv.remaining_budget() == 2
+    poses, reason = srv.plan(PlanRequest(None, 2, 3))
+    assert poses == [] and "remaining budget 2" in reason
+
+
+def test_more_views_than_candidates_and_nan_uncertainty_give_empty_plans():
+    srv = NextBestViewServer(config(budget=10_000))
+    srv.add_frame(1, *frame())
+    poses, reason = srv.plan(PlanRequest(None, 1, 5000))
+    assert poses == [] and "candidate" in reason
+    srv.grid.conf_sum[3] = np.nan
+    poses, reason = srv.plan(PlanRequest(None, 1, 1))
+    assert poses == [] and "NaN" in reason
+    srv.grid.conf_sum[3] = 0
+    assert srv.plan(PlanRequest(None, 1, 1))[0]  # and the server keeps serving
+
+
+def test_workspace_without_a_valid_seed_gives_an_empty_plan():
+    # workspace entirely inside unobserved space: no known-free position for a camera
+    srv = NextBestViewServer(
+        config(workspace_min=(0.8, 0.8, 0.8), workspace_max=(0.95, 0.95, 0.95))
+    )
+    srv.add_frame(1, *frame())
+    poses, reason = srv.plan(PlanRequest(None, 1, 1))
+    assert poses == [] and "workspace" in reason
+
+
+def test_degenerate_configuration_is_rejected_naming_the_field():
+    with pytest.raises(InputError, match="workspace"):
+        NextBestViewServer(config(workspace_min=(0, 0, 1), workspace_max=(1, 1, 1)))
+    with pytest.raises(InputError, match="policy"):
+        NextBestViewServer(config(policy="best"))
+    with pytest.raises(InputError, match="mode"):
+        NextBestViewServer(config(mode="online"))
+
+
+def test_semantic_map_arriving_before_its_frame_is_fused_when_the_frame_arrives():
+    srv = NextBestViewServer(config())
+    depth, conf, K_, T = frame()
+    assert srv.add_semantic(7, np.full_like(depth, 0.5)) is False
+    assert srv.grid.semantic_frames == 0
+    srv.add_frame(7, depth, conf, K_, T)
+    assert srv.grid.semantic_frames == 1 and srv.grid.semantic().max() == pytest.approx(0.5)
+    assert srv.add_semantic(7, np.full_like(depth, 0.5)) is True
+
+
+def test_request_waits_until_its_stamp_is_fused():
+    srv = NextBestViewServer(config())
+    assert srv.wait_fused(5, timeout_s=0.05) is False
+    timer = threading.Timer(0.1, lambda: srv.add_frame(5, *frame()))
+    timer.start()
+    assert srv.wait_fused(5, timeout_s=5.0) is True
+    timer.join()
+
+
+@pytest.mark.parametrize("policy", ["area3d", "volumetric_ig", "vlm_naive", "random", "uniform"])
+def test_every_policy_returns_the_requested_number_of_valid_poses(policy):
+    srv = NextBestViewServer(config(policy=policy, budget=10))
+    srv.add_frame(1, *frame())
+    poses, reason = srv.plan(PlanRequest(None, 1, 3))
+    assert reason == "" and len(poses) == 3
+    for T in poses:
+        assert np.all(T[:3, 3] >= 0) and np.all(T[:3, 3] <= 1)
+        np.testing.assert_allclose(np.linalg.det(T[:3, :3]), 1.0, atol=1e-9)
