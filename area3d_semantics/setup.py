@@ -8,6 +8,7 @@ if __name__ == "__main__":
         version="0.1.0",
         packages=["area3d_semantics"],
         package_dir={"area3d_semantics": "."},
+        package_data={"area3d_semantics": ["prompts/*.txt"]},
         data_files=[
             ("share/ament_index/resource_index/packages", ["resource/area3d_semantics"]),
             ("share/area3d_semantics", ["package.xml"]),

@@ -1,0 +1,231 @@
+"""The OpenAI-compatible client against a real HTTP server on 127.0.0.1 that replays answers."""
+
+import base64
+import io
+import json
+import socket
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from area3d_semantics.analysis import analyze_views
+from area3d_semantics.backends import OpenAIBackend, TransformersBackend, VLMError, VLMUnavailable
+from area3d_semantics.parser import parse_answer
+
+CORPUS = Path(__file__).parent / "corpus"
+H, W = 48, 64
+
+
+class FakeVLM:
+    """A chat-completions server whose next replies are scripted: ("answer", text) | ("status",
+    code, body) | ("sleep", seconds, text) | ("raw", body)."""
+
+    def __init__(self):
+        self.script: list[tuple] = []
+        self.requests: list[dict] = []
+        self.headers: list[dict] = []
+        fake = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args):
+                pass
+
+            def do_POST(self):
+                body = self.rfile.read(int(self.headers["Content-Length"]))
+                fake.requests.append({"path": self.path, "json": json.loads(body)})
+                fake.headers.append(dict(self.headers))
+                step = fake.script.pop(0) if fake.script else ("answer", "")
+                if step[0] == "sleep":
+                    time.sleep(step[1])
+                    step = ("answer", step[2])
+                if step[0] == "answer":
+                    reply = {
+                        "id": "chatcmpl-1",
+                        "object": "chat.completion",
+                        "model": "OpenGVLab/InternVL3-8B",
+                        "choices": [
+                            {
+                                "index": 0,
+                                "message": {"role": "assistant", "content": step[1]},
+                                "finish_reason": "stop",
+                            }
+                        ],
+                    }
+                    self._send(200, json.dumps(reply).encode())
+                elif step[0] == "status":
+                    self._send(step[1], step[2].encode())
+                else:
+                    self._send(200, step[1].encode())
+
+            def _send(self, code, data):
+                try:
+                    self.send_response(code)
+                    self.send_header("Content-Type", "application/json")
+                    self.send_header("Content-Length", str(len(data)))
+                    self.end_headers()
+                    self.wfile.write(data)
+                except (BrokenPipeError, ConnectionResetError):
+                    pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.server.daemon_threads = True
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/v1"
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.fixture
+def server():
+    fake = FakeVLM()
+    yield fake
+    fake.close()
+
+
+def images(n: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(n)
+    return [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(n)]
+
+
+def backend(url: str, **kw) -> OpenAIBackend:
+    return OpenAIBackend(url, "OpenGVLab/InternVL3-8B", backoff_s=0.01, **kw)
+
+
+def test_request_carries_every_image_as_png_and_the_prompt(server):
+    answer = (CORPUS / "01_internvl3_strict.txt").read_text()
+    server.script = [("answer", answer)]
+    views = images(4)
+    text = backend(server.url).analyze(views)
+    assert text == answer
+    assert parse_answer(text, 4).per_image == [5, 5, 6, 5]
+    (request,) = server.requests
+    assert request["path"] == "/v1/chat/completions"
+    body = request["json"]
+    assert body["model"] == "OpenGVLab/InternVL3-8B" and body["temperature"] == 0
+    parts = body["messages"][0]["content"]
+    urls = [p["image_url"]["url"] for p in parts if p["type"] == "image_url"]
+    assert len(urls) == 4
+    for url, sent in zip(urls, views, strict=True):
+        assert url.startswith("data:image/png;base64,")
+        decoded = np.asarray(
+            Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB")
+        )
+        assert decoded.shape == (H, W, 3)
+        np.testing.assert_array_equal(decoded, sent)
+    prompt = [p["text"] for p in parts if p["type"] == "text"][-1]
+    assert "4 columns and 3 rows" in prompt and "numbered 1 to 4" in prompt
+    assert "REGION: <cell> | TYPE: <type>" in prompt
+
+
+def test_api_key_is_sent_from_the_named_environment_variable(server, monkeypatch):
+    monkeypatch.setenv("AREA3D_TEST_VLM_KEY", "sk-test-123")
+    server.script = [("answer", "IMAGE 1\nREGION: left-top | TYPE: TEXTURE")]
+    backend(server.url, api_key_env="AREA3D_TEST_VLM_KEY").analyze(images(1))
+    assert server.headers[0]["Authorization"] == "Bearer sk-test-123"
+
+
+def test_json_answer_from_the_server_parses(server):
+    server.script = [("answer", (CORPUS / "04_qwen25vl_json_fenced.txt").read_text())]
+    parsed = parse_answer(backend(server.url).analyze(images(2)), 2)
+    assert parsed.per_image == [5, 5]
+
+
+def test_timeout_is_retried_then_reported(server):
+    server.script = [("sleep", 1.0, "late"), ("sleep", 1.0, "late")]
+    client = backend(server.url, timeout_s=0.2, retries=1)
+    with pytest.raises(VLMError, match=r"did not answer within 0.2 s"):
+        client.analyze(images(1))
+    assert len(server.requests) == 2
+
+
+def test_timeout_then_success_returns_the_answer(server):
+    server.script = [
+        ("sleep", 1.0, "late"),
+        ("answer", "IMAGE 1\nREGION: left-top | TYPE: OCCLUSION"),
+    ]
+    text = backend(server.url, timeout_s=0.3, retries=1).analyze(images(1))
+    assert "left-top" in text
+
+
+def test_server_error_is_retried_then_reported_with_status_and_body(server):
+    server.script = [("status", 503, "model loading")] * 3
+    with pytest.raises(VLMError, match=r"HTTP 503.*model loading"):
+        backend(server.url, retries=2).analyze(images(1))
+    assert len(server.requests) == 3
+
+
+def test_server_error_then_success_returns_the_answer(server):
+    server.script = [
+        ("status", 500, "oops"),
+        ("answer", "IMAGE 1\nREGION: right-top | TYPE: LIGHTING"),
+    ]
+    assert "right-top" in backend(server.url, retries=1).analyze(images(1))
+
+
+def test_client_error_is_not_retried_and_names_the_status(server):
+    server.script = [("status", 404, '{"error": "model InternVL3-8B not found"}')]
+    with pytest.raises(VLMError, match=r"HTTP 404.*not found"):
+        backend(server.url, retries=2).analyze(images(1))
+    assert len(server.requests) == 1
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ("<html>Bad Gateway</html>", "not JSON"),
+        ('{"id": "x", "choices": []}', "no choices"),
+        ('{"choices": [{"message": {"role": "assistant", "content": ""}}]}', "empty answer"),
+        ('{"choices": [{"message": {"role": "assistant", "content": null}}]}', "empty answer"),
+    ],
+)
+def test_garbage_replies_give_clear_errors(server, body, message):
+    server.script = [("raw", body)]
+    with pytest.raises(VLMError, match=message):
+        backend(server.url).analyze(images(1))
+
+
+def closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_server_error_names_the_url():
+    url = f"http://127.0.0.1:{closed_port()}"
+    with pytest.raises(VLMUnavailable, match=rf"{url}/v1/chat/completions"):
+        backend(url, retries=1).analyze(images(1))
+
+
+def test_unreachable_server_falls_back_to_the_heuristic():
+    url = f"http://127.0.0.1:{closed_port()}/v1"
+    analysis = analyze_views(backend(url, retries=0), [np.full((H, W, 3), 128, np.uint8)])
+    assert analysis.fallback_used == "heuristic" and url in analysis.error
+    assert analysis.regions and analysis.backend == "openai"
+
+
+def test_unusable_server_answer_falls_back(server):
+    server.script = [("answer", (CORPUS / "11_refusal.txt").read_text())]
+    analysis = analyze_views(backend(server.url), images(2), fallback="zeros")
+    assert analysis.fallback_used == "zeros" and "refused" in analysis.error
+
+
+def test_transformers_backend_without_a_model_directory_says_where_the_model_goes(tmp_path):
+    with pytest.raises(VLMUnavailable, match="model_dir"):
+        TransformersBackend(tmp_path / "missing")
+    (tmp_path / "config.json").write_text("{}")
+    try:
+        import torch  # noqa: F401
+        import transformers  # noqa: F401
+    except ImportError:
+        with pytest.raises(VLMUnavailable, match="pip install"):
+            TransformersBackend(tmp_path)
+    else:  # with the libraries present, construction is lazy and loads nothing yet
+        assert TransformersBackend(tmp_path)._model is None

@@ -1,0 +1,96 @@
+"""The answer parser against hand-written answers in the styles real VLMs produce."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from area3d_msgs_py.errors import InputError
+from area3d_semantics.parser import UnusableAnswer, parse_answer, parse_location
+from area3d_semantics.prompt import PROMPT_VERSION, prompt_text
+from area3d_semantics.region import COLUMNS, ROWS, TYPES
+
+CORPUS = Path(__file__).parent / "corpus"
+EXPECTED = json.loads((CORPUS / "expected.json").read_text())
+
+
+def test_corpus_has_at_least_fifteen_answers_each_with_an_expectation():
+    answers = sorted(p.name for p in CORPUS.glob("*.txt"))
+    assert len(answers) >= 15
+    assert set(answers) == set(EXPECTED)
+
+
+@pytest.mark.parametrize("name", sorted(k for k, v in EXPECTED.items() if not v.get("unusable")))
+def test_corpus_answer_parses_to_the_expected_regions(name):
+    expected = EXPECTED[name]
+    result = parse_answer((CORPUS / name).read_text(), expected["num_images"])
+    got = [(r.image_index, r.column, r.row, r.type, r.priority, r.size) for r in result.regions]
+    assert sorted(got) == sorted(tuple(e) for e in expected["regions"])
+    assert len(result.skipped) == expected["skipped"]
+    assert result.per_image == [
+        sum(e[0] == i for e in expected["regions"]) for i in range(expected["num_images"])
+    ]
+
+
+@pytest.mark.parametrize("name", sorted(k for k, v in EXPECTED.items() if v.get("unusable")))
+def test_unusable_corpus_answer_raises(name):
+    with pytest.raises(UnusableAnswer):
+        parse_answer((CORPUS / name).read_text(), EXPECTED[name]["num_images"])
+
+
+def test_reasons_are_kept_verbatim():
+    result = parse_answer((CORPUS / "01_internvl3_strict.txt").read_text(), 4)
+    assert result.regions[0].reason.startswith("The mug's handle hides the back")
+
+
+def test_refusal_is_reported_as_a_refusal():
+    with pytest.raises(UnusableAnswer, match="refused"):
+        parse_answer("I'm sorry, I cannot analyze images of this kind.", 1)
+
+
+@pytest.mark.parametrize(
+    ("text", "cells"),
+    [
+        ("center-left-middle", [("center-left", "middle")]),
+        ("top-left", [("left", "top")]),
+        ("Upper Right", [("right", "top")]),
+        ("centre-right-bottom", [("center-right", "bottom")]),
+        ("middle-left", [("left", "middle")]),
+        ("middle-left-top", [("center-left", "top")]),
+        ("left-center", [("left", "middle")]),
+        ("center", [("center-left", "middle"), ("center-right", "middle")]),
+        ("center-top", [("center-left", "top"), ("center-right", "top")]),
+        ("bottom", [(c, "bottom") for c in COLUMNS]),
+        ("right", [("right", r) for r in ROWS]),
+        ("left-top and right-bottom", [("left", "top"), ("right", "bottom")]),
+        ("left-top (behind the lamp)", [("left", "top")]),
+        ("the whole image", []),
+    ],
+)
+def test_location_phrases_name_the_expected_cells(text, cells):
+    assert parse_location(text) == cells
+
+
+def test_the_prompt_names_every_grid_word_type_and_the_line_format():
+    text = prompt_text(4)
+    assert PROMPT_VERSION == "v1"
+    for word in (*COLUMNS, *ROWS, *TYPES, "HIGH", "MEDIUM", "LOW", "small", "medium", "large"):
+        assert word in text
+    assert "REGION: <cell> | TYPE: <type> | PRIORITY: <priority> | SIZE: <size> | REASON:" in text
+    assert "5 to 8" in text and "1 to 4" in text
+
+
+def test_the_prompts_own_example_parses():
+    example = prompt_text(1).split("Example of the form (not of the content):")[1]
+    result = parse_answer(example, 1)
+    assert [(r.column, r.row, r.type) for r in result.regions] == [
+        ("center-left", "middle", "OCCLUSION"),
+        ("right", "top", "LIGHTING"),
+    ]
+
+
+def test_bad_arguments_are_rejected_at_the_boundary():
+    with pytest.raises(InputError, match="num_images"):
+        parse_answer("IMAGE 1", 0)
+    with pytest.raises(InputError, match="text"):
+        parse_answer(None, 1)
