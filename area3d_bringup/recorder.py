@@ -33,7 +33,7 @@ class BagRecorder:
                 return
             conn = self._connections.get(topic)
             if conn is None:
-                conn = self._writer.add_connection(topic, type_name, typestore=msgs.TYPESTORE)
+                conn = self._writer.add_connection(topic, type_name, typestore=msgs.typestore)
                 self._connections[topic] = conn
             self._writer.write(conn, int(stamp_ns), data)
             self.count += 1

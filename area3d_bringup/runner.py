@@ -65,7 +65,7 @@ class EpisodeError(RuntimeError):
 class EpisodeConfig:
     scene: str = "single_object"
     policy: str = "area3d"
-    budget: int | None = None  # None: the paper's T for the scene level (25 object, 40 room)
+    budget: int | None = None  # total views, O_0 included; None: the paper's T (25 object, 40 room)
     mode: str = "closed_loop"
     seed: int = 0
     out_dir: Path = Path("runs")
@@ -89,7 +89,7 @@ class Frame:
 
 
 def paper_budget(level: str) -> int:
-    """The paper's view budget T: 25 object level, 40 scene level."""
+    """The paper's view budget T (total views, O_0 included): 25 object level, 40 scene level."""
     return 25 if level == "object" else 40
 
 
@@ -258,8 +258,8 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
         raise ValueError(f"mode: got {config.mode!r}, expected 'closed_loop' or 'batch'")
     scene = load_scene(config.scene)
     budget = paper_budget(scene.level) if config.budget is None else int(config.budget)
-    if budget < 0:
-        raise ValueError(f"budget: got {budget}, expected a number of views >= 0")
+    if budget < len(scene.initial_views):
+        raise ValueError(f"budget: got {budget}, expected the total number of views, at least |O_0| = {len(scene.initial_views)}")
 
     timings: dict[str, float] = {}
     views: list[dict] = []
@@ -332,7 +332,7 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
                 raise EpisodeError(f"the planner service {NBV_SERVICE} did not appear within {config.startup_timeout_s:.0f} s")
         add_time("launch", time.monotonic() - t0)
         if progress is not None:
-            task = progress.add_task(f"{scene.name} / {config.policy}", total=n_init + budget)
+            task = progress.add_task(f"{scene.name} / {config.policy}", total=budget)
             progress.update(task, completed=len(frames))
 
         def keep(frame: Frame, kind: str, stage_times: dict) -> None:
@@ -347,7 +347,7 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
                 metric = status.get("uncertainty_total")
                 extra = f" | U={metric:.1f}" if isinstance(metric, int | float) else ""
                 progress.update(task, completed=len(frames),
-                                description=f"{scene.name} / {config.policy}: view {len(frames)}/{n_init + budget} ({kind}){extra}")
+                                description=f"{scene.name} / {config.policy}: view {len(frames)}/{budget} ({kind}){extra}")
 
         # Replay what an interrupted episode had already captured, so the new graph knows it.
         if frames:
@@ -372,17 +372,18 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
 
         planned = len(frames) - n_init
         refused = 0
-        while planned < budget:
+        to_plan = budget - n_init
+        while planned < to_plan:
             t = time.monotonic()
-            count = 1 if config.mode == "closed_loop" else budget - planned
+            count = 1 if config.mode == "closed_loop" else to_plan - planned
             poses = manager.plan(frames[-1], count, config.plan_timeout_s)
             plan_s = time.monotonic() - t
             add_time("plan", plan_s)
             launcher.check()
             if not poses:
-                log_sink(f"[mission_manager] the planner returned no view with {budget - planned} left; stopping early")
+                log_sink(f"[mission_manager] the planner returned no view with {to_plan - planned} left; stopping early")
                 break
-            for T in poses[: budget - planned]:
+            for T in poses[: to_plan - planned]:
                 t = time.monotonic()
                 result = manager.capture(T, config.capture_timeout_s)
                 add_time("capture", time.monotonic() - t)
@@ -394,8 +395,6 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
                     continue
                 planned += 1
                 keep(result, "planned", {"plan": plan_s / len(poses), "capture": time.monotonic() - t})
-            if config.mode == "batch" and planned < budget and refused:
-                continue
         manager.wait_fused(len(frames), 10.0)
         if manager.latest_grid is not None:
             grid_msg_to_npz(manager.latest_grid, run_dir / "grid_final.npz")
