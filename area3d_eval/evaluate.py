@@ -1,0 +1,235 @@
+"""Evaluate one run directory: reconstruct after n = 4, 8, ... views, compare with the ground truth,
+write RUN_DIR/metrics.json.
+
+Held-out images: the scene's eval views are rendered by the simulator (ground truth) and the TSDF
+mesh is rendered at the same poses by ray casting. The reference image keeps only pixels whose
+ground-truth surface lies in the region to reconstruct (the ROI); the rest is black, as is every
+pixel where the reconstruction has no surface. `psnr`/`ssim` are over all pixels of these images;
+`psnr_roi`/`ssim_roi` only over the pixels where the ground truth sees the ROI.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from area3d_eval.metrics import (
+    NUM_SURFACE_POINTS,
+    SURFACE_SEED,
+    ReferenceSurface,
+    mean_ssim,
+    psnr,
+    ssim_map,
+)
+from area3d_eval.open3d_loader import import_open3d
+from area3d_eval.reconstruct import TsdfFusion, TsdfParams
+from area3d_eval.render import MeshRenderer
+from area3d_eval.rundir import (
+    EVAL_DIR,
+    METRICS_FILE,
+    frame_files,
+    read_episode,
+    read_frame,
+    to_jsonable,
+)
+from area3d_msgs_py.errors import InputError
+
+CHECKPOINT_STEP = (
+    4  # evaluate after every 4th view (4 = |O_0| at object level, the paper's setting)
+)
+EVAL_WIDTH = (
+    320  # held-out images at half the camera's 640 x 480: 4x fewer rays, same field of view
+)
+EVAL_HEIGHT = 240
+EVAL_HFOV_DEG = 90.0  # the paper's camera field of view
+GT_PREVIEW_POINTS = 4000  # GT points saved next to the metrics for the views plot
+
+RendererFactory = Callable[[Any, int, int, float], Any]
+
+
+def default_checkpoints(
+    num_frames: int, num_initial: int = 0, step: int = CHECKPOINT_STEP
+) -> list[int]:
+    """Numbers of views to evaluate at: |O_0|, every multiple of `step`, and all frames."""
+    points = set(range(step, num_frames + 1, step)) | {num_frames}
+    if 0 < num_initial <= num_frames:
+        points.add(num_initial)
+    return sorted(p for p in points if p >= 1)
+
+
+def _sim_renderer(scene: Any, width: int, height: int, hfov_deg: float) -> Any:
+    from sim_bridge.render import RgbdRenderer
+
+    return RgbdRenderer(scene, width=width, height=height, hfov_deg=hfov_deg)
+
+
+def _load_scene(scene: Any, name: str) -> Any:
+    if scene is None or isinstance(scene, str | Path):
+        from sim_bridge.scenes import load_scene
+
+        return load_scene(str(scene) if scene is not None else name)
+    return scene
+
+
+def reference_images(
+    scene: Any, renderer_factory: RendererFactory, width: int, height: int, hfov_deg: float
+) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """(K, ROI-masked GT rgb per eval view, ROI pixel mask per eval view) rendered by the simulator."""
+    renderer = renderer_factory(scene, width, height, hfov_deg)
+    lo, hi = (
+        np.asarray(scene.roi_min, dtype=np.float64),
+        np.asarray(scene.roi_max, dtype=np.float64),
+    )
+    images, masks = [], []
+    try:
+        K = np.asarray(renderer.K, dtype=np.float64)
+        u = (np.arange(width) + 0.5 - K[0, 2]) / K[0, 0]
+        v = (np.arange(height) + 0.5 - K[1, 2]) / K[1, 1]
+        rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
+        for T in np.asarray(scene.eval_views, dtype=np.float64):
+            rgb, depth = renderer.render(T)
+            world = (rays * depth[..., None]) @ T[:3, :3].T + T[:3, 3]
+            inside = np.isfinite(depth) & np.all((world >= lo) & (world <= hi), axis=-1)
+            images.append(np.where(inside[..., None], rgb, 0).astype(np.uint8))
+            masks.append(inside)
+    finally:
+        renderer.close()
+    return K, images, masks
+
+
+def image_metrics(
+    mesh_renderer: MeshRenderer,
+    K: np.ndarray,
+    poses: np.ndarray,
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray],
+) -> dict[str, float]:
+    """Mean PSNR / SSIM (all pixels and ROI pixels) of the mesh rendered at `poses` vs `images`."""
+    scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "psnr_roi": [], "ssim_roi": []}
+    for T, ref, mask in zip(poses, images, masks, strict=True):
+        h, w = ref.shape[:2]
+        rgb, _ = mesh_renderer.render(K, T, w, h)
+        scores["psnr"].append(psnr(rgb, ref))
+        s = ssim_map(rgb, ref)
+        scores["ssim"].append(mean_ssim(s))
+        scores["psnr_roi"].append(psnr(rgb, ref, mask))
+        scores["ssim_roi"].append(mean_ssim(s, mask))
+    out = {}
+    for key, values in scores.items():
+        arr = np.asarray(values, dtype=np.float64)
+        # inf (a perfect view) would swamp a mean in dB; cap PSNR at 100 dB, drop undefined views
+        arr = np.minimum(arr, 100.0) if key.startswith("psnr") else arr
+        arr = arr[np.isfinite(arr)]
+        out[key] = float(arr.mean()) if arr.size else float("nan")
+    return out
+
+
+def evaluate_run(
+    run_dir: Path,
+    scene: Any = None,
+    checkpoints: Sequence[int] | None = None,
+    *,
+    tsdf: TsdfParams | None = None,
+    eval_width: int = EVAL_WIDTH,
+    eval_height: int = EVAL_HEIGHT,
+    hfov_deg: float = EVAL_HFOV_DEG,
+    num_surface_points: int = NUM_SURFACE_POINTS,
+    renderer_factory: RendererFactory | None = None,
+    write: bool = True,
+) -> dict[str, Any]:
+    """Metrics of the run after each number of views in `checkpoints`, written to RUN_DIR/metrics.json.
+
+    scene: a sim_bridge Scene (or anything with its fields: level, roi_min, roi_max, eval_views,
+    tau, ground_truth_mesh()), a scene name, or None for the one named in episode.json.
+    checkpoints: numbers of views (reconstruction from the first n frames); default |O_0|, 4, 8, ...
+    and all frames. renderer_factory(scene, width, height, hfov_deg) -> object with .K,
+    .render(T) -> (rgb, depth), .close(); default sim_bridge.render.RgbdRenderer.
+    Returns the dict written: {"final": {...}, "curve": [{"num_views": n, ...}], ...}.
+    """
+    o3d = import_open3d()
+    run_dir = Path(run_dir)
+    episode = read_episode(run_dir)
+    scene = _load_scene(scene, episode.scene)
+    files = frame_files(run_dir)
+    if not files:
+        raise InputError("run_dir", str(run_dir), "a run directory with frames/NNNN.npz files")
+    checkpoints = sorted(
+        set(int(n) for n in (checkpoints or default_checkpoints(len(files), episode.num_initial)))
+    )
+    checkpoints = [n for n in checkpoints if 1 <= n <= len(files)] or [len(files)]
+    params = tsdf or TsdfParams.for_level(getattr(scene, "level", episode.level))
+    tau = float(scene.tau)
+    timings = {"reference": 0.0, "tsdf": 0.0, "mesh": 0.0, "surface": 0.0, "render": 0.0}
+
+    t0 = time.perf_counter()
+    reference = ReferenceSurface(scene.ground_truth_mesh(), num_surface_points, SURFACE_SEED)
+    eval_poses = np.asarray(scene.eval_views, dtype=np.float64).reshape(-1, 4, 4)
+    images: list[np.ndarray] = []
+    masks: list[np.ndarray] = []
+    K_eval = np.eye(3)
+    if len(eval_poses):
+        K_eval, images, masks = reference_images(
+            scene, renderer_factory or _sim_renderer, eval_width, eval_height, hfov_deg
+        )
+    timings["reference"] = time.perf_counter() - t0
+
+    fusion = TsdfFusion(params, scene.roi_min, scene.roi_max)
+    curve = []
+    mesh = None
+    for n in checkpoints:
+        t = time.perf_counter()
+        for path in files[fusion.num_frames : n]:
+            frame = read_frame(path)
+            fusion.integrate(frame.rgb, frame.depth, frame.K, frame.T_world_cam)
+        timings["tsdf"] += time.perf_counter() - t
+        t = time.perf_counter()
+        mesh = fusion.extract_mesh()
+        timings["mesh"] += time.perf_counter() - t
+        t = time.perf_counter()
+        row: dict[str, Any] = {"num_views": n, **reference.compare(mesh, tau)}
+        timings["surface"] += time.perf_counter() - t
+        t = time.perf_counter()
+        if images:
+            row.update(image_metrics(MeshRenderer(mesh), K_eval, eval_poses, images, masks))
+        timings["render"] += time.perf_counter() - t
+        curve.append(row)
+
+    result = {
+        "scene": episode.scene,
+        "policy": episode.policy,
+        "seed": episode.seed,
+        "level": episode.level,
+        "mode": episode.mode,
+        "tau": tau,
+        "num_views": len(files),
+        "num_initial": episode.num_initial,
+        "final": curve[-1],
+        "curve": curve,
+        "eval": {
+            "num_eval_views": len(eval_poses),
+            "eval_width": eval_width,
+            "eval_height": eval_height,
+            "hfov_deg": hfov_deg,
+            "num_surface_points": num_surface_points,
+            "tsdf": {k: getattr(params, k) for k in params.__dataclass_fields__},
+        },
+        "timings_s": timings,
+    }
+    if write:
+        out = run_dir / EVAL_DIR
+        out.mkdir(exist_ok=True)
+        if mesh is not None and len(mesh.triangles) > 0:
+            o3d.io.write_triangle_mesh(str(out / "reconstruction.ply"), mesh)
+        np.save(
+            out / "gt_sample.npy",
+            reference.points[:: max(1, len(reference.points) // GT_PREVIEW_POINTS)].astype(
+                np.float32
+            ),
+        )
+        (run_dir / METRICS_FILE).write_text(json.dumps(to_jsonable(result), indent=2))
+    return result

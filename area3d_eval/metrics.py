@@ -1,0 +1,242 @@
+"""Reconstruction metrics: surface distances and F-score against the ground-truth mesh, and
+PSNR / SSIM of images rendered at held-out views.
+
+Surface metrics (both surfaces sampled uniformly by area, fixed seed, distances in metres):
+
+- accuracy     = mean over reconstruction points of the distance to the nearest GT point
+- completeness = mean over GT points of the distance to the nearest reconstruction point
+- chamfer      = (accuracy + completeness) / 2
+- precision    = share of reconstruction points within tau of the GT
+- recall       = completion ratio = share of GT points within tau of the reconstruction
+- fscore       = 2 precision recall / (precision + recall)
+
+An empty reconstruction has completion = recall = precision = fscore = 0, completeness and chamfer
+= inf and accuracy = NaN (there is no point to measure); JSON files store both as null.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from area3d_eval.render import mesh_arrays, render_mesh
+from area3d_msgs_py.errors import InputError
+
+NUM_SURFACE_POINTS = 50_000  # points sampled on each surface; ~0.2 mm spacing on a 10 cm object
+SURFACE_SEED = 0  # fixed so every policy is measured on the same GT sample
+SSIM_SIGMA = 1.5  # Gaussian window of Wang et al. 2004 (the SSIM the paper cites)
+SSIM_RADIUS = 5  # 11 x 11 window, as in Wang et al. 2004
+SSIM_K1 = 0.01  # Wang et al. 2004
+SSIM_K2 = 0.03  # Wang et al. 2004
+DATA_RANGE = 255.0  # 8-bit images
+
+__all__ = [
+    "ReferenceSurface",
+    "psnr",
+    "render_mesh",
+    "sample_surface",
+    "ssim",
+    "ssim_map",
+    "surface_metrics",
+]
+
+
+def sample_surface(
+    vertices: np.ndarray, triangles: np.ndarray, num_points: int, seed: int = SURFACE_SEED
+) -> np.ndarray:
+    """(num_points, 3) float64 points uniform by area on the triangle mesh; (0, 3) if it has no area.
+
+    vertices (V, 3) metres; triangles (F, 3) vertex indices.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if len(triangles) == 0 or num_points <= 0:
+        return np.zeros((0, 3))
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    total = area.sum()
+    if not total > 0:
+        return np.zeros((0, 3))
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(triangles), size=num_points, p=area / total)
+    r1, r2 = rng.random(num_points), rng.random(num_points)
+    flip = r1 + r2 > 1.0  # reflect into the triangle: uniform barycentric sampling
+    r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
+    return a[face] + r1[:, None] * (b[face] - a[face]) + r2[:, None] * (c[face] - a[face])
+
+
+def distance_metrics(
+    recon_points: np.ndarray, gt_points: np.ndarray, tau: float, gt_tree: cKDTree | None = None
+) -> dict[str, float]:
+    """The surface metrics of the module docstring from two point samples (N, 3), (M, 3) metres."""
+    if not tau > 0:
+        raise InputError("tau", tau, "a distance threshold > 0 metres")
+    gt_points = np.asarray(gt_points, dtype=np.float64)
+    recon_points = np.asarray(recon_points, dtype=np.float64)
+    if len(gt_points) == 0:
+        raise InputError("gt_points", "0 points", "a non-empty ground-truth sample")
+    if len(recon_points) == 0:
+        return {
+            "accuracy": float("nan"),
+            "completeness": float("inf"),
+            "chamfer": float("inf"),
+            "precision": 0.0,
+            "recall": 0.0,
+            "completion": 0.0,
+            "fscore": 0.0,
+            "num_recon_points": 0,
+        }
+    gt_tree = gt_tree if gt_tree is not None else cKDTree(gt_points)
+    d_recon, _ = gt_tree.query(recon_points, workers=-1)
+    d_gt, _ = cKDTree(recon_points).query(gt_points, workers=-1)
+    accuracy, completeness = float(d_recon.mean()), float(d_gt.mean())
+    precision, recall = float(np.mean(d_recon < tau)), float(np.mean(d_gt < tau))
+    fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {
+        "accuracy": accuracy,
+        "completeness": completeness,
+        "chamfer": 0.5 * (accuracy + completeness),
+        "precision": precision,
+        "recall": recall,
+        "completion": recall,
+        "fscore": float(fscore),
+        "num_recon_points": int(len(recon_points)),
+    }
+
+
+class ReferenceSurface:
+    """The ground-truth surface sampled once (and its KD-tree), to compare many reconstructions."""
+
+    def __init__(
+        self, gt_mesh: Any, num_points: int = NUM_SURFACE_POINTS, seed: int = SURFACE_SEED
+    ) -> None:
+        vertices, triangles, _ = mesh_arrays(gt_mesh)
+        self.points = sample_surface(vertices, triangles, num_points, seed)
+        if len(self.points) == 0:
+            raise InputError(
+                "gt_mesh", f"{len(triangles)} triangles", "a ground-truth mesh with surface area"
+            )
+        self.num_points = num_points
+        self.seed = seed
+        self.tree = cKDTree(self.points)
+
+    def compare(self, recon_mesh: Any, tau: float) -> dict[str, float]:
+        """Surface metrics of `recon_mesh` (open3d or trimesh) at threshold tau (metres)."""
+        vertices, triangles, _ = mesh_arrays(recon_mesh)
+        recon = sample_surface(vertices, triangles, self.num_points, self.seed + 1)
+        return distance_metrics(recon, self.points, tau, self.tree)
+
+
+def surface_metrics(
+    recon_mesh: Any,
+    gt_mesh: Any,
+    tau: float,
+    num_points: int = NUM_SURFACE_POINTS,
+    seed: int = SURFACE_SEED,
+) -> dict[str, float]:
+    """Accuracy, completeness, Chamfer, precision, recall = completion, F-score at tau (metres)."""
+    return ReferenceSurface(gt_mesh, num_points, seed).compare(recon_mesh, tau)
+
+
+def _as_float_image(image: np.ndarray, name: str) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim not in (2, 3):
+        raise InputError(name, image.shape, "an (H, W) or (H, W, C) image")
+    return image.astype(np.float64)
+
+
+def psnr(
+    a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, data_range: float = DATA_RANGE
+) -> float:
+    """Peak signal-to-noise ratio in dB over all pixels (or those where `mask` (H, W) is True).
+
+    a, b: (H, W) or (H, W, C) images on a 0..data_range scale (uint8 by default). Identical images
+    give inf; an empty mask gives NaN.
+    """
+    fa, fb = _as_float_image(a, "a"), _as_float_image(b, "b")
+    if fa.shape != fb.shape:
+        raise InputError("b", fb.shape, f"the shape of a, {fa.shape}")
+    sq = (fa - fb) ** 2
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != fa.shape[:2]:
+            raise InputError("mask", mask.shape, f"(H, W) = {fa.shape[:2]}")
+        sq = sq[mask]
+        if sq.size == 0:
+            return float("nan")
+    mse = float(sq.mean())
+    return float("inf") if mse == 0.0 else float(10.0 * np.log10(data_range**2 / mse))
+
+
+def ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = DATA_RANGE) -> np.ndarray:
+    """(H, W) SSIM of Wang et al. 2004 per pixel (11 x 11 Gaussian window, sigma 1.5), averaged over
+    channels. a, b (H, W) or (H, W, C) on a 0..data_range scale."""
+    fa, fb = _as_float_image(a, "a"), _as_float_image(b, "b")
+    if fa.shape != fb.shape:
+        raise InputError("b", fb.shape, f"the shape of a, {fa.shape}")
+    # float32 is exact enough here (SSIM's constants keep the ratio well conditioned) and 5x faster
+    fa, fb = fa.astype(np.float32), fb.astype(np.float32)
+    if fa.ndim == 2:
+        fa, fb = fa[..., None], fb[..., None]
+    size = 2 * SSIM_RADIUS + 1
+
+    def blur(x: np.ndarray) -> np.ndarray:
+        # separable Gaussian per channel, mirrored border (OpenCV handles up to 4 channels at once)
+        channels = [
+            cv2.GaussianBlur(
+                x[..., c : c + 4], (size, size), SSIM_SIGMA, borderType=cv2.BORDER_REFLECT
+            )
+            for c in range(0, x.shape[-1], 4)
+        ]
+        return np.concatenate([c.reshape(*x.shape[:2], -1) for c in channels], axis=-1)
+
+    mu_a, mu_b = blur(fa), blur(fb)
+    # second moments about each image's mean: no cancellation of large squares in float32
+    ca, cb = fa.mean(axis=(0, 1)), fb.mean(axis=(0, 1))
+    da, db, ma, mb = fa - ca, fb - cb, mu_a - ca, mu_b - cb
+    var_a = blur(da * da) - ma**2
+    var_b = blur(db * db) - mb**2
+    cov = blur(da * db) - ma * mb
+    c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / (
+        (mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2)
+    )
+    return s.mean(axis=-1, dtype=np.float64)
+
+
+def ssim(
+    a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, data_range: float = DATA_RANGE
+) -> float:
+    """Mean SSIM (Wang et al. 2004) of two images, over the pixels at least one window radius from
+    the border (as in the reference implementation's valid filtering) and, if given, inside `mask`
+    (H, W). Identical images give 1.0; an empty mask gives NaN."""
+    return mean_ssim(ssim_map(a, b, data_range), mask)
+
+
+def mean_ssim(s: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean of an (H, W) SSIM map away from the border and inside `mask` (see `ssim`)."""
+    keep = np.zeros(s.shape, dtype=bool)
+    r = SSIM_RADIUS
+    if s.shape[0] > 2 * r and s.shape[1] > 2 * r:
+        keep[r:-r, r:-r] = True
+    else:
+        keep[:] = True
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != s.shape:
+            raise InputError("mask", mask.shape, f"(H, W) = {s.shape}")
+        keep &= mask
+    return float(s[keep].mean()) if keep.any() else float("nan")
+
+
+def __getattr__(name: str) -> Any:
+    # evaluate_run lives in evaluate.py (it needs the reconstruction and the scene); exposed here
+    # lazily so `from area3d_eval.metrics import evaluate_run` works without an import cycle.
+    if name == "evaluate_run":
+        from area3d_eval.evaluate import evaluate_run
+
+        return evaluate_run
+    raise AttributeError(name)

@@ -1,0 +1,113 @@
+"""Render a coloured triangle mesh at a camera pose by CPU ray casting (Open3D RaycastingScene)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from area3d_eval.open3d_loader import import_open3d
+from area3d_msgs_py.errors import InputError
+
+UNCOLOURED_GREY = 0.5  # colour of meshes without vertex colours, in [0, 1]
+
+
+def mesh_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(vertices (V, 3) float64, triangles (F, 3) int64, vertex colours (V, 3) float64 in [0, 1] or None)
+    of an open3d.geometry.TriangleMesh or a trimesh.Trimesh."""
+    if (
+        hasattr(mesh, "triangles")
+        and hasattr(mesh, "vertex_colors")
+        and hasattr(mesh, "has_vertex_colors")
+    ):
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        triangles = np.asarray(mesh.triangles, dtype=np.int64)
+        colours = (
+            np.asarray(mesh.vertex_colors, dtype=np.float64) if mesh.has_vertex_colors() else None
+        )
+        return vertices, triangles, colours
+    if hasattr(mesh, "faces") and hasattr(mesh, "vertices"):
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        triangles = np.asarray(mesh.faces, dtype=np.int64)
+        colours = None
+        visual = getattr(mesh, "visual", None)
+        if visual is not None and getattr(visual, "kind", None) in ("vertex", "face"):
+            colours = np.asarray(visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0
+        return vertices, triangles, colours
+    raise InputError(
+        "mesh", type(mesh).__name__, "an open3d.geometry.TriangleMesh or a trimesh.Trimesh"
+    )
+
+
+def camera_rays(K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W, 6) float32 rays [origin, direction] in `world`, one per pixel centre (u + 0.5, v + 0.5).
+
+    Directions are R K^-1 [u, v, 1], not normalised: their optical z component is 1, so the hit
+    parameter t of a ray is the depth along optical z.
+    """
+    u = (np.arange(width) + 0.5 - K[0, 2]) / K[0, 0]
+    v = (np.arange(height) + 0.5 - K[1, 2]) / K[1, 1]
+    cam = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
+    directions = cam @ T_world_cam[:3, :3].T
+    origins = np.broadcast_to(T_world_cam[:3, 3], directions.shape)
+    return np.concatenate([origins, directions], axis=-1).astype(np.float32)
+
+
+class MeshRenderer:
+    """A mesh loaded once into a RaycastingScene, rendered at many poses."""
+
+    def __init__(self, mesh: Any) -> None:
+        o3d = import_open3d()
+        self.vertices, self.triangles, colours = mesh_arrays(mesh)
+        if colours is None:
+            colours = np.full_like(self.vertices, UNCOLOURED_GREY)
+        self.colours = colours
+        self.empty = len(self.triangles) == 0
+        self._scene = o3d.t.geometry.RaycastingScene()
+        if not self.empty:
+            self._scene.add_triangles(
+                o3d.core.Tensor(self.vertices.astype(np.float32)),
+                o3d.core.Tensor(self.triangles.astype(np.uint32)),
+            )
+
+    def render(
+        self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(rgb (H, W, 3) uint8, depth (H, W) float32 metres along optical z, NaN = no surface).
+        Pixels without a surface are black."""
+        o3d = import_open3d()
+        K = np.asarray(K, dtype=np.float64)
+        T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise InputError("K", K.shape, "(3, 3) intrinsics")
+        if T_world_cam.shape != (4, 4):
+            raise InputError("T_world_cam", T_world_cam.shape, "a (4, 4) pose")
+        if self.empty:
+            return np.zeros((height, width, 3), np.uint8), np.full(
+                (height, width), np.nan, np.float32
+            )
+        rays = camera_rays(K, T_world_cam, width, height)
+        hits = self._scene.cast_rays(o3d.core.Tensor(rays))
+        t = hits["t_hit"].numpy()
+        hit = np.isfinite(t)
+        depth = np.where(hit, t, np.nan).astype(np.float32)
+        prim = hits["primitive_ids"].numpy()[hit].astype(np.int64)
+        uv = hits["primitive_uvs"].numpy()[hit].astype(np.float64)
+        corners = self.colours[self.triangles[prim]]  # (N, 3 corners, 3 channels)
+        # Open3D's barycentric (u, v) weight the triangle's 2nd and 3rd vertices.
+        weights = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+        colour = np.einsum("nk,nkc->nc", weights, corners)
+        rgb = np.zeros((height, width, 3), np.uint8)
+        rgb[hit] = np.clip(np.rint(colour * 255.0), 0, 255).astype(np.uint8)
+        return rgb, depth
+
+
+def render_mesh(
+    mesh: Any, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast `mesh` (open3d or trimesh, vertex colours in [0, 1]) from the optical frame T_world_cam.
+
+    K (3, 3) with pixel centres at (u + 0.5, v + 0.5). Returns (rgb (H, W, 3) uint8 with black where
+    nothing is hit, depth (H, W) float32 metres along optical z, NaN where nothing is hit).
+    """
+    return MeshRenderer(mesh).render(K, T_world_cam, width, height)

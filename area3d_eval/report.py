@@ -1,0 +1,383 @@
+"""The evaluation report: a policy x scene table as in the paper, metric-vs-views curves, the chosen
+views, uncertainty slices and time per stage, as Markdown and as one HTML page (figures as PNG files
+beside them, linked relatively)."""
+
+from __future__ import annotations
+
+import html
+import math
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from area3d_eval import plots
+from area3d_eval.rundir import EVAL_DIR, Episode, iter_frames, read_episode, read_grid, read_metrics
+
+# (key in metrics.json, column title, higher is better, scale for display, format)
+TABLE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
+    ("completion", "Comp. ratio", True, 1.0, "{:.3f}"),
+    ("chamfer", "Chamfer [mm]", False, 1000.0, "{:.2f}"),
+    ("fscore", "F-score", True, 1.0, "{:.3f}"),
+    ("psnr", "PSNR [dB]", True, 1.0, "{:.2f}"),
+    ("ssim", "SSIM", True, 1.0, "{:.3f}"),
+)
+CURVE_METRICS = ("completion", "fscore", "chamfer", "psnr")
+PREVIEW_POINTS = 4000  # scene points drawn behind the chosen views when no GT sample was saved
+
+HOW_TO_READ = """\
+Each run is one episode: a policy chose camera views of a scene under a view budget, starting from
+the scene's initial views. The captured RGB-D frames are fused into a TSDF mesh and compared with the
+scene's ground-truth surface. *Completion ratio* is the share of ground-truth surface points within
+tau of the reconstruction (tau = 1 cm for objects, 5 cm for rooms); *Chamfer* is the mean of the two
+average nearest-surface distances (reconstruction to ground truth and back; lower is better);
+*F-score* combines precision and recall at tau. *PSNR* and *SSIM* compare the mesh rendered at
+held-out views with the simulator's images (everything outside the region to reconstruct is black in
+both). Cells show the mean over runs (seeds) and, when there are several, ± one standard deviation;
+the best value of each column is bold. The curves show how each metric grows with the number of
+views: a policy whose curve rises earlier reaches the same quality with fewer views. The view plots
+show where each run put its camera (grey = initial views, colour = order of the planned views); the
+uncertainty slices show the planner's grid before and after the episode (bright = uncertain)."""
+
+
+@dataclass
+class RunRecord:
+    """One run directory with its episode and metrics."""
+
+    path: Path
+    episode: Episode
+    metrics: dict[str, Any]
+    label: str = ""
+    figures: dict[str, Path] = field(default_factory=dict)
+
+
+def _value(v: Any) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def load_runs(run_dirs: Sequence[Path], evaluate_missing: bool = True) -> list[RunRecord]:
+    """Read every run; runs without metrics.json are evaluated first (needs the scene from
+    sim_bridge) when `evaluate_missing`, else skipped."""
+    records = []
+    for run_dir in run_dirs:
+        run_dir = Path(run_dir)
+        metrics = read_metrics(run_dir)
+        if metrics is None:
+            if not evaluate_missing:
+                continue
+            from area3d_eval.evaluate import evaluate_run
+
+            evaluate_run(run_dir)
+            metrics = read_metrics(run_dir)
+        episode = read_episode(run_dir)
+        records.append(RunRecord(run_dir, episode, metrics))
+    seen: dict[str, int] = defaultdict(int)
+    for r in records:
+        base = f"{r.episode.scene} / {r.episode.policy} / seed {r.episode.seed}"
+        seen[base] += 1
+        r.label = base if seen[base] == 1 else f"{base} ({r.path.name})"
+    return records
+
+
+def aggregate(
+    run_dirs: Sequence[Path] | Sequence[RunRecord], evaluate_missing: bool = False
+) -> list[dict[str, Any]]:
+    """Table rows, one per (scene, policy): {"scene", "policy", "runs", METRIC: mean, METRIC_std: std}
+    over the final metrics of its runs (NaN / inf values are left out of the mean; all-undefined
+    gives NaN). Sorted by scene then policy."""
+    records = [r if isinstance(r, RunRecord) else None for r in run_dirs]
+    if any(r is None for r in records):
+        records = load_runs([Path(p) for p in run_dirs], evaluate_missing)
+    groups: dict[tuple[str, str], list[RunRecord]] = defaultdict(list)
+    for r in records:
+        groups[(r.episode.scene, r.episode.policy)].append(r)
+    rows = []
+    for (scene, policy), runs in sorted(groups.items()):
+        row: dict[str, Any] = {"scene": scene, "policy": policy, "runs": len(runs)}
+        for key, *_ in TABLE_METRICS:
+            values = np.array([_value(r.metrics.get("final", {}).get(key)) for r in runs])
+            values = values[np.isfinite(values)]
+            row[key] = float(values.mean()) if values.size else float("nan")
+            row[f"{key}_std"] = float(values.std()) if values.size > 1 else 0.0
+        rows.append(row)
+    return rows
+
+
+def _cell(row: dict[str, Any] | None, key: str, scale: float, fmt: str) -> str:
+    if row is None or not math.isfinite(row.get(key, float("nan"))):
+        return "–"
+    text = fmt.format(row[key] * scale)
+    if row["runs"] > 1:
+        text += " ± " + fmt.format(row[f"{key}_std"] * scale)
+    return text
+
+
+def _table(
+    rows: list[dict[str, Any]],
+) -> tuple[list[str], list[str], list[list[str]], list[list[bool]]]:
+    """(scenes, policies, cells[policy][scene x metric], bold[policy][...]) of the paper-style table."""
+    scenes = sorted({r["scene"] for r in rows})
+    policies = sorted({r["policy"] for r in rows})
+    index = {(r["scene"], r["policy"]): r for r in rows}
+    cells, bold = [], []
+    best: dict[tuple[str, str], float] = {}
+    for scene in scenes:
+        for key, _, higher, *_ in TABLE_METRICS:
+            values = [
+                index[(scene, p)][key]
+                for p in policies
+                if (scene, p) in index and math.isfinite(index[(scene, p)][key])
+            ]
+            if values:
+                best[(scene, key)] = max(values) if higher else min(values)
+    for policy in policies:
+        row_cells, row_bold = [], []
+        for scene in scenes:
+            r = index.get((scene, policy))
+            for key, _, _, scale, fmt in TABLE_METRICS:
+                row_cells.append(_cell(r, key, scale, fmt))
+                row_bold.append(
+                    r is not None
+                    and len(policies) > 1
+                    and (scene, key) in best
+                    and r[key] == best[(scene, key)]
+                )
+        cells.append(row_cells)
+        bold.append(row_bold)
+    return scenes, policies, cells, bold
+
+
+def _figures(
+    records: list[RunRecord], fig_dir: Path
+) -> tuple[dict[str, dict[str, Path]], Path | None]:
+    """Draw every figure; returns ({scene: {metric: png}}, timing png)."""
+    curves: dict[str, dict[str, dict[str, list]]] = defaultdict(lambda: defaultdict(dict))
+    by_scene: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    for r in records:
+        by_scene[r.episode.scene][r.episode.policy].append(r.metrics.get("curve", []))
+    for scene, policies in by_scene.items():
+        for metric in CURVE_METRICS:
+            curves[scene][metric] = plots.plot_metric_curves(
+                policies,
+                metric,
+                fig_dir / f"curve_{_slug(scene)}_{metric}.png",
+                title=f"{scene}: {metric}",
+            )
+    for i, r in enumerate(records):
+        stem = f"run{i:02d}_{_slug(r.episode.scene)}_{_slug(r.episode.policy)}_s{r.episode.seed}"
+        points = _scene_points(r)
+        roi = _roi(r)
+        r.figures["views"] = plots.plot_views(
+            points,
+            r.episode.poses(),
+            r.episode.kinds(),
+            fig_dir / f"{stem}_views.png",
+            title=r.label,
+            roi=roi,
+        )
+        slices = plots.plot_grid_slices(
+            read_grid(r.path / "grid_initial.npz"),
+            read_grid(r.path / "grid_final.npz"),
+            fig_dir / f"{stem}_uncertainty.png",
+            title=r.label,
+        )
+        if slices is not None:
+            r.figures["uncertainty"] = slices
+    timings = {r.label: r.episode.timings_s for r in records if r.episode.timings_s}
+    timing_png = plots.plot_timings(timings, fig_dir / "timings.png") if timings else None
+    return curves, timing_png
+
+
+def _scene_points(r: RunRecord) -> np.ndarray:
+    sample = r.path / EVAL_DIR / "gt_sample.npy"
+    if sample.is_file():
+        return np.load(sample)
+    points = []
+    for frame in iter_frames(r.path):
+        d = frame.depth[::4, ::4]
+        h, w = d.shape
+        K = frame.K
+        u = ((np.arange(w) * 4 + 0.5) - K[0, 2]) / K[0, 0]
+        v = ((np.arange(h) * 4 + 0.5) - K[1, 2]) / K[1, 1]
+        cam = (
+            np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
+            * d[..., None]
+        )
+        world = cam.reshape(-1, 3) @ frame.T_world_cam[:3, :3].T + frame.T_world_cam[:3, 3]
+        points.append(world[np.all(np.isfinite(world), axis=1)])
+    if not points:
+        return np.zeros((0, 3))
+    pts = np.concatenate(points)
+    return pts[:: max(1, len(pts) // PREVIEW_POINTS)]
+
+
+def _roi(r: RunRecord) -> tuple[np.ndarray, np.ndarray] | None:
+    cfg = r.episode.config
+    if "roi_min" in cfg and "roi_max" in cfg:
+        return np.asarray(cfg["roi_min"], dtype=np.float64), np.asarray(
+            cfg["roi_max"], dtype=np.float64
+        )
+    return None
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in text)
+
+
+def _rel(path: Path, out_dir: Path) -> str:
+    return Path(path).resolve().relative_to(out_dir.resolve()).as_posix()
+
+
+def write_report(
+    run_dirs: Sequence[Path],
+    out_dir: Path,
+    evaluate_missing: bool = True,
+    title: str = "AREA3D evaluation report",
+) -> tuple[Path, Path]:
+    """Write out_dir/report.md and out_dir/report.html (figures in out_dir/figures/).
+
+    Runs without metrics.json are evaluated first when `evaluate_missing` (see `load_runs`).
+    Returns (md_path, html_path).
+    """
+    out_dir = Path(out_dir)
+    fig_dir = out_dir / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    records = load_runs([Path(p) for p in run_dirs], evaluate_missing)
+    rows = aggregate(records)
+    scenes, policies, cells, bold = _table(rows)
+    curves, timing_png = _figures(records, fig_dir) if records else ({}, None)
+    md_path = out_dir / "report.md"
+    html_path = out_dir / "report.html"
+    md_path.write_text(
+        _markdown(title, records, scenes, policies, cells, bold, curves, timing_png, out_dir)
+    )
+    html_path.write_text(
+        _html(title, records, scenes, policies, cells, bold, curves, timing_png, out_dir)
+    )
+    return md_path, html_path
+
+
+def _markdown(title, records, scenes, policies, cells, bold, curves, timing_png, out_dir) -> str:
+    lines = [f"# {title}", "", "## How to read this report", "", HOW_TO_READ, "", "## Results", ""]
+    if not records:
+        lines += ["No evaluated runs.", ""]
+        return "\n".join(lines)
+    header = ["Policy"] + [f"{scene}: {name}" for scene in scenes for _, name, *_ in TABLE_METRICS]
+    arrows = {name: ("↑" if higher else "↓") for _, name, higher, *_ in TABLE_METRICS}
+    header = ["Policy"] + [f"{h} {arrows[h.split(': ', 1)[1]]}" for h in header[1:]]
+    lines.append("| " + " | ".join(header) + " |")
+    lines.append("|" + "---|" * len(header))
+    for policy, row_cells, row_bold in zip(policies, cells, bold, strict=True):
+        shown = [f"**{c}**" if b else c for c, b in zip(row_cells, row_bold, strict=True)]
+        lines.append("| " + " | ".join([policy, *shown]) + " |")
+    lines += [
+        "",
+        f"Runs: {len(records)}. Thresholds tau: "
+        + ", ".join(sorted({f"{r.episode.scene} {r.metrics.get('tau')} m" for r in records}))
+        + ".",
+        "",
+    ]
+    lines += ["## Metrics against the number of views", ""]
+    for scene in scenes:
+        lines += [f"### {scene}", ""]
+        lines += [
+            f"![{scene} {metric}]({_rel(png, out_dir)})"
+            for metric, png in curves.get(scene, {}).items()
+        ]
+        lines.append("")
+    lines += ["## Chosen views", ""]
+    for r in records:
+        lines += [f"### {r.label}", "", f"![views]({_rel(r.figures['views'], out_dir)})", ""]
+    lines += ["## Uncertainty before and after", ""]
+    with_grids = [r for r in records if "uncertainty" in r.figures]
+    for r in with_grids:
+        lines += [
+            f"### {r.label}",
+            "",
+            f"![uncertainty]({_rel(r.figures['uncertainty'], out_dir)})",
+            "",
+        ]
+    if not with_grids:
+        lines += ["No run saved its uncertainty grid (grid_initial.npz / grid_final.npz).", ""]
+    lines += ["## Time per stage", ""]
+    lines += (
+        [f"![timings]({_rel(timing_png, out_dir)})", ""]
+        if timing_png
+        else ["No timings recorded.", ""]
+    )
+    return "\n".join(lines)
+
+
+CSS = """
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1200px; color: #222; }
+table { border-collapse: collapse; font-size: 0.85em; margin: 1em 0; }
+th, td { border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: center; }
+th { background: #f2f2f2; }
+td.policy { text-align: left; font-weight: 600; }
+img { max-width: 100%; margin: 0.5em 0; border: 1px solid #eee; }
+.figs { display: flex; flex-wrap: wrap; gap: 1em; }
+.figs img { max-width: 48%; }
+p.howto { background: #f8f8f8; padding: 1em; border-left: 4px solid #888; }
+"""
+
+
+def _html(title, records, scenes, policies, cells, bold, curves, timing_png, out_dir) -> str:
+    e = html.escape
+    parts = [
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(title)}</title><style>{CSS}</style></head><body>"
+    ]
+    parts.append(
+        f"<h1>{e(title)}</h1><h2>How to read this report</h2><p class='howto'>{e(HOW_TO_READ)}</p><h2>Results</h2>"
+    )
+    if not records:
+        parts.append("<p>No evaluated runs.</p></body></html>")
+        return "".join(parts)
+    parts.append("<table><tr><th rowspan='2'>Policy</th>")
+    parts += [f"<th colspan='{len(TABLE_METRICS)}'>{e(s)}</th>" for s in scenes]
+    parts.append("</tr><tr>")
+    parts += [
+        f"<th>{e(name)} {'&uarr;' if higher else '&darr;'}</th>"
+        for _ in scenes
+        for _, name, higher, *_ in TABLE_METRICS
+    ]
+    parts.append("</tr>")
+    for policy, row_cells, row_bold in zip(policies, cells, bold, strict=True):
+        tds = "".join(
+            f"<td>{'<b>' + e(c) + '</b>' if b else e(c)}</td>"
+            for c, b in zip(row_cells, row_bold, strict=True)
+        )
+        parts.append(f"<tr><td class='policy'>{e(policy)}</td>{tds}</tr>")
+    parts.append("</table>")
+    parts.append("<h2>Metrics against the number of views</h2>")
+    for scene in scenes:
+        imgs = "".join(
+            f"<img src='{e(_rel(png, out_dir))}' alt='{e(scene)} {e(metric)}'>"
+            for metric, png in curves.get(scene, {}).items()
+        )
+        parts.append(f"<h3>{e(scene)}</h3><div class='figs'>{imgs}</div>")
+    parts.append("<h2>Chosen views</h2>")
+    for r in records:
+        parts.append(
+            f"<h3>{e(r.label)}</h3><img src='{e(_rel(r.figures['views'], out_dir))}' alt='views'>"
+        )
+    parts.append("<h2>Uncertainty before and after</h2>")
+    with_grids = [r for r in records if "uncertainty" in r.figures]
+    for r in with_grids:
+        parts.append(
+            f"<h3>{e(r.label)}</h3><img src='{e(_rel(r.figures['uncertainty'], out_dir))}' alt='uncertainty'>"
+        )
+    if not with_grids:
+        parts.append(
+            "<p>No run saved its uncertainty grid (grid_initial.npz / grid_final.npz).</p>"
+        )
+    parts.append("<h2>Time per stage</h2>")
+    parts.append(
+        f"<img src='{e(_rel(timing_png, out_dir))}' alt='timings'>"
+        if timing_png
+        else "<p>No timings recorded.</p>"
+    )
+    parts.append("</body></html>")
+    return "".join(parts)

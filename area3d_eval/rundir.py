@@ -1,0 +1,198 @@
+"""The run directory: what an episode leaves on disk and what evaluation reads back.
+
+Layout (all paths relative to RUN_DIR):
+
+- `episode.json`: {"scene", "policy", "seed", "budget", "level", "mode",
+  "views": [{"index", "stamp_ns", "T_world_cam" (4x4 list), "kind": "initial" | "planned",
+  "stage_times_s": {...}}], "timings_s": {stage: seconds}, "config": {...}}
+- `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
+  K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index.
+- `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays
+  x, y, z, uncertainty, geometric, semantic, occupancy (one entry per voxel).
+- `metrics.json` (written by `area3d_eval.evaluate.evaluate_run`).
+- `eval/` (written by evaluation): `reconstruction.ply` (final TSDF mesh cropped to the ROI) and
+  `gt_sample.npy` (a few thousand ground-truth surface points for plots).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from area3d_msgs_py.errors import InputError
+
+EPISODE_FILE = "episode.json"
+METRICS_FILE = "metrics.json"
+FRAMES_DIR = "frames"
+EVAL_DIR = "eval"
+GRID_FIELDS = ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy")
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One captured view. rgb (H, W, 3) uint8; depth (H, W) float32 metres, NaN = no return;
+    K (3, 3); T_world_cam (4, 4) optical frame in `world`; stamp_ns capture time."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    K: np.ndarray
+    T_world_cam: np.ndarray
+    stamp_ns: int = 0
+    index: int = 0
+
+    def __iter__(self):
+        """Unpacks as (rgb, depth, K, T_world_cam), the tuple `tsdf_reconstruct` takes."""
+        return iter((self.rgb, self.depth, self.K, self.T_world_cam))
+
+
+@dataclass(frozen=True)
+class Episode:
+    """episode.json as read back; `views` keeps the raw dicts (T_world_cam as (4, 4) arrays)."""
+
+    scene: str
+    policy: str
+    seed: int
+    budget: int
+    level: str
+    mode: str
+    views: list[dict[str, Any]]
+    timings_s: dict[str, float] = field(default_factory=dict)
+    config: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_initial(self) -> int:
+        return sum(1 for v in self.views if v.get("kind") == "initial")
+
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) float64 T_world_cam of every view, in index order."""
+        if not self.views:
+            return np.zeros((0, 4, 4))
+        return np.stack([np.asarray(v["T_world_cam"], dtype=np.float64) for v in self.views])
+
+    def kinds(self) -> list[str]:
+        return [str(v.get("kind", "planned")) for v in self.views]
+
+
+def read_episode(run_dir: Path) -> Episode:
+    """Parse RUN_DIR/episode.json; views are sorted by index."""
+    path = Path(run_dir) / EPISODE_FILE
+    if not path.is_file():
+        raise InputError("run_dir", str(run_dir), f"a run directory containing {EPISODE_FILE}")
+    data = json.loads(path.read_text())
+    for key in ("scene", "policy"):
+        if key not in data:
+            raise InputError(f"{EPISODE_FILE}.{key}", None, "a string")
+    views = sorted(data.get("views", []), key=lambda v: int(v["index"]))
+    return Episode(
+        scene=str(data["scene"]),
+        policy=str(data["policy"]),
+        seed=int(data.get("seed", 0)),
+        budget=int(data.get("budget", len(views))),
+        level=str(data.get("level", "object")),
+        mode=str(data.get("mode", "")),
+        views=views,
+        timings_s={str(k): float(v) for k, v in data.get("timings_s", {}).items()},
+        config=dict(data.get("config", {})),
+    )
+
+
+def write_episode(run_dir: Path, episode: dict[str, Any]) -> Path:
+    """Write episode.json (numpy arrays in it become lists)."""
+    path = Path(run_dir) / EPISODE_FILE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(to_jsonable(episode), indent=2))
+    return path
+
+
+def frame_path(run_dir: Path, index: int) -> Path:
+    return Path(run_dir) / FRAMES_DIR / f"{int(index):04d}.npz"
+
+
+def write_frame(
+    run_dir: Path,
+    index: int,
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    stamp_ns: int = 0,
+) -> Path:
+    """Write RUN_DIR/frames/NNNN.npz in the layout above (uncompressed: it is read back often)."""
+    rgb = np.asarray(rgb)
+    depth = np.asarray(depth)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise InputError("rgb", f"{rgb.dtype} {rgb.shape}", "(H, W, 3) uint8")
+    if depth.shape != rgb.shape[:2]:
+        raise InputError("depth", f"shape {depth.shape}", f"(H, W) = {rgb.shape[:2]} like rgb")
+    path = frame_path(run_dir, index)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(
+        path,
+        rgb=rgb,
+        depth=depth.astype(np.float32),
+        K=np.asarray(K, dtype=np.float64),
+        T_world_cam=np.asarray(T_world_cam, dtype=np.float64),
+        stamp_ns=np.int64(stamp_ns),
+    )
+    return path
+
+
+def read_frame(path: Path) -> Frame:
+    with np.load(path) as data:
+        return Frame(
+            rgb=data["rgb"],
+            depth=data["depth"].astype(np.float32),
+            K=data["K"].astype(np.float64),
+            T_world_cam=data["T_world_cam"].astype(np.float64),
+            stamp_ns=int(data["stamp_ns"]) if "stamp_ns" in data else 0,
+            index=int(Path(path).stem),
+        )
+
+
+def frame_files(run_dir: Path) -> list[Path]:
+    """RUN_DIR/frames/*.npz sorted by view index."""
+    return sorted((Path(run_dir) / FRAMES_DIR).glob("*.npz"), key=lambda p: int(p.stem))
+
+
+def iter_frames(run_dir: Path, limit: int | None = None) -> Iterator[Frame]:
+    """Frames in view-index order, at most `limit` of them."""
+    files = frame_files(run_dir)
+    for path in files if limit is None else files[:limit]:
+        yield read_frame(path)
+
+
+def read_grid(path: Path) -> dict[str, np.ndarray] | None:
+    """A grid_*.npz as {field: (N,) array}, or None if the file is absent."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    with np.load(path) as data:
+        return {k: np.asarray(data[k]) for k in GRID_FIELDS if k in data}
+
+
+def to_jsonable(value: Any) -> Any:
+    """Plain JSON values: arrays become lists, NaN and inf become null (strict JSON has neither)."""
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return to_jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def read_metrics(run_dir: Path) -> dict[str, Any] | None:
+    path = Path(run_dir) / METRICS_FILE
+    return json.loads(path.read_text()) if path.is_file() else None

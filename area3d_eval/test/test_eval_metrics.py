@@ -1,0 +1,118 @@
+"""Surface and image metrics on cases whose answer is known analytically."""
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from area3d_eval.metrics import psnr, sample_surface, ssim, surface_metrics
+from area3d_msgs_py.errors import InputError
+
+TAU = 0.01
+
+
+def plane(size: float = 0.2, z: float = 0.0) -> trimesh.Trimesh:
+    h = size / 2
+    v = np.array([[-h, -h, z], [h, -h, z], [h, h, z], [-h, h, z]], float)
+    return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)
+
+
+def test_mesh_compared_with_itself_is_complete_and_accurate():
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
+    m = surface_metrics(sphere, sphere, TAU, num_points=20_000)
+    assert m["completion"] == 1.0 and m["precision"] == 1.0 and m["fscore"] == 1.0
+    # two independent samples of one surface are ~point spacing apart (0.13 m^2 / 20k -> ~2.5 mm)
+    assert m["accuracy"] < 0.002 and m["completeness"] < 0.002
+    assert m["chamfer"] == pytest.approx(0.5 * (m["accuracy"] + m["completeness"]))
+
+
+def test_surface_shifted_along_its_normal_is_that_far_away():
+    d = 0.03
+    m = surface_metrics(plane(z=d), plane(z=0.0), TAU, num_points=20_000)
+    assert m["accuracy"] == pytest.approx(d, abs=1e-3)
+    assert m["completeness"] == pytest.approx(d, abs=1e-3)
+    assert m["chamfer"] == pytest.approx(d, abs=1e-3)
+    assert m["completion"] == 0.0 and m["fscore"] == 0.0  # d > tau everywhere
+
+
+def test_shift_below_tau_keeps_full_completion():
+    # 20k points on 0.04 m^2: ~1.4 mm spacing, so the nearest point is within 4 mm + spacing < tau
+    m = surface_metrics(plane(z=0.004), plane(), TAU, num_points=20_000)
+    assert m["completion"] == 1.0 and m["fscore"] == 1.0
+
+
+def test_half_the_surface_missing_halves_completion_not_precision():
+    gt = trimesh.creation.icosphere(subdivisions=5, radius=0.1)
+    upper = gt.submesh([np.flatnonzero(gt.triangles_center[:, 2] > 0)], append=True)
+    m = surface_metrics(upper, gt, TAU, num_points=30_000)
+    # points of the lower half within tau of the equator still count: a band of ~tau / (pi r / 2)
+    assert m["completion"] == pytest.approx(0.5 + 0.5 * TAU / (math.pi * 0.1 / 2), abs=0.03)
+    assert m["precision"] == 1.0
+
+
+def test_empty_reconstruction_scores_zero_and_infinite_distance():
+    m = surface_metrics(trimesh.Trimesh(), plane(), TAU, num_points=1000)
+    assert m["completion"] == 0.0 and m["fscore"] == 0.0 and m["precision"] == 0.0
+    assert m["completeness"] == math.inf and m["chamfer"] == math.inf
+    assert math.isnan(m["accuracy"])
+
+
+def test_surface_sampling_is_uniform_by_area():
+    # two triangles, one with 3x the area of the other: 3/4 of the points land on it
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [10, 0, 0], [13, 0, 0], [10, 1, 0]], float)
+    pts = sample_surface(v, np.array([[0, 1, 2], [3, 4, 5]]), 40_000, seed=3)
+    assert np.mean(pts[:, 0] >= 10) == pytest.approx(0.75, abs=0.01)
+    on_first = pts[pts[:, 0] < 10]
+    assert np.all(on_first[:, 0] + on_first[:, 1] <= 1 + 1e-9)  # inside the triangle
+
+
+def test_bad_tau_is_rejected_with_its_name():
+    with pytest.raises(InputError, match="tau"):
+        surface_metrics(plane(), plane(), 0.0, num_points=100)
+
+
+def test_psnr_of_identical_images_is_infinite():
+    img = np.random.default_rng(0).integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    assert psnr(img, img) == math.inf
+
+
+def test_psnr_of_a_known_error_follows_the_definition():
+    a = np.full((16, 16, 3), 100, np.uint8)
+    b = a.copy()
+    b[::2] += 10  # half the rows off by 10, the rest exact: MSE = 50
+    assert psnr(a, b) == pytest.approx(10 * math.log10(255**2 / 50.0))
+    mask = np.zeros((16, 16), bool)
+    mask[::2] = True  # only the rows that are off: MSE = 100
+    assert psnr(a, b, mask) == pytest.approx(10 * math.log10(255**2 / 100.0))
+
+
+def test_psnr_rejects_images_of_different_shapes():
+    with pytest.raises(InputError, match="b"):
+        psnr(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)))
+
+
+def test_ssim_of_identical_images_is_one():
+    img = np.random.default_rng(1).integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    assert ssim(img, img) == pytest.approx(1.0)
+
+
+def test_ssim_decreases_as_noise_grows():
+    rng = np.random.default_rng(2)
+    img = (
+        (np.add.outer(np.arange(64), np.arange(64)) * 2 % 256)
+        .astype(np.uint8)[..., None]
+        .repeat(3, 2)
+    )
+    scores = []
+    for sigma in (2, 10, 40):
+        noisy = np.clip(img + rng.normal(0, sigma, img.shape), 0, 255).astype(np.uint8)
+        scores.append(ssim(img, noisy))
+    assert 1.0 > scores[0] > scores[1] > scores[2]
+
+
+def test_ssim_of_flat_images_is_the_luminance_term():
+    # no variance: contrast and structure terms are 1, SSIM = (2 mu_a mu_b + c1) / (mu_a^2 + mu_b^2 + c1)
+    a, b = np.full((32, 32), 100, np.uint8), np.full((32, 32), 140, np.uint8)
+    c1 = (0.01 * 255) ** 2
+    assert ssim(a, b) == pytest.approx((2 * 100 * 140 + c1) / (100**2 + 140**2 + c1))

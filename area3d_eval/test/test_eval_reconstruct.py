@@ -1,0 +1,89 @@
+"""TSDF fusion of synthetic RGB-D reconstructs a known primitive."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from area3d_eval.metrics import surface_metrics
+from area3d_eval.reconstruct import TsdfParams, subsample, tsdf_reconstruct
+from area3d_eval.render import render_mesh
+from area3d_eval.synthetic import hemisphere_views, intrinsics
+from area3d_msgs_py.errors import InputError
+
+W, H = 256, 192
+RADIUS = 0.1
+COLOUR = np.array([200, 120, 40], np.uint8)
+
+
+@pytest.fixture(scope="module")
+def sphere_frames():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=RADIUS)
+    sphere.visual.vertex_colors = np.array([[*COLOUR, 255]] * len(sphere.vertices), np.uint8)
+    K = intrinsics(W, H)
+    az = np.arange(12) * 30.0
+    poses = hemisphere_views(np.zeros(3), 0.4, az, np.where(np.arange(12) % 2 == 0, 35.0, -35.0))
+    frames = []
+    for T in poses:
+        rgb, depth = render_mesh(sphere, K, T, W, H)
+        frames.append((rgb, depth, K, T))
+    return sphere, frames
+
+
+def test_sphere_from_twelve_views_is_reconstructed_within_tolerance(sphere_frames):
+    sphere, frames = sphere_frames
+    mesh = tsdf_reconstruct(frames)  # object-level defaults: 4 mm voxels
+    assert len(mesh.triangles) > 1000
+    radii = np.linalg.norm(np.asarray(mesh.vertices), axis=1)
+    assert np.median(np.abs(radii - RADIUS)) < 0.002
+    m = surface_metrics(mesh, sphere, tau=0.01, num_points=20_000)
+    assert m["completion"] > 0.95 and m["fscore"] > 0.95
+    assert m["chamfer"] < 0.004
+
+
+def test_fused_colour_is_the_surface_colour(sphere_frames):
+    _, frames = sphere_frames
+    mesh = tsdf_reconstruct(frames)
+    colours = np.asarray(mesh.vertex_colors) * 255
+    np.testing.assert_allclose(np.median(colours, axis=0), COLOUR, atol=3)
+
+
+def test_reconstruction_is_cropped_to_the_roi(sphere_frames):
+    _, frames = sphere_frames
+    lo, hi = np.array([-0.2, -0.2, 0.0]), np.array([0.2, 0.2, 0.2])
+    mesh = tsdf_reconstruct(frames, roi_lo=lo, roi_hi=hi)
+    v = np.asarray(mesh.vertices)
+    assert len(v) > 100
+    assert np.all(v >= lo - 1e-9) and np.all(v <= hi + 1e-9)
+    assert v[:, 2].max() > 0.09  # the top of the sphere is kept
+
+
+def test_no_frames_and_no_returns_give_an_empty_mesh(sphere_frames):
+    _, frames = sphere_frames
+    assert len(tsdf_reconstruct([]).triangles) == 0
+    rgb, depth, K, T = frames[0]
+    assert len(tsdf_reconstruct([(rgb, np.full_like(depth, np.nan), K, T)]).triangles) == 0
+
+
+def test_subsampled_intrinsics_project_to_the_kept_pixel_centres():
+    K = intrinsics(640, 480)
+    for stride in (2, 3, 4):
+        rgb = np.zeros((480, 640, 3), np.uint8)
+        _, _, K2 = subsample(rgb, np.zeros((480, 640), np.float32), K, stride)
+        o = stride // 2
+        u2 = np.array([0, 7, 100])
+        # the ray through original pixel centre (s u' + o + 0.5) must hit new pixel centre u' + 0.5
+        x = (stride * u2 + o + 0.5 - K[0, 2]) / K[0, 0]
+        np.testing.assert_allclose(K2[0, 0] * x + K2[0, 2], u2 + 0.5)
+
+
+def test_room_level_uses_coarser_voxels_and_bad_levels_are_rejected():
+    assert TsdfParams.for_level("room").voxel_length > TsdfParams.for_level("object").voxel_length
+    with pytest.raises(InputError, match="level"):
+        TsdfParams.for_level("galaxy")
+
+
+def test_bad_rgb_is_rejected_with_its_name(sphere_frames):
+    _, frames = sphere_frames
+    rgb, depth, K, T = frames[0]
+    with pytest.raises(InputError, match="rgb"):
+        tsdf_reconstruct([(rgb.astype(np.float32), depth, K, T)])

@@ -1,0 +1,129 @@
+"""evaluate_run on a synthetic run directory, and the report built from several runs."""
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from area3d_eval.evaluate import default_checkpoints, evaluate_run, image_metrics, reference_images
+from area3d_eval.render import MeshRenderer
+from area3d_eval.report import aggregate, write_report
+from area3d_eval.synthetic import SyntheticRenderer, SyntheticScene, hemisphere_views, make_run
+
+SMALL = {
+    "renderer_factory": SyntheticRenderer,
+    "eval_width": 64,
+    "eval_height": 48,
+    "num_surface_points": 4000,
+}
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return SyntheticScene(subdivisions=3)
+
+
+def test_default_checkpoints_cover_initial_views_every_fourth_and_the_last():
+    assert default_checkpoints(29, 4) == [4, 8, 12, 16, 20, 24, 28, 29]
+    assert default_checkpoints(50, 15)[:3] == [4, 8, 12] and 15 in default_checkpoints(50, 15)
+    assert default_checkpoints(3, 4) == [3]
+
+
+def test_the_ground_truth_mesh_rendered_at_eval_views_scores_perfectly(scene):
+    K, images, masks = reference_images(scene, SyntheticRenderer, 64, 48, 90.0)
+    assert len(images) == len(scene.eval_views) and all(m.any() for m in masks)
+    scores = image_metrics(
+        MeshRenderer(scene.ground_truth_mesh()), K, scene.eval_views, images, masks
+    )
+    assert scores["psnr"] == 100.0 and scores["psnr_roi"] == 100.0  # identical images, capped
+    assert scores["ssim"] == pytest.approx(1.0) and scores["ssim_roi"] == pytest.approx(1.0)
+
+
+def test_evaluate_run_writes_metrics_after_each_checkpoint(tmp_path, scene):
+    run = make_run(
+        tmp_path / "run", scene, policy="random", seed=0, budget=5, width=160, height=120
+    )
+    result = evaluate_run(run, scene, **SMALL)
+    written = json.loads((run / "metrics.json").read_text())
+    assert [row["num_views"] for row in written["curve"]] == [4, 8, 9]
+    assert written["final"]["num_views"] == 9 and written["policy"] == "random"
+    assert (run / "eval" / "reconstruction.ply").is_file() and (
+        run / "eval" / "gt_sample.npy"
+    ).is_file()
+    final = result["final"]
+    # the object is seen from all sides but not from below: most of the surface, accurately
+    assert 0.5 < final["completion"] < 1.0 and final["accuracy"] < 0.005
+    assert 0.0 < final["ssim"] <= 1.0 and np.isfinite(final["psnr"])
+    assert result["curve"][-1]["completion"] >= result["curve"][0]["completion"] - 0.02
+
+
+def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
+    runs = []
+    for policy, seeds, elevation in (("uniform", (0, 1), 60.0), ("area3d", (0,), 15.0)):
+        for seed in seeds:
+            poses = hemisphere_views(
+                scene.center,
+                scene.view_radius,
+                np.array([45.0, 135.0]) + 10 * seed,
+                np.full(2, elevation),
+            )
+            run = make_run(
+                tmp_path / f"{policy}_{seed}",
+                scene,
+                policy=policy,
+                seed=seed,
+                budget=2,
+                width=80,
+                height=60,
+                poses=poses,
+            )
+            evaluate_run(run, scene, **SMALL)
+            runs.append(run)
+    x, y, z = (a.ravel() for a in np.meshgrid(*[np.linspace(-0.2, 0.2, 6)] * 3, indexing="ij"))
+    u = np.exp(-(x**2 + y**2) * 20)
+    for name, scale in (("grid_initial.npz", 1.0), ("grid_final.npz", 0.3)):
+        np.savez(
+            runs[0] / name,
+            x=x,
+            y=y,
+            z=z,
+            uncertainty=u * scale,
+            geometric=u,
+            semantic=u,
+            occupancy=0 * u,
+        )
+
+    md_path, html_path = write_report(runs, tmp_path / "report", evaluate_missing=False)
+    md, page = md_path.read_text(), html_path.read_text()
+
+    rows = [line for line in md.splitlines() if line.startswith("| ")]
+    assert rows[0].startswith("| Policy | synthetic_object: Comp. ratio")
+    assert (
+        sum(r.startswith("| uniform |") for r in rows) == 1
+        and sum(r.startswith("| area3d |") for r in rows) == 1
+    )
+    uniform_row = next(r for r in rows if r.startswith("| uniform |"))
+    assert "±" in uniform_row  # two seeds: mean ± std
+    assert "How to read this report" in md and "How to read this report" in page
+    assert (
+        "<table>" in page
+        and "<td class='policy'>uniform</td>" in page
+        and "<td class='policy'>area3d</td>" in page
+    )
+
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
+    srcs = re.findall(r"<img src='([^']+)'", page)
+    assert sorted(links) == sorted(srcs)
+    assert len(links) == 4 + 3 + 1 + 1  # curves, views per run, one uncertainty figure, timings
+    for link in links:
+        assert (md_path.parent / link).is_file(), link
+    assert any("uncertainty" in link for link in links)
+
+    table = {(r["scene"], r["policy"]): r for r in aggregate(runs)}
+    assert (
+        table[("synthetic_object", "uniform")]["runs"] == 2
+        and table[("synthetic_object", "area3d")]["runs"] == 1
+    )
+    finals = [json.loads((r / "metrics.json").read_text())["final"]["fscore"] for r in runs[:2]]
+    assert table[("synthetic_object", "uniform")]["fscore"] == pytest.approx(np.mean(finals))

@@ -1,0 +1,51 @@
+"""The run directory round-trips frames and episodes."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from area3d_eval.rundir import iter_frames, read_episode, to_jsonable, write_episode, write_frame
+from area3d_msgs_py.errors import InputError
+
+
+def test_frames_round_trip_in_index_order(tmp_path):
+    rng = np.random.default_rng(0)
+    for i in (10, 2, 7):
+        rgb = rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)
+        depth = np.where(rng.random((6, 8)) > 0.5, 1.5, np.nan).astype(np.float32)
+        T = np.eye(4)
+        T[0, 3] = i
+        write_frame(tmp_path, i, rgb, depth, np.eye(3), T, stamp_ns=i * 100)
+    frames = list(iter_frames(tmp_path))
+    assert [f.index for f in frames] == [2, 7, 10]
+    assert [f.stamp_ns for f in frames] == [200, 700, 1000]
+    assert frames[1].T_world_cam[0, 3] == 7
+    assert np.isnan(frames[0].depth).any() and frames[0].rgb.dtype == np.uint8
+    assert len(list(iter_frames(tmp_path, limit=2))) == 2
+
+
+def test_episode_views_are_sorted_and_counted(tmp_path):
+    views = [
+        {"index": 1, "T_world_cam": np.eye(4), "kind": "planned"},
+        {"index": 0, "T_world_cam": np.eye(4), "kind": "initial"},
+    ]
+    write_episode(tmp_path, {"scene": "s", "policy": "p", "seed": 3, "budget": 1, "views": views})
+    ep = read_episode(tmp_path)
+    assert [v["index"] for v in ep.views] == [0, 1] and ep.num_initial == 1
+    assert ep.poses().shape == (2, 4, 4) and ep.kinds() == ["initial", "planned"]
+
+
+def test_non_finite_numbers_become_null_in_json():
+    text = json.dumps(to_jsonable({"a": math.inf, "b": [np.float64("nan"), np.int64(2)]}))
+    assert json.loads(text) == {"a": None, "b": [None, 2]}
+
+
+def test_missing_episode_and_bad_frames_are_rejected(tmp_path):
+    with pytest.raises(InputError, match="run_dir"):
+        read_episode(tmp_path)
+    with pytest.raises(InputError, match="depth"):
+        write_frame(
+            tmp_path, 0, np.zeros((4, 4, 3), np.uint8), np.zeros((4, 5)), np.eye(3), np.eye(4)
+        )
