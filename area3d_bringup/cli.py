@@ -10,9 +10,14 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="AREA3D: active 3D reconstruction over a ROS 2 node graph.")
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: print measured figures beside their targets.")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="AREA3D: active 3D reconstruction over a ROS 2 node graph.",
+)
+bench_app = typer.Typer(
+    no_args_is_help=True, help="Benchmarks: print measured figures beside their targets."
+)
 app.add_typer(bench_app, name="bench")
 console = Console(stderr=True)
 
@@ -36,26 +41,53 @@ def _fail(message: str) -> None:
 
 @app.command()
 def run(
-    scene: str = typer.Option("single_object", help="bundled scene name or path to a MuJoCo MJCF file"),
-    policy: str = typer.Option("area3d", help="area3d | random | uniform | vlm_naive | volumetric_ig | no_vlm | no_ff | gamma0"),
-    budget: int = typer.Option(None, help="view budget T after O_0 (default: the paper's, 25 object / 40 room)"),
-    mode: str = typer.Option("closed_loop", help="closed_loop (re-plan after each view) | batch (paper)"),
+    scene: str = typer.Option(
+        "single_object", help="bundled scene name or path to a MuJoCo MJCF file"
+    ),
+    policy: str = typer.Option(
+        "area3d",
+        help="area3d | random | uniform | vlm_naive | volumetric_ig | no_vlm | no_ff | gamma0",
+    ),
+    budget: int = typer.Option(
+        None, help="view budget T after O_0 (default: the paper's, 25 object / 40 room)"
+    ),
+    mode: str = typer.Option(
+        "closed_loop", help="closed_loop (re-plan after each view) | batch (paper)"
+    ),
     seed: int = typer.Option(0),
     out: Path = typer.Option(Path("runs"), help="where run directories are created"),
     resume: Path = typer.Option(None, help="continue an interrupted run directory"),
     record: bool = typer.Option(True, help="record the episode as rosbag2 (MCAP)"),
-    evaluate: bool = typer.Option(True, help="reconstruct, score and write the report after the episode"),
+    evaluate: bool = typer.Option(
+        True, help="reconstruct, score and write the report after the episode"
+    ),
     params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
     param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
-    domain_id: int = typer.Option(None, help="ROS_DOMAIN_ID for the graph (default: $ROS_DOMAIN_ID or 0)"),
+    domain_id: int = typer.Option(
+        None, help="ROS_DOMAIN_ID for the graph (default: $ROS_DOMAIN_ID or 0)"
+    ),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
 
-    config = EpisodeConfig(scene=scene, policy=policy, budget=budget, mode=mode, seed=seed, out_dir=out,
-                           record=record, params_file=params, overrides=_overrides(param), domain_id=domain_id)
-    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-               TimeElapsedColumn())
+    config = EpisodeConfig(
+        scene=scene,
+        policy=policy,
+        budget=budget,
+        mode=mode,
+        seed=seed,
+        out_dir=out,
+        record=record,
+        params_file=params,
+        overrides=_overrides(param),
+        domain_id=domain_id,
+    )
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+    )
     try:
         with Progress(*columns, console=console) as progress:
             run_dir = run_episode(config, resume=resume, progress=progress)
@@ -68,16 +100,18 @@ def run(
 
 
 def _evaluate_and_report(run_dirs: list[Path], out_dir: Path) -> tuple[Path, Path]:
-    from area3d_eval.report import evaluate_runs, write_report
+    from area3d_eval.report import write_report
 
-    evaluate_runs(run_dirs, console=console)
-    return write_report(run_dirs, out_dir)
+    with console.status("reconstructing, scoring and writing the report"):
+        return write_report(run_dirs, out_dir)
 
 
 @app.command()
 def report(
     run_dirs: list[Path] = typer.Argument(..., help="run directories written by `area3d run`"),
-    out: Path = typer.Option(None, help="report directory (default: RUN_DIR/report for one run, ./report otherwise)"),
+    out: Path = typer.Option(
+        None, help="report directory (default: RUN_DIR/report for one run, ./report otherwise)"
+    ),
 ) -> None:
     """Evaluate run directories (if not yet) and write a Markdown + HTML report."""
     for run_dir in run_dirs:
@@ -92,7 +126,9 @@ def report(
 def launch(
     params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
     param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
-    loopback: bool = typer.Option(False, help="pin Cyclone DDS to 127.0.0.1 (default: your normal DDS network)"),
+    loopback: bool = typer.Option(
+        False, help="pin Cyclone DDS to 127.0.0.1 (default: your normal DDS network)"
+    ),
     domain_id: int = typer.Option(None, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)"),
 ) -> None:
     """Start the node graph and keep it running (Ctrl-C stops every node)."""
@@ -108,7 +144,9 @@ def launch(
     if loopback:
         from area3d_msgs_py.dds_config import loopback_config
 
-        env["CYCLONEDDS_URI"] = loopback_config(int(env.get("ROS_DOMAIN_ID", os.environ.get("ROS_DOMAIN_ID", "0"))))
+        env["CYCLONEDDS_URI"] = loopback_config(
+            int(env.get("ROS_DOMAIN_ID", os.environ.get("ROS_DOMAIN_ID", "0")))
+        )
     specs = build_graph(load_parameters(params), _overrides(param))
     with tempfile.TemporaryDirectory(prefix="area3d-launch-") as workdir:
         launcher = Launcher(specs, Path(workdir), env=env)
@@ -126,8 +164,12 @@ def launch(
 
 
 @app.command()
-def node(name: str = typer.Argument(..., help="sim_bridge | perception | semantics | planner"),
-         args: list[str] = typer.Argument(None, help="ROS-style arguments: --ros-args -p name:=value ...")) -> None:
+def node(
+    name: str = typer.Argument(..., help="sim_bridge | perception | semantics | planner"),
+    args: list[str] = typer.Argument(
+        None, help="ROS-style arguments: --ros-args -p name:=value ..."
+    ),
+) -> None:
     """Run a single node in the foreground."""
     from area3d_bringup.launch_description import GRAPH_NODES
 
@@ -144,7 +186,9 @@ def scenes() -> None:
 
     for name in list_scenes():
         scene = load_scene(name)
-        print(f"{name:16s} {scene.level:7s} |O_0|={len(scene.initial_views):2d} held-out={len(scene.eval_views)}")
+        print(
+            f"{name:16s} {scene.level:7s} |O_0|={len(scene.initial_views):2d} held-out={len(scene.eval_views)}"
+        )
 
 
 BENCHES = {
@@ -172,16 +216,26 @@ for _name, _module in BENCHES.items():
 @bench_app.command("episode")
 def bench_episode(
     seeds: int = typer.Option(3),
-    policies: str = typer.Option("area3d,random,uniform,vlm_naive,volumetric_ig,no_vlm,no_ff,gamma0"),
-    scenes_: str = typer.Option("", "--scenes", help="comma list (default: all object-level scenes)"),
+    policies: str = typer.Option(
+        "area3d,random,uniform,vlm_naive,volumetric_ig,no_vlm,no_ff,gamma0"
+    ),
+    scenes_: str = typer.Option(
+        "", "--scenes", help="comma list (default: all object-level scenes)"
+    ),
     budget: int = typer.Option(None),
     out: Path = typer.Option(Path("runs/bench")),
 ) -> None:
     """Every policy on every object-level scene with several seeds; prints the table."""
     from area3d_bringup.episode_bench import run_episode_bench
 
-    run_episode_bench(seeds=seeds, policies=policies.split(","), scenes=[s for s in scenes_.split(",") if s],
-                      budget=budget, out=out, console=console)
+    run_episode_bench(
+        seeds=seeds,
+        policies=policies.split(","),
+        scenes=[s for s in scenes_.split(",") if s],
+        budget=budget,
+        out=out,
+        console=console,
+    )
 
 
 def main() -> None:

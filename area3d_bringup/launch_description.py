@@ -36,10 +36,14 @@ def load_parameters(path: Path | None = None) -> dict[str, dict]:
     """{node_name: {param: value}} from a ROS 2 parameter YAML file (`ros__parameters` sections)."""
     path = Path(path) if path is not None else default_params_file()
     if not path.is_file():
-        raise FileNotFoundError(f"params file: got {str(path)!r}, expected an existing ROS 2 parameter YAML file")
+        raise FileNotFoundError(
+            f"params file: got {str(path)!r}, expected an existing ROS 2 parameter YAML file"
+        )
     data = yaml.safe_load(path.read_text()) or {}
     if not isinstance(data, dict):
-        raise ValueError(f"params file {path}: expected a mapping of node names, got {type(data).__name__}")
+        raise ValueError(
+            f"params file {path}: expected a mapping of node names, got {type(data).__name__}"
+        )
     out: dict[str, dict] = {}
     for node_name, section in data.items():
         params = (section or {}).get("ros__parameters", {}) if isinstance(section, dict) else {}

@@ -65,11 +65,25 @@ class Launcher:
     def start(self) -> None:
         params_file = write_params_file(self.specs, self.workdir / "params.yaml")
         for spec in self.specs:
-            cmd = [sys.executable, "-m", spec.module, "--ros-args", "--params-file", str(params_file),
-                   "-r", f"__node:={spec.name}"]
+            cmd = [
+                sys.executable,
+                "-m",
+                spec.module,
+                "--ros-args",
+                "--params-file",
+                str(params_file),
+                "-r",
+                f"__node:={spec.name}",
+            ]
             proc = subprocess.Popen(
-                cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                env=self.env, text=True, bufsize=1, preexec_fn=_die_with_parent,
+                cmd,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=self.env,
+                text=True,
+                bufsize=1,
+                preexec_fn=_die_with_parent,
             )
             self.processes[spec.name] = proc
             self.output[spec.name] = []

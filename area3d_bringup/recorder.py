@@ -19,7 +19,9 @@ class BagRecorder:
     def __init__(self, path: Path):
         self.path = Path(path)
         if self.path.exists():
-            raise FileExistsError(f"bag path: got {str(self.path)!r}, expected a path that does not exist yet")
+            raise FileExistsError(
+                f"bag path: got {str(self.path)!r}, expected a path that does not exist yet"
+            )
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         self._writer.open()
         self._connections: dict[str, object] = {}

@@ -32,7 +32,10 @@ POLICIES: dict[str, dict[str, dict]] = {
     "uniform": {"planner": {"policy": "uniform"}, "semantics": {"backend": "none"}},
     "vlm_naive": {"planner": {"policy": "vlm_naive"}},
     "volumetric_ig": {"planner": {"policy": "volumetric_ig"}, "semantics": {"backend": "none"}},
-    "no_vlm": {"planner": {"policy": "area3d", "semantic_weight": 0.0}, "semantics": {"backend": "none"}},
+    "no_vlm": {
+        "planner": {"policy": "area3d", "semantic_weight": 0.0},
+        "semantics": {"backend": "none"},
+    },
     "no_ff": {"planner": {"policy": "area3d"}, "perception": {"backend": "uniform"}},
     "gamma0": {"planner": {"policy": "area3d", "gamma": 0.0}},
 }
@@ -97,15 +100,23 @@ def save_frame(run_dir: Path, index: int, frame: Frame) -> Path:
     path = run_dir / "frames" / f"{index:04d}.npz"
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, rgb=frame.rgb, depth=frame.depth, K=frame.K,
-                        T_world_cam=frame.T_world_cam, stamp_ns=np.int64(frame.stamp_ns))
+    np.savez_compressed(
+        tmp,
+        rgb=frame.rgb,
+        depth=frame.depth,
+        K=frame.K,
+        T_world_cam=frame.T_world_cam,
+        stamp_ns=np.int64(frame.stamp_ns),
+    )
     os.replace(tmp, path)
     return path
 
 
 def load_frame(path: Path) -> Frame:
     with np.load(path) as data:
-        return Frame(int(data["stamp_ns"]), data["rgb"], data["depth"], data["K"], data["T_world_cam"])
+        return Frame(
+            int(data["stamp_ns"]), data["rgb"], data["depth"], data["K"], data["T_world_cam"]
+        )
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -131,14 +142,21 @@ class MissionManager:
         self.planner_status: dict = {}
         self.latest_grid: object | None = None
         self.goal_pub = node.create_publisher("geometry_msgs/msg/PoseStamped", GOAL_TOPIC)
-        self.replay_pubs = {key: node.create_publisher(type_name, topic) for key, (topic, type_name) in CAMERA_TOPICS.items()}
+        self.replay_pubs = {
+            key: node.create_publisher(type_name, topic)
+            for key, (topic, type_name) in CAMERA_TOPICS.items()
+        }
         for key, (topic, type_name) in CAMERA_TOPICS.items():
             node.create_subscription(type_name, topic, self._on_part(key, topic, type_name))
         for topic, type_name in RECORDED_TOPICS.items():
             if topic not in {t for t, _ in CAMERA_TOPICS.values()}:
                 latched = topic == "/tf_static"
-                node.create_subscription(type_name, topic, self._on_other(topic, type_name), latched=latched)
-        node.create_subscription("sensor_msgs/msg/PointCloud2", GRID_TOPIC, self._on_grid, latched=True)
+                node.create_subscription(
+                    type_name, topic, self._on_other(topic, type_name), latched=latched
+                )
+        node.create_subscription(
+            "sensor_msgs/msg/PointCloud2", GRID_TOPIC, self._on_grid, latched=True
+        )
         self.client = node.create_client("nav_msgs/srv/GetPlan", NBV_SERVICE)
 
     # -- callbacks (spin thread) ------------------------------------------------------------
@@ -180,7 +198,9 @@ class MissionManager:
     def capture(self, T_world_cam: np.ndarray, timeout_s: float) -> Frame | str:
         """Send the camera to `T_world_cam`; the frame, or the camera's reason for refusing."""
         stamp = self.node.now_ns()
-        goal = msgs.PoseStamped(header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T_world_cam))
+        goal = msgs.PoseStamped(
+            header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T_world_cam)
+        )
         self._record(GOAL_TOPIC, "geometry_msgs/msg/PoseStamped", stamp, goal)
         self.goal_pub.publish(goal)
         deadline = time.monotonic() + timeout_s
@@ -195,11 +215,18 @@ class MissionManager:
                     break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise TimeoutError(f"no frame from sim_bridge within {timeout_s:.0f} s for the goal stamped {stamp}")
+                    raise TimeoutError(
+                        f"no frame from sim_bridge within {timeout_s:.0f} s for the goal stamped {stamp}"
+                    )
                 self._lock.wait(min(remaining, 0.1))
         K, _, _ = codecs.camera_info_to_intrinsics(parts["info"])
-        return Frame(stamp, codecs.msg_to_image(parts["color"]), codecs.msg_to_image(parts["depth"]), K,
-                     codecs.pose_to_matrix(parts["pose"].pose))
+        return Frame(
+            stamp,
+            codecs.msg_to_image(parts["color"]),
+            codecs.msg_to_image(parts["depth"]),
+            K,
+            codecs.pose_to_matrix(parts["pose"].pose),
+        )
 
     def replay(self, frame: Frame) -> None:
         """Publish a saved frame on the camera topics, as the camera did when it was captured."""
@@ -207,9 +234,15 @@ class MissionManager:
         header_args = (frame.stamp_ns, "camera_optical_frame")
         self.replay_pubs["color"].publish(codecs.image_to_msg(frame.rgb, "rgb8", *header_args))
         self.replay_pubs["depth"].publish(codecs.image_to_msg(frame.depth, "32FC1", *header_args))
-        self.replay_pubs["info"].publish(codecs.intrinsics_to_camera_info(frame.K, w, h, *header_args))
-        self.replay_pubs["pose"].publish(msgs.PoseStamped(header=codecs.header(frame.stamp_ns, "world"),
-                                                          pose=codecs.matrix_to_pose(frame.T_world_cam)))
+        self.replay_pubs["info"].publish(
+            codecs.intrinsics_to_camera_info(frame.K, w, h, *header_args)
+        )
+        self.replay_pubs["pose"].publish(
+            msgs.PoseStamped(
+                header=codecs.header(frame.stamp_ns, "world"),
+                pose=codecs.matrix_to_pose(frame.T_world_cam),
+            )
+        )
 
     def wait_fused(self, count: int, timeout_s: float) -> bool:
         """Wait until the planner reports at least `count` fused frames."""
@@ -225,15 +258,21 @@ class MissionManager:
     def plan(self, current: Frame, count: int, timeout_s: float) -> list[np.ndarray]:
         """Ask the planner for `count` views (0 = what the budget allows) from the current pose."""
         request = msgs.GetPlan_Request(
-            start=msgs.PoseStamped(header=codecs.header(current.stamp_ns, "world"),
-                                   pose=codecs.matrix_to_pose(current.T_world_cam)),
-            goal=msgs.PoseStamped(header=codecs.header(current.stamp_ns, "world"),
-                                  pose=codecs.matrix_to_pose(np.eye(4))),
+            start=msgs.PoseStamped(
+                header=codecs.header(current.stamp_ns, "world"),
+                pose=codecs.matrix_to_pose(current.T_world_cam),
+            ),
+            goal=msgs.PoseStamped(
+                header=codecs.header(current.stamp_ns, "world"),
+                pose=codecs.matrix_to_pose(np.eye(4)),
+            ),
             tolerance=0.0,
         )
         request.goal.pose.position.x = float(count)
         response = self.client.call(request, timeout_s)
-        self._record("/area3d/planner/next_views", "nav_msgs/msg/Path", current.stamp_ns, response.plan)
+        self._record(
+            "/area3d/planner/next_views", "nav_msgs/msg/Path", current.stamp_ns, response.plan
+        )
         return [codecs.pose_to_matrix(p.pose) for p in response.plan.poses]
 
 
@@ -247,7 +286,9 @@ def _spin_in_background(node: Node, stop: threading.Event) -> threading.Thread:
     return thread
 
 
-def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: object | None = None) -> Path:
+def run_episode(
+    config: EpisodeConfig, resume: Path | None = None, progress: object | None = None
+) -> Path:
     """Run one episode; returns the run directory (frames, episode.json, bag, grids)."""
     from area3d_msgs_py.dds_config import use_loopback
     from sim_bridge.scenes import load_scene
@@ -259,7 +300,9 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
     scene = load_scene(config.scene)
     budget = paper_budget(scene.level) if config.budget is None else int(config.budget)
     if budget < len(scene.initial_views):
-        raise ValueError(f"budget: got {budget}, expected the total number of views, at least |O_0| = {len(scene.initial_views)}")
+        raise ValueError(
+            f"budget: got {budget}, expected the total number of views, at least |O_0| = {len(scene.initial_views)}"
+        )
 
     timings: dict[str, float] = {}
     views: list[dict] = []
@@ -268,7 +311,9 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
         run_dir = Path(resume)
         episode_path = run_dir / "episode.json"
         if not episode_path.is_file():
-            raise FileNotFoundError(f"resume: got {str(run_dir)!r}, expected a run directory with episode.json")
+            raise FileNotFoundError(
+                f"resume: got {str(run_dir)!r}, expected a run directory with episode.json"
+            )
         saved = json.loads(episode_path.read_text())
         config.scene, config.policy, config.mode = saved["scene"], saved["policy"], saved["mode"]
         config.seed, budget = saved["seed"], saved["budget"]
@@ -277,7 +322,10 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
         frames = [load_frame(run_dir / "frames" / f"{v['index']:04d}.npz") for v in views]
         timings = saved.get("timings_s", {})
     else:
-        name = config.run_name or f"{scene.name}_{config.policy}_s{config.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+        name = (
+            config.run_name
+            or f"{scene.name}_{config.policy}_s{config.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+        )
         run_dir = Path(config.out_dir) / name
         run_dir.mkdir(parents=True, exist_ok=False)
     n_init = len(scene.initial_views)
@@ -287,23 +335,37 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
         overrides.setdefault(node, {}).update(values)
     overrides.setdefault("sim_bridge", {})["scene"] = config.scene
     overrides.setdefault("planner", {}).update(
-        {"scene": config.scene, "budget": budget, "mode": config.mode, "seed": config.seed})
+        {"scene": config.scene, "budget": budget, "mode": config.mode, "seed": config.seed}
+    )
     overrides.setdefault("semantics", {})["num_initial_views"] = n_init
     for node, values in config.overrides.items():
         overrides.setdefault(node, {}).update(values)
     specs = build_graph(load_parameters(config.params_file), overrides)
 
     def save_episode() -> None:
-        _write_json(run_dir / "episode.json", {
-            "scene": config.scene, "policy": config.policy, "seed": config.seed, "budget": budget,
-            "level": scene.level, "mode": config.mode, "views": views, "timings_s": timings,
-            "config": {spec.name: spec.parameters for spec in specs},
-        })
+        _write_json(
+            run_dir / "episode.json",
+            {
+                "scene": config.scene,
+                "policy": config.policy,
+                "seed": config.seed,
+                "budget": budget,
+                "level": scene.level,
+                "mode": config.mode,
+                "views": views,
+                "timings_s": timings,
+                "config": {spec.name: spec.parameters for spec in specs},
+            },
+        )
 
     def add_time(stage: str, seconds: float) -> None:
         timings[stage] = timings.get(stage, 0.0) + seconds
 
-    domain_id = config.domain_id if config.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID", "0"))
+    domain_id = (
+        config.domain_id
+        if config.domain_id is not None
+        else int(os.environ.get("ROS_DOMAIN_ID", "0"))
+    )
     env = use_loopback(domain_id)
     log_path = run_dir / "nodes.log"
     log_file = log_path.open("a")
@@ -315,7 +377,11 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
             log_file.flush()
 
     bag_index = len(list(run_dir.glob("bag*")))
-    recorder = BagRecorder(run_dir / (f"bag_{bag_index}" if bag_index else "bag")) if config.record else None
+    recorder = (
+        BagRecorder(run_dir / (f"bag_{bag_index}" if bag_index else "bag"))
+        if config.record
+        else None
+    )
     t0 = time.monotonic()
     launcher = Launcher(specs, run_dir, env=env, log_sink=log_sink)
     stop = threading.Event()
@@ -329,7 +395,9 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
         while not manager.client.wait_for_service(0.5):
             launcher.check()
             if time.monotonic() > deadline:
-                raise EpisodeError(f"the planner service {NBV_SERVICE} did not appear within {config.startup_timeout_s:.0f} s")
+                raise EpisodeError(
+                    f"the planner service {NBV_SERVICE} did not appear within {config.startup_timeout_s:.0f} s"
+                )
         add_time("launch", time.monotonic() - t0)
         if progress is not None:
             task = progress.add_task(f"{scene.name} / {config.policy}", total=budget)
@@ -339,15 +407,25 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
             index = len(frames)
             save_frame(run_dir, index, frame)
             frames.append(frame)
-            views.append({"index": index, "stamp_ns": frame.stamp_ns, "T_world_cam": frame.T_world_cam.tolist(),
-                          "kind": kind, "stage_times_s": stage_times})
+            views.append(
+                {
+                    "index": index,
+                    "stamp_ns": frame.stamp_ns,
+                    "T_world_cam": frame.T_world_cam.tolist(),
+                    "kind": kind,
+                    "stage_times_s": stage_times,
+                }
+            )
             save_episode()
             if progress is not None:
                 status = manager.planner_status
                 metric = status.get("uncertainty_total")
                 extra = f" | U={metric:.1f}" if isinstance(metric, int | float) else ""
-                progress.update(task, completed=len(frames),
-                                description=f"{scene.name} / {config.policy}: view {len(frames)}/{budget} ({kind}){extra}")
+                progress.update(
+                    task,
+                    completed=len(frames),
+                    description=f"{scene.name} / {config.policy}: view {len(frames)}/{budget} ({kind}){extra}",
+                )
 
         # Replay what an interrupted episode had already captured, so the new graph knows it.
         if frames:
@@ -358,7 +436,7 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
             manager.wait_fused(len(frames), config.plan_timeout_s)
             add_time("replay", time.monotonic() - t)
 
-        for T in scene.initial_views[len(frames):n_init] if len(frames) < n_init else []:
+        for T in scene.initial_views[len(frames) : n_init] if len(frames) < n_init else []:
             t = time.monotonic()
             result = manager.capture(T, config.capture_timeout_s)
             launcher.check()
@@ -381,7 +459,9 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
             add_time("plan", plan_s)
             launcher.check()
             if not poses:
-                log_sink(f"[mission_manager] the planner returned no view with {to_plan - planned} left; stopping early")
+                log_sink(
+                    f"[mission_manager] the planner returned no view with {to_plan - planned} left; stopping early"
+                )
                 break
             for T in poses[: to_plan - planned]:
                 t = time.monotonic()
@@ -391,10 +471,16 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
                     refused += 1
                     log_sink(f"[mission_manager] the camera refused a planned view: {result}")
                     if refused > budget:
-                        raise EpisodeError("the camera refused more planned views than the budget; stopping")
+                        raise EpisodeError(
+                            "the camera refused more planned views than the budget; stopping"
+                        )
                     continue
                 planned += 1
-                keep(result, "planned", {"plan": plan_s / len(poses), "capture": time.monotonic() - t})
+                keep(
+                    result,
+                    "planned",
+                    {"plan": plan_s / len(poses), "capture": time.monotonic() - t},
+                )
         manager.wait_fused(len(frames), 10.0)
         if manager.latest_grid is not None:
             grid_msg_to_npz(manager.latest_grid, run_dir / "grid_final.npz")
@@ -402,10 +488,14 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
         save_episode()
     except NodeDied as err:
         save_episode()
-        raise EpisodeError(f"{err}\nkept {len(frames)} captured views in {run_dir}; continue with --resume {run_dir}") from err
+        raise EpisodeError(
+            f"{err}\nkept {len(frames)} captured views in {run_dir}; continue with --resume {run_dir}"
+        ) from err
     except (TimeoutError, EpisodeError) as err:
         save_episode()
-        raise EpisodeError(f"{err}\nkept {len(frames)} captured views in {run_dir}; continue with --resume {run_dir}") from err
+        raise EpisodeError(
+            f"{err}\nkept {len(frames)} captured views in {run_dir}; continue with --resume {run_dir}"
+        ) from err
     finally:
         stop.set()
         spinner.join(timeout=2.0)
@@ -419,6 +509,6 @@ def run_episode(config: EpisodeConfig, resume: Path | None = None, progress: obj
 
 def episode_summary(run_dir: Path) -> dict:
     data = json.loads((Path(run_dir) / "episode.json").read_text())
-    return {k: data[k] for k in ("scene", "policy", "seed", "budget", "mode")} | {"views": len(data["views"])}
-
-
+    return {k: data[k] for k in ("scene", "policy", "seed", "budget", "mode")} | {
+        "views": len(data["views"])
+    }

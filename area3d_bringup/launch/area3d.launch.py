@@ -18,15 +18,28 @@ NODES = (
 
 
 def generate_launch_description() -> LaunchDescription:
-    default_params = str(Path(get_package_share_directory("area3d_bringup")) / "config" / "area3d.yaml")
+    default_params = str(
+        Path(get_package_share_directory("area3d_bringup")) / "config" / "area3d.yaml"
+    )
     params_file = LaunchConfiguration("params_file")
     nodes = [
-        Node(package=package, executable=executable, name=name, parameters=[params_file], output="screen",
-             emulate_tty=True)
+        Node(
+            package=package,
+            executable=executable,
+            name=name,
+            parameters=[params_file],
+            output="screen",
+            emulate_tty=True,
+        )
         for package, executable, name in NODES
     ]
-    return LaunchDescription([
-        DeclareLaunchArgument("params_file", default_value=default_params,
-                              description="ROS 2 parameter YAML for every AREA3D node"),
-        *nodes,
-    ])
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument(
+                "params_file",
+                default_value=default_params,
+                description="ROS 2 parameter YAML for every AREA3D node",
+            ),
+            *nodes,
+        ]
+    )

@@ -58,14 +58,21 @@ def _alive(pid: int) -> bool:
 def _pids(launcher: Launcher, timeout_s: float = 10.0) -> dict[str, int]:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        pids = {n: int(l.split("pid=")[1].split()[0]) for n, lines in launcher.output.items() for l in lines if "pid=" in l}
+        pids = {
+            n: int(line.split("pid=")[1].split()[0])
+            for n, lines in launcher.output.items()
+            for line in lines
+            if "pid=" in line
+        }
         if len(pids) == len(launcher.specs):
             return pids
         time.sleep(0.05)
     raise AssertionError(f"nodes did not start: {launcher.output}")
 
 
-def test_each_node_runs_in_its_own_process_with_its_parameters_and_prefixed_logs(tmp_path, fake_env):
+def test_each_node_runs_in_its_own_process_with_its_parameters_and_prefixed_logs(
+    tmp_path, fake_env
+):
     lines: list[str] = []
     specs = [NodeSpec("alpha", "fake_node", {"x": 1}), NodeSpec("beta", "fake_node", {"y": "two"})]
     launcher = Launcher(specs, tmp_path, env=fake_env, log_sink=lines.append)
@@ -73,8 +80,8 @@ def test_each_node_runs_in_its_own_process_with_its_parameters_and_prefixed_logs
     try:
         pids = _pids(launcher)
         assert len(set(pids.values()) | {os.getpid()}) == 3
-        assert any(l.startswith("[alpha] ") and "'x': 1" in l for l in lines)
-        assert any(l.startswith("[beta] ") and "'y': 'two'" in l for l in lines)
+        assert any(line.startswith("[alpha] ") and "'x': 1" in line for line in lines)
+        assert any(line.startswith("[beta] ") and "'y': 'two'" in line for line in lines)
     finally:
         codes = launcher.stop()
     assert codes == {"alpha": 0, "beta": 0}, "SIGINT should stop the nodes cleanly"
@@ -92,7 +99,10 @@ def test_a_node_that_ignores_sigint_is_still_stopped(tmp_path, fake_env):
 
 
 def test_death_of_a_node_is_reported_by_name(tmp_path, fake_env):
-    specs = [NodeSpec("fine", "fake_node", {}), NodeSpec("fragile", "fake_node", {"die_after_s": 0.3})]
+    specs = [
+        NodeSpec("fine", "fake_node", {}),
+        NodeSpec("fragile", "fake_node", {"die_after_s": 0.3}),
+    ]
     launcher = Launcher(specs, tmp_path, env=fake_env, log_sink=lambda _: None)
     launcher.start()
     try:
@@ -108,8 +118,9 @@ def test_death_of_a_node_is_reported_by_name(tmp_path, fake_env):
 
 def test_children_die_with_a_killed_launcher(tmp_path, fake_env):
     script = tmp_path / "launch_and_hang.py"
-    script.write_text(textwrap.dedent(
-        f"""
+    script.write_text(
+        textwrap.dedent(
+            f"""
         import sys, time
         from pathlib import Path
         from area3d_bringup.launcher import Launcher
@@ -118,7 +129,9 @@ def test_children_die_with_a_killed_launcher(tmp_path, fake_env):
                             log_sink=lambda l: print(l, flush=True))
         launcher.start()
         time.sleep(60)
-        """))
+        """
+        )
+    )
     parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
     line = parent.stdout.readline()
     child_pid = int(line.split("pid=")[1].split()[0])
