@@ -2,30 +2,72 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
+from numba import njit
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_rays(k: tuple[float, float, float, float], height: int, width: int) -> np.ndarray:
+    fx, fy, cx, cy = k
+    x = ((np.arange(width, dtype=np.float64) + 0.5 - cx) / fx).astype(np.float32)
+    y = ((np.arange(height, dtype=np.float64) + 0.5 - cy) / fy).astype(np.float32)
+    rays = np.empty((height, width, 3), dtype=np.float32)
+    rays[..., 0] = x[None, :]
+    rays[..., 1] = y[:, None]
+    rays[..., 2] = 1.0
+    rays.flags.writeable = False
+    return rays
 
 
 def pixel_rays(K: np.ndarray, height: int, width: int) -> np.ndarray:
-    """(H, W, 3) float32 rays K^-1 [u+0.5, v+0.5, 1] in the optical frame (z = 1)."""
-    u = np.arange(width, dtype=np.float64) + 0.5
-    v = np.arange(height, dtype=np.float64) + 0.5
-    uu, vv = np.meshgrid(u, v)
-    x = (uu - K[0, 2]) / K[0, 0]
-    y = (vv - K[1, 2]) / K[1, 1]
-    return np.stack([x, y, np.ones_like(x)], axis=-1).astype(np.float32)
+    """(H, W, 3) float32 rays K^-1 [u+0.5, v+0.5, 1] in the optical frame (z = 1).
+
+    The array is cached per (K, H, W) and read-only; copy it before writing to it.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    key = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    return _cached_rays(key, int(height), int(width))
 
 
-def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@njit(cache=True)
+def _backproject(depth, fx, fy, cx, cy, T):  # pragma: no cover - compiled
+    h, w = depth.shape
+    n = 0
+    for v in range(h):
+        for u in range(w):
+            d = depth[v, u]
+            if np.isfinite(d) and d > 0:
+                n += 1
+    points = np.empty((n, 3), dtype=np.float64)
+    pixel = np.empty(n, dtype=np.int64)
+    m = 0
+    for v in range(h):
+        y = (v + 0.5 - cy) / fy
+        for u in range(w):
+            d = np.float64(depth[v, u])
+            if not (np.isfinite(d) and d > 0):
+                continue
+            px = (u + 0.5 - cx) / fx * d
+            py = y * d
+            for a in range(3):
+                points[m, a] = T[a, 0] * px + T[a, 1] * py + T[a, 2] * d + T[a, 3]
+            pixel[m] = v * w + u
+            m += 1
+    return points, pixel
+
+
+def backproject(
+    depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """World points of every pixel with a finite, positive depth.
 
     depth: (H, W) float32 metres along the optical z axis, NaN = no return.
     K: (3, 3) intrinsics. T_world_cam: (4, 4) pose of the camera optical frame in `world`.
-    Returns (points (N, 3) float64 world metres, pixel (N,) int64 flat pixel index).
+    Returns (points (N, 3) float64 world metres, pixel (N,) int64 flat pixel index, row-major).
     """
-    h, w = depth.shape
-    rays = pixel_rays(K, h, w).reshape(-1, 3)
-    d = depth.reshape(-1)
-    pixel = np.flatnonzero(np.isfinite(d) & (d > 0))
-    cam = rays[pixel].astype(np.float64) * d[pixel, None]
-    points = cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-    return points, pixel
+    K = np.asarray(K, dtype=np.float64)
+    T = np.ascontiguousarray(T_world_cam, dtype=np.float64)
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    return _backproject(depth, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T)

@@ -28,7 +28,9 @@ class GridSpec:
         if not (voxel_size > 0 and np.isfinite(voxel_size)):
             raise ValueError(f"voxel_size: got {voxel_size!r}, expected a finite value > 0 metres")
         if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
-            raise ValueError(f"bounds: got lo={lo.tolist()} hi={hi.tolist()}, expected lo < hi on every axis")
+            raise ValueError(
+                f"bounds: got lo={lo.tolist()} hi={hi.tolist()}, expected lo < hi on every axis"
+            )
         shape = np.maximum(np.ceil((hi - lo) / voxel_size - 1e-9).astype(int), 1)
         return cls(tuple(float(v) for v in lo), float(voxel_size), tuple(int(v) for v in shape))
 
@@ -46,7 +48,9 @@ class GridSpec:
 
     def centers(self) -> np.ndarray:
         """(nx*ny*nz, 3) float64 voxel centres in C order (x slowest, z fastest)."""
-        axes = [self.origin[i] + (np.arange(self.shape[i]) + 0.5) * self.voxel_size for i in range(3)]
+        axes = [
+            self.origin[i] + (np.arange(self.shape[i]) + 0.5) * self.voxel_size for i in range(3)
+        ]
         gx, gy, gz = np.meshgrid(*axes, indexing="ij")
         return np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
 
@@ -55,7 +59,9 @@ class GridSpec:
 
         Returns (ijk (N, 3) int64, inside (N,) bool); ijk of outside points is clipped, not valid.
         """
-        ijk = np.floor((np.asarray(points, dtype=np.float64) - self.lower) / self.voxel_size).astype(np.int64)
+        ijk = np.floor(
+            (np.asarray(points, dtype=np.float64) - self.lower) / self.voxel_size
+        ).astype(np.int64)
         inside = np.all((ijk >= 0) & (ijk < np.asarray(self.shape)), axis=1)
         return np.clip(ijk, 0, np.asarray(self.shape) - 1), inside
 

@@ -1,0 +1,207 @@
+"""One captured frame in, metric depth and per-pixel confidence in [0, 1] out, for any backend.
+
+Backends:
+    rgbd              sensor depth (optionally with simulated noise) + `rgbd_confidence`
+    uniform           sensor depth, confidence 1 on every valid pixel (the "w/o feed-forward" ablation)
+    vggt              VGGT depth + confidence over a sliding window of recent views, scaled to metres
+    depth_anything_3  the same with Depth Anything 3
+
+This is the pure core of the perception node: no transport, arrays in and out.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from area3d_msgs_py.errors import InputError
+from area3d_perception.feedforward import (
+    DepthAnything3Backend,
+    FeedForwardOutput,
+    VggtBackend,
+    align_depth_median,
+    align_scale_to_poses,
+    normalize_confidence,
+)
+from area3d_perception.sensor_model import RgbdSensorParams, add_depth_noise, rgbd_confidence
+
+BACKENDS = ("rgbd", "vggt", "depth_anything_3", "uniform")
+FEEDFORWARD_BACKENDS = ("vggt", "depth_anything_3")
+# Views per feed-forward pass: the new frame plus up to 7 recent ones (our choice; VGGT is
+# multi-view and its depth improves with context, while memory and time grow with the window).
+FEEDFORWARD_WINDOW = 8
+# Fewer valid metric pixels than this and the median alignment falls back to the poses.
+MIN_ALIGNMENT_PIXELS = 100
+
+
+@dataclass
+class FrameResult:
+    """depth: (H, W) float32 metres, NaN = missing; confidence: (H, W) float32 in [0, 1], 0 where
+    depth is missing; notes: human-readable warnings about this frame (bad input, fallbacks)."""
+
+    depth: np.ndarray
+    confidence: np.ndarray
+    notes: list[str] = field(default_factory=list)
+
+
+def sanitize_depth(depth: np.ndarray, field_name: str = "depth") -> tuple[np.ndarray, list[str]]:
+    """Depth with every unusable value set to NaN, and a note per kind of bad value found.
+
+    NaN already means "no return" and is kept silently; +-inf and values <= 0 are not valid depth
+    and are reported with their count. Returns (depth (H, W) float32, notes).
+    """
+    d = np.array(depth, dtype=np.float32, copy=True)
+    notes = []
+    n_inf = int(np.isinf(d).sum())
+    with np.errstate(invalid="ignore"):
+        nonpos = d <= 0
+    n_nonpos = int(nonpos.sum())
+    if n_inf:
+        notes.append(f"{field_name}: {n_inf} infinite values set to missing (NaN)")
+        d[np.isinf(d)] = np.nan
+    if n_nonpos:
+        notes.append(f"{field_name}: {n_nonpos} values <= 0 set to missing (NaN)")
+        d[nonpos] = np.nan
+    return d, notes
+
+
+def check_frame(
+    rgb: np.ndarray | None, depth: np.ndarray | None, info_size: tuple[int, int] | None
+) -> None:
+    """Reject a frame whose parts do not fit together (raises InputError naming the field).
+
+    rgb: (H, W, 3) uint8 or None; depth: (H, W) float or None; info_size: (width, height) of the
+    camera info, or None.
+    """
+    if depth is not None:
+        depth = np.asarray(depth)
+        if depth.ndim != 2:
+            raise InputError("depth", f"shape {depth.shape}", "an (H, W) image")
+    if rgb is not None:
+        rgb = np.asarray(rgb)
+        if rgb.ndim != 3 or rgb.shape[2] != 3:
+            raise InputError("color", f"shape {rgb.shape}", "an (H, W, 3) image")
+        if depth is not None and rgb.shape[:2] != depth.shape:
+            raise InputError(
+                "color",
+                f"size {rgb.shape[1]}x{rgb.shape[0]}",
+                f"the depth size {depth.shape[1]}x{depth.shape[0]}",
+            )
+    image = depth if depth is not None else rgb
+    if image is None:
+        raise InputError("depth/color", None, "at least one image")
+    if info_size is not None and tuple(info_size) != (image.shape[1], image.shape[0]):
+        raise InputError(
+            "camera_info",
+            f"size {info_size[0]}x{info_size[1]}",
+            f"the image size {image.shape[1]}x{image.shape[0]}",
+        )
+
+
+class FrameEstimator:
+    """Per-frame depth + confidence with one of `BACKENDS`.
+
+    sensor: noise/confidence model of the depth camera (rgbd backend; noise for all backends).
+    noise: add simulated sensor noise to the incoming depth (simulation only).
+    noise_seed: seed of the noise generator, for repeatable episodes.
+    checkpoint/device: feed-forward weights (file for vggt, directory for depth_anything_3).
+    window: views per feed-forward pass. confidence_normalization: see `normalize_confidence`.
+    model_factory: builds the feed-forward model (defaults to the real backends; tests inject one).
+    """
+
+    def __init__(
+        self,
+        backend: str = "rgbd",
+        sensor: RgbdSensorParams | None = None,
+        noise: bool = False,
+        noise_seed: int = 0,
+        checkpoint: str = "",
+        device: str = "auto",
+        window: int = FEEDFORWARD_WINDOW,
+        confidence_normalization: str = "inverse",
+        model_factory: Callable[[str, str], object] | None = None,
+    ) -> None:
+        if backend not in BACKENDS:
+            raise InputError("backend", backend, f"one of {', '.join(BACKENDS)}")
+        if int(window) != window or window < 1:
+            raise InputError("window", window, "an integer >= 1")
+        normalize_confidence(np.ones((1, 1)), confidence_normalization)  # validates the name
+        self.backend = backend
+        self.sensor = sensor or RgbdSensorParams()
+        self.noise = bool(noise)
+        self.rng = np.random.default_rng(noise_seed)
+        self.window = int(window)
+        self.confidence_normalization = confidence_normalization
+        self.model = None
+        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.window - 1)
+        if backend in FEEDFORWARD_BACKENDS:
+            factory = model_factory or _default_model_factory(backend)
+            self.model = factory(checkpoint, device)
+
+    def process(
+        self,
+        rgb: np.ndarray | None,
+        depth: np.ndarray | None,
+        K: np.ndarray,
+        T_world_cam: np.ndarray,
+    ) -> FrameResult:
+        """Depth and confidence of one frame.
+
+        rgb: (H, W, 3) uint8 (needed by feed-forward backends). depth: (H, W) float32 metres from the
+        sensor, NaN = no return (needed by rgbd/uniform; optional for feed-forward, which then scales
+        by the poses). K: (3, 3). T_world_cam: (4, 4) optical-frame pose.
+        """
+        check_frame(rgb, depth, None)
+        notes: list[str] = []
+        metric = None
+        if depth is not None:
+            metric, notes = sanitize_depth(depth)
+            if self.noise:
+                metric = add_depth_noise(metric, K, self.rng, self.sensor)
+        if self.backend in FEEDFORWARD_BACKENDS:
+            if rgb is None:
+                raise InputError("color", None, f"an rgb image for the {self.backend} backend")
+            return self._feedforward(
+                np.asarray(rgb), metric, np.asarray(T_world_cam, dtype=np.float64), notes
+            )
+        if metric is None:
+            raise InputError("depth", None, f"a depth image for the {self.backend} backend")
+        with np.errstate(invalid="ignore"):
+            metric[metric > self.sensor.max_range] = np.nan
+        if self.backend == "uniform":
+            confidence = np.isfinite(metric).astype(np.float32)
+        else:
+            confidence = rgbd_confidence(metric, K, self.sensor)
+        return FrameResult(metric, confidence, notes)
+
+    def _feedforward(
+        self, rgb: np.ndarray, metric: np.ndarray | None, T: np.ndarray, notes: list[str]
+    ) -> FrameResult:
+        views = [*self._history, (rgb, T)]
+        out: FeedForwardOutput = self.model.predict_views([v[0] for v in views])
+        pred = out.depth[-1].astype(np.float32)
+        scale = None
+        if metric is not None and int(np.isfinite(metric).sum()) >= MIN_ALIGNMENT_PIXELS:
+            scale = align_depth_median(pred, metric)
+        elif out.cam_centres is not None and len(views) >= 2:
+            known = np.stack([v[1][:3, 3] for v in views])
+            try:
+                scale, _, _ = align_scale_to_poses(out.cam_centres, known)
+            except InputError as exc:
+                notes.append(f"pose alignment failed ({exc}); depth left in model units")
+        else:
+            notes.append("no metric depth and fewer than two views: depth left in model units")
+        self._history.append((rgb, T))
+        depth = pred * np.float32(scale if scale is not None else 1.0)
+        with np.errstate(invalid="ignore"):
+            depth[~(depth > 0) | (depth > self.sensor.max_range)] = np.nan
+        confidence = normalize_confidence(out.confidence[-1], self.confidence_normalization)
+        confidence[~np.isfinite(depth)] = 0.0
+        return FrameResult(depth, confidence, notes)
+
+
+def _default_model_factory(backend: str) -> Callable[[str, str], object]:
+    return VggtBackend if backend == "vggt" else DepthAnything3Backend

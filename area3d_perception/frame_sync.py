@@ -1,0 +1,105 @@
+"""Exact-stamp pairing of the messages that make up one captured frame (color, depth, pose).
+
+Every message of a frame carries the capture stamp of its source frame, so a frame is complete when
+each stream has delivered a message with the same `stamp_ns`. Entries wait in one small dict per
+stream; anything older than `max_age_ns` behind the newest stamp seen is dropped and reported, so a
+pose whose images never arrive (or the reverse) cannot pile up. Age is measured on the stamps, not
+on the wall clock, so recorded episodes replay the same way at any speed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from area3d_msgs_py.errors import InputError
+
+# Keep unmatched parts for 5 s of stamp time (our choice: well above one render + transport).
+MAX_AGE_NS = 5_000_000_000
+# Hard cap on waiting entries per stream, whatever their age (a stuck stream must not grow memory).
+MAX_PENDING = 64
+
+
+@dataclass(frozen=True)
+class Dropped:
+    """A part that was discarded without a partner: its stream, its stamp and why."""
+
+    key: str
+    stamp_ns: int
+    reason: str
+
+
+class StampSync:
+    """Pairs messages of several streams by identical stamp.
+
+    keys: the stream names that make a complete frame, e.g. ("color", "depth", "pose").
+    """
+
+    def __init__(
+        self,
+        keys: Sequence[str],
+        max_age_ns: int = MAX_AGE_NS,
+        max_pending: int = MAX_PENDING,
+    ) -> None:
+        if len(keys) == 0 or len(set(keys)) != len(keys):
+            raise InputError("keys", list(keys), "one or more distinct stream names")
+        if max_age_ns < 0:
+            raise InputError("max_age_ns", max_age_ns, "a duration >= 0 nanoseconds")
+        if max_pending < 1:
+            raise InputError("max_pending", max_pending, "an integer >= 1")
+        self.keys = tuple(keys)
+        self.max_age_ns = int(max_age_ns)
+        self.max_pending = int(max_pending)
+        self._pending: dict[str, dict[int, Any]] = {k: {} for k in self.keys}
+        self._newest_ns: int | None = None
+        self._dropped: list[Dropped] = []
+
+    def add(self, key: str, stamp_ns: int, value: Any) -> dict[str, Any] | None:
+        """Store one part; returns {key: value} for every stream once the frame is complete.
+
+        A repeated (key, stamp) replaces the earlier part. Completing a frame removes it.
+        """
+        if key not in self._pending:
+            raise InputError("key", key, f"one of {list(self.keys)}")
+        stamp_ns = int(stamp_ns)
+        self._pending[key][stamp_ns] = value
+        if self._newest_ns is None or stamp_ns > self._newest_ns:
+            self._newest_ns = stamp_ns
+        complete = None
+        if all(stamp_ns in parts for parts in self._pending.values()):
+            complete = {k: self._pending[k].pop(stamp_ns) for k in self.keys}
+        self._expire()
+        return complete
+
+    def _expire(self) -> None:
+        horizon = self._newest_ns - self.max_age_ns
+        for key, parts in self._pending.items():
+            for stamp in [s for s in parts if s < horizon]:
+                del parts[stamp]
+                self._dropped.append(
+                    Dropped(
+                        key, stamp, f"no matching {self._missing(stamp, key)} within the age limit"
+                    )
+                )
+            while len(parts) > self.max_pending:
+                stamp = min(parts)
+                del parts[stamp]
+                self._dropped.append(
+                    Dropped(key, stamp, f"more than {self.max_pending} {key} parts waiting")
+                )
+
+    def _missing(self, stamp_ns: int, key: str) -> str:
+        return (
+            "/".join(k for k in self.keys if k != key and stamp_ns not in self._pending[k])
+            or "part"
+        )
+
+    def pop_dropped(self) -> list[Dropped]:
+        """The parts discarded since the last call (for logging), oldest first."""
+        dropped, self._dropped = self._dropped, []
+        return dropped
+
+    def pending(self, key: str) -> list[int]:
+        """Stamps of the parts of stream `key` still waiting for partners, ascending."""
+        return sorted(self._pending[key])

@@ -1,0 +1,367 @@
+"""The geometric uncertainty field: confidence splatted into voxels, plus free space carved by rays.
+
+Per voxel three accumulators, all (nx, ny, nz) on a `GridSpec`:
+
+    evidence   sum of normalised confidences of the pixels that landed in it (`splat_confidence`)
+    hits       how many pixels landed in it
+    free       how many camera rays passed through it before their hit (`carve_free_space`)
+
+`geometric_uncertainty` turns them into U_geo in [0, 1]: a surface voxel (hits > 0) gets
+1 - evidence / hits, a voxel only ever crossed by rays (known free) gets 0, and a voxel nothing has
+seen gets `unobserved_uncertainty` (the paper: low confidence and unobserved space mean high
+uncertainty).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from area3d_msgs_py.errors import InputError
+from area3d_perception.backproject import backproject
+from area3d_perception.grid import GridSpec
+
+# Unobserved space is maximally uncertain (DESIGN.md: "unobserved space means high uncertainty").
+UNOBSERVED_UNCERTAINTY = 1.0
+# Pixels are subsampled by 2 in u and v for carving: 76,800 rays per 640x480 frame (our choice).
+CARVE_STRIDE = 2
+# The paper's camera range, metres; rays without a return carve up to here.
+MAX_RANGE = 5.0
+
+
+def _check_grid_array(name: str, array: np.ndarray, spec: GridSpec) -> np.ndarray:
+    if not isinstance(array, np.ndarray) or array.shape != tuple(spec.shape):
+        shape = getattr(array, "shape", type(array).__name__)
+        raise InputError(name, shape, f"a numpy array of the grid shape {tuple(spec.shape)}")
+    if not array.flags.c_contiguous:
+        raise InputError(
+            name, "non-contiguous array", "a C-contiguous array (it is updated in place)"
+        )
+    return array
+
+
+def _check_points(name: str, points: np.ndarray) -> np.ndarray:
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(name, f"shape {points.shape}", "an (N, 3) array of world points in metres")
+    return points
+
+
+@njit(cache=True)
+def _splat_points(points, weights, lower, inv_voxel, shape, evidence, hits):  # pragma: no cover
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    for n in range(points.shape[0]):
+        w = weights[n]
+        if not np.isfinite(w):
+            continue
+        fi = (points[n, 0] - lower[0]) * inv_voxel
+        fj = (points[n, 1] - lower[1]) * inv_voxel
+        fk = (points[n, 2] - lower[2]) * inv_voxel
+        if not (fi >= 0 and fj >= 0 and fk >= 0):  # also rejects NaN
+            continue
+        i, j, k = int(fi), int(fj), int(fk)
+        if i >= nx or j >= ny or k >= nz:
+            continue
+        flat = (i * ny + j) * nz + k
+        evidence[flat] += w
+        hits[flat] += 1
+
+
+def splat_confidence(
+    spec: GridSpec,
+    points: np.ndarray,
+    weights: np.ndarray,
+    evidence: np.ndarray | None = None,
+    hits: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Accumulate per-point weights and counts into the voxels that contain the points.
+
+    spec: the grid. points: (N, 3) world metres. weights: (N,) normalised confidence in [0, 1].
+    evidence, hits: (nx, ny, nz) float32 accumulators updated in place (new zeros when None).
+    Points outside the grid or non-finite are ignored.
+    Returns (evidence, hits).
+    """
+    points = _check_points("points", points)
+    weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+    if weights.shape[0] != points.shape[0]:
+        raise InputError(
+            "weights", f"length {weights.shape[0]}", f"one weight per point ({points.shape[0]})"
+        )
+    evidence = (
+        np.zeros(spec.shape, np.float32)
+        if evidence is None
+        else _check_grid_array("evidence", evidence, spec)
+    )
+    hits = (
+        np.zeros(spec.shape, np.float32) if hits is None else _check_grid_array("hits", hits, spec)
+    )
+    _splat_points(
+        points,
+        weights,
+        spec.lower,
+        1.0 / spec.voxel_size,
+        np.asarray(spec.shape, dtype=np.int64),
+        evidence.reshape(-1),
+        hits.reshape(-1),
+    )
+    return evidence, hits
+
+
+def geometric_uncertainty(
+    conf_sum: np.ndarray,
+    hit_count: np.ndarray,
+    observed_mask: np.ndarray,
+    unobserved_uncertainty: float = UNOBSERVED_UNCERTAINTY,
+) -> np.ndarray:
+    """U_geo per voxel in [0, 1].
+
+    conf_sum: (nx, ny, nz) summed normalised confidence; hit_count: (nx, ny, nz) pixel counts;
+    observed_mask: (nx, ny, nz) bool, True where any ray has crossed the voxel (e.g. free > 0).
+    Surface voxels (hit_count > 0) get 1 - conf_sum / hit_count; observed voxels without hits get 0;
+    the rest get `unobserved_uncertainty`.
+    Returns (nx, ny, nz) float32.
+    """
+    conf_sum = np.asarray(conf_sum, dtype=np.float32)
+    hit_count = np.asarray(hit_count, dtype=np.float32)
+    observed_mask = np.asarray(observed_mask, dtype=bool)
+    if hit_count.shape != conf_sum.shape or observed_mask.shape != conf_sum.shape:
+        raise InputError(
+            "hit_count/observed_mask",
+            (hit_count.shape, observed_mask.shape),
+            f"the shape of conf_sum {conf_sum.shape}",
+        )
+    if not (0.0 <= unobserved_uncertainty <= 1.0):
+        raise InputError("unobserved_uncertainty", unobserved_uncertainty, "a value in [0, 1]")
+    surface = hit_count > 0
+    u = np.where(observed_mask, np.float32(0.0), np.float32(unobserved_uncertainty)).astype(
+        np.float32
+    )
+    mean_conf = conf_sum[surface] / hit_count[surface]
+    u[surface] = np.clip(1.0 - mean_conf, 0.0, 1.0)
+    return u
+
+
+@njit(cache=True)
+def _carve_rays(origin, ends, shape, free):  # pragma: no cover - compiled
+    """Amanatides-Woo traversal in voxel units; marks every voxel before each ray's end voxel.
+
+    origin: (3,) and ends: (N, 3) in voxel coordinates ((p - lower) / voxel_size).
+    free: flat counter of length nx*ny*nz, incremented once per carved voxel per ray.
+    The walk from the first voxel to the end voxel takes exactly their Manhattan distance in
+    steps, so the loop runs that many steps (marking, then stepping) and needs no end test.
+    """
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    inf = np.inf
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    for r in range(ends.shape[0]):
+        e0, e1, e2 = ends[r, 0], ends[r, 1], ends[r, 2]
+        d0, d1, d2 = e0 - o0, e1 - o1, e2 - o2
+        # Clip the segment [0, 1] to the grid box [0, n] on every axis (slab method).
+        t0 = 0.0
+        t1 = 1.0
+        if d0 != 0.0:
+            ta, tb = -o0 / d0, (nx - o0) / d0
+            t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+        elif o0 < 0.0 or o0 >= nx:
+            continue
+        if d1 != 0.0:
+            ta, tb = -o1 / d1, (ny - o1) / d1
+            t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+        elif o1 < 0.0 or o1 >= ny:
+            continue
+        if d2 != 0.0:
+            ta, tb = -o2 / d2, (nz - o2) / d2
+            t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+        elif o2 < 0.0 or o2 >= nz:
+            continue
+        if t0 >= t1:
+            continue
+        ts = t0 + 1e-9
+        i = min(max(int(np.floor(o0 + ts * d0)), 0), nx - 1)
+        j = min(max(int(np.floor(o1 + ts * d1)), 0), ny - 1)
+        k = min(max(int(np.floor(o2 + ts * d2)), 0), nz - 1)
+        steps = abs(int(np.floor(e0)) - i) + abs(int(np.floor(e1)) - j) + abs(int(np.floor(e2)) - k)
+        if d0 > 0:
+            si, tmi, tdi = 1, (i + 1 - o0) / d0, 1.0 / d0
+        elif d0 < 0:
+            si, tmi, tdi = -1, (i - o0) / d0, -1.0 / d0
+        else:
+            si, tmi, tdi = 0, inf, inf
+        if d1 > 0:
+            sj, tmj, tdj = 1, (j + 1 - o1) / d1, 1.0 / d1
+        elif d1 < 0:
+            sj, tmj, tdj = -1, (j - o1) / d1, -1.0 / d1
+        else:
+            sj, tmj, tdj = 0, inf, inf
+        if d2 > 0:
+            sk, tmk, tdk = 1, (k + 1 - o2) / d2, 1.0 / d2
+        elif d2 < 0:
+            sk, tmk, tdk = -1, (k - o2) / d2, -1.0 / d2
+        else:
+            sk, tmk, tdk = 0, inf, inf
+        flat = (i * ny + j) * nz + k
+        fi, fj = si * ny * nz, sj * nz
+        for _ in range(steps):
+            free[flat] += 1
+            if tmi <= tmj and tmi <= tmk:
+                i += si
+                if i < 0 or i >= nx:
+                    break
+                tmi += tdi
+                flat += fi
+            elif tmj <= tmk:
+                j += sj
+                if j < 0 or j >= ny:
+                    break
+                tmj += tdj
+                flat += fj
+            else:
+                k += sk
+                if k < 0 or k >= nz:
+                    break
+                tmk += tdk
+                flat += sk
+
+
+def carve_free_space(
+    spec: GridSpec,
+    origin: np.ndarray,
+    points: np.ndarray,
+    free_count: np.ndarray,
+    hit_mask: np.ndarray | None = None,
+    surface_margin: float = 0.0,
+) -> np.ndarray:
+    """Count, per voxel, the camera rays that crossed it before ending (observed free space).
+
+    spec: the grid. origin: (3,) camera centre in world metres. points: (N, 3) world ray ends.
+    free_count: (nx, ny, nz) counter (any numeric dtype), incremented in place, once per ray per
+    voxel. hit_mask: (N,) bool, True where the end is a surface hit (default: all True); a non-hit
+    ray (no return, passed as its point at max range) carves to its end. No ray ever marks the voxel
+    that holds its end, and a voxel is carved only if the ray leaves it before the end.
+    surface_margin: metres; hit rays stop this far short of the hit (depth noise band, default 0).
+    Returns free_count.
+    """
+    origin = np.asarray(origin, dtype=np.float64).reshape(-1)
+    if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+        raise InputError("origin", origin.tolist(), "a finite (3,) camera centre in metres")
+    points = _check_points("points", points)
+    free_count = _check_grid_array("free_count", free_count, spec)
+    if hit_mask is None:
+        hit_mask = np.ones(points.shape[0], dtype=bool)
+    hit_mask = np.asarray(hit_mask, dtype=bool).reshape(-1)
+    if hit_mask.shape[0] != points.shape[0]:
+        raise InputError(
+            "hit_mask", f"length {hit_mask.shape[0]}", f"one flag per point ({points.shape[0]})"
+        )
+    if not (np.isfinite(surface_margin) and surface_margin >= 0):
+        raise InputError("surface_margin", surface_margin, "a finite value >= 0 metres")
+    finite = np.all(np.isfinite(points), axis=1)
+    points, hit_mask = points[finite], hit_mask[finite]
+    if surface_margin > 0:
+        # A hit ray ends `surface_margin` short of its hit; the voxel holding that point is kept.
+        offset = points - origin
+        length = np.linalg.norm(offset, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            keep = np.where(hit_mask, np.clip(1.0 - surface_margin / length, 0.0, 1.0), 1.0)
+        points = origin + offset * keep[:, None]
+    scale = 1.0 / spec.voxel_size
+    origin_v = (origin - spec.lower) * scale
+    ends_v = (points - spec.lower) * scale
+    _carve_rays(origin_v, ends_v, np.asarray(spec.shape, dtype=np.int64), free_count.reshape(-1))
+    return free_count
+
+
+def frame_rays(
+    depth: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    stride: int = CARVE_STRIDE,
+    max_range: float = MAX_RANGE,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ray ends of a depth frame subsampled by `stride`, for `carve_free_space`.
+
+    depth: (H, W) metres along optical z, NaN = no return. K: (3, 3). T_world_cam: (4, 4).
+    Pixels with a return at most `max_range` from the camera end at their surface point (hit); the
+    others end `max_range` metres along their ray (no hit).
+    Returns (points (N, 3) world metres, hit_mask (N,) bool).
+    """
+    if int(stride) != stride or stride < 1:
+        raise InputError("stride", stride, "an integer >= 1")
+    if not (np.isfinite(max_range) and max_range > 0):
+        raise InputError("max_range", max_range, "a finite range > 0 metres")
+    if np.ndim(depth) != 2:
+        raise InputError("depth", f"shape {np.shape(depth)}", "an (H, W) image in metres")
+    K = np.asarray(K, dtype=np.float64)
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    T = np.ascontiguousarray(T_world_cam, dtype=np.float64)
+    return _frame_ray_ends(
+        depth, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T, int(stride), float(max_range)
+    )
+
+
+@njit(cache=True)
+def _frame_ray_ends(depth, fx, fy, cx, cy, T, stride, max_range):  # pragma: no cover - compiled
+    h, w = depth.shape
+    rows = (h + stride - 1) // stride
+    cols = (w + stride - 1) // stride
+    points = np.empty((rows * cols, 3), dtype=np.float64)
+    hit = np.empty(rows * cols, dtype=np.bool_)
+    n = 0
+    for v in range(0, h, stride):
+        y = (v + 0.5 - cy) / fy
+        for u in range(0, w, stride):
+            x = (u + 0.5 - cx) / fx
+            norm = np.sqrt(x * x + y * y + 1.0)
+            d = np.float64(depth[v, u])
+            if np.isfinite(d) and d > 0 and d * norm <= max_range:
+                hit[n] = True
+            else:
+                hit[n] = False
+                d = max_range / norm
+            for a in range(3):
+                points[n, a] = T[a, 0] * x * d + T[a, 1] * y * d + T[a, 2] * d + T[a, 3]
+            n += 1
+    return points, hit
+
+
+def carve_depth_frame(
+    spec: GridSpec,
+    depth: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    free_count: np.ndarray,
+    stride: int = CARVE_STRIDE,
+    max_range: float = MAX_RANGE,
+    surface_margin: float = 0.0,
+    carve_no_return: bool = True,
+) -> np.ndarray:
+    """Carve the free space seen by one depth frame into `free_count` (see `carve_free_space`).
+
+    carve_no_return: also carve along pixels with no return, up to `max_range`. Turn it off when
+    dropouts are common (dark or specular surfaces), since a dropout looks like empty space.
+    """
+    points, hit = frame_rays(depth, K, T_world_cam, stride, max_range)
+    if not carve_no_return:
+        points, hit = points[hit], hit[hit]
+    return carve_free_space(spec, T_world_cam[:3, 3], points, free_count, hit, surface_margin)
+
+
+def splat_depth_frame(
+    spec: GridSpec,
+    depth: np.ndarray,
+    confidence: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    evidence: np.ndarray,
+    hits: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project a frame (X = T (D K^-1 x), the paper) and splat its confidence into the grid.
+
+    depth: (H, W) metres, NaN = no return. confidence: (H, W) in [0, 1]. Returns (evidence, hits).
+    """
+    if confidence.shape != depth.shape:
+        raise InputError(
+            "confidence", f"shape {confidence.shape}", f"the depth shape {depth.shape}"
+        )
+    points, pixel = backproject(depth, K, T_world_cam)
+    return splat_confidence(spec, points, confidence.reshape(-1)[pixel], evidence, hits)

@@ -1,0 +1,414 @@
+"""The `rgbd` backend: per-pixel confidence and realistic noise of a structured-light / ToF camera.
+
+Axial noise follows Nguyen, Izadi and Lovell, "Modeling Kinect Sensor Noise for Improved 3D
+Reconstruction and Tracking" (3DIMPVT 2012):
+
+    sigma_z(z, theta) = a + b (z - z0)^2 + c / sqrt(z) * theta^2 / (pi/2 - theta)^2   [metres]
+    sigma_L(theta)    = l0 + l1 * theta / (pi/2 - theta)                              [pixels]
+
+with a = 0.0012, b = 0.0019, z0 = 0.4 m, c = 0.0001, l0 = 0.8 px, l1 = 0.035 px; theta is the angle
+between the surface normal and the viewing ray. Confidence is the product of three factors in [0, 1]:
+
+    range:      exp(-(sigma_z(z, 0) / sigma_ref)^2)
+    incidence:  max(cos theta, 0)^p
+    edges:      ramps from `edge_confidence` on a depth discontinuity to 1 at `edge_radius_px` + 1 px
+
+and 0 where depth is missing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit, prange
+
+from area3d_msgs_py.errors import InputError
+
+
+@dataclass(frozen=True)
+class RgbdSensorParams:
+    """Noise and confidence model of a depth camera; defaults are a Kinect-class sensor."""
+
+    # Axial noise sigma_z = a + b (z - z0)^2 (Nguyen et al. 2012, fit for 10-60 deg incidence).
+    sigma_a: float = 0.0012
+    sigma_b: float = 0.0019
+    sigma_z0: float = 0.4
+    # Angular growth of axial noise, c / sqrt(z) * theta^2 / (pi/2 - theta)^2 (Nguyen et al. 2012).
+    sigma_angle: float = 0.0001
+    # Lateral noise in pixels, l0 + l1 * theta / (pi/2 - theta) (Nguyen et al. 2012).
+    lateral_l0_px: float = 0.8
+    lateral_l1_px: float = 0.035
+    # Axial sigma at which range confidence falls to 1/e; 2.5 cm is reached near 3.9 m on the curve
+    # above, where Kinect-class depth stops being useful for centimetre reconstruction (our choice).
+    sigma_ref: float = 0.025
+    # Normals: edge-preserving box mean of this radius, then tangents over this many pixels; at
+    # 1 m a Kinect pixel is ~3 mm wide and the axial noise ~2 mm, so 1-pixel tangents would be
+    # dominated by noise (our choice; KinectFusion smooths depth before normals for the same reason).
+    normal_smoothing_px: int = 1
+    normal_step_px: int = 2
+    # Exponent p of the incidence factor max(cos theta, 0)^p (Lambertian return: p = 1).
+    incidence_power: float = 1.0
+    # A neighbour differing by more than this fraction of the nearer depth is a discontinuity.
+    edge_jump_rel: float = 0.05
+    # Pixels within this many pixels of a discontinuity get reduced confidence (mixed pixels).
+    edge_radius_px: int = 2
+    # Confidence factor on the discontinuity itself; ramps linearly to 1 outside the radius.
+    edge_confidence: float = 0.2
+    # Noise only: probability that a pixel on a discontinuity becomes a dropout (flying pixel).
+    edge_dropout: float = 0.5
+    # Noise only: dropout probability ramps from 0 at this incidence angle ...
+    grazing_start_deg: float = 70.0
+    # ... to 1 at this one (structured light loses the pattern at grazing angles).
+    grazing_full_deg: float = 85.0
+    # Returns beyond this range are NaN (the paper's camera: max range 5 m).
+    max_range: float = 5.0
+
+    def __post_init__(self) -> None:
+        positive = {
+            "sigma_ref": self.sigma_ref,
+            "max_range": self.max_range,
+            "edge_jump_rel": self.edge_jump_rel,
+        }
+        for name, value in positive.items():
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(name, value, "a finite value > 0")
+        nonneg = {
+            "sigma_a": self.sigma_a,
+            "sigma_b": self.sigma_b,
+            "sigma_angle": self.sigma_angle,
+            "lateral_l0_px": self.lateral_l0_px,
+            "lateral_l1_px": self.lateral_l1_px,
+            "incidence_power": self.incidence_power,
+        }
+        for name, value in nonneg.items():
+            if not (np.isfinite(value) and value >= 0):
+                raise InputError(name, value, "a finite value >= 0")
+        for name, value in (
+            ("edge_confidence", self.edge_confidence),
+            ("edge_dropout", self.edge_dropout),
+        ):
+            if not (0.0 <= value <= 1.0):
+                raise InputError(name, value, "a value in [0, 1]")
+        for name, value, low in (
+            ("edge_radius_px", self.edge_radius_px, 0),
+            ("normal_smoothing_px", self.normal_smoothing_px, 0),
+            ("normal_step_px", self.normal_step_px, 1),
+        ):
+            if int(value) != value or value < low:
+                raise InputError(name, value, f"an integer >= {low}")
+        if not (0.0 <= self.grazing_start_deg < self.grazing_full_deg <= 90.0):
+            raise InputError(
+                "grazing_start_deg/grazing_full_deg",
+                (self.grazing_start_deg, self.grazing_full_deg),
+                "0 <= start < full <= 90 degrees",
+            )
+
+
+# theta^2 / (pi/2 - theta)^2 diverges at 90 deg; such pixels are dropped as grazing anyway.
+_MAX_THETA = np.deg2rad(89.0)
+_UNIT_K = np.eye(3)
+
+
+def check_depth_and_intrinsics(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a depth image and intrinsics at the boundary; returns (depth float32, K float64)."""
+    depth = np.asarray(depth)
+    if depth.ndim != 2 or depth.size == 0 or not np.issubdtype(depth.dtype, np.floating):
+        raise InputError(
+            "depth",
+            f"array {depth.dtype} {depth.shape}",
+            "a non-empty (H, W) float array in metres",
+        )
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(
+            "K", K.tolist() if K.size <= 9 else K.shape, "finite 3x3 intrinsics with fx, fy > 0"
+        )
+    return depth.astype(np.float32, copy=False), K
+
+
+def valid_depth_mask(depth: np.ndarray, max_range: float = np.inf) -> np.ndarray:
+    """(H, W) bool: finite, > 0 and within `max_range` metres."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(depth) & (depth > 0) & (depth <= max_range)
+
+
+@njit(cache=True)
+def _axial_sigma(z, theta, a, b, z0, c, max_theta):  # pragma: no cover - compiled
+    out = np.empty(z.shape, dtype=np.float32)
+    for n in range(z.size):
+        t = min(abs(theta[n]), max_theta)
+        r = t / (np.pi / 2 - t)
+        out[n] = a + b * (z[n] - z0) ** 2 + c / np.sqrt(max(z[n], 1e-6)) * r * r
+    return out
+
+
+def axial_sigma(z: np.ndarray, theta: np.ndarray | float, params: RgbdSensorParams) -> np.ndarray:
+    """Axial noise standard deviation sigma_z(z, theta) in metres (Nguyen et al. 2012).
+
+    z: depth in metres, theta: incidence angle in radians (an array of z's shape, or a scalar).
+    Returns float32 of z's shape.
+    """
+    z = np.asarray(z, dtype=np.float32)
+    if np.isscalar(theta) and theta == 0.0:
+        return (params.sigma_a + params.sigma_b * (z - np.float32(params.sigma_z0)) ** 2).astype(
+            np.float32
+        )
+    theta = np.broadcast_to(np.asarray(theta, dtype=np.float32), z.shape)
+    sigma = _axial_sigma(
+        np.ascontiguousarray(z).reshape(-1),
+        np.ascontiguousarray(theta).reshape(-1),
+        params.sigma_a,
+        params.sigma_b,
+        params.sigma_z0,
+        params.sigma_angle,
+        _MAX_THETA,
+    )
+    return sigma.reshape(z.shape)
+
+
+@njit(cache=True, parallel=True)
+def _smooth_depth(depth, radius, jump_rel, max_range):  # pragma: no cover - compiled
+    """Edge-preserving box mean: each valid pixel averages the valid pixels of its
+    (2 radius + 1)^2 window that lie within `jump_rel` of its own depth (same surface). NaN where
+    the pixel itself is missing."""
+    h, w = depth.shape
+    out = np.full((h, w), np.nan, dtype=np.float32)
+    for v in prange(h):
+        for u in range(w):
+            d = depth[v, u]
+            if not (d > 0 and d <= max_range):
+                continue
+            total = 0.0
+            count = 0
+            for vv in range(max(v - radius, 0), min(v + radius + 1, h)):
+                for uu in range(max(u - radius, 0), min(u + radius + 1, w)):
+                    dn = depth[vv, uu]
+                    if dn > 0 and dn <= max_range and abs(dn - d) <= jump_rel * d:
+                        total += dn
+                        count += 1
+            out[v, u] = total / count
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _surface_terms(depth, smooth, fx, fy, cx, cy, jump_rel, max_range, step):  # pragma: no cover
+    """Per pixel |cos| of the incidence angle and a depth-discontinuity flag.
+
+    The normal is the cross product of the two image-axis tangents of the back-projected smoothed
+    depth, taken `step` pixels apart; each tangent comes from the forward or backward neighbour,
+    whichever has the smaller depth step, so a pixel next to a discontinuity takes its tangent from
+    its own surface. A valid pixel whose 4-neighbour is missing or differs by more than `jump_rel`
+    x the nearer depth is a discontinuity.
+    """
+    h, w = depth.shape
+    cos = np.zeros((h, w), dtype=np.float32)
+    edge = np.zeros((h, w), dtype=np.uint8)
+    for v in prange(h):
+        for u in range(w):
+            d = depth[v, u]
+            if not (d > 0 and d <= max_range):
+                continue
+            for dv, du in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+                vv = v + dv
+                uu = u + du
+                if vv < 0 or vv >= h or uu < 0 or uu >= w:
+                    continue
+                dn = depth[vv, uu]
+                if not (dn > 0 and dn <= max_range) or abs(dn - d) > jump_rel * min(d, dn):
+                    edge[v, u] = 1
+                    break
+            ds = np.float64(smooth[v, u])
+            x = (u + 0.5 - cx) / fx
+            y = (v + 0.5 - cy) / fy
+            best_u = np.inf
+            tux = 0.0
+            tuy = 0.0
+            tuz = 0.0
+            for s in (-step, step):
+                uu = u + s
+                if uu < 0 or uu >= w:
+                    continue
+                dn = np.float64(smooth[v, uu])
+                if not (dn > 0) or abs(dn - ds) >= best_u:  # NaN fails both tests
+                    continue
+                best_u = abs(dn - ds)
+                xn = (uu + 0.5 - cx) / fx
+                sign = 1.0 if s > 0 else -1.0
+                tux = sign * (xn * dn - x * ds)
+                tuy = sign * (y * dn - y * ds)
+                tuz = sign * (dn - ds)
+            best_v = np.inf
+            tvx = 0.0
+            tvy = 0.0
+            tvz = 0.0
+            for s in (-step, step):
+                vv = v + s
+                if vv < 0 or vv >= h:
+                    continue
+                dn = np.float64(smooth[vv, u])
+                if not (dn > 0) or abs(dn - ds) >= best_v:
+                    continue
+                best_v = abs(dn - ds)
+                yn = (vv + 0.5 - cy) / fy
+                sign = 1.0 if s > 0 else -1.0
+                tvx = sign * (x * dn - x * ds)
+                tvy = sign * (yn * dn - y * ds)
+                tvz = sign * (dn - ds)
+            if best_u == np.inf or best_v == np.inf:
+                continue
+            nx = tuy * tvz - tuz * tvy
+            ny = tuz * tvx - tux * tvz
+            nz = tux * tvy - tuy * tvx
+            px = x * ds
+            py = y * ds
+            nn = np.sqrt((nx * nx + ny * ny + nz * nz) * (px * px + py * py + ds * ds))
+            if nn > 0:
+                cos[v, u] = min(abs(nx * px + ny * py + nz * ds) / nn, 1.0)
+    return cos, edge
+
+
+def surface_terms(
+    depth: np.ndarray,
+    K: np.ndarray,
+    jump_rel: float,
+    max_range: float = np.inf,
+    smoothing_px: int = 1,
+    normal_step_px: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Incidence cosine and discontinuity mask of a depth image.
+
+    depth: (H, W) float metres (NaN, <= 0 or beyond `max_range` = missing). K: (3, 3).
+    Normals are estimated on the depth smoothed by an edge-preserving box mean of radius
+    `smoothing_px`, from neighbours `normal_step_px` apart, so sensor noise does not tilt them.
+    Returns (cos (H, W) float32 |cos| of the angle between normal and viewing ray, 0 where missing
+    or without neighbours; edges (H, W) bool, valid pixels on either side of a depth jump larger
+    than `jump_rel` x the nearer depth, or next to a missing pixel).
+    """
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    max_range = float(min(max_range, np.finfo(np.float32).max))
+    smooth = (
+        _smooth_depth(depth, int(smoothing_px), float(jump_rel), max_range)
+        if smoothing_px > 0
+        else depth
+    )
+    cos, edge = _surface_terms(
+        depth,
+        smooth,
+        K[0, 0],
+        K[1, 1],
+        K[0, 2],
+        K[1, 2],
+        float(jump_rel),
+        max_range,
+        int(normal_step_px),
+    )
+    return cos, edge.view(bool)
+
+
+def incidence_cosine(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W) float32 |cos| of the angle between the surface normal and the viewing ray."""
+    return surface_terms(depth, K, RgbdSensorParams.edge_jump_rel)[0]
+
+
+def discontinuity_mask(depth: np.ndarray, jump_rel: float) -> np.ndarray:
+    """(H, W) bool: valid pixels on either side of a depth jump (see `surface_terms`)."""
+    return surface_terms(depth, K=_UNIT_K, jump_rel=jump_rel)[1]
+
+
+def edge_distance(edges: np.ndarray) -> np.ndarray:
+    """(H, W) float32 Euclidean pixel distance to the nearest True pixel of `edges` (0 on it)."""
+    if not edges.any():
+        return np.full(edges.shape, np.inf, dtype=np.float32)
+    return cv2.distanceTransform((~edges).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+
+
+def rgbd_confidence(
+    depth: np.ndarray, K: np.ndarray, params: RgbdSensorParams | None = None
+) -> np.ndarray:
+    """Per-pixel confidence of a depth image under the sensor model.
+
+    depth: (H, W) float metres along optical z; NaN, inf, <= 0 or beyond `max_range` = missing.
+    K: (3, 3) intrinsics.
+    Returns conf (H, W) float32 in [0, 1], 0 where depth is missing.
+    """
+    params = params or RgbdSensorParams()
+    depth, K = check_depth_and_intrinsics(depth, K)
+    cos, edges = surface_terms(
+        depth,
+        K,
+        params.edge_jump_rel,
+        params.max_range,
+        params.normal_smoothing_px,
+        params.normal_step_px,
+    )
+    valid = valid_depth_mask(depth, params.max_range)
+    z = np.where(valid, depth, np.float32(0.0))
+    sigma = axial_sigma(z, 0.0, params)
+    conf = np.exp(-((sigma / np.float32(params.sigma_ref)) ** 2))
+    if params.incidence_power != 1.0:
+        cos = cos ** np.float32(params.incidence_power)
+    conf *= cos
+    if params.edge_confidence < 1.0:
+        ramp = np.clip(edge_distance(edges) / np.float32(params.edge_radius_px + 1), 0.0, 1.0)
+        conf *= np.float32(params.edge_confidence) + np.float32(1.0 - params.edge_confidence) * ramp
+    conf[~valid] = 0.0
+    return np.clip(conf, 0.0, 1.0, out=conf)
+
+
+def add_depth_noise(
+    depth: np.ndarray,
+    K: np.ndarray,
+    rng: np.random.Generator,
+    params: RgbdSensorParams | None = None,
+) -> np.ndarray:
+    """A noisy copy of a perfect depth image, as a Kinect-class sensor would return it.
+
+    Applies, in order: lateral jitter of depth edges (pixels within `edge_radius_px` of a
+    discontinuity take the depth of a neighbour displaced by N(0, sigma_L(theta)) pixels per axis),
+    axial Gaussian noise N(0, sigma_z(z, theta)), flying-pixel dropout on discontinuities
+    (probability `edge_dropout`), dropout at grazing incidence (probability ramping from 0 at
+    `grazing_start_deg` to 1 at `grazing_full_deg`), and the range cut at `max_range`.
+
+    depth: (H, W) float metres, NaN = no return. K: (3, 3). rng: numpy Generator (seeded by caller).
+    Returns (H, W) float32 metres, NaN = no return.
+    """
+    params = params or RgbdSensorParams()
+    depth, K = check_depth_and_intrinsics(depth, K)
+    h, w = depth.shape
+    valid = valid_depth_mask(depth)
+    clean = np.where(valid, depth, np.float32(np.nan))
+    cos, edges = surface_terms(
+        clean, K, params.edge_jump_rel, np.inf, params.normal_smoothing_px, params.normal_step_px
+    )
+    theta = np.arccos(cos)
+    dist = edge_distance(edges)
+
+    out = clean.copy()
+    band = np.flatnonzero(dist.ravel() <= params.edge_radius_px)
+    if band.size:
+        t = np.minimum(theta.ravel()[band], _MAX_THETA)
+        sigma_l = params.lateral_l0_px + params.lateral_l1_px * t / (np.pi / 2 - t)
+        shift = np.rint(rng.standard_normal((2, band.size)) * sigma_l).astype(np.int64)
+        rows = np.clip(band // w + shift[0], 0, h - 1)
+        cols = np.clip(band % w + shift[1], 0, w - 1)
+        out.ravel()[band] = clean[rows, cols]
+        theta.ravel()[band] = theta[rows, cols]
+
+    sigma = axial_sigma(np.where(np.isfinite(out), out, np.float32(1.0)), theta, params)
+    out += sigma * rng.standard_normal((h, w), dtype=np.float32)
+
+    drop = np.zeros(h * w, dtype=bool)
+    on_edge = np.flatnonzero(edges.ravel())
+    if on_edge.size and params.edge_dropout > 0:
+        drop[on_edge[rng.random(on_edge.size) < params.edge_dropout]] = True
+    start, full = np.deg2rad(params.grazing_start_deg), np.deg2rad(params.grazing_full_deg)
+    risky = np.flatnonzero(theta.ravel() > start)
+    if risky.size:
+        p_drop = np.clip((theta.ravel()[risky] - start) / (full - start), 0.0, 1.0)
+        drop[risky[rng.random(risky.size) < p_drop]] = True
+    out.ravel()[drop] = np.nan
+    with np.errstate(invalid="ignore"):
+        out[~(out > 0) | (out > params.max_range)] = np.nan
+    return out

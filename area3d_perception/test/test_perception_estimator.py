@@ -1,0 +1,127 @@
+"""FrameEstimator: every backend turns a frame into metric depth and confidence in [0, 1]."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from area3d_msgs_py.errors import InputError
+from area3d_perception.estimator import FrameEstimator, check_frame, sanitize_depth
+from area3d_perception.feedforward import BackendUnavailableError, FeedForwardOutput
+
+H, W = 48, 64
+K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])
+RGB = np.zeros((H, W, 3), np.uint8)
+
+
+def wall(d: float = 2.0) -> np.ndarray:
+    return np.full((H, W), d, np.float32)
+
+
+def pose(centre) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = centre
+    return T
+
+
+def test_uniform_backend_gives_full_confidence_on_valid_pixels_only():
+    depth = wall()
+    depth[:5] = np.nan
+    out = FrameEstimator("uniform").process(RGB, depth, K, np.eye(4))
+    assert np.all(out.confidence[5:] == 1.0) and np.all(out.confidence[:5] == 0.0)
+    np.testing.assert_array_equal(out.depth, depth)
+
+
+def test_rgbd_backend_confidence_is_lower_far_away():
+    est = FrameEstimator("rgbd")
+    near = est.process(RGB, wall(1.0), K, np.eye(4)).confidence
+    far = est.process(RGB, wall(4.0), K, np.eye(4)).confidence
+    assert np.all(far[10:-10, 10:-10] < near[10:-10, 10:-10])
+
+
+def test_noise_option_perturbs_depth_repeatably():
+    a = FrameEstimator("rgbd", noise=True, noise_seed=4).process(RGB, wall(), K, np.eye(4)).depth
+    b = FrameEstimator("rgbd", noise=True, noise_seed=4).process(RGB, wall(), K, np.eye(4)).depth
+    clean = FrameEstimator("rgbd").process(RGB, wall(), K, np.eye(4)).depth
+    assert np.array_equal(a, b, equal_nan=True) and not np.array_equal(a, clean, equal_nan=True)
+
+
+def test_infinite_and_negative_depth_become_missing_with_a_note_naming_the_count():
+    depth = wall()
+    depth[0, :3] = np.inf
+    depth[1, :2] = -1.0
+    out = FrameEstimator("rgbd").process(RGB, depth, K, np.eye(4))
+    assert np.isnan(out.depth[0, :3]).all() and np.isnan(out.depth[1, :2]).all()
+    assert np.all(out.confidence[0, :3] == 0) and np.all(out.confidence[1, :2] == 0)
+    assert any("depth: 3 infinite" in n for n in out.notes)
+    assert any("depth: 2 values <= 0" in n for n in out.notes)
+    clean, notes = sanitize_depth(wall())
+    assert notes == [] and np.array_equal(clean, wall())
+
+
+def test_mismatched_sizes_are_rejected():
+    with pytest.raises(InputError, match="^color: "):
+        FrameEstimator("rgbd").process(np.zeros((H, W + 1, 3), np.uint8), wall(), K, np.eye(4))
+    with pytest.raises(InputError, match="^camera_info: "):
+        check_frame(RGB, wall(), (W, H + 2))
+    check_frame(RGB, wall(), (W, H))
+
+
+def test_unknown_backend_and_missing_weights_are_start_errors():
+    with pytest.raises(InputError, match="^backend: "):
+        FrameEstimator("stereo")
+    with pytest.raises(BackendUnavailableError, match="nowhere/model.pt"):
+        FrameEstimator("vggt", checkpoint="/nowhere/model.pt")
+
+
+class FakeModel:
+    """Predicts the true depth divided by `scale`, and camera centres in a rotated, scaled frame."""
+
+    def __init__(self, truth, scale, R, t):
+        self.truth, self.scale, self.R, self.t = truth, scale, R, t
+        self.calls = []
+
+    def predict_views(self, images):
+        self.calls.append(len(images))
+        n = len(images)
+        centres = np.stack(self.truth["centres"][-n:])
+        pred_centres = ((centres - self.t) @ self.R) / self.scale  # inverse of s R x + t
+        conf = [np.full((H, W), 5.0, np.float32) for _ in images]
+        return FeedForwardOutput([self.truth["depth"] / self.scale] * n, conf, pred_centres)
+
+
+def test_feedforward_depth_is_scaled_by_the_metric_depth_when_present():
+    truth = {"depth": wall(2.0), "centres": [np.zeros(3)]}
+    model = FakeModel(truth, 7.0, np.eye(3), np.zeros(3))
+    est = FrameEstimator("vggt", model_factory=lambda ckpt, dev: model)
+    out = est.process(RGB, wall(2.0), K, pose([0, 0, 0]))
+    np.testing.assert_allclose(out.depth, 2.0, rtol=1e-5)
+    np.testing.assert_allclose(out.confidence, 1 - 1 / 5.0, rtol=1e-6)
+
+
+def test_feedforward_depth_is_scaled_by_the_poses_without_a_depth_sensor():
+    truth = {"depth": wall(3.0), "centres": []}
+    R = Rotation.from_euler("xyz", [10, -40, 70], degrees=True).as_matrix()
+    model = FakeModel(truth, 0.25, R, np.array([1.0, 2.0, 3.0]))
+    est = FrameEstimator("vggt", window=3, model_factory=lambda ckpt, dev: model)
+    centres = [
+        np.array([0.0, 0, 0]),
+        np.array([1.0, 0.2, 0]),
+        np.array([0.3, 1.0, 0.5]),
+        np.array([2.0, 2.0, 0.1]),
+    ]
+    outs = []
+    for c in centres:
+        truth["centres"].append(c)
+        outs.append(est.process(RGB, None, K, pose(c)))
+    assert model.calls == [1, 2, 3, 3]  # the window holds the new frame and two before it
+    assert any("model units" in n for n in outs[0].notes)
+    for out in outs[1:]:
+        np.testing.assert_allclose(out.depth, 3.0, rtol=1e-6)
+        assert out.notes == []
+
+
+def test_feedforward_needs_color():
+    model = FakeModel({"depth": wall(), "centres": [np.zeros(3)]}, 1.0, np.eye(3), np.zeros(3))
+    est = FrameEstimator("depth_anything_3", model_factory=lambda ckpt, dev: model)
+    with pytest.raises(InputError, match="^color: "):
+        est.process(None, wall(), K, np.eye(4))

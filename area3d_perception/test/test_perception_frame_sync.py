@@ -1,0 +1,64 @@
+"""StampSync: parts of a frame pair by exact stamp; orphans are dropped after the age limit."""
+
+import pytest
+
+from area3d_msgs_py.errors import InputError
+from area3d_perception.frame_sync import StampSync
+
+S = 1_000_000_000
+
+
+def test_a_frame_completes_when_every_stream_has_the_stamp_in_any_order():
+    sync = StampSync(("color", "depth", "pose"))
+    assert sync.add("pose", 10 * S, "P") is None
+    assert sync.add("depth", 10 * S, "D") is None
+    assert sync.add("color", 10 * S, "C") == {"color": "C", "depth": "D", "pose": "P"}
+    assert sync.pending("pose") == [] and sync.pending("depth") == []
+
+
+def test_different_stamps_never_pair():
+    sync = StampSync(("color", "depth"))
+    assert sync.add("color", 1 * S, "a") is None
+    assert sync.add("depth", 1 * S + 1, "b") is None
+    assert sync.pending("color") == [1 * S] and sync.pending("depth") == [1 * S + 1]
+
+
+def test_interleaved_frames_each_pair_with_their_own_parts():
+    sync = StampSync(("color", "depth"))
+    sync.add("color", 1 * S, "c1")
+    sync.add("color", 2 * S, "c2")
+    assert sync.add("depth", 2 * S, "d2") == {"color": "c2", "depth": "d2"}
+    assert sync.add("depth", 1 * S, "d1") == {"color": "c1", "depth": "d1"}
+
+
+def test_orphans_older_than_the_age_limit_are_dropped_and_reported():
+    sync = StampSync(("color", "depth", "pose"), max_age_ns=5 * S)
+    sync.add("pose", 1 * S, "P")
+    sync.add("color", 4 * S, "C")
+    assert sync.pop_dropped() == []
+    sync.add("depth", 7 * S, "D")  # the pose is now 6 s behind the newest stamp
+    dropped = sync.pop_dropped()
+    assert [(d.key, d.stamp_ns) for d in dropped] == [("pose", 1 * S)]
+    assert "color/depth" in dropped[0].reason
+    assert sync.pending("pose") == [] and sync.pending("color") == [4 * S]
+    assert sync.pop_dropped() == []
+    # A late part of the dropped stamp can no longer complete it.
+    sync.add("color", 1 * S, "late")
+    assert sync.add("depth", 1 * S, "late") is None
+
+
+def test_the_number_of_waiting_parts_is_capped():
+    sync = StampSync(("color", "depth"), max_age_ns=10**15, max_pending=3)
+    for k in range(5):
+        sync.add("color", k * S, k)
+    assert sync.pending("color") == [2 * S, 3 * S, 4 * S]
+    assert [d.stamp_ns for d in sync.pop_dropped()] == [0, 1 * S]
+
+
+def test_bad_arguments_are_rejected():
+    with pytest.raises(InputError, match="^keys: "):
+        StampSync(("a", "a"))
+    with pytest.raises(InputError, match="^key: "):
+        StampSync(("a", "b")).add("c", 0, None)
+    with pytest.raises(InputError, match="^max_age_ns: "):
+        StampSync(("a",), max_age_ns=-1)

@@ -1,0 +1,180 @@
+"""The perception node on a stand-in Node: pairing, publishing and bad input, without transport."""
+
+import numpy as np
+import pytest
+
+from area3d_msgs_py import codecs, msgs
+from area3d_perception.node import (
+    COLOR_TOPIC,
+    DEPTH_TOPIC,
+    INFO_TOPIC,
+    OUT_CONFIDENCE_TOPIC,
+    OUT_DEPTH_TOPIC,
+    POSE_TOPIC,
+    PerceptionNode,
+)
+
+H, W = 48, 64
+K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])
+S = 1_000_000_000
+FRAME = "camera_optical_frame"
+
+
+class Log:
+    def __init__(self):
+        self.lines = []
+
+    def info(self, m):
+        self.lines.append(("info", m))
+
+    def warning(self, m):
+        self.lines.append(("warning", m))
+
+    def error(self, m):
+        self.lines.append(("error", m))
+
+    def warnings(self):
+        return [m for level, m in self.lines if level == "warning"]
+
+
+class Pub:
+    def __init__(self):
+        self.sent = []
+
+    def publish(self, msg):
+        self.sent.append(msg)
+
+
+class FakeNode:
+    """The parts of area3d_msgs_py.node.Node that PerceptionNode uses."""
+
+    def __init__(self, parameters=None):
+        self.params = dict(parameters or {})
+        self.subs = {}
+        self.pubs = {}
+        self.log = Log()
+
+    def declare_parameter(self, name, default):
+        return self.params.get(name, default)
+
+    def get_logger(self):
+        return self.log
+
+    def create_publisher(self, type_name, topic, latched=False, depth=10):
+        self.pubs[topic] = Pub()
+        return self.pubs[topic]
+
+    def create_subscription(self, type_name, topic, callback, latched=False, depth=10):
+        self.subs[topic] = callback
+
+
+def send_frame(node, stamp, depth=None, rgb=None, info=True, order=("color", "depth", "pose")):
+    depth = np.full((H, W), 2.0, np.float32) if depth is None else depth
+    rgb = np.zeros((H, W, 3), np.uint8) if rgb is None else rgb
+    if info:
+        node.subs[INFO_TOPIC](codecs.intrinsics_to_camera_info(K, W, H, stamp, FRAME))
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, 1.0]
+    pose = msgs.PoseStamped(header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T))
+    parts = {
+        "color": (COLOR_TOPIC, codecs.image_to_msg(rgb, "rgb8", stamp, FRAME)),
+        "depth": (DEPTH_TOPIC, codecs.image_to_msg(depth, "32FC1", stamp, FRAME)),
+        "pose": (POSE_TOPIC, pose),
+    }
+    for key in order:
+        topic, msg = parts[key]
+        node.subs[topic](msg)
+
+
+def test_a_complete_frame_is_published_with_its_stamp_and_frame():
+    node = FakeNode()
+    PerceptionNode(node)
+    send_frame(node, 5 * S, order=("pose", "depth", "color"))
+    (depth_msg,) = node.pubs[OUT_DEPTH_TOPIC].sent
+    (conf_msg,) = node.pubs[OUT_CONFIDENCE_TOPIC].sent
+    for msg in (depth_msg, conf_msg):
+        assert codecs.stamp_to_ns(msg.header.stamp) == 5 * S
+        assert msg.header.frame_id == FRAME and msg.encoding == "32FC1"
+    np.testing.assert_array_equal(codecs.msg_to_image(depth_msg), np.full((H, W), 2.0, np.float32))
+    conf = codecs.msg_to_image(conf_msg)
+    assert np.all((conf > 0) & (conf <= 1))
+
+
+def test_uniform_backend_parameter_is_honoured():
+    node = FakeNode({"backend": "uniform"})
+    PerceptionNode(node)
+    send_frame(node, 1 * S)
+    assert np.all(codecs.msg_to_image(node.pubs[OUT_CONFIDENCE_TOPIC].sent[0]) == 1.0)
+
+
+def test_sensor_parameters_reach_the_model():
+    near, far = FakeNode(), FakeNode({"sensor.sigma_ref": 0.005})
+    PerceptionNode(near)
+    PerceptionNode(far)
+    send_frame(near, 1 * S)
+    send_frame(far, 1 * S)
+    a = codecs.msg_to_image(near.pubs[OUT_CONFIDENCE_TOPIC].sent[0])
+    b = codecs.msg_to_image(far.pubs[OUT_CONFIDENCE_TOPIC].sent[0])
+    assert np.all(b[10:-10, 10:-10] < a[10:-10, 10:-10])
+
+
+def test_frames_wait_for_camera_info():
+    node = FakeNode()
+    PerceptionNode(node)
+    send_frame(node, 1 * S, info=False)
+    assert node.pubs[OUT_DEPTH_TOPIC].sent == []
+    assert any("camera_info" in w for w in node.log.warnings())
+    node.subs[INFO_TOPIC](codecs.intrinsics_to_camera_info(K, W, H, 1 * S, FRAME))
+    assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
+
+
+def test_mismatched_color_and_depth_sizes_reject_the_frame_with_a_reason():
+    node = FakeNode()
+    PerceptionNode(node)
+    send_frame(node, 1 * S, rgb=np.zeros((H, W + 2, 3), np.uint8))
+    assert node.pubs[OUT_DEPTH_TOPIC].sent == []
+    assert any("rejected" in w and "color" in w for w in node.log.warnings())
+    send_frame(node, 2 * S)  # the node keeps working
+    assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
+
+
+def test_infinite_and_negative_depth_are_logged_and_treated_as_missing():
+    node = FakeNode()
+    PerceptionNode(node)
+    depth = np.full((H, W), 2.0, np.float32)
+    depth[0, :4] = np.inf
+    depth[1, :3] = -0.5
+    send_frame(node, 1 * S, depth=depth)
+    out = codecs.msg_to_image(node.pubs[OUT_DEPTH_TOPIC].sent[0])
+    conf = codecs.msg_to_image(node.pubs[OUT_CONFIDENCE_TOPIC].sent[0])
+    assert np.isnan(out[0, :4]).all() and np.isnan(out[1, :3]).all()
+    assert np.all(conf[0, :4] == 0) and np.all(conf[1, :3] == 0)
+    warnings = node.log.warnings()
+    assert any("depth: 4 infinite" in w for w in warnings)
+    assert any("depth: 3 values <= 0" in w for w in warnings)
+
+
+def test_a_pose_without_images_is_dropped_after_the_age_limit():
+    node = FakeNode({"sync_max_age_s": 2.0})
+    PerceptionNode(node)
+    pose = msgs.PoseStamped(
+        header=codecs.header(1 * S, "world"), pose=codecs.matrix_to_pose(np.eye(4))
+    )
+    node.subs[POSE_TOPIC](pose)
+    send_frame(node, 5 * S)
+    assert any("pose at stamp 1000000000 dropped" in w for w in node.log.warnings())
+    assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
+
+
+def test_a_pose_with_a_non_unit_quaternion_is_rejected_not_fatal():
+    node = FakeNode()
+    PerceptionNode(node)
+    bad = codecs.matrix_to_pose(np.eye(4))
+    bad.orientation.w = 3.0
+    node.subs[POSE_TOPIC](msgs.PoseStamped(header=codecs.header(1 * S, "world"), pose=bad))
+    assert any("pose at stamp" in w and "rejected" in w for w in node.log.warnings())
+
+
+def test_a_missing_vggt_checkpoint_fails_at_start_naming_it():
+    with pytest.raises(RuntimeError, match="nowhere/model.pt"):
+        PerceptionNode(FakeNode({"backend": "vggt", "checkpoint": "/nowhere/model.pt"}))
