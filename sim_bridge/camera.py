@@ -1,0 +1,95 @@
+"""The simulated camera: validate a goal pose, render it, optionally add sensor noise. No transport."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim_bridge.render import HFOV_DEG, MAX_RANGE, RgbdRenderer
+from sim_bridge.scenes import Scene
+from sim_bridge.validity import CLEARANCE, check_pose
+
+# Axial noise of a structured-light depth camera, sigma(z) = a + b (z - c)^2 metres
+# (Nguyen, Izadi, Lovell 2012, Kinect); used only when depth_noise is on.
+NOISE_A, NOISE_B, NOISE_C = 0.0012, 0.0019, 0.4
+# optical frame in camera_link (x forward, y left, z up): REP 103 rpy (-pi/2, 0, -pi/2).
+R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+@dataclass
+class Capture:
+    """One handled goal. rgb (H, W, 3) uint8, depth (H, W) float32 metres; None when not ok."""
+
+    ok: bool
+    reason: str
+    T_world_cam: np.ndarray
+    rgb: np.ndarray | None = None
+    depth: np.ndarray | None = None
+
+
+def link_from_optical(T_world_cam: np.ndarray) -> np.ndarray:
+    """(4, 4) T_world_link of `camera_link` (x forward, z up) given the optical-frame pose."""
+    T_link_opt = np.eye(4)
+    T_link_opt[:3, :3] = R_LINK_OPTICAL
+    return T_world_cam @ np.linalg.inv(T_link_opt)
+
+
+def add_depth_noise(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """depth (H, W) float32 metres plus zero-mean Gaussian noise growing with z^2; NaN stays NaN."""
+    sigma = NOISE_A + NOISE_B * (depth - NOISE_C) ** 2
+    return (depth + sigma * rng.standard_normal(depth.shape)).astype(np.float32)
+
+
+class SimCamera:
+    """Validates goal poses against the scene and renders the valid ones.
+
+    The renderer is created on the first capture, so its OpenGL context belongs to the thread that
+    captures (the node's spin thread).
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        width: int = 640,
+        height: int = 480,
+        hfov_deg: float = HFOV_DEG,
+        max_range: float = MAX_RANGE,
+        clearance: float = CLEARANCE,
+        depth_noise: bool = False,
+        seed: int = 0,
+    ) -> None:
+        self.scene = scene
+        self.width, self.height, self.hfov_deg, self.max_range = width, height, hfov_deg, max_range
+        self.clearance = clearance
+        self.depth_noise = depth_noise
+        self._rng = np.random.default_rng(seed)
+        self._renderer: RgbdRenderer | None = None
+
+    @property
+    def renderer(self) -> RgbdRenderer:
+        if self._renderer is None:
+            self._renderer = RgbdRenderer(
+                self.scene, self.width, self.height, self.hfov_deg, self.max_range
+            )
+        return self._renderer
+
+    @property
+    def K(self) -> np.ndarray:
+        return self.renderer.K
+
+    def capture(self, T_world_cam: np.ndarray) -> Capture:
+        """Render at a (4, 4) optical-frame pose, or say why the pose is refused."""
+        check = check_pose(self.scene, T_world_cam, self.clearance)
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        if not check.ok:
+            return Capture(False, check.reason, T)
+        rgb, depth = self.renderer.render(T)
+        if self.depth_noise:
+            depth = add_depth_noise(depth, self._rng)
+        return Capture(True, "ok", T, rgb, depth)
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

@@ -1,0 +1,150 @@
+"""Is a camera pose usable? Finite, a proper rotation, inside the workspace, clear of geometry.
+
+The distance check uses a k-d tree of points sampled densely on every solid geom's surface (built
+once per scene, lazily); points inside a solid are found with a per-geom filled voxel occupancy,
+so a camera buried deep inside a wall or a cabinet is rejected too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import trimesh
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from sim_bridge.geoms import geom_meshes, ground_planes, solid_geom_ids
+from sim_bridge.scenes import Scene
+
+CLEARANCE = 0.05  # metres, minimum distance from the camera centre to any surface
+ROTATION_TOL = 1e-3  # max |R^T R - I| entry for a rotation to count as orthonormal
+# Metres between surface samples of the distance check; the clearance test is off by at most
+# about this much (object scenes are small, rooms are large).
+SAMPLE_SPACING = {"object": 0.004, "room": 0.015}
+OCCUPANCY_PITCH = 0.01  # metres, voxel size of the inside-a-mesh test
+
+
+@dataclass(frozen=True)
+class PoseCheck:
+    ok: bool
+    reason: str
+
+
+class _Collider:
+    """Distance-to-surface and inside-solid queries for one scene."""
+
+    def __init__(self, scene: Scene) -> None:
+        model, data = scene.model()
+        spacing = SAMPLE_SPACING[scene.level]
+        ids = solid_geom_ids(model)
+        samples = []
+        self.boxes, self.cylinders, self.ellipsoids, self.mesh_grids = [], [], [], []
+        for g, mesh in zip(ids, geom_meshes(model, data, ids), strict=True):
+            n = int(np.clip(2 * mesh.area / spacing**2, 50, 2_000_000))
+            pts, _ = trimesh.sample.sample_surface(mesh, n, seed=int(g))
+            samples.append(np.vstack([pts, mesh.vertices]))
+            R, p, size = data.geom_xmat[g].reshape(3, 3), data.geom_xpos[g], model.geom_size[g]
+            kind = model.geom_type[g]
+            if kind == mujoco.mjtGeom.mjGEOM_BOX:
+                self.boxes.append((R, p, size.copy()))
+            elif kind == mujoco.mjtGeom.mjGEOM_CYLINDER:
+                self.cylinders.append((R, p, size.copy()))
+            elif kind in (mujoco.mjtGeom.mjGEOM_SPHERE, mujoco.mjtGeom.mjGEOM_ELLIPSOID):
+                radii = np.full(3, size[0]) if kind == mujoco.mjtGeom.mjGEOM_SPHERE else size.copy()
+                self.ellipsoids.append((R, p, radii))
+            else:  # meshes and capsules: filled voxels of the world-frame surface
+                self.mesh_grids.append(_filled_grid(mesh, OCCUPANCY_PITCH))
+        self.tree = cKDTree(np.vstack(samples))
+        self.planes = ground_planes(model, data)
+
+    def inside_solid(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: points (N, 3) inside any solid geom."""
+        out = np.zeros(len(points), dtype=bool)
+        for R, p, half in self.boxes:
+            local = (points - p) @ R
+            out |= np.all(np.abs(local) <= half, axis=1)
+        for R, p, size in self.cylinders:
+            local = (points - p) @ R
+            out |= (local[:, 0] ** 2 + local[:, 1] ** 2 <= size[0] ** 2) & (
+                np.abs(local[:, 2]) <= size[1]
+            )
+        for R, p, radii in self.ellipsoids:
+            local = (points - p) @ R
+            out |= ((local / radii) ** 2).sum(axis=1) <= 1.0
+        for lo, grid in self.mesh_grids:
+            ijk = np.floor((points - lo) / OCCUPANCY_PITCH).astype(np.int64)
+            inside = np.all((ijk >= 0) & (ijk < grid.shape), axis=1)
+            out[inside] |= grid[tuple(ijk[inside].T)]
+        return out
+
+    def clear(self, points: np.ndarray, clearance: float) -> np.ndarray:
+        """(N,) bool: points (N, 3) at least `clearance` m from every surface, outside solids."""
+        dist, _ = self.tree.query(points, k=1, distance_upper_bound=clearance)
+        ok = ~np.isfinite(dist) & ~self.inside_solid(points)
+        for origin, normal in self.planes:
+            ok &= (points - origin) @ normal > clearance
+        return ok
+
+
+def _filled_grid(mesh: trimesh.Trimesh, pitch: float) -> tuple[np.ndarray, np.ndarray]:
+    """(lower corner (3,), occupancy (nx, ny, nz) bool) of a closed mesh: shell plus filled inside."""
+    lo = mesh.bounds[0] - pitch
+    shape = np.ceil((mesh.bounds[1] + pitch - lo) / pitch).astype(int) + 1
+    fine = mesh.subdivide_to_size(max_edge=pitch / 2, max_iter=20)
+    grid = np.zeros(shape, dtype=bool)
+    ijk = np.floor((fine.vertices - lo) / pitch).astype(int)
+    grid[tuple(ijk.T)] = True
+    return lo, ndimage.binary_fill_holes(grid)
+
+
+def _collider(scene: Scene) -> _Collider:
+    if "collider" not in scene._cache:
+        scene._cache["collider"] = _Collider(scene)
+    return scene._cache["collider"]
+
+
+def valid_positions(scene: Scene, points: np.ndarray, clearance: float = CLEARANCE) -> np.ndarray:
+    """(N,) bool: camera centres `points` (N, 3) world metres inside the workspace and at least
+    `clearance` metres from every surface (and not inside any solid or below a ground plane)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    ok = np.all(np.isfinite(points), axis=1)
+    ok &= np.all((points >= scene.workspace_min) & (points <= scene.workspace_max), axis=1)
+    if ok.any():
+        ok[ok] = _collider(scene).clear(points[ok], clearance)
+    return ok
+
+
+def check_pose(scene: Scene, T_world_cam: np.ndarray, clearance: float = CLEARANCE) -> PoseCheck:
+    """Validate a (4, 4) optical-frame pose in `world`; `reason` says what is wrong when not ok."""
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    if T.shape != (4, 4):
+        return PoseCheck(False, f"pose shape {T.shape}, expected (4, 4)")
+    if not np.all(np.isfinite(T)):
+        return PoseCheck(False, "pose has non-finite entries")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        return PoseCheck(False, f"last row {T[3].tolist()}, expected [0, 0, 0, 1]")
+    R = T[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > ROTATION_TOL or np.linalg.det(R) < 0:
+        return PoseCheck(
+            False,
+            f"rotation is not orthonormal with det +1 (|R^T R - I| = {err:.2e}, det = {np.linalg.det(R):.3f})",
+        )
+    p = T[:3, 3]
+    if np.any(p < scene.workspace_min) or np.any(p > scene.workspace_max):
+        return PoseCheck(
+            False,
+            f"position {np.round(p, 3).tolist()} outside the workspace {np.round(scene.workspace_min, 3).tolist()}..{np.round(scene.workspace_max, 3).tolist()}",
+        )
+    collider = _collider(scene)
+    if collider.inside_solid(p[None])[0]:
+        return PoseCheck(False, f"position {np.round(p, 3).tolist()} is inside scene geometry")
+    if not collider.clear(p[None], clearance)[0]:
+        dist, _ = collider.tree.query(p)
+        return PoseCheck(
+            False,
+            f"position {np.round(p, 3).tolist()} is {dist:.3f} m from scene geometry, closer than the clearance {clearance} m",
+        )
+    return PoseCheck(True, "ok")
