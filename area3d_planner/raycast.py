@@ -141,6 +141,8 @@ def visibility_masks(
     box_lo,
     box_hi,
     cos_half_diag,
+    ray_weight,
+    scale_by_range,
 ):
     """Monte Carlo visibility of every (seed, orientation) view, as CSR rows.
 
@@ -152,11 +154,16 @@ def visibility_masks(
     at its exit, and views whose frustum cone (half-angle acos(cos_half_diag)) misses its
     bounding sphere get an empty mask without casting.
     Rays stop after the first occupied voxel; unknown voxels are traversed (optimistic).
-    Returns (nnz (S*B,) int64, ids (sum nnz,) int32, weights (sum nnz,) float32) where a voxel's
-    weight is the fraction of the view's R rays that reach it.
+    Returns (nnz (S*B,) int64, ids (sum nnz,) int32, weights (sum nnz,) float32).
+    A voxel's weight is sum over the rays reaching it of ray_weight[r], times r^2 when
+    scale_by_range (r = range of the voxel centre). With ray_weight = the solid angle each ray
+    stands for / voxel_size^2 and scale_by_range, the weight is the Monte Carlo estimate of how
+    much of the voxel the view sees (a voxel face at range r subtends voxel_size^2 cos / r^2), so a
+    view's utility estimates the uncertainty-weighted number of voxels it sees, near or far. With
+    ray_weight = 1/R and no scaling, it is the fraction of the view's rays that reach the voxel.
     """
     n_vox = occupancy.shape[0]
-    counts = np.zeros(n_vox, np.int32)
+    counts = np.zeros(n_vox, np.float64)
     touched = np.empty(n_vox, np.int32)
     max_steps = int(shape[0] + shape[1] + shape[2]) + 3
     ids = np.empty(max_steps, np.int64)
@@ -170,7 +177,6 @@ def visibility_masks(
     out_w = np.empty(cap, np.float32)
     total = 0
     d = np.empty(3)
-    inv_rays = 1.0 / n_rays
     centre = 0.5 * (box_lo + box_hi)
     radius = 0.5 * np.sqrt(np.sum((box_hi - box_lo) ** 2))
     half_diag = np.arccos(cos_half_diag)
@@ -201,10 +207,10 @@ def visibility_masks(
                 for k in range(n):
                     v = ids[k]
                     if relevant[v]:
-                        if counts[v] == 0:
+                        if counts[v] == 0.0:
                             touched[n_touched] = v
                             n_touched += 1
-                        counts[v] += 1
+                        counts[v] += ray_weight[r]
             if total + n_touched > cap:
                 while total + n_touched > cap:
                     cap *= 2
@@ -218,8 +224,17 @@ def visibility_masks(
             for k in range(n_touched):
                 v = sorted_touched[k]
                 out_ids[total + k] = v
-                out_w[total + k] = counts[v] * inv_rays
-                counts[v] = 0
+                if scale_by_range:
+                    iz = v % shape[2]
+                    iy = (v // shape[2]) % shape[1]
+                    ix = v // (shape[1] * shape[2])
+                    dx = lower[0] + (ix + 0.5) * voxel_size - o[0]
+                    dy = lower[1] + (iy + 0.5) * voxel_size - o[1]
+                    dz = lower[2] + (iz + 0.5) * voxel_size - o[2]
+                    out_w[total + k] = counts[v] * (dx * dx + dy * dy + dz * dz)
+                else:
+                    out_w[total + k] = counts[v]
+                counts[v] = 0.0
             total += n_touched
             nnz[s * n_bins + b] = n_touched
     return nnz, out_ids[:total].copy(), out_w[:total].copy()

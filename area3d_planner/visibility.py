@@ -30,8 +30,13 @@ class VisibilityParams:
     height: int = 480
     max_range: float = 5.0  # paper, supplement: max depth 5 m (far plane at optical z = 5 m)
     rng_seed: int = 0  # ray sampling is reproducible
+    # "coverage": a voxel's weight estimates how much of it the view sees (rays scaled by range^2),
+    # so utility counts uncertain voxels in view; "ray_fraction": share of rays reaching it.
+    weighting: str = "coverage"
 
     def validate(self) -> None:
+        if self.weighting not in ("coverage", "ray_fraction"):
+            raise InputError("weighting", self.weighting, "'coverage' or 'ray_fraction'")
         for name in ("yaw_bins", "pitch_bins", "mc_rays", "width", "height"):
             value = getattr(self, name)
             if int(value) < 1:
@@ -239,6 +244,15 @@ class VisibilityCache:
             box_lo = box_hi = spec.lower.copy()
         tan_x = np.tan(np.deg2rad(params.hfov_deg) / 2)
         cos_half_diag = 1.0 / np.sqrt(1.0 + tan_x**2 * (1.0 + (params.height / params.width) ** 2))
+        scale_by_range = params.weighting == "coverage"
+        if scale_by_range:
+            # Rays are uniform on the image plane z = 1 (area 4 tan_x tan_y): each stands for
+            # area / R there, i.e. a solid angle of (area / R) cos^3 of its angle to the axis.
+            tan_y = tan_x * params.height / params.width
+            cos_axis = dirs[:, 2] / np.linalg.norm(dirs, axis=1)
+            ray_weight = (4 * tan_x * tan_y / dirs.shape[0]) * cos_axis**3 / spec.voxel_size**2
+        else:
+            ray_weight = np.full(dirs.shape[0], 1.0 / dirs.shape[0])
         shape = np.asarray(spec.shape, np.int64)
         threads = max(1, min(threads or os.cpu_count() or 1, max(1, seeds.shape[0])))
         chunks = np.array_split(np.arange(seeds.shape[0]), threads)
@@ -257,6 +271,8 @@ class VisibilityCache:
                 box_lo,
                 box_hi,
                 cos_half_diag,
+                np.ascontiguousarray(ray_weight, np.float64),
+                scale_by_range,
             )
 
         if threads == 1:

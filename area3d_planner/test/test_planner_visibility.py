@@ -1,4 +1,7 @@
+import dataclasses
+
 import numpy as np
+import pytest
 from scipy.spatial.distance import cdist
 
 from area3d_perception.grid import GridSpec
@@ -63,7 +66,36 @@ def test_voxels_behind_an_occupied_wall_are_never_in_a_mask():
     ix = np.unravel_index(cache.voxel_ids, spec.shape)[0]
     assert cache.voxel_ids.size > 0
     assert ix.max() == 10  # the wall is seen, nothing behind it
-    assert np.all(cache.weights > 0) and np.all(cache.weights <= 1)
+    assert np.all(cache.weights > 0)
+    fraction = VisibilityCache.build(
+        spec, occ.ravel(), seeds, dataclasses.replace(FAST, weighting="ray_fraction")
+    )
+    assert np.all(fraction.weights > 0) and np.all(fraction.weights <= 1)
+
+
+@pytest.mark.parametrize("distance", [0.3, 0.6])
+def test_coverage_weights_count_the_voxels_a_view_sees_at_any_distance(distance):
+    # A wall filling the whole frustum: the weights of one view must add up to the number of wall
+    # voxels inside the frustum, each foreshortened by the cosine of its viewing angle (what a
+    # camera's pixels actually cover), near or far.
+    size = 0.01
+    spec = GridSpec.from_bounds(np.array([0.0, -1.0, -1.0]), np.array([1.0, 1.0, 1.0]), size)
+    occ = np.zeros(spec.shape, np.int8)
+    wall_i = int(round(distance / size))
+    occ[wall_i] = 1
+    params = VisibilityParams(
+        yaw_bins=4, pitch_bins=1, pitch_min_deg=0, pitch_max_deg=0, mc_rays=4096
+    )
+    cache = VisibilityCache.build(spec, occ.ravel(), np.array([[0.0, 0.0, 0.0]]), params)
+    view = int(np.argmax(cache.forward[:, 0]))  # the bin looking along +x
+    ids, weights = cache.mask(view)
+    assert np.all(np.unravel_index(ids, spec.shape)[0] == wall_i)
+    depth = wall_i * size  # the wall's front face
+    c = (np.arange(-1.0, 1.0, size) + size / 2)[:, None]
+    y, z = np.broadcast_arrays(c, c.T)
+    in_view = (np.abs(y) <= depth) & (np.abs(z) <= depth * 480 / 640)  # 90 degree hfov, 4:3
+    expected = np.sum(depth / np.sqrt(depth**2 + y**2 + z**2)[in_view])
+    assert abs(weights.sum() - expected) < 0.05 * expected
 
 
 def test_masks_do_not_depend_on_the_thread_count():
