@@ -133,9 +133,15 @@ def grid_msg_to_npz(msg: object, path: Path) -> None:
 class MissionManager:
     """The runner's own node: sends goals, collects frames, calls the next-best-view service."""
 
-    def __init__(self, node: Node, recorder: BagRecorder | None):
+    def __init__(
+        self,
+        node: Node,
+        recorder: BagRecorder | None,
+        alive_check: Callable[[], None] = lambda: None,
+    ):
         self.node = node
         self.recorder = recorder
+        self.alive_check = alive_check  # raises when a node of the graph has died
         self._lock = threading.Condition()
         self._parts: dict[int, dict[str, object]] = {}
         self._status: dict[int, dict] = {}
@@ -219,6 +225,7 @@ class MissionManager:
                         f"no frame from sim_bridge within {timeout_s:.0f} s for the goal stamped {stamp}"
                     )
                 self._lock.wait(min(remaining, 0.1))
+                self.alive_check()
         K, _, _ = codecs.camera_info_to_intrinsics(parts["info"])
         return Frame(
             stamp,
@@ -253,6 +260,7 @@ class MissionManager:
                 if remaining <= 0:
                     return False
                 self._lock.wait(min(remaining, 0.1))
+                self.alive_check()
         return True
 
     def plan(self, current: Frame, count: int, timeout_s: float) -> list[np.ndarray]:
@@ -269,7 +277,23 @@ class MissionManager:
             tolerance=0.0,
         )
         request.goal.pose.position.x = float(count)
-        response = self.client.call(request, timeout_s)
+        # The call runs on a daemon thread so that a planner dying mid-call is noticed at once.
+        result: dict[str, object] = {}
+
+        def call() -> None:
+            try:
+                result["response"] = self.client.call(request, timeout_s)
+            except Exception as err:  # handed to the caller below
+                result["error"] = err
+
+        caller = threading.Thread(target=call, name="next-best-view-call", daemon=True)
+        caller.start()
+        while caller.is_alive():
+            caller.join(0.1)
+            self.alive_check()
+        if "error" in result:
+            raise result["error"]
+        response = result["response"]
         self._record(
             "/area3d/planner/next_views", "nav_msgs/msg/Path", current.stamp_ns, response.plan
         )
@@ -366,7 +390,7 @@ def run_episode(
         if config.domain_id is not None
         else int(os.environ.get("ROS_DOMAIN_ID", "0"))
     )
-    env = use_loopback(domain_id)
+    use_loopback(domain_id)
     log_path = run_dir / "nodes.log"
     log_file = log_path.open("a")
     log_lock = threading.Lock()
@@ -383,10 +407,10 @@ def run_episode(
         else None
     )
     t0 = time.monotonic()
-    launcher = Launcher(specs, run_dir, env=env, log_sink=log_sink)
+    launcher = Launcher(specs, run_dir, log_sink=log_sink)
     stop = threading.Event()
     node = Node("mission_manager")
-    manager = MissionManager(node, recorder)
+    manager = MissionManager(node, recorder, alive_check=launcher.check)
     spinner = _spin_in_background(node, stop)
     task = None
     try:

@@ -94,7 +94,10 @@ def load_scene(name_or_path: str | Path) -> Scene:
     for sidecar in (path.with_suffix(".json"), path.parent / "scene.json"):
         if sidecar.is_file():
             return _from_sidecar(path, json.loads(sidecar.read_text()))
-    return derive_scene(path)
+    try:
+        return derive_scene(path)
+    except ValueError as err:  # MuJoCo's XML / compile errors do not name the file
+        raise ValueError(f"scene file {str(path)!r}: MuJoCo could not load it: {err}".strip()) from err
 
 
 def _from_sidecar(path: Path, meta: dict) -> Scene:

@@ -1,0 +1,219 @@
+"""A whole episode over the node graph: four node processes, the runner, the wire, the report."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+
+from area3d_bringup.runner import EpisodeConfig, run_episode
+from area3d_eval.report import write_report
+from area3d_msgs_py import msgs
+from sim_bridge.scenes import load_scene
+from sim_bridge.validity import check_pose
+
+SMALL_CAMERA = {
+    "sim_bridge": {"width": 320, "height": 240},
+    "planner": {"width": 320, "height": 240},
+}
+
+
+@pytest.fixture(scope="module")
+def episode(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from area3d_msgs_py import dds_config
+
+    domain_id = 1 + (os.getpid() + 131) % 200
+    dds_config.use_loopback(domain_id)
+    config = EpisodeConfig(
+        scene="single_object",
+        policy="area3d",
+        budget=7,
+        seed=0,
+        out_dir=tmp_path_factory.mktemp("runs"),
+        run_name="episode",
+        overrides=SMALL_CAMERA,
+        domain_id=domain_id,
+    )
+    return run_episode(config)
+
+
+def test_the_episode_captures_exactly_the_budget_initial_views_first(episode):
+    data = json.loads((episode / "episode.json").read_text())
+    scene = load_scene("single_object")
+    kinds = [v["kind"] for v in data["views"]]
+    assert kinds == ["initial"] * 4 + ["planned"] * 3
+    assert len(list((episode / "frames").glob("*.npz"))) == 7
+    for view, T0 in zip(data["views"][:4], scene.initial_views, strict=True):
+        np.testing.assert_allclose(np.array(view["T_world_cam"]), T0, atol=1e-6)
+    stamps = [v["stamp_ns"] for v in data["views"]]
+    assert stamps == sorted(stamps) and len(set(stamps)) == 7
+
+
+def test_planned_views_are_valid_new_poses_the_camera_accepted(episode):
+    data = json.loads((episode / "episode.json").read_text())
+    scene = load_scene("single_object")
+    poses = [np.array(v["T_world_cam"]) for v in data["views"]]
+    for T in poses[4:]:
+        assert check_pose(scene, T).ok
+        assert min(np.linalg.norm(T[:3, 3] - P[:3, 3]) for P in poses[:4]) > 0.05
+    with np.load(episode / "frames" / "0006.npz") as frame:
+        assert frame["rgb"].shape == (240, 320, 3) and frame["depth"].dtype == np.float32
+        assert np.isfinite(frame["depth"]).any()
+        np.testing.assert_allclose(frame["T_world_cam"], poses[6])
+
+
+def test_the_planner_published_the_latched_grid_before_and_after(episode):
+    with (
+        np.load(episode / "grid_initial.npz") as before,
+        np.load(episode / "grid_final.npz") as after,
+    ):
+        for name in ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy"):
+            assert name in before and name in after
+        assert np.all(np.isfinite(after["uncertainty"]))
+        # more views observed more of the scene: more occupied voxels are known afterwards
+        assert np.sum(after["occupancy"] > 0) > np.sum(before["occupancy"] > 0)
+
+
+def test_the_episode_bag_replays_the_camera_stream(episode):
+    with Reader(episode / "bag") as reader:
+        topics = {c.topic: c for c in reader.connections}
+        color = topics["/area3d/camera/color/image_raw"]
+        images = [msgs.deserialize(raw, color.msgtype) for _, _, raw in reader.messages([color])]
+    assert len(images) == 7
+    assert images[-1].encoding == "rgb8" and images[-1].width == 320
+    assert "/area3d/planner/next_views" in topics and "/tf_static" in topics
+    assert "storage_identifier: mcap" in (episode / "bag" / "metadata.yaml").read_text()
+
+
+def test_evaluation_and_report_of_the_episode(episode):
+    md, html = write_report([episode], episode / "report")
+    metrics = json.loads((episode / "metrics.json").read_text())
+    curve = metrics["curve"]
+    assert [point["num_views"] for point in curve][-1] == 7
+    assert (
+        metrics["final"]["completion"] >= curve[0]["completion"] - 1e-3
+    )  # views never hurt coverage
+    assert 0.5 < metrics["final"]["completion"] <= 1.0
+    text = html.read_text()
+    assert "single_object" in text and "area3d" in text
+    for image in (episode / "report" / "figures").glob("*.png"):
+        assert image.name in md.read_text()
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text().split()
+        out.extend(int(p) for p in text)
+    return out
+
+
+def _cmdline(pid: int) -> str:
+    return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+
+
+def test_a_node_dying_mid_episode_is_named_and_the_episode_resumes(tmp_path, dds_domain):
+    base = [
+        sys.executable,
+        "-m",
+        "area3d_bringup.cli",
+        "run",
+        "--scene",
+        "single_object",
+        "--budget",
+        "7",
+        "--out",
+        str(tmp_path),
+        "--no-evaluate",
+        "--no-record",
+        "--domain-id",
+        str(dds_domain),
+        "-p",
+        "sim_bridge.width=320",
+        "-p",
+        "sim_bridge.height=240",
+        "-p",
+        "planner.width=320",
+        "-p",
+        "planner.height=240",
+    ]
+    runner = subprocess.Popen(base, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        frames: list[Path] = []
+        while time.monotonic() < deadline and len(frames) < 5 and runner.poll() is None:
+            frames = list(tmp_path.glob("*/frames/*.npz"))
+            time.sleep(0.05)
+        assert len(frames) >= 5, "the episode did not get going"
+        planner = [p for p in _children(runner.pid) if "area3d_planner.node" in _cmdline(p)]
+        assert len(planner) == 1
+        os.kill(planner[0], signal.SIGKILL)
+        _, err = runner.communicate(timeout=60)
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+    assert runner.returncode != 0
+    assert "planner" in err and "--resume" in err
+    run_dir = next(tmp_path.iterdir())
+    kept = json.loads((run_dir / "episode.json").read_text())["views"]
+    assert 5 <= len(kept) < 7 and len(list((run_dir / "frames").glob("*.npz"))) == len(kept)
+
+    resumed = subprocess.run(
+        [*base, "--resume", str(run_dir)], capture_output=True, text=True, timeout=180
+    )
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    views = json.loads((run_dir / "episode.json").read_text())["views"]
+    assert len(views) == 7
+    assert [v["T_world_cam"] for v in views[: len(kept)]] == [v["T_world_cam"] for v in kept]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--policy", "best_one"], "policy: got 'best_one'"),
+        (["--scene", "no_such_scene"], "no_such_scene"),
+        (["--mode", "sideways"], "mode: got 'sideways'"),
+        (["--budget", "2"], "budget: got 2"),
+    ],
+)
+def test_bad_episode_arguments_are_rejected_with_a_clear_message(tmp_path, args, message):
+    result = subprocess.run(
+        [sys.executable, "-m", "area3d_bringup.cli", "run", "--out", str(tmp_path), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not any(tmp_path.iterdir()), "a rejected run must not leave a run directory"
+
+
+def test_an_unreadable_scene_file_is_named(tmp_path):
+    bad = tmp_path / "broken.xml"
+    bad.write_text("<mujoco><worldbody><geom type='box'")
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "area3d_bringup.cli",
+            "run",
+            "--scene",
+            str(bad),
+            "--out",
+            str(tmp_path / "runs"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert "broken.xml" in result.stderr and "Traceback" not in result.stderr
