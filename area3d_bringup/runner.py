@@ -79,6 +79,7 @@ class EpisodeConfig:
     domain_id: int | None = None
     capture_timeout_s: float = 30.0
     plan_timeout_s: float = 120.0
+    fuse_timeout_s: float = 30.0
     startup_timeout_s: float = 90.0
 
 
@@ -251,11 +252,11 @@ class MissionManager:
             )
         )
 
-    def wait_fused(self, count: int, timeout_s: float) -> bool:
-        """Wait until the planner reports at least `count` fused frames."""
+    def wait_fused(self, count: int, timeout_s: float, key: str = "frames_fused") -> bool:
+        """Wait until the planner reports at least `count` fused frames (or semantic maps, by `key`)."""
         deadline = time.monotonic() + timeout_s
         with self._lock:
-            while int(self.planner_status.get("frames_fused", 0)) < count:
+            while int(self.planner_status.get(key, 0)) < count:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
@@ -457,7 +458,7 @@ def run_episode(
             for frame in frames:
                 manager.replay(frame)
                 time.sleep(0.05)
-            manager.wait_fused(len(frames), config.plan_timeout_s)
+            manager.wait_fused(len(frames), config.fuse_timeout_s)
             add_time("replay", time.monotonic() - t)
 
         for T in scene.initial_views[len(frames) : n_init] if len(frames) < n_init else []:
@@ -468,7 +469,19 @@ def run_episode(
                 raise EpisodeError(f"the camera refused initial view {len(frames)}: {result}")
             add_time("capture", time.monotonic() - t)
             keep(result, "initial", {"capture": time.monotonic() - t})
-        manager.wait_fused(n_init, config.plan_timeout_s)
+        semantics = next(spec for spec in specs if spec.name == "semantics").parameters
+        if semantics.get("backend", "heuristic") != "none" and not manager.wait_fused(
+            n_init, config.plan_timeout_s, key="semantic_frames_fused"
+        ):
+            log_sink(
+                f"[mission_manager] no semantic maps for the initial views after "
+                f"{config.plan_timeout_s:.0f} s; planning without them"
+            )
+        if not manager.wait_fused(n_init, config.fuse_timeout_s):
+            log_sink(
+                f"[mission_manager] the planner has not fused all {n_init} initial views after "
+                f"{config.fuse_timeout_s:.0f} s; planning with what it has"
+            )
         if manager.latest_grid is not None and not (run_dir / "grid_initial.npz").exists():
             grid_msg_to_npz(manager.latest_grid, run_dir / "grid_initial.npz")
 

@@ -28,6 +28,11 @@ OUT_CONFIDENCE_TOPIC = "/area3d/perception/confidence"
 MAX_FRAMES_WITHOUT_INFO = 8
 
 
+# Frames arrive in bursts (the initial views); ROS default depth 10 would drop the oldest while
+# this node is busy, and every captured frame matters, so frame topics keep a deeper queue.
+FRAME_QUEUE_DEPTH = 50
+
+
 class PerceptionNode:
     """Wires parameters, subscriptions and publishers around `FrameEstimator`."""
 
@@ -68,11 +73,19 @@ class PerceptionNode:
 
         self.pub_depth = node.create_publisher("sensor_msgs/msg/Image", OUT_DEPTH_TOPIC)
         self.pub_conf = node.create_publisher("sensor_msgs/msg/Image", OUT_CONFIDENCE_TOPIC)
-        node.create_subscription("sensor_msgs/msg/Image", COLOR_TOPIC, self.on_color)
+        node.create_subscription(
+            "sensor_msgs/msg/Image", COLOR_TOPIC, self.on_color, depth=FRAME_QUEUE_DEPTH
+        )
         if self.use_depth:
-            node.create_subscription("sensor_msgs/msg/Image", DEPTH_TOPIC, self.on_depth)
-        node.create_subscription("sensor_msgs/msg/CameraInfo", INFO_TOPIC, self.on_camera_info)
-        node.create_subscription("geometry_msgs/msg/PoseStamped", POSE_TOPIC, self.on_pose)
+            node.create_subscription(
+                "sensor_msgs/msg/Image", DEPTH_TOPIC, self.on_depth, depth=FRAME_QUEUE_DEPTH
+            )
+        node.create_subscription(
+            "sensor_msgs/msg/CameraInfo", INFO_TOPIC, self.on_camera_info, depth=FRAME_QUEUE_DEPTH
+        )
+        node.create_subscription(
+            "geometry_msgs/msg/PoseStamped", POSE_TOPIC, self.on_pose, depth=FRAME_QUEUE_DEPTH
+        )
         self.log.info(f"backend={backend} noise={noise} use_depth={self.use_depth}")
 
     # inputs ---------------------------------------------------------------------------------

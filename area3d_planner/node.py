@@ -29,6 +29,11 @@ LEVEL_DEFAULTS = {
 CAMERA_INFO_CACHE = 64
 
 
+# Frames arrive in bursts (the initial views); ROS default depth 10 would drop the oldest while
+# this node is busy, and every captured frame matters, so frame topics keep a deeper queue.
+FRAME_QUEUE_DEPTH = 50
+
+
 class PlannerNode:
     NODE_NAME = "planner"
 
@@ -55,7 +60,10 @@ class PlannerNode:
             values[f.name] = tuple(value) if isinstance(default, tuple) else value
         self.sync_timeout_s = float(node.declare_parameter("sync_timeout_s", 5.0))
         self.server = NextBestViewServer(PlannerConfig(**values), scene=scene)
-        self.sync = StampSync(("depth", "confidence", "pose"))
+        # Perception's output for a frame can trail the camera's pose by seconds (first frames,
+        # a feed-forward model on CPU), so parts wait this long for their partners.
+        max_age_s = float(node.declare_parameter("sync_max_age_s", 60.0))
+        self.sync = StampSync(("depth", "confidence", "pose"), max_age_ns=int(max_age_s * 1e9))
         self.camera_info: OrderedDict[int, np.ndarray] = OrderedDict()
         self.latest_K: np.ndarray | None = None
 
@@ -65,21 +73,34 @@ class PlannerNode:
         self.status_pub = node.create_publisher("std_msgs/msg/String", "/area3d/planner/status")
         self.views_pub = node.create_publisher("nav_msgs/msg/Path", "/area3d/planner/next_views")
         node.create_subscription(
-            "sensor_msgs/msg/Image", "/area3d/perception/depth", lambda m: self._part("depth", m)
+            "sensor_msgs/msg/Image",
+            "/area3d/perception/depth",
+            lambda m: self._part("depth", m),
+            depth=FRAME_QUEUE_DEPTH,
         )
         node.create_subscription(
             "sensor_msgs/msg/Image",
             "/area3d/perception/confidence",
             lambda m: self._part("confidence", m),
+            depth=FRAME_QUEUE_DEPTH,
         )
         node.create_subscription(
-            "geometry_msgs/msg/PoseStamped", "/area3d/camera/pose", lambda m: self._part("pose", m)
+            "geometry_msgs/msg/PoseStamped",
+            "/area3d/camera/pose",
+            lambda m: self._part("pose", m),
+            depth=FRAME_QUEUE_DEPTH,
         )
         node.create_subscription(
-            "sensor_msgs/msg/CameraInfo", "/area3d/camera/camera_info", self._on_camera_info
+            "sensor_msgs/msg/CameraInfo",
+            "/area3d/camera/camera_info",
+            self._on_camera_info,
+            depth=FRAME_QUEUE_DEPTH,
         )
         node.create_subscription(
-            "sensor_msgs/msg/Image", "/area3d/semantics/uncertainty", self._on_semantic
+            "sensor_msgs/msg/Image",
+            "/area3d/semantics/uncertainty",
+            self._on_semantic,
+            depth=FRAME_QUEUE_DEPTH,
         )
         node.create_service(
             "nav_msgs/srv/GetPlan", "/area3d/planner/next_best_view", self._on_request
@@ -99,6 +120,10 @@ class PlannerNode:
         stamp = codecs.stamp_to_ns(msg.header.stamp)
         value = codecs.pose_to_matrix(msg.pose) if key == "pose" else codecs.msg_to_image(msg)
         frame = self.sync.add(key, stamp, value)
+        for dropped in self.sync.pop_dropped():
+            self.node.get_logger().warning(
+                f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}"
+            )
         if frame is None:
             return
         K = self.camera_info.get(stamp, self.latest_K)
