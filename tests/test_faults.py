@@ -1,0 +1,232 @@
+"""Bad input over the wire: nodes reject it with a logged reason and keep serving."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from area3d_bringup.launch_description import GRAPH_NODES, build_graph
+from area3d_bringup.launcher import Launcher
+from area3d_msgs_py import codecs, msgs
+from area3d_msgs_py.node import Node
+from sim_bridge.render import RgbdRenderer
+from sim_bridge.scenes import load_scene
+
+W, H = 160, 120
+
+
+class Graph:
+    """Some of the graph's nodes as processes, plus a local node to poke them."""
+
+    def __init__(self, names: tuple[str, ...], workdir: Path, overrides: dict):
+        specs = build_graph(
+            overrides=overrides, nodes=tuple((n, m) for n, m in GRAPH_NODES if n in names)
+        )
+        self.lines: list[str] = []
+        self.launcher = Launcher(specs, workdir, log_sink=self.lines.append)
+        self.node = Node("fault_injector")
+        self.received: dict[str, list] = {}
+        self._stop = threading.Event()
+        self._spinner = threading.Thread(target=self._spin, daemon=True)
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.node.spin_once(0.05)
+
+    def listen(self, type_name: str, topic: str) -> list:
+        bucket = self.received.setdefault(topic, [])
+        self.node.create_subscription(type_name, topic, bucket.append, depth=50)
+        return bucket
+
+    def start(self) -> None:
+        self.launcher.start()
+        self._spinner.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._spinner.join(2)
+        self.launcher.stop()
+        self.node.shutdown()
+
+    def wait_for(self, predicate, timeout_s: float = 30.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self.launcher.check()  # a crashed node fails the test here, by name
+            if predicate():
+                return True
+            time.sleep(0.05)
+        return False
+
+
+@pytest.fixture()
+def graph_factory(tmp_path: Path, dds_domain: int) -> Iterator:
+    graphs: list[Graph] = []
+
+    def make(names: tuple[str, ...], overrides: dict) -> Graph:
+        graph = Graph(names, tmp_path, overrides)
+        graphs.append(graph)
+        return graph
+
+    yield make
+    for graph in graphs:
+        graph.stop()
+
+
+def _frame(scene_name: str = "single_object"):
+    scene = load_scene(scene_name)
+    renderer = RgbdRenderer(scene, width=W, height=H)
+    T = scene.initial_views[0]
+    rgb, depth = renderer.render(T)
+    K = renderer.K
+    renderer.close()
+    return rgb, depth, K, T
+
+
+def _publish_frame(
+    graph: Graph, pubs: dict, stamp: int, rgb, depth, K, T, depth_encoding: str = "32FC1"
+) -> None:
+    pubs["info"].publish(codecs.intrinsics_to_camera_info(K, W, H, stamp, "camera_optical_frame"))
+    pubs["pose"].publish(
+        msgs.PoseStamped(header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T))
+    )
+    pubs["color"].publish(codecs.image_to_msg(rgb, "rgb8", stamp, "camera_optical_frame"))
+    if depth_encoding == "32FC1":
+        pubs["depth"].publish(codecs.image_to_msg(depth, "32FC1", stamp, "camera_optical_frame"))
+    else:  # a depth topic carrying the wrong encoding
+        pubs["depth"].publish(
+            codecs.image_to_msg(rgb, depth_encoding, stamp, "camera_optical_frame")
+        )
+
+
+def _camera_publishers(node: Node) -> dict:
+    return {
+        "color": node.create_publisher(
+            "sensor_msgs/msg/Image", "/area3d/camera/color/image_raw", depth=50
+        ),
+        "depth": node.create_publisher(
+            "sensor_msgs/msg/Image", "/area3d/camera/depth/image_raw", depth=50
+        ),
+        "info": node.create_publisher(
+            "sensor_msgs/msg/CameraInfo", "/area3d/camera/camera_info", depth=50
+        ),
+        "pose": node.create_publisher(
+            "geometry_msgs/msg/PoseStamped", "/area3d/camera/pose", depth=50
+        ),
+    }
+
+
+def test_perception_survives_nan_inf_negative_and_mis_sized_depth(graph_factory):
+    graph = graph_factory(("perception",), {})
+    out = graph.listen("sensor_msgs/msg/Image", "/area3d/perception/depth")
+    conf = graph.listen("sensor_msgs/msg/Image", "/area3d/perception/confidence")
+    pubs = _camera_publishers(graph.node)
+    graph.start()
+    rgb, depth, K, T = _frame()
+    time.sleep(2.0)  # discovery
+
+    bad = depth.copy()
+    bad[:10] = np.inf
+    bad[10:20] = -1.0
+    bad[20:30] = np.nan
+    _publish_frame(graph, pubs, 1_000, rgb, bad, K, T)
+    assert graph.wait_for(lambda: len(out) >= 1 and len(conf) >= 1), "\n".join(graph.lines[-20:])
+    cleaned = codecs.msg_to_image(out[0])
+    assert codecs.stamp_to_ns(out[0].header.stamp) == 1_000
+    assert not np.any(np.isinf(cleaned)) and not np.any(cleaned[np.isfinite(cleaned)] <= 0)
+    assert np.all(codecs.msg_to_image(conf[0])[:30] == 0), "no confidence where depth was unusable"
+
+    # A depth image of another size than the color image is refused, with the reason logged.
+    small = depth[: H // 2, : W // 2].copy()
+    _publish_frame(graph, pubs, 2_000, rgb, small, K, T)
+    assert graph.wait_for(
+        lambda: any("2000" in line or "size" in line for line in graph.lines if "WARN" in line)
+    )
+    # ... and the node still processes the next good frame.
+    _publish_frame(graph, pubs, 3_000, rgb, depth, K, T)
+    assert graph.wait_for(lambda: any(codecs.stamp_to_ns(m.header.stamp) == 3_000 for m in out))
+    assert all(codecs.stamp_to_ns(m.header.stamp) != 2_000 for m in out)
+
+
+def test_planner_answers_early_and_malformed_requests_with_an_empty_plan_and_keeps_serving(
+    graph_factory,
+):
+    graph = graph_factory(
+        ("planner",),
+        {
+            "planner": {
+                "scene": "single_object",
+                "width": W,
+                "height": H,
+                "sync_timeout_s": 1.0,
+                "budget": 6,
+            }
+        },
+    )
+    client = graph.node.create_client("nav_msgs/srv/GetPlan", "/area3d/planner/next_best_view")
+    depth_pub = graph.node.create_publisher(
+        "sensor_msgs/msg/Image", "/area3d/perception/depth", depth=50
+    )
+    conf_pub = graph.node.create_publisher(
+        "sensor_msgs/msg/Image", "/area3d/perception/confidence", depth=50
+    )
+    pubs = _camera_publishers(graph.node)
+    status = graph.listen("std_msgs/msg/String", "/area3d/planner/status")
+    graph.start()
+    assert graph.wait_for(lambda: client.wait_for_service(0.1), 60)
+
+    def request(count: float, stamp: int = 0, quaternion=(0.0, 0.0, 0.0, 1.0)):
+        req = msgs.GetPlan_Request(
+            start=msgs.PoseStamped(
+                header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(np.eye(4))
+            ),
+            goal=msgs.PoseStamped(
+                header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(np.eye(4))
+            ),
+            tolerance=0.0,
+        )
+        q = req.start.pose.orientation
+        q.x, q.y, q.z, q.w = quaternion
+        req.goal.pose.position.x = float(count)
+        return client.call(req, 30.0).plan.poses
+
+    assert request(1) == []  # before any frame: empty plan, reason in the log
+    assert graph.wait_for(lambda: any("no frame fused yet" in line for line in graph.lines))
+
+    # garbage on its inputs: a depth image with an rgb8 encoding, a depth/step mismatch
+    rgb, depth, K, T = _frame()
+    pubs["pose"].publish(
+        msgs.PoseStamped(header=codecs.header(5, "world"), pose=codecs.matrix_to_pose(T))
+    )
+    pubs["info"].publish(codecs.intrinsics_to_camera_info(K, W, H, 5, "camera_optical_frame"))
+    depth_pub.publish(codecs.image_to_msg(rgb, "rgb8", 5, "camera_optical_frame"))
+    broken = codecs.image_to_msg(depth, "32FC1", 5, "camera_optical_frame")
+    broken.step = 3
+    conf_pub.publish(broken)
+    time.sleep(1.0)
+    graph.launcher.check()
+
+    # a real frame, then a proper request: the planner still serves
+    stamp = 10
+    pubs["pose"].publish(
+        msgs.PoseStamped(header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T))
+    )
+    pubs["info"].publish(codecs.intrinsics_to_camera_info(K, W, H, stamp, "camera_optical_frame"))
+    depth_pub.publish(codecs.image_to_msg(depth, "32FC1", stamp, "camera_optical_frame"))
+    conf_pub.publish(
+        codecs.image_to_msg(
+            np.isfinite(depth).astype(np.float32), "32FC1", stamp, "camera_optical_frame"
+        )
+    )
+    assert graph.wait_for(lambda: any('"frames_fused": 1' in m.data for m in status))
+    assert request(-3, stamp) == []  # a negative number of views is refused
+    assert (
+        request(1, stamp, quaternion=(0.0, 0.0, 0.0, 2.0)) != []
+    )  # a bad start pose is logged, not fatal
+    poses = request(1, stamp)
+    assert len(poses) == 1
+    graph.launcher.check()
