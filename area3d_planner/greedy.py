@@ -1,7 +1,8 @@
 """Budgeted next-best-view selection: plain greedy and lazy greedy (the paper's Algorithm 1).
 
-Objective of a view v under field U: utility(v) = sum_{i in mask(v)} p_i U_i + prior(seed(v)),
-prior = -w_dist * ||seed - start||, a constant per seed. After each committed view the field is
+Objective of a view v under field U:
+    utility(v) = gain(seed(v)) * sum_{i in mask(v)} p_i U_i + prior(seed(v)),
+prior = -w_dist * ||seed - start|| and gain (a range prior, see `range_gain`) are constants per seed. After each committed view the field is
 decayed on the view's mask, U_i <- (1 - eta) U_i, and views near the committed one are suppressed
 (light NMS). Decay and suppression only lower utilities, so a seed's last computed best utility
 is an upper bound of its current one: lazy greedy re-evaluates only the seeds whose stale bound
@@ -28,6 +29,10 @@ class GreedyParams:
     w_dist: float = 0.0  # distance prior weight per metre from the start (paper: "with distance prior", value not published)
     nms_radius: float = 0.1  # metres: light NMS, views at seeds this close to a committed one ...
     nms_angle_deg: float = 30.0  # ... and looking within this angle of it are suppressed
+    # Range prior (paper: "with distance prior", form not published): seeds far nearer or farther
+    # from the region than the working distance of the captured views see it at another
+    # resolution and noise level; gain = exp(-((d - d0) / (range_sigma * d0))^2 / 2). 0 = off.
+    range_sigma: float = 0.5
 
     def validate(self) -> None:
         if not (0.0 <= self.eta <= 1.0):
@@ -36,6 +41,10 @@ class GreedyParams:
             raise InputError("w_dist", self.w_dist, "a finite value >= 0")
         if not (np.isfinite(self.nms_radius) and self.nms_radius >= 0):
             raise InputError("nms_radius", self.nms_radius, "a finite value >= 0 metres")
+        if not (np.isfinite(self.range_sigma) and self.range_sigma >= 0):
+            raise InputError(
+                "range_sigma", self.range_sigma, "a finite value >= 0 (0 = no range prior)"
+            )
         if not (0 <= self.nms_angle_deg <= 180):
             raise InputError("nms_angle_deg", self.nms_angle_deg, "a value in [0, 180] degrees")
 
@@ -56,6 +65,17 @@ def seed_prior(cache: VisibilityCache, start: np.ndarray | None, w_dist: float) 
     if start is None or w_dist == 0.0:
         return np.zeros(cache.num_seeds)
     return -w_dist * np.linalg.norm(cache.seeds - np.asarray(start, np.float64)[None, :3], axis=1)
+
+
+def range_gain(
+    seeds: np.ndarray, target: np.ndarray, working_distance: float | None, range_sigma: float
+) -> np.ndarray | None:
+    """(S,) multiplicative range prior of each seed, or None (no prior) when it is switched off or
+    there is no working distance yet. target: (3,) region centre; working_distance: metres."""
+    if range_sigma <= 0 or working_distance is None or not working_distance > 0:
+        return None
+    d = np.linalg.norm(np.asarray(seeds, np.float64) - np.asarray(target, np.float64), axis=1)
+    return np.exp(-0.5 * ((d - working_distance) / (range_sigma * working_distance)) ** 2)
 
 
 def _nms_suppress(
@@ -89,21 +109,28 @@ def plain_greedy(
     budget: int,
     params: GreedyParams | None = None,
     start: np.ndarray | None = None,
+    gain: np.ndarray | None = None,
 ) -> Selection:
     """Re-score every unsuppressed view each iteration and commit the best (ties: lowest view index).
 
-    U: (N,) field, copied (the caller's array is not decayed). Returns at most `budget` views.
+    U: (N,) field, copied (the caller's array is not decayed). gain: (S,) range prior per seed
+    (None = 1). Returns at most `budget` views.
     """
     params = params or GreedyParams()
     U = _check(cache, U, budget, params)
     prior = np.repeat(seed_prior(cache, start, params.w_dist), cache.num_bins)
+    gain_v = (
+        np.ones(cache.num_views)
+        if gain is None
+        else np.repeat(np.asarray(gain, np.float64), cache.num_bins)
+    )
     excluded = np.zeros((cache.num_seeds, cache.num_bins), bool)
     out = Selection(field=U)
     for _ in range(int(budget)):
         alive = ~excluded.ravel()
         if not alive.any():
             break
-        scores = cache.score(U) + prior
+        scores = cache.score(U) * gain_v + prior
         out.evaluations += int(alive.sum())
         scores[~alive] = -np.inf
         v = int(np.argmax(scores))
@@ -120,6 +147,7 @@ def lazy_greedy(
     budget: int,
     params: GreedyParams | None = None,
     start: np.ndarray | None = None,
+    gain: np.ndarray | None = None,
 ) -> Selection:
     """Algorithm 1: a max-priority queue over seeds keyed by an upper bound of their best view.
 
@@ -131,11 +159,12 @@ def lazy_greedy(
     U = _check(cache, U, budget, params)
     nb = cache.num_bins
     prior = seed_prior(cache, start, params.w_dist)
+    gain = np.ones(cache.num_seeds) if gain is None else np.asarray(gain, np.float64)
     excluded = np.zeros((cache.num_seeds, nb), bool)
     out = Selection(field=U)
     if cache.num_views == 0 or int(budget) == 0:
         return out
-    initial = cache.score(U).reshape(cache.num_seeds, nb) + prior[:, None]
+    initial = cache.score(U).reshape(cache.num_seeds, nb) * gain[:, None] + prior[:, None]
     out.evaluations += cache.num_views
     heap = [(-float(initial[s].max()), s) for s in range(cache.num_seeds)]
     heapq.heapify(heap)
@@ -144,7 +173,7 @@ def lazy_greedy(
         alive = ~excluded[s]
         if not alive.any():
             continue
-        scores = cache.score_seed(U, s) + prior[s]
+        scores = cache.score_seed(U, s) * gain[s] + prior[s]
         out.evaluations += int(alive.sum())
         scores[~alive] = -np.inf
         b = int(np.argmax(scores))

@@ -14,7 +14,7 @@ import numpy as np
 
 from area3d_msgs_py.errors import InputError
 from area3d_planner.fusion import FREE, FusedGrid
-from area3d_planner.greedy import GreedyParams, Selection, lazy_greedy
+from area3d_planner.greedy import GreedyParams, Selection, lazy_greedy, range_gain
 from area3d_planner.visibility import (
     VisibilityCache,
     VisibilityParams,
@@ -41,6 +41,7 @@ class PlanningContext:
     rng_seed: int = 0
     scene: object | None = None  # sim_bridge Scene: adds its validity check to the seeds
     allow_unknown_seeds: bool | None = None  # default: True with a scene, False without
+    camera_positions: list = field(default_factory=list)  # (3,) centres of the fused frames
     _seeds: np.ndarray | None = None
     _caches: dict = field(default_factory=dict)
 
@@ -48,6 +49,18 @@ class PlanningContext:
         """Forget seeds and visibility masks (the occupancy changed)."""
         self._seeds = None
         self._caches.clear()
+
+    def working_distance(self) -> float | None:
+        """Median distance of the captured frames' cameras to the ROI centre (None before any)."""
+        if not self.camera_positions:
+            return None
+        c = 0.5 * (self.grid.roi_lo + self.grid.roi_hi)
+        return float(np.median(np.linalg.norm(np.asarray(self.camera_positions) - c, axis=1)))
+
+    def range_gain(self, seeds: np.ndarray) -> np.ndarray | None:
+        """(S,) range prior of `seeds` around the working distance (None: no prior)."""
+        c = 0.5 * (self.grid.roi_lo + self.grid.roi_hi)
+        return range_gain(seeds, c, self.working_distance(), self.greedy.range_sigma)
 
     @property
     def start_position(self) -> np.ndarray | None:
@@ -90,9 +103,15 @@ class PlanningContext:
 
 
 class Policy:
-    """Interface: `select_views(context, budget) -> list of (4, 4) T_world_cam`."""
+    """Interface: `select_views(context, budget) -> list of (4, 4) T_world_cam`.
+
+    A `sequential` policy does not look at the fused field: it plans its whole view sequence once
+    and the server hands the views out in order, so closed-loop requests continue the sequence
+    instead of starting it again.
+    """
 
     name = ""
+    sequential = False
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
         raise NotImplementedError
@@ -110,9 +129,9 @@ class GreedyFieldPolicy(Policy):
         U = self.field(context)
         if not np.all(np.isfinite(U)):
             raise InputError("uncertainty field", "NaN or inf voxels", "finite uncertainties")
-        return lazy_greedy(
-            context.cache(self.relevant), U, budget, context.greedy, context.start_position
-        )
+        cache = context.cache(self.relevant)
+        gain = context.range_gain(cache.seeds)
+        return lazy_greedy(cache, U, budget, context.greedy, context.start_position, gain)
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
         cache = context.cache(self.relevant)
@@ -141,12 +160,15 @@ class VolumetricIGPolicy(GreedyFieldPolicy):
 class UniformPolicy(Policy):
     """Evenly spread views on the upper half of a Fibonacci sphere around the ROI centre.
 
-    Radius: 95 % of the largest radius that keeps the hemisphere inside the workspace (at most
-    the max range); every view looks at the ROI centre. A view that is not a valid camera
-    position is replaced by the nearest valid candidate seed, still looking at the centre.
+    Radius: the median distance of the captured frames (the initial views) to the ROI centre,
+    i.e. the working distance the operator chose, capped at 95 % of the largest radius that keeps
+    the hemisphere inside the workspace and at the max range; every view looks at the ROI centre.
+    A view that is not a valid camera position is replaced by the nearest valid candidate seed,
+    still looking at the centre.
     """
 
     name = "uniform"
+    sequential = True
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
         n = int(budget)
@@ -157,6 +179,9 @@ class UniformPolicy(Policy):
         lo, hi = np.asarray(context.workspace_lo, float), np.asarray(context.workspace_hi, float)
         r_fit = min(c[0] - lo[0], hi[0] - c[0], c[1] - lo[1], hi[1] - c[1], hi[2] - c[2])
         radius = 0.95 * min(r_fit, context.visibility.max_range)
+        working = context.working_distance()
+        if working is not None:
+            radius = min(radius, working)
         if radius <= 0:
             radius = 0.5 * float(np.min(hi - lo))
         i = np.arange(n)
@@ -219,6 +244,7 @@ class RandomPolicy(Policy):
     within max_range, drawn without replacement from a generator seeded with context.rng_seed."""
 
     name = "random"
+    sequential = True
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
         seeds = context.seeds()

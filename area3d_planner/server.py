@@ -46,6 +46,9 @@ class PlannerConfig:
     width: int = 640
     height: int = 480
     w_dist: float = 0.0
+    range_sigma: float = (
+        0.5  # range prior around the working distance of the captured views (0 = off)
+    )
     nms_radius: float = 0.1
     nms_angle_deg: float = 30.0
     carve_stride: int = 2
@@ -95,6 +98,9 @@ class NextBestViewServer:
     committed: int = field(init=False, default=0)
     initial_frames: int | None = field(init=False, default=None)
     last_fused_stamp: int = field(init=False, default=0)
+    _sequence: list | None = field(
+        init=False, default=None
+    )  # a sequential policy's remaining views
 
     def __post_init__(self) -> None:
         c = self.config
@@ -122,7 +128,11 @@ class NextBestViewServer:
                 rng_seed=c.seed,
             ),
             greedy=GreedyParams(
-                eta=c.eta, w_dist=c.w_dist, nms_radius=c.nms_radius, nms_angle_deg=c.nms_angle_deg
+                eta=c.eta,
+                w_dist=c.w_dist,
+                nms_radius=c.nms_radius,
+                nms_angle_deg=c.nms_angle_deg,
+                range_sigma=c.range_sigma,
             ),
             rng_seed=c.seed,
             scene=self.scene,
@@ -151,6 +161,7 @@ class NextBestViewServer:
             while len(self._frames) > self.config.frame_cache:
                 self._frames.popitem(last=False)
             self._fused_stamps.add(int(stamp_ns))
+            self.context.camera_positions.append(np.asarray(T, float)[:3, 3].copy())
             self.last_fused_stamp = max(self.last_fused_stamp, int(stamp_ns))
             self.context.invalidate()
             pending = self._pending_semantic.pop(int(stamp_ns), None)
@@ -256,7 +267,12 @@ class NextBestViewServer:
                         [],
                         f"num_views: got {want}, expected at most the {candidates} candidate views",
                     )
-                poses = self.policy.select_views(self.context, want)
+                if self.policy.sequential:
+                    if self._sequence is None:  # planned once, handed out in order
+                        self._sequence = self.policy.select_views(self.context, remaining)
+                    poses, self._sequence = self._sequence[:want], self._sequence[want:]
+                else:
+                    poses = self.policy.select_views(self.context, want)
             except InputError as exc:
                 return [], str(exc)
             if not poses:

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from area3d_perception.grid import GridSpec
-from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy
+from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy, range_gain
 from area3d_planner.visibility import VisibilityCache, VisibilityParams
 
 SMALL = VisibilityParams(yaw_bins=6, pitch_bins=2, pitch_min_deg=-30, pitch_max_deg=15, mc_rays=48)
@@ -50,8 +50,10 @@ def test_lazy_greedy_returns_exactly_the_plain_greedy_views(instance):
     )
     start = rng.random(3) * 0.6
     budget = int(rng.integers(1, 15))
-    plain = plain_greedy(cache, U, budget, params, start)
-    lazy = lazy_greedy(cache, U, budget, params, start)
+    # a range prior (constant per seed) on half of the instances
+    gain = range_gain(cache.seeds, rng.random(3), 0.4, 0.5) if instance % 2 else None
+    plain = plain_greedy(cache, U, budget, params, start, gain)
+    lazy = lazy_greedy(cache, U, budget, params, start, gain)
     assert lazy.views == plain.views
     assert lazy.utilities == plain.utilities
     np.testing.assert_array_equal(lazy.field, plain.field)
@@ -83,3 +85,12 @@ def test_negative_or_nan_fields_are_rejected():
         lazy_greedy(cache, bad, 2)
     with pytest.raises(ValueError, match="eta"):
         plain_greedy(cache, U, 2, GreedyParams(eta=1.5))
+
+
+def test_range_gain_peaks_at_the_working_distance_and_is_off_without_one():
+    seeds = np.array([[0.4, 0, 0], [0.2, 0, 0], [1.0, 0, 0], [0, 0.4, 0]])
+    gain = range_gain(seeds, np.zeros(3), 0.4, 0.5)
+    assert gain[0] == pytest.approx(1.0) and gain[3] == pytest.approx(1.0)
+    assert gain[1] < 1 and gain[2] < gain[1]  # 3 sigma too far is worse than 1 sigma too near
+    assert range_gain(seeds, np.zeros(3), None, 0.5) is None
+    assert range_gain(seeds, np.zeros(3), 0.4, 0.0) is None

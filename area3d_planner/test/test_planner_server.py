@@ -120,3 +120,34 @@ def test_every_policy_returns_the_requested_number_of_valid_poses(policy):
     for T in poses:
         assert np.all(T[:3, 3] >= 0) and np.all(T[:3, 3] <= 1)
         np.testing.assert_allclose(np.linalg.det(T[:3, :3]), 1.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("policy", ["uniform", "random"])
+def test_field_independent_policies_continue_their_sequence_in_closed_loop(policy):
+    batch = NextBestViewServer(config(budget=5, policy=policy, mode="batch"))
+    batch.add_frame(1, *frame())
+    planned, _ = batch.plan(PlanRequest(None, 1, 0))
+    loop = NextBestViewServer(config(budget=5, policy=policy, mode="closed_loop"))
+    loop.add_frame(1, *frame())
+    handed_out = []
+    for stamp in range(2, 6):
+        poses, reason = loop.plan(PlanRequest(None, stamp - 1, 1))
+        assert reason == "" and len(poses) == 1
+        handed_out.append(poses[0])
+        loop.add_frame(stamp, *frame())
+    assert len(planned) == 4
+    for a, b in zip(planned, handed_out, strict=True):
+        np.testing.assert_allclose(a, b)  # the same sequence, one view per request
+    positions = np.array([T[:3, 3] for T in handed_out])
+    assert len({tuple(np.round(p, 6)) for p in positions}) == 4, "a view was handed out twice"
+
+
+def test_uniform_views_keep_the_working_distance_of_the_captured_frames():
+    roomy = dict(workspace_min=(-1.0, -1.0, 0.0), workspace_max=(2.0, 2.0, 2.0))
+    srv = NextBestViewServer(config(budget=8, policy="uniform", **roomy))
+    srv.add_frame(1, *frame())
+    poses, _ = srv.plan(PlanRequest(None, 1, 0))
+    centre = np.array([0.65, 0.5, 0.5])  # ROI centre
+    working = np.linalg.norm(frame()[3][:3, 3] - centre)
+    distances = [np.linalg.norm(T[:3, 3] - centre) for T in poses]
+    assert np.median(distances) == pytest.approx(working, rel=0.25)
