@@ -85,7 +85,7 @@ def run_episode_bench(
         seconds = episode_seconds.get((row["scene"], row["policy"]), [])
         cells.append(f"{np.mean(seconds):.1f} (max {np.max(seconds):.1f})" if seconds else "–")
         table.add_row(*cells)
-    console.print(table)
+    console.print(table, width=max(console.width, 160))
     console.print(f"speed target: object-level episode < {SPEED_TARGET_S:.0f} s end to end")
     for failure in failures:
         console.print(f"[red]failed[/] {failure}")
