@@ -55,6 +55,9 @@ RECORDED_TOPICS = {
     "/area3d/planner/next_views": "nav_msgs/msg/Path",
     "/area3d/planner/status": "std_msgs/msg/String",
 }
+# Readers each camera topic has once the graph is up (the runner's own included): DDS volatile
+# topics drop what is published before a reader has matched, so goals and replayed frames wait.
+EXPECTED_READERS = {"goal": 1, "color": 3, "depth": 3, "info": 3, "pose": 3}
 GRID_TOPIC = "/area3d/planner/uncertainty_grid"
 NBV_SERVICE = "/area3d/planner/next_best_view"
 GOAL_TOPIC = "/area3d/camera/goal_pose"
@@ -202,6 +205,19 @@ class MissionManager:
             self._lock.notify_all()
 
     # -- episode steps (main thread) --------------------------------------------------------
+    def wait_for_readers(self, timeout_s: float) -> list[str]:
+        """Wait until the camera topics have their graph readers; the topics still short of them."""
+        pubs = {"goal": self.goal_pub, **self.replay_pubs}
+        deadline = time.monotonic() + timeout_s
+        while True:
+            short = [
+                k for k, pub in pubs.items() if pub.get_subscription_count() < EXPECTED_READERS[k]
+            ]
+            if not short or time.monotonic() > deadline:
+                return short
+            self.alive_check()
+            time.sleep(0.05)
+
     def capture(self, T_world_cam: np.ndarray, timeout_s: float) -> Frame | str:
         """Send the camera to `T_world_cam`; the frame, or the camera's reason for refusing."""
         stamp = self.node.now_ns()
@@ -423,6 +439,11 @@ def run_episode(
                 raise EpisodeError(
                     f"the planner service {NBV_SERVICE} did not appear within {config.startup_timeout_s:.0f} s"
                 )
+        short = manager.wait_for_readers(config.startup_timeout_s)
+        if short:
+            log_sink(
+                f"[mission_manager] topics {short} have fewer readers than the graph should give them"
+            )
         add_time("launch", time.monotonic() - t0)
         if progress is not None:
             task = progress.add_task(f"{scene.name} / {config.policy}", total=budget)
