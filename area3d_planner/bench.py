@@ -18,6 +18,7 @@ from area3d_planner.visibility import VisibilityCache, VisibilityParams, candida
 TARGET_CACHE_S = 5.0
 TARGET_SELECT_S = 1.0
 TARGET_SPEEDUP = 10.0
+TARGET_ROUND_TRIP_P95_S = 0.05  # one closed-loop view, cache warm
 
 
 def synthetic_room(
@@ -107,10 +108,211 @@ def bench_grid(
     }
 
 
+def object_frames(scene_name: str = "single_object") -> tuple[object, list]:
+    """The scene and its initial views rendered at 640x480: [(depth, confidence, K, T)], with
+    the RGB-D sensor model's confidence."""
+    from area3d_perception.sensor_model import rgbd_confidence
+    from sim_bridge.render import RgbdRenderer
+    from sim_bridge.scenes import load_scene
+
+    scene = load_scene(scene_name)
+    renderer = RgbdRenderer(scene)
+    try:
+        frames = []
+        for T in scene.initial_views:
+            _, depth = renderer.render(T)
+            frames.append((depth, rgbd_confidence(depth, renderer.K), renderer.K, T))
+    finally:
+        renderer.close()
+    return scene, frames
+
+
+def _planner_overrides(scene) -> dict:
+    from area3d_planner.node import LEVEL_DEFAULTS
+
+    values = dict(LEVEL_DEFAULTS[scene.level], gamma=float(scene.gamma))
+    for key in ("workspace_min", "workspace_max", "roi_min", "roi_max"):
+        values[key] = tuple(float(v) for v in getattr(scene, key))
+    return values
+
+
+def bench_server(requests: int = 50) -> dict:
+    """In-process `NextBestViewServer.plan` for one closed-loop view with a warm cache (object
+    level, the scene's initial views fused), and the background refresh after one more frame."""
+    from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+
+    scene, frames = object_frames()
+    config = PlannerConfig(**{**_planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
+    server = NextBestViewServer(config, scene=scene, background=True)
+    try:
+        t0 = time.perf_counter()
+        for i, (depth, conf, K, T) in enumerate(frames):
+            server.add_frame(i + 1, depth, conf, K, T)
+        t_fuse = time.perf_counter() - t0
+        server.wait_cache(len(frames))
+        t_ready = time.perf_counter() - t0
+        latencies = []
+        for _ in range(requests):
+            t0 = time.perf_counter()
+            poses, reason = server.plan(PlanRequest(frames[-1][3], len(frames), 1))
+            latencies.append(time.perf_counter() - t0)
+            if reason:
+                raise RuntimeError(reason)
+        depth, conf, K, T = frames[0]
+        server.add_frame(len(frames) + 1, depth, conf, K, T)
+        t0 = time.perf_counter()
+        server.wait_cache(len(frames) + 1)
+        t_refresh = time.perf_counter() - t0
+        cache = server.context.cache()
+    finally:
+        server.close()
+    lat = np.asarray(latencies)
+    return {
+        "voxels": server.grid.spec.num_voxels,
+        "seeds": cache.num_seeds,
+        "mask_entries": int(cache.voxel_ids.size),
+        "fuse_initial_s": t_fuse,
+        "cache_ready_after_s": t_ready,
+        "refresh_after_frame_s": t_refresh,
+        "plan_p50_s": float(np.percentile(lat, 50)),
+        "plan_p95_s": float(np.percentile(lat, 95)),
+    }
+
+
+def bench_transport(requests: int = 50, domain_id: int | None = None) -> dict:
+    """Closed-loop service round trip over loopback DDS: a planner node process (single_object),
+    the scene's initial views published to it, then `requests` one-view requests once
+    /area3d/planner/status says the cache is ready."""
+    import json
+    import os
+    import tempfile
+    import threading
+    from pathlib import Path
+
+    from area3d_bringup.launch_description import NodeSpec
+    from area3d_bringup.launcher import Launcher
+    from area3d_msgs_py import codecs, dds_config, msgs
+    from area3d_msgs_py.node import Node
+
+    scene, frames = object_frames()
+    dds_config.use_loopback(domain_id if domain_id is not None else 100 + os.getpid() % 100)
+    params = {"scene": scene.name, "mode": "closed_loop", "budget": 10**6}
+    lines: list[str] = []
+    with tempfile.TemporaryDirectory() as workdir:
+        launcher = Launcher(
+            [NodeSpec("planner", "area3d_planner.node", params)],
+            Path(workdir),
+            log_sink=lines.append,
+        )
+        node = Node("planner_bench")
+        statuses: list[dict] = []
+        node.create_subscription(
+            "std_msgs/msg/String",
+            "/area3d/planner/status",
+            lambda m: statuses.append(json.loads(m.data)),
+            depth=50,
+        )
+        pubs = {
+            key: node.create_publisher(kind, topic, depth=50)
+            for key, kind, topic in (
+                ("depth", "sensor_msgs/msg/Image", "/area3d/perception/depth"),
+                ("conf", "sensor_msgs/msg/Image", "/area3d/perception/confidence"),
+                ("pose", "geometry_msgs/msg/PoseStamped", "/area3d/camera/pose"),
+                ("info", "sensor_msgs/msg/CameraInfo", "/area3d/camera/camera_info"),
+            )
+        }
+        client = node.create_client("nav_msgs/srv/GetPlan", "/area3d/planner/next_best_view")
+        stop = threading.Event()
+        spinner = threading.Thread(
+            target=lambda: [node.spin_once(0.05) for _ in iter(stop.is_set, True)], daemon=True
+        )
+
+        def wait(predicate, timeout_s: float) -> bool:
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                launcher.check()
+                if predicate():
+                    return True
+                time.sleep(0.01)
+            return False
+
+        launcher.start()
+        spinner.start()
+        try:
+            if not wait(lambda: client.wait_for_service(0.1), 120):
+                raise RuntimeError("planner service did not come up:\n" + "\n".join(lines[-20:]))
+            time.sleep(1.0)  # discovery of the topics
+            t0 = time.perf_counter()
+            for i, (depth, conf, K, T) in enumerate(frames):
+                stamp = (i + 1) * 1_000_000
+                h, w = depth.shape
+                pubs["info"].publish(
+                    codecs.intrinsics_to_camera_info(K, w, h, stamp, "camera_optical_frame")
+                )
+                pubs["pose"].publish(
+                    msgs.PoseStamped(
+                        header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T)
+                    )
+                )
+                pubs["depth"].publish(
+                    codecs.image_to_msg(depth, "32FC1", stamp, "camera_optical_frame")
+                )
+                pubs["conf"].publish(
+                    codecs.image_to_msg(conf, "32FC1", stamp, "camera_optical_frame")
+                )
+            n = len(frames)
+            ready = wait(
+                lambda: any(s.get("frames_fused") == n and s.get("cache_ready") for s in statuses),
+                180,
+            )
+            t_ready = time.perf_counter() - t0
+            if not ready:
+                raise RuntimeError("planner never reported cache_ready:\n" + "\n".join(lines[-20:]))
+            last = n * 1_000_000
+            latencies = []
+            for _ in range(requests):
+                req = msgs.GetPlan_Request(
+                    start=msgs.PoseStamped(
+                        header=codecs.header(last, "world"),
+                        pose=codecs.matrix_to_pose(frames[-1][3]),
+                    ),
+                    goal=msgs.PoseStamped(
+                        header=codecs.header(last, "world"), pose=codecs.matrix_to_pose(np.eye(4))
+                    ),
+                    tolerance=0.0,
+                )
+                req.goal.pose.position.x = 1.0
+                t = time.perf_counter()
+                plan = client.call(req, 30.0).plan
+                latencies.append(time.perf_counter() - t)
+                if len(plan.poses) != 1:
+                    raise RuntimeError("empty plan:\n" + "\n".join(lines[-20:]))
+        finally:
+            stop.set()
+            spinner.join(2)
+            launcher.stop()
+            node.shutdown()
+    lat = np.asarray(latencies)
+    return {
+        "frames": len(frames),
+        "fused_and_cache_ready_s": t_ready,
+        "round_trip_p50_s": float(np.percentile(lat, 50)),
+        "round_trip_p95_s": float(np.percentile(lat, 95)),
+    }
+
+
 def run_bench(
-    views: int = 40, mc_rays: int = 256, synthetic_only: bool = False, print_table: bool = True
+    views: int = 40,
+    mc_rays: int = 256,
+    synthetic_only: bool = False,
+    print_table: bool = True,
+    service: bool = True,
+    transport: bool = True,
+    requests: int = 50,
 ) -> dict:
-    """Figures per grid (see bench_grid); prints a rich table with targets and ratios."""
+    """Figures per grid (see bench_grid), the in-process plan latency (bench_server) and the
+    service round trip over loopback DDS (bench_transport); prints a rich table with targets
+    and ratios. Parts that cannot run here (no renderer, no DDS) report their error."""
     params = VisibilityParams(mc_rays=mc_rays)
     # warm the numba kernels so compile time is not measured
     warm, lo, hi = synthetic_room(30, 0.2)
@@ -124,6 +326,16 @@ def run_bench(
             results["scene"] = {"error": f"{type(exc).__name__}: {exc}"}
     grid, lo, hi = synthetic_room(100, 0.05)
     results["synthetic_1e6"] = bench_grid(grid, lo, hi, 0.5, views, params)
+    if service and not synthetic_only:
+        try:
+            results["service:single_object"] = bench_server(requests)
+        except Exception as exc:  # no renderer
+            results["service:single_object"] = {"error": f"{type(exc).__name__}: {exc}"}
+    if transport and not synthetic_only:
+        try:
+            results["transport:single_object"] = bench_transport(requests)
+        except Exception as exc:  # no DDS, or the node did not come up
+            results["transport:single_object"] = {"error": f"{type(exc).__name__}: {exc}"}
     if print_table:
         _print(results, views)
     return results
@@ -139,6 +351,23 @@ def _print(results: dict, views: int) -> None:
     for name, r in results.items():
         if "error" in r:
             table.add_row(name, "skipped", r["error"], "", "")
+            continue
+        if name.startswith("service"):
+            table.add_row(name, "voxels / seeds", f"{r['voxels']} / {r['seeds']}", "", "")
+            table.add_row(name, "initial views fused", f"{r['fuse_initial_s']:.2f} s", "", "")
+            table.add_row(name, "cache ready after", f"{r['cache_ready_after_s']:.2f} s", "", "")
+            table.add_row(
+                name, "background refresh, 1 frame", f"{r['refresh_after_frame_s']:.2f} s", "", ""
+            )
+            table.add_row(name, "plan 1 view p50", f"{r['plan_p50_s'] * 1e3:.1f} ms", "", "")
+            _latency_row(table, name, "plan 1 view p95", r["plan_p95_s"])
+            continue
+        if name.startswith("transport"):
+            table.add_row(
+                name, "fused + cache ready", f"{r['fused_and_cache_ready_s']:.2f} s", "", ""
+            )
+            table.add_row(name, "round trip p50", f"{r['round_trip_p50_s'] * 1e3:.1f} ms", "", "")
+            _latency_row(table, name, "round trip p95", r["round_trip_p95_s"])
             continue
         table.add_row(
             name, "voxels / seeds / views", f"{r['voxels']} / {r['seeds']} / {r['views']}", "", ""
@@ -175,6 +404,16 @@ def _print(results: dict, views: int) -> None:
         )
         table.add_row(name, "identical choices", str(r["identical"]), "True", "")
     Console().print(table)
+
+
+def _latency_row(table, name: str, figure: str, seconds: float) -> None:
+    table.add_row(
+        name,
+        figure,
+        f"{seconds * 1e3:.1f} ms",
+        f"< {TARGET_ROUND_TRIP_P95_S * 1e3:.0f} ms",
+        f"{seconds / TARGET_ROUND_TRIP_P95_S:.2f}",
+    )
 
 
 if __name__ == "__main__":

@@ -96,7 +96,8 @@ def _check(cache: VisibilityCache, U: np.ndarray, budget: int, params: GreedyPar
     U = np.array(U, dtype=np.float64)
     if U.shape != (cache.spec.num_voxels,):
         raise InputError("field", U.shape, f"({cache.spec.num_voxels},) flat voxel field")
-    if not np.all(np.isfinite(U)) or np.any(U < 0):
+    # min is NaN if any value is; a sum of values >= 0 is finite iff every value is
+    if U.size and not (U.min() >= 0 and np.isfinite(U.sum())):
         raise InputError("field", "non-finite or negative values", "finite uncertainties >= 0")
     if int(budget) < 0:
         raise InputError("budget", budget, "an integer >= 0")
@@ -166,16 +167,21 @@ def lazy_greedy(
         return out
     initial = cache.score(U).reshape(cache.num_seeds, nb) * gain[:, None] + prior[:, None]
     out.evaluations += cache.num_views
-    heap = [(-float(initial[s].max()), s) for s in range(cache.num_seeds)]
+    heap = list(zip((-initial.max(axis=1)).tolist(), range(cache.num_seeds), strict=True))
     heapq.heapify(heap)
+    # A seed re-scored since the last commit has an exact key: popped again, it wins as it is.
+    fresh_scores: dict[int, np.ndarray] = {}
     while heap and len(out.views) < int(budget):
         _, s = heapq.heappop(heap)
         alive = ~excluded[s]
         if not alive.any():
             continue
-        scores = cache.score_seed(U, s) * gain[s] + prior[s]
-        out.evaluations += int(alive.sum())
-        scores[~alive] = -np.inf
+        scores = fresh_scores.get(s)
+        if scores is None:
+            scores = cache.score_seed(U, s) * gain[s] + prior[s]
+            out.evaluations += int(alive.sum())
+            scores[~alive] = -np.inf
+            fresh_scores[s] = scores
         b = int(np.argmax(scores))
         fresh = float(scores[b])
         if heap and (-fresh, s) > heap[0]:
@@ -186,5 +192,6 @@ def lazy_greedy(
         out.utilities.append(fresh)
         decay_view(cache.indptr, cache.voxel_ids, U, v, 1.0 - params.eta)
         _nms_suppress(cache, excluded, v, params)
+        fresh_scores.clear()
         heapq.heappush(heap, (-fresh, s))
     return out

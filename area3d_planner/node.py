@@ -59,7 +59,12 @@ class PlannerNode:
             )
             values[f.name] = tuple(value) if isinstance(default, tuple) else value
         self.sync_timeout_s = float(node.declare_parameter("sync_timeout_s", 5.0))
-        self.server = NextBestViewServer(PlannerConfig(**values), scene=scene)
+        # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
+        # request only waits for a rebuild in flight and then plans from the cached masks.
+        eager = bool(node.declare_parameter("eager_cache", True))
+        self.server = NextBestViewServer(
+            PlannerConfig(**values), scene=scene, background=eager, on_refresh=self._on_refresh
+        )
         # Perception's output for a frame can trail the camera's pose by seconds (first frames,
         # a feed-forward model on CPU), so parts wait this long for their partners.
         max_age_s = float(node.declare_parameter("sync_max_age_s", 60.0))
@@ -108,6 +113,9 @@ class PlannerNode:
         log.info(
             f"planner ready: policy={values['policy']} mode={values['mode']} voxels={self.server.grid.spec.num_voxels}"
         )
+
+    def _on_refresh(self) -> None:
+        self.status_pub.publish(msgs.String(data=json.dumps(self.server.status())))
 
     def _on_camera_info(self, msg) -> None:
         K, _, _ = codecs.camera_info_to_intrinsics(msg)

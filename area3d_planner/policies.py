@@ -41,14 +41,66 @@ class PlanningContext:
     rng_seed: int = 0
     scene: object | None = None  # sim_bridge Scene: adds its validity check to the seeds
     allow_unknown_seeds: bool | None = None  # default: True with a scene, False without
+    aim_views: bool = True  # turn each committed view to the centroid of the utility it sees
     camera_positions: list = field(default_factory=list)  # (3,) centres of the fused frames
     _seeds: np.ndarray | None = None
     _caches: dict = field(default_factory=dict)
+    _fields: dict = field(default_factory=dict)
 
     def invalidate(self) -> None:
-        """Forget seeds and visibility masks (the occupancy changed)."""
+        """Forget seeds, visibility masks and fields (the occupancy changed)."""
         self._seeds = None
         self._caches.clear()
+        self._fields.clear()
+
+    def invalidate_fields(self) -> None:
+        """Forget the memoised utility fields only (new evidence, masks still current)."""
+        self._fields.clear()
+
+    def policy_field(self, policy: GreedyFieldPolicy) -> np.ndarray:
+        """(N,) utility field of `policy`, memoised until the next invalidation (read only)."""
+        if policy.name not in self._fields:
+            self._fields[policy.name] = policy.field(self)
+        return self._fields[policy.name]
+
+    def build(self, occupancy: np.ndarray, kinds: tuple = ()) -> tuple[np.ndarray, dict]:
+        """Seeds and the visibility caches named in `kinds` (see `cache`) for an occupancy
+        snapshot (N,) int8, without touching the context: (seeds (S, 3), {kind: cache})."""
+        allow = self.allow_unknown_seeds
+        if allow is None:
+            allow = self.scene is not None
+        seeds = candidate_seeds(
+            self.workspace_lo,
+            self.workspace_hi,
+            self.seed_spacing,
+            self.grid.spec,
+            occupancy,
+            self.clearance,
+            allow_unknown=allow,
+            scene=self.scene,
+        )
+        caches = {
+            kind: VisibilityCache.build(
+                self.grid.spec,
+                occupancy,
+                seeds,
+                self.visibility,
+                relevant=self._relevant(kind, occupancy),
+            )
+            for kind in kinds
+        }
+        return seeds, caches
+
+    def install(self, seeds: np.ndarray, caches: dict) -> None:
+        """Use seeds and caches made by `build` (replaces the current ones and the fields)."""
+        self._seeds = seeds
+        self._caches = dict(caches)
+        self._fields.clear()
+
+    def _relevant(self, kind: str, occupancy: np.ndarray) -> np.ndarray:
+        if kind == "roi_not_free":
+            return self.grid.roi_mask & (occupancy != FREE)
+        return self.grid.roi_mask
 
     def working_distance(self) -> float | None:
         """Median distance of the captured frames' cameras to the ROI centre (None before any)."""
@@ -71,19 +123,7 @@ class PlanningContext:
 
     def seeds(self) -> np.ndarray:
         if self._seeds is None:
-            allow = self.allow_unknown_seeds
-            if allow is None:
-                allow = self.scene is not None
-            self._seeds = candidate_seeds(
-                self.workspace_lo,
-                self.workspace_hi,
-                self.seed_spacing,
-                self.grid.spec,
-                self.grid.occupancy(),
-                self.clearance,
-                allow_unknown=allow,
-                scene=self.scene,
-            )
+            self._seeds, _ = self.build(self.grid.occupancy())
         return self._seeds
 
     def cache(self, relevant: str = "roi_not_free") -> VisibilityCache:
@@ -91,13 +131,12 @@ class PlanningContext:
         every ROI voxel ("roi", for fields that are non-zero on free space)."""
         if relevant not in self._caches:
             occ = self.grid.occupancy()
-            mask = (
-                self.grid.roi_mask & (occ != FREE)
-                if relevant == "roi_not_free"
-                else self.grid.roi_mask
-            )
             self._caches[relevant] = VisibilityCache.build(
-                self.grid.spec, occ, self.seeds(), self.visibility, relevant=mask
+                self.grid.spec,
+                occ,
+                self.seeds(),
+                self.visibility,
+                relevant=self._relevant(relevant, occ),
             )
         return self._caches[relevant]
 
@@ -112,6 +151,7 @@ class Policy:
 
     name = ""
     sequential = False
+    relevant: str | None = None  # the visibility cache it plans with (None: seeds only)
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
         raise NotImplementedError
@@ -126,7 +166,7 @@ class GreedyFieldPolicy(Policy):
         raise NotImplementedError
 
     def selection(self, context: PlanningContext, budget: int) -> Selection:
-        U = self.field(context)
+        U = context.policy_field(self)
         if not np.all(np.isfinite(U)):
             raise InputError("uncertainty field", "NaN or inf voxels", "finite uncertainties")
         cache = context.cache(self.relevant)
@@ -135,7 +175,33 @@ class GreedyFieldPolicy(Policy):
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
         cache = context.cache(self.relevant)
-        return [cache.view_pose(v) for v in self.selection(context, budget).views]
+        U = context.policy_field(self) if context.aim_views else None
+        views = self.selection(context, budget).views
+        if U is None:
+            return [cache.view_pose(v) for v in views]
+        return [aim_at_uncertainty(cache, v, U) for v in views]
+
+
+def aim_at_uncertainty(cache: VisibilityCache, view: int, U: np.ndarray) -> np.ndarray:
+    """The committed view turned to look at the utility-weighted centroid of what it sees.
+
+    Orientation bins are coarse (30 degree yaw steps); once the seed and bin are chosen, the
+    camera keeps its position and centres the uncertainty its mask covers (the paper's "fan of
+    orientations" at the chosen seed, resolved in closed form). A view that sees no utility keeps
+    its bin orientation.
+    """
+    ids, weights = cache.mask(view)
+    mass = weights * U[ids]
+    T = cache.view_pose(view)
+    total = float(mass.sum())
+    if ids.size == 0 or not total > 0:
+        return T
+    ijk = np.stack(np.unravel_index(ids, cache.spec.shape), axis=1)
+    centres = cache.spec.lower + (ijk + 0.5) * cache.spec.voxel_size
+    target = (mass[:, None] * centres).sum(axis=0) / total
+    if np.linalg.norm(target - T[:3, 3]) < 1e-6:
+        return T
+    return look_at(T[:3, 3], target)
 
 
 class Area3DPolicy(GreedyFieldPolicy):
@@ -234,7 +300,7 @@ class VLMNaivePolicy(GreedyFieldPolicy):
         return s
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
-        if not np.any(self.field(context) > 0):
+        if not np.any(context.policy_field(self) > 0):
             return UniformPolicy().select_views(context, budget)
         return super().select_views(context, budget)
 

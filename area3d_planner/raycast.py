@@ -127,6 +127,10 @@ def carve_free(origin, dirs, t_end, t_free, lower, voxel_size, shape, seen):
                     seen[ids[k]] = 1
 
 
+VOXEL_OCCUPIED = np.uint8(1)  # bit flags of the `voxel_flags` array of `visibility_masks`
+VOXEL_RELEVANT = np.uint8(2)
+
+
 @njit(cache=True, nogil=True)
 def visibility_masks(
     seeds,
@@ -136,24 +140,26 @@ def visibility_masks(
     lower,
     voxel_size,
     shape,
-    occupancy,
-    relevant,
+    voxel_flags,
     box_lo,
     box_hi,
     cos_half_diag,
     ray_weight,
     scale_by_range,
+    counts,
+    touched,
 ):
     """Monte Carlo visibility of every (seed, orientation) view, as CSR rows.
 
     seeds: (S, 3) camera centres; rotations: (B, 3, 3) R_world_cam per orientation bin;
     dirs_cam: (R, 3) unit ray directions in the optical frame; t_far: (R,) ray length to the far
-    plane; occupancy: flat int8 (-1 unknown, 0 free, 1 occupied); relevant: flat bool, voxels
-    that are recorded (the others are traversed but left out of the masks); box_lo, box_hi: (3,)
+    plane; voxel_flags: flat uint8, VOXEL_OCCUPIED | VOXEL_RELEVANT bits: relevant voxels are
+    recorded (the others are traversed but left out of the masks); box_lo, box_hi: (3,)
     a box holding every relevant voxel: rays that miss it are not cast, rays that cross it stop
     at its exit, and views whose frustum cone (half-angle acos(cos_half_diag)) misses its
     bounding sphere get an empty mask without casting.
     Rays stop after the first occupied voxel; unknown voxels are traversed (optimistic).
+    counts: (N,) float64 zeros, touched: (N,) int32 scratch (returned zeroed, reusable).
     Returns (nnz (S*B,) int64, ids (sum nnz,) int32, weights (sum nnz,) float32).
     A voxel's weight is sum over the rays reaching it of ray_weight[r], times r^2 when
     scale_by_range (r = range of the voxel centre). With ray_weight = the solid angle each ray
@@ -161,13 +167,13 @@ def visibility_masks(
     much of the voxel the view sees (a voxel face at range r subtends voxel_size^2 cos / r^2), so a
     view's utility estimates the uncertainty-weighted number of voxels it sees, near or far. With
     ray_weight = 1/R and no scaling, it is the fraction of the view's rays that reach the voxel.
+    The traversal is `traverse` (first hit) unrolled on scalars: the same voxels, in the same order.
     """
-    n_vox = occupancy.shape[0]
-    counts = np.zeros(n_vox, np.float64)
-    touched = np.empty(n_vox, np.int32)
-    max_steps = int(shape[0] + shape[1] + shape[2]) + 3
-    ids = np.empty(max_steps, np.int64)
-    texit = np.empty(max_steps)
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    stride_x = ny * nz
+    upper = np.empty(3)
+    for a in range(3):
+        upper[a] = lower[a] + shape[a] * voxel_size
     n_seeds = seeds.shape[0]
     n_bins = rotations.shape[0]
     n_rays = dirs_cam.shape[0]
@@ -182,6 +188,7 @@ def visibility_masks(
     half_diag = np.arccos(cos_half_diag)
     for s in range(n_seeds):
         o = seeds[s]
+        ox, oy, oz = o[0], o[1], o[2]
         to_c = centre - o
         dist_c = np.sqrt(np.sum(to_c**2))
         for b in range(n_bins):
@@ -203,14 +210,95 @@ def visibility_masks(
                 b0, b1 = _box_interval(o, d, box_lo, box_hi, t_far[r])
                 if b0 >= b1:
                     continue
-                n = traverse(o, d, b1, lower, voxel_size, shape, occupancy, True, ids, texit)
-                for k in range(n):
-                    v = ids[k]
-                    if relevant[v]:
-                        if counts[v] == 0.0:
-                            touched[n_touched] = v
+                t0, t1 = _box_interval(o, d, lower, upper, b1)
+                if t0 >= t1:
+                    continue
+                w = ray_weight[r]
+                ts = t0 + _EPS
+                dx, dy, dz = d[0], d[1], d[2]
+                ix = min(max(int(np.floor((ox + dx * ts - lower[0]) / voxel_size)), 0), nx - 1)
+                iy = min(max(int(np.floor((oy + dy * ts - lower[1]) / voxel_size)), 0), ny - 1)
+                iz = min(max(int(np.floor((oz + dz * ts - lower[2]) / voxel_size)), 0), nz - 1)
+                if dx > 1e-12:
+                    sx = 1
+                    tnx = (lower[0] + (ix + 1) * voxel_size - ox) / dx
+                    tdx = voxel_size / dx
+                elif dx < -1e-12:
+                    sx = -1
+                    tnx = (lower[0] + ix * voxel_size - ox) / dx
+                    tdx = -voxel_size / dx
+                else:
+                    sx = 0
+                    tnx = np.inf
+                    tdx = np.inf
+                if dy > 1e-12:
+                    sy = 1
+                    tny = (lower[1] + (iy + 1) * voxel_size - oy) / dy
+                    tdy = voxel_size / dy
+                elif dy < -1e-12:
+                    sy = -1
+                    tny = (lower[1] + iy * voxel_size - oy) / dy
+                    tdy = -voxel_size / dy
+                else:
+                    sy = 0
+                    tny = np.inf
+                    tdy = np.inf
+                if dz > 1e-12:
+                    sz = 1
+                    tnz = (lower[2] + (iz + 1) * voxel_size - oz) / dz
+                    tdz = voxel_size / dz
+                elif dz < -1e-12:
+                    sz = -1
+                    tnz = (lower[2] + iz * voxel_size - oz) / dz
+                    tdz = -voxel_size / dz
+                else:
+                    sz = 0
+                    tnz = np.inf
+                    tdz = np.inf
+                flat = (ix * ny + iy) * nz + iz
+                while True:
+                    f = voxel_flags[flat]
+                    if f & VOXEL_RELEVANT:
+                        if counts[flat] == 0.0:
+                            touched[n_touched] = flat
                             n_touched += 1
-                        counts[v] += ray_weight[r]
+                        counts[flat] += w
+                    if f & VOXEL_OCCUPIED:
+                        break
+                    # next axis: the smallest t_next, ties to the lower axis (as `traverse`)
+                    if tny < tnx:
+                        if tnz < tny:
+                            if tnz >= t1:
+                                break
+                            iz += sz
+                            if iz < 0 or iz >= nz:
+                                break
+                            tnz += tdz
+                            flat += sz
+                        else:
+                            if tny >= t1:
+                                break
+                            iy += sy
+                            if iy < 0 or iy >= ny:
+                                break
+                            tny += tdy
+                            flat += sy * nz
+                    elif tnz < tnx:
+                        if tnz >= t1:
+                            break
+                        iz += sz
+                        if iz < 0 or iz >= nz:
+                            break
+                        tnz += tdz
+                        flat += sz
+                    else:
+                        if tnx >= t1:
+                            break
+                        ix += sx
+                        if ix < 0 or ix >= nx:
+                            break
+                        tnx += tdx
+                        flat += sx * stride_x
             if total + n_touched > cap:
                 while total + n_touched > cap:
                     cap *= 2
@@ -225,13 +313,13 @@ def visibility_masks(
                 v = sorted_touched[k]
                 out_ids[total + k] = v
                 if scale_by_range:
-                    iz = v % shape[2]
-                    iy = (v // shape[2]) % shape[1]
-                    ix = v // (shape[1] * shape[2])
-                    dx = lower[0] + (ix + 0.5) * voxel_size - o[0]
-                    dy = lower[1] + (iy + 0.5) * voxel_size - o[1]
-                    dz = lower[2] + (iz + 0.5) * voxel_size - o[2]
-                    out_w[total + k] = counts[v] * (dx * dx + dy * dy + dz * dz)
+                    vz = v % nz
+                    vy = (v // nz) % ny
+                    vx = v // stride_x
+                    ex = lower[0] + (vx + 0.5) * voxel_size - ox
+                    ey = lower[1] + (vy + 0.5) * voxel_size - oy
+                    ez = lower[2] + (vz + 0.5) * voxel_size - oz
+                    out_w[total + k] = counts[v] * (ex * ex + ey * ey + ez * ez)
                 else:
                     out_w[total + k] = counts[v]
                 counts[v] = 0.0

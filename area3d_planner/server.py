@@ -21,6 +21,7 @@ from area3d_planner.policies import PlanningContext, make_policy
 from area3d_planner.visibility import VisibilityParams
 
 MODES = ("batch", "closed_loop")
+CACHE_WAIT_S = 120.0  # a request waits at most this long for the background rebuild of the masks
 
 
 @dataclass
@@ -92,8 +93,17 @@ class _Frame:
 
 @dataclass
 class NextBestViewServer:
+    """Planner state. With `background=True` a worker thread rebuilds seeds, visibility masks and
+    the utility field after every change of the map (bursts coalesce into one more rebuild at the
+    end), and a request waits for the rebuild that covers its stamp, then plans from the cached
+    masks only. Without it, they are rebuilt at the first request after the map changed.
+    `on_refresh` (optional) is called from the worker after each rebuild. Call `close()` to stop it.
+    """
+
     config: PlannerConfig
     scene: object | None = None
+    background: bool = False
+    on_refresh: object | None = None  # Callable[[], None]
     grid: FusedGrid = field(init=False)
     committed: int = field(init=False, default=0)
     initial_frames: int | None = field(init=False, default=None)
@@ -145,6 +155,27 @@ class NextBestViewServer:
         self._frames: OrderedDict[int, _Frame] = OrderedDict()
         self._pending_semantic: OrderedDict[int, np.ndarray] = OrderedDict()
         self._fused_stamps: set[int] = set()
+        self._refreshed = threading.Condition(self._lock)
+        self._map_version = 0  # occupancy changes (fused frames)
+        self._stamp_version: dict[int, int] = {}  # map version that holds each stamp
+        self._cache_version = 0  # map version of the installed seeds and masks
+        self._refreshing = False
+        self._closed = False
+        self.refresh_count = 0  # background rebuilds run so far
+        self._worker: threading.Thread | None = None
+        if self.background:
+            self._worker = threading.Thread(
+                target=self._refresh_loop, name="planner-cache-refresh", daemon=True
+            )
+            self._worker.start()
+
+    def close(self) -> None:
+        """Stop the background worker (a rebuild in flight finishes first)."""
+        with self._lock:
+            self._closed = True
+            self._refreshed.notify_all()
+        if self._worker is not None and self._worker is not threading.current_thread():
+            self._worker.join()
 
     # ------------------------------------------------------------------ fusion
     def add_frame(
@@ -163,11 +194,17 @@ class NextBestViewServer:
             self._fused_stamps.add(int(stamp_ns))
             self.context.camera_positions.append(np.asarray(T, float)[:3, 3].copy())
             self.last_fused_stamp = max(self.last_fused_stamp, int(stamp_ns))
-            self.context.invalidate()
+            self._map_version += 1
+            self._stamp_version[int(stamp_ns)] = self._map_version
+            if self.background:
+                self.context.invalidate_fields()  # masks stay until the rebuild replaces them
+            else:
+                self.context.invalidate()
             pending = self._pending_semantic.pop(int(stamp_ns), None)
             if pending is not None:
                 self.grid.integrate_semantic(pending, depth, K, T)
             self._fused.notify_all()
+            self._refreshed.notify_all()
 
     def add_semantic(self, stamp_ns: int, u_sem: np.ndarray) -> bool:
         """Fuse U_sem (H, W) with the depth and pose of the same stamp; held back (bounded) until
@@ -180,6 +217,7 @@ class NextBestViewServer:
                     self._pending_semantic.popitem(last=False)
                 return False
             self.grid.integrate_semantic(u_sem, frame.depth, frame.K, frame.T)
+            self.context.invalidate_fields()
             return True
 
     def wait_fused(self, stamp_ns: int, timeout_s: float) -> bool:
@@ -188,6 +226,63 @@ class NextBestViewServer:
             return self._fused.wait_for(
                 lambda: stamp_ns <= 0 or stamp_ns in self._fused_stamps, timeout_s
             )
+
+    # ------------------------------------------------------------------ cache refresh
+    def cache_ready(self) -> bool:
+        """True when seeds and masks reflect every fused frame (always False before the first)."""
+        with self._lock:
+            if self._map_version == 0:
+                return False
+            if self.background:
+                return self._cache_version == self._map_version
+            return self.context._seeds is not None
+
+    def wait_cache(self, stamp_ns: int = 0, timeout_s: float | None = None) -> bool:
+        """Background mode: block until the masks cover the frame `stamp_ns` (0 or a stamp not
+        fused: every fused frame), or timeout; True if they do. Always True without background."""
+        if not self.background:
+            return True
+        with self._refreshed:
+            target = self._stamp_version.get(int(stamp_ns), self._map_version)
+            return self._refreshed.wait_for(
+                lambda: self._cache_version >= target or self._closed, timeout_s
+            )
+
+    def _refresh_loop(self) -> None:
+        kinds = () if self.policy.relevant is None else (self.policy.relevant,)
+        while True:
+            with self._refreshed:
+                self._refreshed.wait_for(
+                    lambda: self._closed or self._map_version > self._cache_version
+                )
+                if self._closed:
+                    return
+                version = self._map_version
+                occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
+                self._refreshing = True
+            try:
+                built = self.context.build(occupancy, kinds)
+            except Exception:  # noqa: BLE001 - the request path rebuilds and reports it
+                built = None
+            with self._refreshed:
+                if built is None:
+                    self.context.invalidate()
+                else:
+                    self.context.install(*built)
+                    if self.policy.relevant is not None and version == self._map_version:
+                        try:  # the field of the current evidence, ready for the next request
+                            self.context.policy_field(self.policy)
+                        except Exception:  # noqa: BLE001 - reported by the request path
+                            self.context.invalidate_fields()
+                self._cache_version = version
+                self._refreshing = False
+                self.refresh_count += 1
+                self._refreshed.notify_all()
+            if self.on_refresh is not None:
+                try:
+                    self.on_refresh()
+                except Exception:  # noqa: BLE001 - a failing listener must not stop the refresh
+                    pass
 
     # ------------------------------------------------------------------ planning
     def remaining_budget(self) -> int:
@@ -204,6 +299,7 @@ class NextBestViewServer:
             "policy": self.config.policy,
             "committed_views": self.committed,
             "remaining_budget": self.remaining_budget(),
+            "cache_ready": self.cache_ready(),
         }
 
     def plan(self, request: PlanRequest) -> tuple[list[np.ndarray], str]:
@@ -247,8 +343,11 @@ class NextBestViewServer:
                     f"num_views: got {num}, expected at most the remaining budget {remaining}",
                 )
             for name, arr in (("geometric", self.grid.conf_sum), ("semantic", self.grid.sem_sum)):
-                if not np.all(np.isfinite(arr)):
+                # a float64 sum of float32 values cannot overflow: it is finite iff every value is
+                if not np.isfinite(arr.sum(dtype=np.float64)):
                     return [], f"{name} uncertainty: got NaN voxels, expected finite values"
+            if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
+                return [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
             self.context.start = None if request.start is None else np.asarray(request.start, float)
             try:
                 seeds = self.context.seeds()

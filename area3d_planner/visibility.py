@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -11,9 +12,16 @@ from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
-from area3d_planner.raycast import score_all_views, score_views, visibility_masks
+from area3d_planner.raycast import (
+    VOXEL_OCCUPIED,
+    VOXEL_RELEVANT,
+    score_all_views,
+    score_views,
+    visibility_masks,
+)
 
 UP = np.array([0.0, 0.0, 1.0])
+CHUNKS_PER_THREAD = 16  # seed chunks per worker thread when building masks (load balance)
 
 
 @dataclass(frozen=True)
@@ -254,10 +262,20 @@ class VisibilityCache:
         else:
             ray_weight = np.full(dirs.shape[0], 1.0 / dirs.shape[0])
         shape = np.asarray(spec.shape, np.int64)
+        flags = (occupancy == 1).astype(np.uint8) * VOXEL_OCCUPIED
+        flags |= relevant.astype(np.uint8) * VOXEL_RELEVANT
         threads = max(1, min(threads or os.cpu_count() or 1, max(1, seeds.shape[0])))
-        chunks = np.array_split(np.arange(seeds.shape[0]), threads)
+        # Small chunks handed out in order balance the threads (seeds differ a lot in cost);
+        # each thread reuses one scratch pair for all its chunks.
+        n_chunks = min(seeds.shape[0], threads * CHUNKS_PER_THREAD) if threads > 1 else 1
+        chunks = np.array_split(np.arange(seeds.shape[0]), max(1, n_chunks))
+        scratch = threading.local()
+        ray_weight = np.ascontiguousarray(ray_weight, np.float64)
 
         def run(idx: np.ndarray):
+            if not hasattr(scratch, "counts"):
+                scratch.counts = np.zeros(spec.num_voxels, np.float64)
+                scratch.touched = np.empty(spec.num_voxels, np.int32)
             return visibility_masks(
                 np.ascontiguousarray(seeds[idx]),
                 rotations,
@@ -266,13 +284,14 @@ class VisibilityCache:
                 spec.lower,
                 spec.voxel_size,
                 shape,
-                occupancy,
-                relevant,
+                flags,
                 box_lo,
                 box_hi,
                 cos_half_diag,
-                np.ascontiguousarray(ray_weight, np.float64),
+                ray_weight,
                 scale_by_range,
+                scratch.counts,
+                scratch.touched,
             )
 
         if threads == 1:

@@ -151,3 +151,27 @@ def test_uniform_views_keep_the_working_distance_of_the_captured_frames():
     working = np.linalg.norm(frame()[3][:3, 3] - centre)
     distances = [np.linalg.norm(T[:3, 3] - centre) for T in poses]
     assert np.median(distances) == pytest.approx(working, rel=0.25)
+
+
+def test_a_committed_view_is_turned_to_centre_the_uncertainty_it_sees():
+    from area3d_planner.policies import aim_at_uncertainty
+
+    srv = NextBestViewServer(config(budget=6))
+    srv.add_frame(1, *frame())
+    cache = srv.context.cache()
+    view = next(v for v in range(cache.num_views) if cache.mask(v)[0].size > 10)
+    ids, _ = cache.mask(view)
+    U = np.zeros(cache.spec.num_voxels)
+    hot = ids[len(ids) // 3]
+    U[hot] = 1.0  # one uncertain voxel in view: the camera must end up looking straight at it
+    T = aim_at_uncertainty(cache, view, U)
+    centre = (
+        cache.spec.lower
+        + (np.array(np.unravel_index(hot, cache.spec.shape)) + 0.5) * cache.spec.voxel_size
+    )
+    axis = (centre - T[:3, 3]) / np.linalg.norm(centre - T[:3, 3])
+    np.testing.assert_allclose(T[:3, 2], axis, atol=1e-9)
+    np.testing.assert_allclose(T[:3, 3], cache.view_pose(view)[:3, 3])  # position unchanged
+    np.testing.assert_allclose(
+        aim_at_uncertainty(cache, view, np.zeros_like(U)), cache.view_pose(view)
+    )
