@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import backproject, pixel_rays
+from area3d_perception.backproject import backproject
+from area3d_perception.geometric import carve_depth_frame
 from area3d_perception.grid import GridSpec
-from area3d_planner.raycast import carve_free
 
 # Log-odds of one occupied / one free observation (OctoMap defaults p_hit = 0.7, p_miss = 0.4).
 LOG_ODDS_HIT = float(np.log(0.7 / 0.3))
@@ -135,26 +135,12 @@ class FusedGrid:
         hit = pix_count > 0
         frame_conf = np.bincount(vox, weights=c, minlength=n)[hit] / pix_count[hit]
 
-        h, w = depth.shape
-        rays = pixel_rays(K, h, w)[::stride, ::stride].reshape(-1, 3).astype(np.float64)
-        d = depth[::stride, ::stride].reshape(-1).astype(np.float64)
-        norms = np.linalg.norm(rays, axis=1)
-        has_return = np.isfinite(d) & (d > 0)
-        t_end = np.where(has_return, d, max_range) * norms
-        t_free = np.where(has_return, t_end, np.inf)
-        dirs = (rays / norms[:, None]) @ T[:3, :3].T
-        seen = np.zeros(n, np.uint8)
-        carve_free(
-            T[:3, 3].copy(),
-            np.ascontiguousarray(dirs),
-            t_end,
-            t_free,
-            self.spec.lower,
-            self.spec.voxel_size,
-            np.asarray(self.spec.shape, np.int64),
-            seen,
-        )
-        free = (seen == 1) & ~hit
+        # Free space: the perception package's carving (the one DDA for camera rays), counted
+        # once per voxel per frame here; pixels with no return carve out to max_range.
+        crossed = carve_depth_frame(
+            self.spec, depth, K, T, np.zeros(self.spec.shape, np.uint16), stride, max_range
+        ).reshape(-1)
+        free = (crossed > 0) & ~hit
         self.conf_sum[hit] += frame_conf.astype(np.float32)
         self.hit_count[hit] += 1.0
         self.free_count[free] += 1.0

@@ -103,30 +103,6 @@ def traverse(
     return n
 
 
-@njit(cache=True, parallel=True)
-def carve_free(origin, dirs, t_end, t_free, lower, voxel_size, shape, seen):
-    """Mark every voxel a ray crosses before its free limit in `seen` (flat uint8, set to 1).
-
-    origin: (3,) camera centre; dirs: (N, 3) unit directions; t_end: (N,) ray length (hit distance
-    or the far limit); t_free: (N,) voxels whose exit lies at or before t_free are free (the hit
-    distance for a return, +inf for no return so the whole ray is free).
-    """
-    dummy = np.zeros(1, np.int8)
-    max_steps = int(shape[0] + shape[1] + shape[2]) + 3
-    n_rays = dirs.shape[0]
-    n_chunks = 64
-    for c in prange(n_chunks):
-        ids = np.empty(max_steps, np.int64)
-        texit = np.empty(max_steps)
-        for r in range(c, n_rays, n_chunks):
-            n = traverse(
-                origin, dirs[r], t_end[r], lower, voxel_size, shape, dummy, False, ids, texit
-            )
-            for k in range(n):
-                if texit[k] <= t_free[r]:
-                    seen[ids[k]] = 1
-
-
 VOXEL_OCCUPIED = np.uint8(1)  # bit flags of the `voxel_flags` array of `visibility_masks`
 VOXEL_RELEVANT = np.uint8(2)
 
