@@ -103,6 +103,16 @@ def traverse(
     return n
 
 
+@njit(cache=True, inline="always")
+def _axis_step(d, o, lower, i, voxel_size):
+    """DDA set-up along one axis: (step sign, ray t of the next voxel boundary, t per voxel)."""
+    if d > 1e-12:
+        return 1, (lower + (i + 1) * voxel_size - o) / d, voxel_size / d
+    if d < -1e-12:
+        return -1, (lower + i * voxel_size - o) / d, -voxel_size / d
+    return 0, np.inf, np.inf
+
+
 VOXEL_OCCUPIED = np.uint8(1)  # bit flags of the `voxel_flags` array of `visibility_masks`
 VOXEL_RELEVANT = np.uint8(2)
 
@@ -195,42 +205,9 @@ def visibility_masks(
                 ix = min(max(int(np.floor((ox + dx * ts - lower[0]) / voxel_size)), 0), nx - 1)
                 iy = min(max(int(np.floor((oy + dy * ts - lower[1]) / voxel_size)), 0), ny - 1)
                 iz = min(max(int(np.floor((oz + dz * ts - lower[2]) / voxel_size)), 0), nz - 1)
-                if dx > 1e-12:
-                    sx = 1
-                    tnx = (lower[0] + (ix + 1) * voxel_size - ox) / dx
-                    tdx = voxel_size / dx
-                elif dx < -1e-12:
-                    sx = -1
-                    tnx = (lower[0] + ix * voxel_size - ox) / dx
-                    tdx = -voxel_size / dx
-                else:
-                    sx = 0
-                    tnx = np.inf
-                    tdx = np.inf
-                if dy > 1e-12:
-                    sy = 1
-                    tny = (lower[1] + (iy + 1) * voxel_size - oy) / dy
-                    tdy = voxel_size / dy
-                elif dy < -1e-12:
-                    sy = -1
-                    tny = (lower[1] + iy * voxel_size - oy) / dy
-                    tdy = -voxel_size / dy
-                else:
-                    sy = 0
-                    tny = np.inf
-                    tdy = np.inf
-                if dz > 1e-12:
-                    sz = 1
-                    tnz = (lower[2] + (iz + 1) * voxel_size - oz) / dz
-                    tdz = voxel_size / dz
-                elif dz < -1e-12:
-                    sz = -1
-                    tnz = (lower[2] + iz * voxel_size - oz) / dz
-                    tdz = -voxel_size / dz
-                else:
-                    sz = 0
-                    tnz = np.inf
-                    tdz = np.inf
+                sx, tnx, tdx = _axis_step(dx, ox, lower[0], ix, voxel_size)
+                sy, tny, tdy = _axis_step(dy, oy, lower[1], iy, voxel_size)
+                sz, tnz, tdz = _axis_step(dz, oz, lower[2], iz, voxel_size)
                 flat = (ix * ny + iy) * nz + iz
                 while True:
                     f = voxel_flags[flat]
