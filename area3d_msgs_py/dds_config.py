@@ -6,7 +6,9 @@ participant ports on 127.0.0.1 (SPDP unicast ports 7410 + 250 * domain + 10 + 2 
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 
 from area3d_msgs_py.errors import InputError
 
@@ -77,3 +79,18 @@ def domain_id_from_env() -> int:
         return _check_domain(int(text))
     except ValueError:
         raise InputError("ROS_DOMAIN_ID", text, f"an int in 0..{ROS_DOMAIN_ID_MAX}") from None
+
+
+@contextlib.contextmanager
+def loopback_domain(domain_id: int) -> Iterator[int]:
+    """`use_loopback(domain_id)` for the duration of a `with` block, then the previous settings."""
+    saved = {key: os.environ.get(key) for key in ("CYCLONEDDS_URI", "ROS_DOMAIN_ID")}
+    use_loopback(domain_id)
+    try:
+        yield domain_id
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value

@@ -97,7 +97,9 @@ def load_scene(name_or_path: str | Path) -> Scene:
     try:
         return derive_scene(path)
     except ValueError as err:  # MuJoCo's XML / compile errors do not name the file
-        raise ValueError(f"scene file {str(path)!r}: MuJoCo could not load it: {err}".strip()) from err
+        raise ValueError(
+            f"scene file {str(path)!r}: MuJoCo could not load it: {err}".strip()
+        ) from err
 
 
 def _from_sidecar(path: Path, meta: dict) -> Scene:

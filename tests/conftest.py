@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import os
+from collections.abc import Iterator
 
 import pytest
 
@@ -13,8 +14,7 @@ _counter = itertools.count()
 
 
 @pytest.fixture()
-def dds_domain() -> int:
+def dds_domain() -> Iterator[int]:
     """A test-unique ROS_DOMAIN_ID with Cyclone DDS pinned to 127.0.0.1 (for this process and children)."""
-    domain_id = 1 + (os.getpid() + 53 + 7 * next(_counter)) % 200
-    dds_config.use_loopback(domain_id)
-    return domain_id
+    with dds_config.loopback_domain(1 + (os.getpid() + 53 + 7 * next(_counter)) % 200) as domain_id:
+        yield domain_id

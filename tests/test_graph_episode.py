@@ -30,19 +30,18 @@ SMALL_CAMERA = {
 def episode(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from area3d_msgs_py import dds_config
 
-    domain_id = 1 + (os.getpid() + 131) % 200
-    dds_config.use_loopback(domain_id)
-    config = EpisodeConfig(
-        scene="single_object",
-        policy="area3d",
-        budget=7,
-        seed=0,
-        out_dir=tmp_path_factory.mktemp("runs"),
-        run_name="episode",
-        overrides=SMALL_CAMERA,
-        domain_id=domain_id,
-    )
-    return run_episode(config)
+    with dds_config.loopback_domain(1 + (os.getpid() + 131) % 200) as domain_id:
+        config = EpisodeConfig(
+            scene="single_object",
+            policy="area3d",
+            budget=7,
+            seed=0,
+            out_dir=tmp_path_factory.mktemp("runs"),
+            run_name="episode",
+            overrides=SMALL_CAMERA,
+            domain_id=domain_id,
+        )
+        return run_episode(config)
 
 
 def test_the_episode_captures_exactly_the_budget_initial_views_first(episode):

@@ -22,14 +22,8 @@ TIMEOUT_S = 20.0
 
 @pytest.fixture(scope="module", autouse=True)
 def loopback():
-    saved = {k: os.environ.get(k) for k in ("CYCLONEDDS_URI", "ROS_DOMAIN_ID")}
-    dds_config.use_loopback(DOMAIN_ID)
-    yield
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
+    with dds_config.loopback_domain(DOMAIN_ID):
+        yield
 
 
 def start(script: str) -> subprocess.Popen:

@@ -29,14 +29,8 @@ K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])
 
 @pytest.fixture()
 def loopback():
-    saved = {k: os.environ.get(k) for k in ("CYCLONEDDS_URI", "ROS_DOMAIN_ID")}
-    dds_config.use_loopback(DOMAIN_ID)
-    yield
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
+    with dds_config.loopback_domain(DOMAIN_ID):
+        yield
 
 
 def test_node_process_publishes_depth_and_confidence_with_the_frame_stamp(loopback):

@@ -57,14 +57,8 @@ def test_depth_noise_keeps_holes_and_grows_with_distance():
 def loopback():
     from area3d_msgs_py import dds_config
 
-    saved = {k: os.environ.get(k) for k in ("CYCLONEDDS_URI", "ROS_DOMAIN_ID")}
-    dds_config.use_loopback(DOMAIN_ID)
-    yield
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
+    with dds_config.loopback_domain(DOMAIN_ID):
+        yield
 
 
 def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal(loopback):
