@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from pathlib import Path
 
@@ -88,6 +89,8 @@ def run(
         TextColumn("{task.completed}/{task.total}"),
         TimeElapsedColumn(),
     )
+    graph_domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
+    console.print(f"graph on ROS_DOMAIN_ID={graph_domain}, Cyclone DDS pinned to 127.0.0.1")
     try:
         with Progress(*columns, console=console) as progress:
             run_dir = run_episode(config, resume=resume, progress=progress)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -29,6 +30,8 @@ def run_episode_bench(
     from sim_bridge.scenes import list_scenes, load_scene
 
     scenes = scenes or [name for name in list_scenes() if load_scene(name).level == "object"]
+    # Its own loopback domain, so that the benchmark's graphs never meet another graph on this machine.
+    domain_id = 1 + (os.getpid() + 17) % 200
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dirs: list[Path] = []
     failures: list[str] = []
@@ -52,6 +55,7 @@ def run_episode_bench(
                         out_dir=out / stamp,
                         record=False,
                         run_name=f"{scene}_{policy}_s{seed}",
+                        domain_id=domain_id,
                     )
                     try:
                         run_dir = run_episode(config, progress=progress)
