@@ -15,6 +15,7 @@ import numpy as np
 from area3d_msgs_py.errors import InputError
 from area3d_planner.fusion import FREE, FusedGrid
 from area3d_planner.greedy import GreedyParams, Selection, lazy_greedy, range_gain
+from area3d_planner.raycast import decay_view
 from area3d_planner.visibility import (
     VisibilityCache,
     VisibilityParams,
@@ -41,6 +42,7 @@ class PlanningContext:
     rng_seed: int = 0
     scene: object | None = None  # sim_bridge Scene: adds its validity check to the seeds
     allow_unknown_seeds: bool | None = None  # default: True with a scene, False without
+    committed_decay: np.ndarray | None = None  # (N,) decay of views committed so far
     aim_views: bool = True  # turn each committed view to the centroid of the utility it sees
     camera_positions: list = field(default_factory=list)  # (3,) centres of the fused frames
     _seeds: np.ndarray | None = None
@@ -58,10 +60,28 @@ class PlanningContext:
         self._fields.clear()
 
     def policy_field(self, policy: GreedyFieldPolicy) -> np.ndarray:
-        """(N,) utility field of `policy`, memoised until the next invalidation (read only)."""
+        """(N,) utility field of `policy` (memoised until the next invalidation, read only), with
+        the frustum decay of the views committed by earlier requests applied."""
         if policy.name not in self._fields:
             self._fields[policy.name] = policy.field(self)
-        return self._fields[policy.name]
+        if self.committed_decay is None:
+            return self._fields[policy.name]
+        return self._fields[policy.name] * self.committed_decay
+
+    def commit(self, cache: VisibilityCache, views: list[int]) -> None:
+        """Remember the decay u <- (1 - eta) u of committed views for the requests that follow.
+
+        The paper decays the field inside its frustum after every committed view; in closed loop
+        each request starts a new selection, so without this the planner would send the camera
+        back to a view already taken whenever the new frame leaves that view's uncertainty high
+        (voxels the optimistic visibility expects to see but the camera cannot).
+        """
+        if self.committed_decay is None:
+            self.committed_decay = np.ones(self.grid.spec.num_voxels)
+        for view in views:
+            decay_view(
+                cache.indptr, cache.voxel_ids, self.committed_decay, view, 1.0 - self.greedy.eta
+            )
 
     def build(self, occupancy: np.ndarray, kinds: tuple = ()) -> tuple[np.ndarray, dict]:
         """Seeds and the visibility caches named in `kinds` (see `cache`) for an occupancy
@@ -177,6 +197,7 @@ class GreedyFieldPolicy(Policy):
         cache = context.cache(self.relevant)
         U = context.policy_field(self) if context.aim_views else None
         views = self.selection(context, budget).views
+        context.commit(cache, views)
         if U is None:
             return [cache.view_pose(v) for v in views]
         return [aim_at_uncertainty(cache, v, U) for v in views]

@@ -175,3 +175,19 @@ def test_a_committed_view_is_turned_to_centre_the_uncertainty_it_sees():
     np.testing.assert_allclose(
         aim_at_uncertainty(cache, view, np.zeros_like(U)), cache.view_pose(view)
     )
+
+
+def test_closed_loop_requests_remember_the_decay_of_views_already_committed():
+    srv = NextBestViewServer(config(budget=6, mode="closed_loop", eta=0.3))
+    srv.add_frame(1, *frame())
+    first, _ = srv.plan(PlanRequest(None, 1, 1))
+    cache = srv.context.cache()
+    decay = srv.context.committed_decay
+    assert decay is not None and np.isclose(decay.min(), 0.7) and decay.max() == 1.0
+    # the decayed voxels are exactly the committed view's mask
+    committed = np.flatnonzero(decay < 1.0)
+    masks = [set(cache.mask(v)[0].tolist()) for v in range(cache.num_views)]
+    assert any(set(committed.tolist()) == m for m in masks)
+    # with no new frame, the next request does not send the camera back to the same view
+    second, _ = srv.plan(PlanRequest(None, 1, 1))
+    assert not np.allclose(first[0], second[0])
