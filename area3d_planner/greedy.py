@@ -104,6 +104,15 @@ def _check(cache: VisibilityCache, U: np.ndarray, budget: int, params: GreedyPar
     return U
 
 
+def _seed_terms(
+    cache: VisibilityCache, params: GreedyParams, start: np.ndarray | None, gain: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(gain (S,), prior (S,)): the per-seed factor and offset of the objective, shared by both
+    greedy variants so that they optimise exactly the same utility."""
+    gain = np.ones(cache.num_seeds) if gain is None else np.asarray(gain, np.float64)
+    return gain, seed_prior(cache, start, params.w_dist)
+
+
 def plain_greedy(
     cache: VisibilityCache,
     U: np.ndarray,
@@ -119,12 +128,8 @@ def plain_greedy(
     """
     params = params or GreedyParams()
     U = _check(cache, U, budget, params)
-    prior = np.repeat(seed_prior(cache, start, params.w_dist), cache.num_bins)
-    gain_v = (
-        np.ones(cache.num_views)
-        if gain is None
-        else np.repeat(np.asarray(gain, np.float64), cache.num_bins)
-    )
+    gain_s, prior_s = _seed_terms(cache, params, start, gain)
+    gain_v, prior = np.repeat(gain_s, cache.num_bins), np.repeat(prior_s, cache.num_bins)
     excluded = np.zeros((cache.num_seeds, cache.num_bins), bool)
     out = Selection(field=U)
     for _ in range(int(budget)):
@@ -159,8 +164,7 @@ def lazy_greedy(
     params = params or GreedyParams()
     U = _check(cache, U, budget, params)
     nb = cache.num_bins
-    prior = seed_prior(cache, start, params.w_dist)
-    gain = np.ones(cache.num_seeds) if gain is None else np.asarray(gain, np.float64)
+    gain, prior = _seed_terms(cache, params, start, gain)
     excluded = np.zeros((cache.num_seeds, nb), bool)
     out = Selection(field=U)
     if cache.num_views == 0 or int(budget) == 0:
