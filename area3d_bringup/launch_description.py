@@ -60,6 +60,18 @@ def parse_override(text: str) -> tuple[str, str, object]:
     return node, name, yaml.safe_load(raw) if raw else ""
 
 
+def planner_region(scene) -> dict:
+    """What the operator tells the planner about a sim_bridge scene: the region to reconstruct (a
+    box), where the camera may go and the level. The planner gets nothing else of the scene."""
+    return {
+        "roi_min": [float(v) for v in scene.roi_min],
+        "roi_max": [float(v) for v in scene.roi_max],
+        "workspace_min": [float(v) for v in scene.workspace_min],
+        "workspace_max": [float(v) for v in scene.workspace_max],
+        "level": scene.level,
+    }
+
+
 def build_graph(
     params: dict[str, dict] | None = None,
     overrides: dict[str, dict] | None = None,
@@ -69,6 +81,13 @@ def build_graph(
     merged = copy.deepcopy(load_parameters() if params is None else params)
     for node, values in (overrides or {}).items():
         merged.setdefault(node, {}).update(values)
+    planner = merged.setdefault("planner", {})
+    scene = merged.get("sim_bridge", {}).get("scene")
+    if scene and "roi_min" not in planner:
+        from sim_bridge.scenes import load_scene
+
+        for key, value in planner_region(load_scene(scene)).items():
+            planner.setdefault(key, value)
     shared = merged.get("**", {})
     return [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from area3d_bringup.launch_description import build_graph, load_parameters
+from area3d_bringup.launch_description import build_graph, load_parameters, planner_region
 from area3d_bringup.launcher import Launcher, NodeDied
 from area3d_bringup.recorder import BagRecorder
 from area3d_msgs_py import codecs, msgs
@@ -376,7 +376,7 @@ def run_episode(
         overrides.setdefault(node, {}).update(values)
     overrides.setdefault("sim_bridge", {})["scene"] = config.scene
     overrides.setdefault("planner", {}).update(
-        {"scene": config.scene, "budget": budget, "mode": config.mode, "seed": config.seed}
+        {"budget": budget, "mode": config.mode, "seed": config.seed, **planner_region(scene)}
     )
     overrides.setdefault("semantics", {})["num_initial_views"] = n_init
     for node, values in config.overrides.items():

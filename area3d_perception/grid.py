@@ -54,6 +54,11 @@ class GridSpec:
         gx, gy, gz = np.meshgrid(*axes, indexing="ij")
         return np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
 
+    def centers_of(self, ids: np.ndarray) -> np.ndarray:
+        """(K, 3) float64 centres of the voxels with flat (C order) indices `ids` (K,)."""
+        ijk = np.stack(np.unravel_index(np.asarray(ids, np.int64), self.shape), axis=1)
+        return np.ascontiguousarray(self.lower + (ijk + 0.5) * self.voxel_size)
+
     def voxel_index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Integer voxel coordinates of `points` (N, 3) and a mask of those inside the grid.
 

@@ -22,6 +22,7 @@ LOG_ODDS_MIN = float(np.log(0.12 / 0.88))
 LOG_ODDS_MAX = float(np.log(0.97 / 0.03))
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 1
+GEOMETRIC_RULES = ("product", "mean")
 
 
 def _check_pose(T: np.ndarray, field: str) -> np.ndarray:
@@ -50,7 +51,9 @@ class FusedGrid:
     outside). gamma: global weight added to every voxel that is not known free (paper: 0.01
     object level, 0.005 scene level). unobserved_uncertainty: geometric uncertainty of a voxel
     never observed (DESIGN: unobserved space means high uncertainty). semantic_weight: weight of
-    the semantic field in U (0 = the "without VLM" ablation).
+    the semantic field in U (0 = the "without VLM" ablation). geometric_rule: "product" (each
+    observation lowers the uncertainty, see `geometric`) or "mean" (1 - mean confidence).
+    max_confidence: cap of one observation's confidence in the product rule.
     """
 
     def __init__(
@@ -61,7 +64,13 @@ class FusedGrid:
         gamma: float,
         unobserved_uncertainty: float = 1.0,  # DESIGN.md: unobserved space = high uncertainty
         semantic_weight: float = 1.0,  # equal weight of both fields (paper fuses them unweighted)
+        geometric_rule: str = "product",
+        max_confidence: float = 0.9,  # one view lowers a voxel's uncertainty at most 10-fold
     ) -> None:
+        if geometric_rule not in GEOMETRIC_RULES:
+            raise InputError("geometric_rule", geometric_rule, f"one of {', '.join(GEOMETRIC_RULES)}")
+        if not (0.0 < max_confidence < 1.0):
+            raise InputError("max_confidence", max_confidence, "a value in (0, 1)")
         roi_lo = np.asarray(roi_lo, dtype=np.float64)
         roi_hi = np.asarray(roi_hi, dtype=np.float64)
         if roi_lo.shape != (3,) or roi_hi.shape != (3,) or not np.all(roi_hi > roi_lo):
@@ -81,9 +90,12 @@ class FusedGrid:
         self.gamma = float(gamma)
         self.unobserved_uncertainty = float(unobserved_uncertainty)
         self.semantic_weight = float(semantic_weight)
+        self.geometric_rule = geometric_rule
+        self.max_confidence = float(max_confidence)
         n = spec.num_voxels
         self.conf_sum = np.zeros(n, np.float32)
         self.hit_count = np.zeros(n, np.float32)
+        self.log_residual = np.zeros(n, np.float32)  # sum over hits of log(1 - confidence)
         self.free_count = np.zeros(n, np.float32)
         self.sem_sum = np.zeros(n, np.float32)
         self.sem_count = np.zeros(n, np.float32)
@@ -101,13 +113,16 @@ class FusedGrid:
         T_world_cam: np.ndarray,
         max_range: float = 5.0,  # paper, supplement: max depth 5 m
         stride: int = 2,  # carve every 2nd pixel row/column; surface hits use every pixel
+        carve_no_return: bool = False,
     ) -> None:
         """Fuse one frame: surface evidence into hit voxels, free space along every ray.
 
         depth: (H, W) float32 metres along optical z, NaN = no return. conf: (H, W) float32 in
         [0, 1] (NaN = no confidence, pixel skipped). Each voxel counts at most one hit and one
         free observation per frame (hits win); its confidence sample is the frame's mean over
-        the pixels that land in it. Pixels with no return carve free space out to z = max_range.
+        the pixels that land in it. Pixels with no return carve nothing unless carve_no_return
+        (then out to z = max_range): a dropout of a real sensor (dark, specular or grazing
+        surface, noise) looks exactly like empty space.
         """
         depth = np.asarray(depth)
         conf = np.asarray(conf)
@@ -138,10 +153,19 @@ class FusedGrid:
         # Free space: the perception package's carving (the one DDA for camera rays), counted
         # once per voxel per frame here; pixels with no return carve out to max_range.
         crossed = carve_depth_frame(
-            self.spec, depth, K, T, np.zeros(self.spec.shape, np.uint16), stride, max_range
+            self.spec,
+            depth,
+            K,
+            T,
+            np.zeros(self.spec.shape, np.uint16),
+            stride,
+            max_range,
+            carve_no_return=carve_no_return,
         ).reshape(-1)
         free = (crossed > 0) & ~hit
         self.conf_sum[hit] += frame_conf.astype(np.float32)
+        capped = np.minimum(frame_conf, self.max_confidence)
+        self.log_residual[hit] += np.log1p(-capped).astype(np.float32)
         self.hit_count[hit] += 1.0
         self.free_count[free] += 1.0
         self.frames += 1
@@ -194,14 +218,24 @@ class FusedGrid:
         """(N,) float32 p(occupied) = sigmoid(log-odds); 0.5 where never observed."""
         return (1.0 / (1.0 + np.exp(-self.log_odds()))).astype(np.float32)
 
-    def geometric(self) -> np.ndarray:
-        """(N,) float32 geometric uncertainty: 1 - mean confidence on occupied voxels,
-        `unobserved_uncertainty` on unknown voxels, 0 on known free voxels."""
-        occ = self.occupancy()
+    def geometric(self, occ: np.ndarray | None = None) -> np.ndarray:
+        """(N,) float32 geometric uncertainty of occupied voxels, `unobserved_uncertainty` on
+        unknown voxels, 0 on known free voxels.
+
+        "product" rule: G = prod_k (1 - min(c_k, max_confidence)) over the frames k that hit the
+        voxel with mean confidence c_k: the chance that no observation so far pinned the surface
+        down. One view gives the paper's 1 - C; every further view lowers G, by a lot when it is
+        confident and a little when it is not, so a surface never stays attractive forever.
+        "mean" rule: G = 1 - mean_k c_k (does not fall with repeated views).
+        """
+        occ = self.occupancy() if occ is None else occ
         g = np.full(self.spec.num_voxels, self.unobserved_uncertainty, np.float32)
         g[occ == FREE] = 0.0
         surf = occ == OCCUPIED
-        g[surf] = 1.0 - self.conf_sum[surf] / self.hit_count[surf]
+        if self.geometric_rule == "product":
+            g[surf] = np.exp(self.log_residual[surf])
+        else:
+            g[surf] = 1.0 - self.conf_sum[surf] / self.hit_count[surf]
         return g
 
     def semantic(self) -> np.ndarray:
@@ -212,10 +246,19 @@ class FusedGrid:
         return s
 
     def fused(self) -> np.ndarray:
-        """(N,) float32 utility field U = max(0, geometric + semantic_weight * semantic) + gamma
-        on every voxel that is not known free; 0 on known free voxels and outside the ROI."""
+        """(N,) float32 utility field U = max(0, G + semantic_weight * S * sqrt(G)) + gamma on every
+        voxel that is not known free; 0 on known free voxels and outside the ROI.
+
+        The semantic term falls with the observations too, at half the rate of G on a log scale:
+        a region the VLM flags as hard stays attractive for about twice as many views as one it
+        does not flag (with the "mean" rule the semantic term is the plain mean, as before).
+        """
         occ = self.occupancy()
-        u = np.maximum(self.geometric() + np.float32(self.semantic_weight) * self.semantic(), 0.0)
+        g = self.geometric(occ)
+        s = self.semantic()
+        if self.geometric_rule == "product":
+            s = s * np.sqrt(g)
+        u = np.maximum(g + np.float32(self.semantic_weight) * s, 0.0)
         u = u + np.float32(self.gamma)
         u[occ == FREE] = 0.0
         u[~self.roi_mask] = 0.0

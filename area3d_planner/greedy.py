@@ -15,10 +15,13 @@ import heapq
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
 from area3d_planner.raycast import decay_view
 from area3d_planner.visibility import VisibilityCache
+
+DECAY_REGIONS = ("frustum", "visible")
 
 
 @dataclass(frozen=True)
@@ -32,9 +35,14 @@ class GreedyParams:
     # Range prior (paper: "with distance prior", form not published): seeds far nearer or farther
     # from the region than the working distance of the captured views see it at another
     # resolution and noise level; gain = exp(-((d - d0) / (range_sigma * d0))^2 / 2). 0 = off.
-    range_sigma: float = 0.5
+    range_sigma: float = 0.0
+    # Where a committed view decays the field: "frustum" (the paper: every voxel inside the view's
+    # frustum, occluded or not) or "visible" (only its visibility mask).
+    decay: str = "frustum"
 
     def validate(self) -> None:
+        if self.decay not in DECAY_REGIONS:
+            raise InputError("decay", self.decay, f"one of {', '.join(DECAY_REGIONS)}")
         if not (0.0 <= self.eta <= 1.0):
             raise InputError("eta", self.eta, "a decay factor in [0, 1]")
         if not (np.isfinite(self.w_dist) and self.w_dist >= 0):
@@ -78,17 +86,50 @@ def range_gain(
     return np.exp(-0.5 * ((d - working_distance) / (range_sigma * working_distance)) ** 2)
 
 
+def decay_committed(
+    cache: VisibilityCache, U: np.ndarray, view: int, eta: float, region: str = "frustum",
+    pose: np.ndarray | None = None,
+) -> None:
+    """U <- (1 - eta) U, in place, on the frustum of a committed view (the paper) or on its mask.
+
+    pose: the (4, 4) pose the camera really takes (e.g. aimed), default the view's own."""
+    if region == "visible":
+        decay_view(cache.indptr, cache.voxel_ids, U, view, 1.0 - eta)
+        return
+    ids = cache.frustum(cache.view_pose(view) if pose is None else pose)
+    U[ids] *= 1.0 - eta
+
+
 def _nms_suppress(
     cache: VisibilityCache, excluded: np.ndarray, view: int, params: GreedyParams
 ) -> None:
     """Mark views (S, B) within nms_radius and nms_angle_deg of `view` as excluded (itself included)."""
     s, b = divmod(view, cache.num_bins)
-    near_seeds = np.linalg.norm(cache.seeds - cache.seeds[s], axis=1) <= params.nms_radius
-    cos_angle = np.clip(cache.forward @ cache.forward[b], -1.0, 1.0)
-    near_bins = np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9
-    near_bins[b] = True
-    near_seeds[s] = True
-    excluded[np.ix_(near_seeds, near_bins)] = True
+    near_seeds = np.flatnonzero(
+        np.linalg.norm(cache.seeds - cache.seeds[s], axis=1) <= params.nms_radius
+    )
+    cos_angle = np.clip(cache.forward[near_seeds] @ cache.forward[s, b], -1.0, 1.0)
+    near = np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9
+    excluded[near_seeds] |= near
+    excluded[s, b] = True
+
+
+def taken_views(
+    cache: VisibilityCache, poses: list[np.ndarray], params: GreedyParams
+) -> np.ndarray:
+    """(S, B) bool: candidate views within nms_radius and nms_angle_deg of a view already captured
+    ((4, 4) poses). Looking again from where the camera already looked adds little but noise."""
+    excluded = np.zeros((cache.num_seeds, cache.num_bins), bool)
+    if not poses or cache.num_views == 0:
+        return excluded
+    T = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    tree = cKDTree(cache.seeds)
+    for pos, fwd in zip(T[:, :3, 3], T[:, :3, 2], strict=True):
+        near = np.asarray(tree.query_ball_point(pos, params.nms_radius), dtype=np.int64)
+        if near.size:
+            cos_angle = np.clip(cache.forward[near] @ fwd, -1.0, 1.0)
+            excluded[near] |= np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9
+    return excluded
 
 
 def _check(cache: VisibilityCache, U: np.ndarray, budget: int, params: GreedyParams) -> np.ndarray:
@@ -113,6 +154,16 @@ def _seed_terms(
     return gain, seed_prior(cache, start, params.w_dist)
 
 
+def _excluded(cache: VisibilityCache, excluded: np.ndarray | None) -> np.ndarray:
+    """A fresh (S, B) bool of views out of the race (a copy of `excluded`, or none)."""
+    if excluded is None:
+        return np.zeros((cache.num_seeds, cache.num_bins), bool)
+    excluded = np.array(excluded, dtype=bool)
+    if excluded.shape != (cache.num_seeds, cache.num_bins):
+        raise InputError("excluded", excluded.shape, f"({cache.num_seeds}, {cache.num_bins}) bool")
+    return excluded
+
+
 def plain_greedy(
     cache: VisibilityCache,
     U: np.ndarray,
@@ -120,6 +171,7 @@ def plain_greedy(
     params: GreedyParams | None = None,
     start: np.ndarray | None = None,
     gain: np.ndarray | None = None,
+    excluded: np.ndarray | None = None,
 ) -> Selection:
     """Re-score every unsuppressed view each iteration and commit the best (ties: lowest view index).
 
@@ -130,7 +182,7 @@ def plain_greedy(
     U = _check(cache, U, budget, params)
     gain_s, prior_s = _seed_terms(cache, params, start, gain)
     gain_v, prior = np.repeat(gain_s, cache.num_bins), np.repeat(prior_s, cache.num_bins)
-    excluded = np.zeros((cache.num_seeds, cache.num_bins), bool)
+    excluded = _excluded(cache, excluded)
     out = Selection(field=U)
     for _ in range(int(budget)):
         alive = ~excluded.ravel()
@@ -142,7 +194,7 @@ def plain_greedy(
         v = int(np.argmax(scores))
         out.views.append(v)
         out.utilities.append(float(scores[v]))
-        decay_view(cache.indptr, cache.voxel_ids, U, v, 1.0 - params.eta)
+        decay_committed(cache, U, v, params.eta, params.decay)
         _nms_suppress(cache, excluded, v, params)
     return out
 
@@ -154,6 +206,7 @@ def lazy_greedy(
     params: GreedyParams | None = None,
     start: np.ndarray | None = None,
     gain: np.ndarray | None = None,
+    excluded: np.ndarray | None = None,
 ) -> Selection:
     """Algorithm 1: a max-priority queue over seeds keyed by an upper bound of their best view.
 
@@ -165,11 +218,12 @@ def lazy_greedy(
     U = _check(cache, U, budget, params)
     nb = cache.num_bins
     gain, prior = _seed_terms(cache, params, start, gain)
-    excluded = np.zeros((cache.num_seeds, nb), bool)
+    excluded = _excluded(cache, excluded)
     out = Selection(field=U)
     if cache.num_views == 0 or int(budget) == 0:
         return out
     initial = cache.score(U).reshape(cache.num_seeds, nb) * gain[:, None] + prior[:, None]
+    initial[excluded] = -np.inf
     out.evaluations += cache.num_views
     heap = list(zip((-initial.max(axis=1)).tolist(), range(cache.num_seeds), strict=True))
     heapq.heapify(heap)
@@ -194,7 +248,7 @@ def lazy_greedy(
         v = s * nb + b
         out.views.append(v)
         out.utilities.append(fresh)
-        decay_view(cache.indptr, cache.voxel_ids, U, v, 1.0 - params.eta)
+        decay_committed(cache, U, v, params.eta, params.decay)
         _nms_suppress(cache, excluded, v, params)
         fresh_scores.clear()
         heapq.heappush(heap, (-fresh, s))

@@ -21,11 +21,6 @@ from area3d_perception.frame_sync import StampSync
 from area3d_planner.cloud import grid_to_msg
 from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
 
-# Scene-level defaults where the paper distinguishes object and room level.
-LEVEL_DEFAULTS = {
-    "object": {"voxel_size": 0.01, "gamma": 0.01, "seed_spacing": 0.1, "budget": 25},
-    "room": {"voxel_size": 0.05, "gamma": 0.005, "seed_spacing": 0.5, "budget": 40},
-}
 CAMERA_INFO_CACHE = 64
 
 
@@ -40,20 +35,9 @@ class PlannerNode:
     def __init__(self, node: Node) -> None:
         self.node = node
         log = node.get_logger()
-        scene_name = node.declare_parameter("scene", "")
-        scene = None
-        overrides: dict = {}
-        if scene_name:
-            from sim_bridge.scenes import load_scene
-
-            scene = load_scene(scene_name)
-            overrides = dict(LEVEL_DEFAULTS[scene.level])
-            overrides["gamma"] = float(scene.gamma)
-            for key in ("workspace_min", "workspace_max", "roi_min", "roi_max"):
-                overrides[key] = tuple(float(v) for v in getattr(scene, key))
         values = {}
         for f in fields(PlannerConfig):
-            default = overrides.get(f.name, getattr(PlannerConfig, f.name))
+            default = getattr(PlannerConfig, f.name)
             value = node.declare_parameter(
                 f.name, list(default) if isinstance(default, tuple) else default
             )
@@ -63,7 +47,7 @@ class PlannerNode:
         # request only waits for a rebuild in flight and then plans from the cached masks.
         eager = bool(node.declare_parameter("eager_cache", True))
         self.server = NextBestViewServer(
-            PlannerConfig(**values), scene=scene, background=eager, on_refresh=self._on_refresh
+            PlannerConfig(**values), background=eager, on_refresh=self._on_refresh
         )
         # Perception's output for a frame can trail the camera's pose by seconds (first frames,
         # a feed-forward model on CPU), so parts wait this long for their partners.

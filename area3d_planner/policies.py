@@ -14,14 +14,23 @@ import numpy as np
 
 from area3d_msgs_py.errors import InputError
 from area3d_planner.fusion import FREE, FusedGrid
-from area3d_planner.greedy import GreedyParams, Selection, lazy_greedy, range_gain
-from area3d_planner.raycast import decay_view
+from area3d_planner.greedy import (
+    GreedyParams,
+    Selection,
+    decay_committed,
+    lazy_greedy,
+    range_gain,
+    taken_views,
+)
 from area3d_planner.visibility import (
     VisibilityCache,
     VisibilityParams,
-    candidate_seeds,
+    lattice_positions,
     look_at,
     orientation_bins,
+    shell_positions,
+    shell_rotations,
+    valid_seeds,
 )
 
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
@@ -29,29 +38,32 @@ GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 
 @dataclass
 class PlanningContext:
-    """Everything a policy needs. Caches are built on first use and reused until `invalidate()`."""
+    """Everything a policy needs. Caches are built on first use and reused until `invalidate()`.
+
+    What the planner knows is what a robot has: the fused map (`grid`), the captured camera
+    positions, the region of interest (the grid's ROI box) and the workspace box where the camera
+    may go. Nothing of the simulator's geometry.
+    """
 
     grid: FusedGrid
     workspace_lo: np.ndarray
     workspace_hi: np.ndarray
-    seed_spacing: float = 0.1  # metres; object level 0.1, room level 0.5 (our choice)
-    clearance: float = 0.05  # metres, same as sim_bridge.validity.check_pose
+    clearance: float = 0.05  # metres from the camera centre to the nearest occupied voxel
     visibility: VisibilityParams = field(default_factory=VisibilityParams)
     greedy: GreedyParams = field(default_factory=GreedyParams)
     start: np.ndarray | None = None  # (4, 4) current camera pose or (3,) position
     rng_seed: int = 0
-    scene: object | None = None  # sim_bridge Scene: adds its validity check to the seeds
-    allow_unknown_seeds: bool | None = None  # default: True with a scene, False without
     committed_decay: np.ndarray | None = None  # (N,) decay of views committed so far
     aim_views: bool = True  # turn each committed view to the centroid of the utility it sees
     camera_positions: list = field(default_factory=list)  # (3,) centres of the fused frames
-    _seeds: np.ndarray | None = None
+    camera_poses: list = field(default_factory=list)  # (4, 4) poses of the fused frames
+    _candidates: tuple | None = None
     _caches: dict = field(default_factory=dict)
     _fields: dict = field(default_factory=dict)
 
     def invalidate(self) -> None:
-        """Forget seeds, visibility masks and fields (the occupancy changed)."""
-        self._seeds = None
+        """Forget candidates, visibility masks and fields (the occupancy changed)."""
+        self._candidates = None
         self._caches.clear()
         self._fields.clear()
 
@@ -68,71 +80,99 @@ class PlanningContext:
             return self._fields[policy.name]
         return self._fields[policy.name] * self.committed_decay
 
-    def commit(self, cache: VisibilityCache, views: list[int]) -> None:
-        """Remember the decay u <- (1 - eta) u of committed views for the requests that follow.
+    def commit(self, cache: VisibilityCache, views: list[int], poses: list[np.ndarray]) -> None:
+        """Remember the decay u <- (1 - eta) u of committed views (at the poses really taken) for
+        the requests that follow.
 
-        The paper decays the field inside its frustum after every committed view; in closed loop
+        The paper decays the field inside the frustum after every committed view; in closed loop
         each request starts a new selection, so without this the planner would send the camera
         back to a view already taken whenever the new frame leaves that view's uncertainty high
-        (voxels the optimistic visibility expects to see but the camera cannot).
+        (voxels the visibility expects to see but the camera cannot).
         """
         if self.committed_decay is None:
             self.committed_decay = np.ones(self.grid.spec.num_voxels)
-        for view in views:
-            decay_view(
-                cache.indptr, cache.voxel_ids, self.committed_decay, view, 1.0 - self.greedy.eta
+        for view, pose in zip(views, poses, strict=True):
+            decay_committed(
+                cache, self.committed_decay, view, self.greedy.eta, self.greedy.decay, pose
             )
 
-    def build(self, occupancy: np.ndarray, kinds: tuple = ()) -> tuple[np.ndarray, dict]:
-        """Seeds and the visibility caches named in `kinds` (see `cache`) for an occupancy
-        snapshot (N,) int8, without touching the context: (seeds (S, 3), {kind: cache})."""
-        allow = self.allow_unknown_seeds
-        if allow is None:
-            allow = self.scene is not None
-        seeds = candidate_seeds(
-            self.workspace_lo,
-            self.workspace_hi,
-            self.seed_spacing,
-            self.grid.spec,
-            occupancy,
-            self.clearance,
-            allow_unknown=allow,
-            scene=self.scene,
+    def region_centre(self) -> np.ndarray:
+        return 0.5 * (self.grid.roi_lo + self.grid.roi_hi)
+
+    def default_distance(self) -> float:
+        """Shell radius before any frame is captured: the region's half diagonal plus 0.3 m."""
+        return 0.5 * float(np.linalg.norm(self.grid.roi_hi - self.grid.roi_lo)) + 0.3
+
+    def candidate_views(self, occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(positions (S, 3), rotations (S, B, 3, 3)) of the candidate views for an occupancy
+        snapshot (N,) int8: shells around the region at object level, a known-free lattice
+        inside it at room level (see `visibility.py`)."""
+        p = self.visibility
+        g = self.grid
+        if p.level == "object":
+            centre = self.region_centre()
+            radius = self.working_distance() or self.default_distance()
+            points = shell_positions(centre, radius, p)
+            margin = self.clearance + g.spec.voxel_size
+            ok = valid_seeds(
+                points,
+                g.spec,
+                occupancy,
+                self.workspace_lo,
+                self.workspace_hi,
+                self.clearance,
+                unknown_ok_outside=(g.roi_lo - margin, g.roi_hi + margin),
+            )
+            points = points[ok]
+            return points, shell_rotations(points, centre, p.fan_deg)
+        points = lattice_positions(self.workspace_lo, self.workspace_hi, p.seed_spacing)
+        ok = valid_seeds(
+            points, g.spec, occupancy, self.workspace_lo, self.workspace_hi, self.clearance
         )
+        points = points[ok]
+        _, rotations = orientation_bins(p)
+        return points, np.broadcast_to(rotations, (points.shape[0], *rotations.shape)).copy()
+
+    def build(self, occupancy: np.ndarray, kinds: tuple = ()) -> tuple[tuple, dict]:
+        """Candidate views and the visibility caches named in `kinds` (see `cache`) for an
+        occupancy snapshot (N,) int8, without touching the context: ((seeds, rotations), caches)."""
+        candidates = self.candidate_views(occupancy)
         caches = {
             kind: VisibilityCache.build(
                 self.grid.spec,
                 occupancy,
-                seeds,
+                candidates[0],
+                candidates[1],
                 self.visibility,
                 relevant=self._relevant(kind, occupancy),
             )
             for kind in kinds
         }
-        return seeds, caches
+        return candidates, caches
 
-    def install(self, seeds: np.ndarray, caches: dict) -> None:
-        """Use seeds and caches made by `build` (replaces the current ones and the fields)."""
-        self._seeds = seeds
+    def install(self, candidates: tuple, caches: dict) -> None:
+        """Use candidates and caches made by `build` (replaces the current ones and the fields)."""
+        self._candidates = candidates
         self._caches = dict(caches)
         self._fields.clear()
 
     def _relevant(self, kind: str, occupancy: np.ndarray) -> np.ndarray:
-        if kind == "roi_not_free":
-            return self.grid.roi_mask & (occupancy != FREE)
-        return self.grid.roi_mask
+        if kind != "roi_not_free":
+            raise InputError("visibility cache", kind, "'roi_not_free'")
+        return self.grid.roi_mask & (occupancy != FREE)
 
     def working_distance(self) -> float | None:
         """Median distance of the captured frames' cameras to the ROI centre (None before any)."""
         if not self.camera_positions:
             return None
-        c = 0.5 * (self.grid.roi_lo + self.grid.roi_hi)
+        c = self.region_centre()
         return float(np.median(np.linalg.norm(np.asarray(self.camera_positions) - c, axis=1)))
 
     def range_gain(self, seeds: np.ndarray) -> np.ndarray | None:
         """(S,) range prior of `seeds` around the working distance (None: no prior)."""
-        c = 0.5 * (self.grid.roi_lo + self.grid.roi_hi)
-        return range_gain(seeds, c, self.working_distance(), self.greedy.range_sigma)
+        return range_gain(
+            seeds, self.region_centre(), self.working_distance(), self.greedy.range_sigma
+        )
 
     @property
     def start_position(self) -> np.ndarray | None:
@@ -141,20 +181,25 @@ class PlanningContext:
         s = np.asarray(self.start, np.float64)
         return s[:3, 3] if s.shape == (4, 4) else s.reshape(3)
 
+    def candidates(self) -> tuple[np.ndarray, np.ndarray]:
+        """(positions (S, 3), rotations (S, B, 3, 3)) of the current candidate views."""
+        if self._candidates is None:
+            self._candidates = self.candidate_views(self.grid.occupancy())
+        return self._candidates
+
     def seeds(self) -> np.ndarray:
-        if self._seeds is None:
-            self._seeds, _ = self.build(self.grid.occupancy())
-        return self._seeds
+        return self.candidates()[0]
 
     def cache(self, relevant: str = "roi_not_free") -> VisibilityCache:
-        """Visibility cache recording the ROI voxels that are not known free ("roi_not_free") or
-        every ROI voxel ("roi", for fields that are non-zero on free space)."""
+        """Visibility cache recording the ROI voxels that are not known free."""
         if relevant not in self._caches:
             occ = self.grid.occupancy()
+            seeds, rotations = self.candidates()
             self._caches[relevant] = VisibilityCache.build(
                 self.grid.spec,
                 occ,
-                self.seeds(),
+                seeds,
+                rotations,
                 self.visibility,
                 relevant=self._relevant(relevant, occ),
             )
@@ -191,16 +236,23 @@ class GreedyFieldPolicy(Policy):
             raise InputError("uncertainty field", "NaN or inf voxels", "finite uncertainties")
         cache = context.cache(self.relevant)
         gain = context.range_gain(cache.seeds)
-        return lazy_greedy(cache, U, budget, context.greedy, context.start_position, gain)
+        taken = taken_views(cache, context.camera_poses, context.greedy)
+        if taken.all():  # every candidate was taken already: allow them again
+            taken[:] = False
+        return lazy_greedy(
+            cache, U, budget, context.greedy, context.start_position, gain, excluded=taken
+        )
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
         cache = context.cache(self.relevant)
-        U = context.policy_field(self) if context.aim_views else None
+        U = context.policy_field(self)
         views = self.selection(context, budget).views
-        context.commit(cache, views)
-        if U is None:
-            return [cache.view_pose(v) for v in views]
-        return [aim_at_uncertainty(cache, v, U) for v in views]
+        if context.aim_views:
+            poses = [aim_at_uncertainty(cache, v, U) for v in views]
+        else:
+            poses = [cache.view_pose(v) for v in views]
+        context.commit(cache, views, poses)
+        return poses
 
 
 def aim_at_uncertainty(cache: VisibilityCache, view: int, U: np.ndarray) -> np.ndarray:
@@ -217,8 +269,7 @@ def aim_at_uncertainty(cache: VisibilityCache, view: int, U: np.ndarray) -> np.n
     total = float(mass.sum())
     if ids.size == 0 or not total > 0:
         return T
-    ijk = np.stack(np.unravel_index(ids, cache.spec.shape), axis=1)
-    centres = cache.spec.lower + (ijk + 0.5) * cache.spec.voxel_size
+    centres = cache.spec.centers_of(ids)
     target = (mass[:, None] * centres).sum(axis=0) / total
     if np.linalg.norm(target - T[:3, 3]) < 1e-6:
         return T
@@ -238,7 +289,6 @@ class VolumetricIGPolicy(GreedyFieldPolicy):
     """Classic volumetric information gain: binary entropy of occupancy, no confidence, no VLM."""
 
     name = "volumetric_ig"
-    relevant = "roi"
 
     def field(self, context: PlanningContext) -> np.ndarray:
         return context.grid.entropy()
@@ -277,7 +327,7 @@ class UniformPolicy(Policy):
         phi = i * GOLDEN_ANGLE
         pts = c + radius * np.stack([rxy * np.cos(phi), rxy * np.sin(phi), z], axis=1)
         seeds = context.seeds()
-        valid = _valid_points(context, pts)
+        valid = _valid_points(context, pts, c)
         poses = []
         for p, ok in zip(pts, valid, strict=True):
             if not ok:
@@ -288,22 +338,21 @@ class UniformPolicy(Policy):
         return poses
 
 
-def _valid_points(context: PlanningContext, pts: np.ndarray) -> np.ndarray:
-    """(N,) bool: the candidate-seed validity rules applied to arbitrary points."""
+def _valid_points(context: PlanningContext, pts: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(N,) bool: the candidate rules (map only) applied to arbitrary camera centres; at object
+    level unknown space outside the region counts as usable, as for the shells."""
     g = context.grid
-    ok = np.all((pts >= context.workspace_lo) & (pts <= context.workspace_hi), axis=1)
-    occ = g.occupancy()
-    occupied = np.flatnonzero(occ == 1)
-    if occupied.size:
-        from scipy.spatial import cKDTree
-
-        d, _ = cKDTree(g.spec.centers()[occupied]).query(pts, k=1)
-        ok &= d > context.clearance + 0.5 * g.spec.voxel_size
-    if context.scene is not None and ok.any():
-        from sim_bridge.validity import valid_positions
-
-        ok &= np.asarray(valid_positions(context.scene, pts, context.clearance), dtype=bool)
-    return ok
+    margin = context.clearance + g.spec.voxel_size
+    outside = (g.roi_lo - margin, g.roi_hi + margin) if context.visibility.level == "object" else None
+    return valid_seeds(
+        pts,
+        g.spec,
+        g.occupancy(),
+        context.workspace_lo,
+        context.workspace_hi,
+        context.clearance,
+        unknown_ok_outside=outside,
+    )
 
 
 class VLMNaivePolicy(GreedyFieldPolicy):
@@ -334,13 +383,13 @@ class RandomPolicy(Policy):
     sequential = True
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
-        seeds = context.seeds()
-        forward, rotations = orientation_bins(context.visibility)
+        seeds, rotations = context.candidates()
         if seeds.size == 0:
             return []
         g = context.grid
-        o = np.repeat(seeds, len(forward), axis=0)
-        d = np.tile(forward, (len(seeds), 1))
+        nb = rotations.shape[1]
+        o = np.repeat(seeds, nb, axis=0)
+        d = rotations[:, :, :, 2].reshape(-1, 3)
         with np.errstate(divide="ignore", invalid="ignore"):
             t_a = (g.roi_lo - o) / d
             t_b = (g.roi_hi - o) / d
@@ -354,9 +403,9 @@ class RandomPolicy(Policy):
         chosen = rng.choice(views, size=min(int(budget), views.size), replace=False)
         poses = []
         for v in chosen:
-            s, b = divmod(int(v), len(forward))
+            s, b = divmod(int(v), nb)
             T = np.eye(4)
-            T[:3, :3] = rotations[b]
+            T[:3, :3] = rotations[s, b]
             T[:3, 3] = seeds[s]
             poses.append(T)
         return poses

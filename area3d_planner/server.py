@@ -24,54 +24,112 @@ MODES = ("batch", "closed_loop")
 CACHE_WAIT_S = 120.0  # a request waits at most this long for the background rebuild of the masks
 
 
+# Where the paper distinguishes object level and scene (room) level.
+LEVEL_DEFAULTS = {
+    "object": {"voxel_size": 0.01, "gamma": 0.01, "budget": 25},  # paper: gamma, T; voxel: ours
+    "room": {"voxel_size": 0.05, "gamma": 0.005, "budget": 40},
+}
+LEVELS = ("auto", "object", "room")
+
+
 @dataclass
 class PlannerConfig:
-    """All planner parameters; defaults are the paper's object level where it fixes them."""
+    """All planner parameters; defaults are the paper's where it fixes them.
+
+    The planner knows only what a robot has: its frames, their poses, the fused map, the region
+    of interest (`roi_min`/`roi_max`) and the workspace box the camera may move in.
+    """
 
     workspace_min: tuple = (-1.0, -1.0, 0.0)
     workspace_max: tuple = (1.0, 1.0, 1.5)
     roi_min: tuple = (-0.3, -0.3, 0.0)
     roi_max: tuple = (0.3, 0.3, 0.5)
-    voxel_size: float = 0.01  # metres: 0.01 object level, 0.05 room level (our choice)
-    gamma: float = 0.01  # paper, supplement: 0.01 object level, 0.005 scene level
+    # "object": shells around the region; "room": the camera works inside it; "auto": room when
+    # the workspace lies inside the region (grown by 10 %), object otherwise.
+    level: str = "auto"
+    voxel_size: float = 0.0  # metres; 0 = the level's (0.01 object, 0.05 room), coarser if needed
+    voxel_budget: int = 4_000_000  # the grid over workspace + ROI never holds more voxels
+    gamma: float = -1.0  # < 0 = the level's; paper, supplement: 0.01 object, 0.005 scene level
     eta: float = 0.3  # paper, supplement: decay factor
+    decay: str = "frustum"  # the paper decays the whole frustum; "visible": only the mask
     semantic_weight: float = 1.0  # 0 = the "without VLM" ablation
     unobserved_uncertainty: float = 1.0  # DESIGN.md: unobserved space = high uncertainty
-    seed_spacing: float = 0.1  # metres: 0.1 object level, 0.5 room level (our choice)
-    clearance: float = 0.05  # metres, as sim_bridge.validity.check_pose
-    yaw_bins: int = 12
-    pitch_bins: int = 5
-    mc_rays: int = 256
+    geometric_rule: str = "product"  # each observation lowers uncertainty; "mean": 1 - mean conf
+    max_confidence: float = 0.9  # one observation lowers a voxel's uncertainty at most 10-fold
+    carve_no_return: bool = False  # a dropout looks like free space: do not carve along it
+    clearance: float = 0.05  # metres, camera centre to the nearest occupied voxel
+    seed_spacing: float = 0.5  # metres, room level lattice of camera positions
+    shell_scales: tuple = (0.8, 1.0, 1.25)  # object level shells, x the working distance
+    fan_deg: float = 20.0  # object level: orientations +-fan around "look at the region"
+    yaw_bins: int = 12  # room level orientations
+    pitch_bins: int = 4
+    face_res: int = 256  # cube-map z-buffer resolution of the visibility test, pixels per face
+    pixels_per_voxel: float = 16.0  # a voxel covering this many pixels counts fully observed
     hfov_deg: float = 90.0  # paper: FOV 90 degrees
     max_range: float = 5.0  # paper: max depth 5 m
     width: int = 640
     height: int = 480
     w_dist: float = 0.0
-    range_sigma: float = (
-        0.5  # range prior around the working distance of the captured views (0 = off)
-    )
+    range_sigma: float = 0.0  # range prior around the working distance (0 = off)
     nms_radius: float = 0.1
     nms_angle_deg: float = 30.0
     carve_stride: int = 2
     policy: str = "area3d"
     mode: str = "batch"
-    budget: int = 25  # paper: T = 25 object level, 40 scene level (total, initial views included)
+    budget: int = 0  # total views, initial ones included; 0 = paper: T = 25 object, 40 scene
     seed: int = 0
     frame_cache: int = 64  # frames kept per stamp for late semantic maps
 
     def validate(self) -> None:
         if self.mode not in MODES:
             raise InputError("mode", self.mode, f"one of {', '.join(MODES)}")
+        if self.level not in LEVELS:
+            raise InputError("level", self.level, f"one of {', '.join(LEVELS)}")
         make_policy(self.policy)
-        if int(self.budget) < 1:
+        if int(self.budget) < 0:
             raise InputError(
-                "budget", self.budget, "an integer >= 1 (total views, initial ones included)"
+                "budget", self.budget, "an integer >= 1 (total views, initial ones included; 0 = the paper's)"
             )
-        lo, hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
-        if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
-            raise InputError(
-                "workspace_min/workspace_max", [lo.tolist(), hi.tolist()], "min < max on every axis"
-            )
+        if int(self.voxel_budget) < 1000:
+            raise InputError("voxel_budget", self.voxel_budget, "an integer >= 1000 voxels")
+        if not (np.isfinite(self.voxel_size) and self.voxel_size >= 0):
+            raise InputError("voxel_size", self.voxel_size, "a value >= 0 metres (0 = automatic)")
+        for name in ("workspace", "roi"):
+            lo = np.asarray(getattr(self, f"{name}_min"), float)
+            hi = np.asarray(getattr(self, f"{name}_max"), float)
+            if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(hi - lo)) or not np.all(hi > lo):
+                raise InputError(
+                    f"{name}_min/{name}_max", [lo.tolist(), hi.tolist()], "min < max on every axis"
+                )
+
+    def resolved_level(self) -> str:
+        """"object" or "room": the configured level, or the automatic rule for "auto"."""
+        if self.level != "auto":
+            return self.level
+        roi_lo, roi_hi = np.asarray(self.roi_min, float), np.asarray(self.roi_max, float)
+        grow = 0.1 * (roi_hi - roi_lo)
+        ws_lo, ws_hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
+        inside = np.all(ws_lo >= roi_lo - grow) and np.all(ws_hi <= roi_hi + grow)
+        return "room" if inside else "object"
+
+    def grid_spec(self) -> GridSpec:
+        """The voxel grid over workspace + ROI: the level's voxel size, or the smallest multiple of
+        1 mm that keeps the grid within voxel_budget; origin half a voxel below the box, so planes
+        at the box faces (a table top, a floor) lie mid-voxel and not on a voxel boundary."""
+        lo = np.minimum(np.asarray(self.workspace_min, float), np.asarray(self.roi_min, float))
+        hi = np.maximum(np.asarray(self.workspace_max, float), np.asarray(self.roi_max, float))
+        voxel = self.voxel_size or LEVEL_DEFAULTS[self.resolved_level()]["voxel_size"]
+        while True:
+            spec = GridSpec.from_bounds(lo - 0.5 * voxel, hi + 0.5 * voxel, voxel)
+            if spec.num_voxels <= int(self.voxel_budget):
+                return spec
+            voxel = np.ceil(1000 * voxel * (spec.num_voxels / self.voxel_budget) ** (1 / 3)) / 1000
+
+    def resolved_gamma(self) -> float:
+        return self.gamma if self.gamma >= 0 else LEVEL_DEFAULTS[self.resolved_level()]["gamma"]
+
+    def resolved_budget(self) -> int:
+        return int(self.budget) or LEVEL_DEFAULTS[self.resolved_level()]["budget"]
 
 
 @dataclass
@@ -101,7 +159,6 @@ class NextBestViewServer:
     """
 
     config: PlannerConfig
-    scene: object | None = None
     background: bool = False
     on_refresh: object | None = None  # Callable[[], None]
     grid: FusedGrid = field(init=False)
@@ -115,27 +172,36 @@ class NextBestViewServer:
     def __post_init__(self) -> None:
         c = self.config
         c.validate()
-        lo = np.minimum(np.asarray(c.workspace_min, float), np.asarray(c.roi_min, float))
-        hi = np.maximum(np.asarray(c.workspace_max, float), np.asarray(c.roi_max, float))
-        spec = GridSpec.from_bounds(lo, hi, c.voxel_size)
+        level = c.resolved_level()
+        self.budget = c.resolved_budget()
         self.grid = FusedGrid(
-            spec, c.roi_min, c.roi_max, c.gamma, c.unobserved_uncertainty, c.semantic_weight
+            c.grid_spec(),
+            c.roi_min,
+            c.roi_max,
+            c.resolved_gamma(),
+            c.unobserved_uncertainty,
+            c.semantic_weight,
+            c.geometric_rule,
+            c.max_confidence,
         )
         self.context = PlanningContext(
             grid=self.grid,
             workspace_lo=np.asarray(c.workspace_min, float),
             workspace_hi=np.asarray(c.workspace_max, float),
-            seed_spacing=c.seed_spacing,
             clearance=c.clearance,
             visibility=VisibilityParams(
+                level=level,
+                shell_scales=tuple(float(v) for v in c.shell_scales),
+                fan_deg=c.fan_deg,
+                seed_spacing=c.seed_spacing,
                 yaw_bins=c.yaw_bins,
                 pitch_bins=c.pitch_bins,
-                mc_rays=c.mc_rays,
                 hfov_deg=c.hfov_deg,
                 width=c.width,
                 height=c.height,
                 max_range=c.max_range,
-                rng_seed=c.seed,
+                face_res=c.face_res,
+                pixels_per_voxel=c.pixels_per_voxel,
             ),
             greedy=GreedyParams(
                 eta=c.eta,
@@ -143,9 +209,9 @@ class NextBestViewServer:
                 nms_radius=c.nms_radius,
                 nms_angle_deg=c.nms_angle_deg,
                 range_sigma=c.range_sigma,
+                decay=c.decay,
             ),
             rng_seed=c.seed,
-            scene=self.scene,
         )
         self.context.visibility.validate()
         self.context.greedy.validate()
@@ -184,7 +250,13 @@ class NextBestViewServer:
         """Fuse one frame and remember its depth/pose for a semantic map of the same stamp."""
         with self._lock:
             self.grid.integrate_depth(
-                depth, conf, K, T, self.config.max_range, self.config.carve_stride
+                depth,
+                conf,
+                K,
+                T,
+                self.config.max_range,
+                self.config.carve_stride,
+                self.config.carve_no_return,
             )
             self._frames[int(stamp_ns)] = _Frame(
                 np.asarray(depth, np.float32), np.asarray(K, float), np.asarray(T, float)
@@ -193,6 +265,7 @@ class NextBestViewServer:
                 self._frames.popitem(last=False)
             self._fused_stamps.add(int(stamp_ns))
             self.context.camera_positions.append(np.asarray(T, float)[:3, 3].copy())
+            self.context.camera_poses.append(np.asarray(T, float).copy())
             self.last_fused_stamp = max(self.last_fused_stamp, int(stamp_ns))
             self._map_version += 1
             self._stamp_version[int(stamp_ns)] = self._map_version
@@ -288,7 +361,7 @@ class NextBestViewServer:
     def remaining_budget(self) -> int:
         """Views the budget still allows: budget - max(frames fused, initial frames + committed)."""
         initial = self.grid.frames if self.initial_frames is None else self.initial_frames
-        return max(0, int(self.config.budget) - max(self.grid.frames, initial + self.committed))
+        return max(0, self.budget - max(self.grid.frames, initial + self.committed))
 
     def status(self) -> dict:
         return {
@@ -297,6 +370,8 @@ class NextBestViewServer:
             "semantic_frames_fused": self.grid.semantic_frames,
             "mode": self.config.mode,
             "policy": self.config.policy,
+            "level": self.context.visibility.level,
+            "voxel_size": self.grid.spec.voxel_size,
             "committed_views": self.committed,
             "remaining_budget": self.remaining_budget(),
             "cache_ready": self.cache_ready(),
@@ -331,7 +406,7 @@ class NextBestViewServer:
                 self.initial_frames = self.grid.frames
             remaining = self.remaining_budget()
             if remaining == 0:
-                return [], f"budget: all {self.config.budget} views are spent"
+                return [], f"budget: all {self.budget} views are spent"
             if num == 0:
                 # batch: the whole remaining budget at once; closed loop: the next best view only.
                 want = remaining if self.config.mode == "batch" else 1
@@ -350,17 +425,13 @@ class NextBestViewServer:
                 return [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
             self.context.start = None if request.start is None else np.asarray(request.start, float)
             try:
-                seeds = self.context.seeds()
+                seeds, rotations = self.context.candidates()
                 if seeds.shape[0] == 0:
                     return (
                         [],
                         "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
                     )
-                candidates = (
-                    seeds.shape[0]
-                    * self.context.visibility.yaw_bins
-                    * self.context.visibility.pitch_bins
-                )
+                candidates = seeds.shape[0] * rotations.shape[1]
                 if want > candidates:
                     return (
                         [],

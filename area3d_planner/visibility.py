@@ -1,4 +1,16 @@
-"""Candidate view seeds, orientation bins and the cached Monte Carlo visibility masks."""
+"""Candidate views and their cached visibility masks.
+
+Candidates are sampled where a camera works: at object level on shells around the region of
+interest at the working distance (elevations that look at it, a small fan of orientations per
+position); at room level on a lattice of known-free positions inside the room, each with a coarse
+yaw x pitch set of orientations. Positions are checked against the fused occupancy map only (what
+a robot has): clear of occupied voxels, and in known-free space (object level: or in unknown space
+outside the region of interest).
+
+Masks are dense: every voxel that can carry utility is tested against a cube-map z-buffer of the
+occupied voxels at each candidate position (`zbuffer.py`), then against each view's frustum, and
+weighted by the share of a full observation the view's resolution gives it.
+"""
 
 from __future__ import annotations
 
@@ -12,40 +24,44 @@ from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
-from area3d_planner.raycast import (
-    VOXEL_OCCUPIED,
-    VOXEL_RELEVANT,
-    score_all_views,
-    score_views,
-    visibility_masks,
-)
+from area3d_planner.raycast import score_all_views, score_views
+from area3d_planner.zbuffer import in_frustum, seed_view_masks
 
 UP = np.array([0.0, 0.0, 1.0])
-CHUNKS_PER_THREAD = 16  # seed chunks per worker thread when building masks (load balance)
+CHUNKS_PER_THREAD = 8  # seed chunks per worker thread when building masks (load balance)
+LEVELS = ("object", "room")
 
 
 @dataclass(frozen=True)
 class VisibilityParams:
-    """Tunables of the visibility cache (defaults: paper where it fixes them, else our choice)."""
+    """Tunables of the candidates and the visibility cache (paper where it fixes them, else ours)."""
 
+    level: str = "object"  # "object": shells around the region; "room": lattice inside it
+    # object level: shells at these multiples of the working distance around the region centre
+    shell_scales: tuple = (0.8, 1.0, 1.25)
+    shell_elevations_deg: tuple = (0.0, 12.0, 25.0, 38.0, 52.0, 66.0, 80.0)
+    shell_azimuth_step_deg: float = 15.0  # on the lowest ring; rings above get fewer positions
+    fan_deg: float = 20.0  # orientations per shell position: at the centre, and +-fan in yaw/pitch
+    # room level: a lattice of positions, each with yaw_bins x pitch_bins orientations
+    seed_spacing: float = 0.5  # metres
     yaw_bins: int = 12  # 30 degree yaw steps: a coarse yaw/pitch grid (paper, "Visibility Gate")
-    pitch_bins: int = 5  # pitch from pitch_min_deg to pitch_max_deg
-    pitch_min_deg: float = -60.0  # looking down onto a table or floor
-    pitch_max_deg: float = 30.0  # looking slightly up
-    mc_rays: int = 256  # R_pre, Monte Carlo rays per seed and bin (paper Algorithm 1)
+    pitch_bins: int = 4  # pitch from pitch_min_deg to pitch_max_deg
+    pitch_min_deg: float = -60.0  # looking down onto a table or the floor
+    pitch_max_deg: float = 15.0  # looking at a wall, slightly up
     hfov_deg: float = 90.0  # paper, supplement: FOV 90 degrees
-    width: int = 640  # image aspect of the frustum
+    width: int = 640  # image size: frustum aspect and pixel footprint of a voxel
     height: int = 480
-    max_range: float = 5.0  # paper, supplement: max depth 5 m (far plane at optical z = 5 m)
-    rng_seed: int = 0  # ray sampling is reproducible
-    # "coverage": a voxel's weight estimates how much of it the view sees (rays scaled by range^2),
-    # so utility counts uncertain voxels in view; "ray_fraction": share of rays reaching it.
-    weighting: str = "coverage"
+    max_range: float = 5.0  # paper, supplement: max depth 5 m
+    near: float = 0.05  # metres, nothing nearer than this is in view
+    face_res: int = 256  # cube-map z-buffer pixels per face edge (0.35 degrees at the face centre)
+    # A voxel counts as fully observed by a view where it covers at least this many pixels (4 x 4);
+    # fewer pixels count in proportion: the resolution term of the utility.
+    pixels_per_voxel: float = 16.0
 
     def validate(self) -> None:
-        if self.weighting not in ("coverage", "ray_fraction"):
-            raise InputError("weighting", self.weighting, "'coverage' or 'ray_fraction'")
-        for name in ("yaw_bins", "pitch_bins", "mc_rays", "width", "height"):
+        if self.level not in LEVELS:
+            raise InputError("level", self.level, f"one of {', '.join(LEVELS)}")
+        for name in ("yaw_bins", "pitch_bins", "width", "height", "face_res"):
             value = getattr(self, name)
             if int(value) < 1:
                 raise InputError(name, value, "an integer >= 1")
@@ -53,12 +69,41 @@ class VisibilityParams:
             raise InputError("hfov_deg", self.hfov_deg, "a value in (0, 180) degrees")
         if not (self.max_range > 0 and np.isfinite(self.max_range)):
             raise InputError("max_range", self.max_range, "a finite value > 0 metres")
+        if not (0 <= self.near < self.max_range):
+            raise InputError("near", self.near, f"a value in [0, max_range={self.max_range}) m")
+        if not (self.pixels_per_voxel > 0 and np.isfinite(self.pixels_per_voxel)):
+            raise InputError("pixels_per_voxel", self.pixels_per_voxel, "a finite value > 0")
+        if not (self.seed_spacing > 0 and np.isfinite(self.seed_spacing)):
+            raise InputError("seed_spacing", self.seed_spacing, "a finite value > 0 metres")
+        if not (self.shell_azimuth_step_deg > 0):
+            raise InputError("shell_azimuth_step_deg", self.shell_azimuth_step_deg, "> 0 degrees")
+        if len(self.shell_scales) == 0 or min(self.shell_scales) <= 0:
+            raise InputError("shell_scales", list(self.shell_scales), "values > 0")
+        if len(self.shell_elevations_deg) == 0 or not all(
+            -90 < e < 90 for e in self.shell_elevations_deg
+        ):
+            raise InputError(
+                "shell_elevations_deg", list(self.shell_elevations_deg), "values in (-90, 90)"
+            )
         if not (-90 < self.pitch_min_deg <= self.pitch_max_deg < 90):
             raise InputError(
                 "pitch_min_deg/pitch_max_deg",
                 (self.pitch_min_deg, self.pitch_max_deg),
                 "-90 < pitch_min_deg <= pitch_max_deg < 90",
             )
+
+    @property
+    def tan_x(self) -> float:
+        return float(np.tan(np.deg2rad(self.hfov_deg) / 2))
+
+    @property
+    def tan_y(self) -> float:
+        return self.tan_x * self.height / self.width
+
+    @property
+    def focal(self) -> float:
+        """Focal length in pixels of the candidate views' camera."""
+        return 0.5 * self.width / self.tan_x
 
 
 def look_rotation(forward: np.ndarray) -> np.ndarray:
@@ -83,6 +128,12 @@ def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
     return T
 
 
+def _direction(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    return np.stack(
+        [np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], axis=-1
+    )
+
+
 def orientation_bins(params: VisibilityParams) -> tuple[np.ndarray, np.ndarray]:
     """Yaw x pitch bins: (forward (B, 3) unit directions, rotations (B, 3, 3) R_world_cam).
 
@@ -96,109 +147,126 @@ def orientation_bins(params: VisibilityParams) -> tuple[np.ndarray, np.ndarray]:
             np.linspace(params.pitch_min_deg, params.pitch_max_deg, params.pitch_bins)
         )
     yy, pp = np.meshgrid(yaws, pitches, indexing="ij")
-    yy, pp = yy.ravel(), pp.ravel()
-    forward = np.stack([np.cos(pp) * np.cos(yy), np.cos(pp) * np.sin(yy), np.sin(pp)], axis=1)
+    forward = _direction(yy.ravel(), pp.ravel())
     rotations = np.stack([look_rotation(f) for f in forward])
     return forward, rotations
 
 
-def frustum_rays(params: VisibilityParams) -> tuple[np.ndarray, np.ndarray]:
-    """mc_rays directions uniform over the image plane (stratified, jittered, seeded).
+def shell_positions(
+    centre: np.ndarray, radius: float, params: VisibilityParams
+) -> np.ndarray:
+    """(P, 3) positions on the shells around `centre` at shell_scales * radius, one ring per
+    elevation, azimuths spaced so that neighbours on a ring are about as far apart as on the
+    lowest ring."""
+    centre = np.asarray(centre, np.float64)
+    points = []
+    base = np.deg2rad(params.shell_azimuth_step_deg)
+    for scale in params.shell_scales:
+        for i, el in enumerate(np.deg2rad(params.shell_elevations_deg)):
+            count = max(3, int(round(2 * np.pi * np.cos(el) / base)))
+            az = (np.arange(count) + 0.5 * (i % 2)) * 2 * np.pi / count
+            d = _direction(az, np.full(count, el))
+            points.append(centre + scale * radius * d)
+    return np.concatenate(points)
 
-    Returns (dirs (R, 3) unit optical-frame directions, t_far (R,) ray length to z = max_range).
-    """
-    rng = np.random.default_rng(params.rng_seed)
-    r = params.mc_rays
-    tan_x = np.tan(np.deg2rad(params.hfov_deg) / 2)
-    tan_y = tan_x * params.height / params.width
-    cols = max(1, int(round(np.sqrt(r * params.width / params.height))))
-    cell = np.arange(r)
-    u = ((cell % cols) + rng.random(r)) / cols
-    rows = int(np.ceil(r / cols))
-    v = ((cell // cols) + rng.random(r)) / rows
-    d = np.stack([(2 * u - 1) * tan_x, (2 * v - 1) * tan_y, np.ones(r)], axis=1)
-    norms = np.linalg.norm(d, axis=1)
-    return d / norms[:, None], params.max_range * norms
+
+def shell_rotations(positions: np.ndarray, target: np.ndarray, fan_deg: float) -> np.ndarray:
+    """(P, 5, 3, 3): per position, looking at `target`, then turned by +-fan_deg in yaw and pitch."""
+    to_t = np.asarray(target, np.float64)[None] - positions
+    yaw = np.arctan2(to_t[:, 1], to_t[:, 0])
+    pitch = np.arctan2(to_t[:, 2], np.linalg.norm(to_t[:, :2], axis=1))
+    f = np.deg2rad(fan_deg)
+    offsets = [(0.0, 0.0), (f, 0.0), (-f, 0.0), (0.0, f), (0.0, -f)]
+    out = np.empty((positions.shape[0], len(offsets), 3, 3))
+    for b, (dy, dp) in enumerate(offsets):
+        p = np.clip(pitch + dp, -np.deg2rad(89.0), np.deg2rad(89.0))
+        for i, fwd in enumerate(_direction(yaw + dy, p)):
+            out[i, b] = look_rotation(fwd)
+    return out
 
 
-def candidate_seeds(
-    workspace_lo: np.ndarray,
-    workspace_hi: np.ndarray,
-    seed_spacing: float,
+def lattice_positions(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
+    """(P, 3) centres of a `spacing` lattice inside the box [lo, hi], centred in it."""
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    counts = np.maximum(np.floor((hi - lo) / spacing + 1e-9).astype(int), 1)
+    offset = lo + 0.5 * ((hi - lo) - (counts - 1) * spacing)
+    axes = [offset[a] + np.arange(counts[a]) * spacing for a in range(3)]
+    return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
+
+
+def valid_seeds(
+    points: np.ndarray,
     spec: GridSpec,
     occupancy: np.ndarray,
-    clearance: float = 0.05,  # same default as sim_bridge.validity.check_pose
-    allow_unknown: bool = False,
-    scene: object | None = None,
+    workspace_lo: np.ndarray,
+    workspace_hi: np.ndarray,
+    clearance: float,
+    unknown_ok_outside: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """Centres of a `seed_spacing` voxelisation of the workspace that are valid camera positions.
+    """(P,) bool: camera centres `points` (P, 3) a robot may plan for from its map alone.
 
-    A seed is kept when it lies inside the workspace, no occupied voxel centre is closer than
-    clearance + voxel_size / 2, its voxel is known free (or outside the grid) unless
-    allow_unknown, and, with a scene, `sim_bridge.validity.valid_positions` accepts it.
-    Returns (S, 3) float64 world metres.
+    Inside the workspace box; no occupied voxel centre closer than clearance + voxel_size / 2;
+    in a known-free voxel, or outside the grid, or (with `unknown_ok_outside` = (lo, hi)) in an
+    unknown voxel outside that box. The camera itself refuses a pose the map got wrong.
     """
     lo = np.asarray(workspace_lo, dtype=np.float64)
     hi = np.asarray(workspace_hi, dtype=np.float64)
-    if (
-        lo.shape != (3,)
-        or hi.shape != (3,)
-        or not np.all(hi > lo)
-        or not np.all(np.isfinite(hi - lo))
-    ):
+    if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo) or not np.all(np.isfinite(hi - lo)):
         raise InputError(
             "workspace", [lo.tolist(), hi.tolist()], "workspace_min < workspace_max on every axis"
         )
-    if not (seed_spacing > 0 and np.isfinite(seed_spacing)):
-        raise InputError("seed_spacing", seed_spacing, "a finite value > 0 metres")
-    counts = np.maximum(np.floor((hi - lo) / seed_spacing + 1e-9).astype(int), 1)
-    offset = lo + 0.5 * ((hi - lo) - (counts - 1) * seed_spacing)
-    axes = [offset[a] + np.arange(counts[a]) * seed_spacing for a in range(3)]
-    seeds = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
-    seeds = seeds[np.all((seeds >= lo) & (seeds <= hi), axis=1)]
-
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    ok = np.all(np.isfinite(points), axis=1) & np.all((points >= lo) & (points <= hi), axis=1)
     occupied = np.flatnonzero(occupancy == 1)
-    if occupied.size:
-        tree = cKDTree(spec.centers()[occupied])
+    if occupied.size and ok.any():
+        tree = cKDTree(spec.centers_of(occupied))
         dist, _ = tree.query(
-            seeds, k=1, distance_upper_bound=clearance + 0.5 * spec.voxel_size + 1e-12
+            points[ok], k=1, distance_upper_bound=clearance + 0.5 * spec.voxel_size + 1e-12
         )
-        seeds = seeds[~np.isfinite(dist)]
-    if not allow_unknown and seeds.size:
-        vox, inside = spec.flat_index(seeds)
-        seeds = seeds[~inside | (occupancy[vox] == 0)]
-    if scene is not None and seeds.size:
-        from sim_bridge.validity import valid_positions
-
-        seeds = seeds[np.asarray(valid_positions(scene, seeds, clearance), dtype=bool)]
-    return seeds.reshape(-1, 3)
+        ok[ok] = ~np.isfinite(dist)
+    vox, inside = spec.flat_index(points)
+    state = np.where(inside, occupancy[vox], 0)
+    allowed = state == 0
+    if unknown_ok_outside is not None:
+        box_lo, box_hi = unknown_ok_outside
+        outside_box = ~np.all((points >= box_lo) & (points <= box_hi), axis=1)
+        allowed |= (state == -1) & outside_box
+    return ok & allowed
 
 
 class VisibilityCache:
-    """Cached visibility masks of every view (seed s, orientation bin b), view index s * B + b.
+    """Cached visibility masks of every candidate view (seed s, orientation b), view index s * B + b.
 
+    seeds: (S, 3) camera centres; rotations: (S, B, 3, 3) R_world_cam of their views.
     CSR layout: the mask of view v is voxel_ids[indptr[v]:indptr[v+1]] (int32 flat voxel index)
-    with weights (float32): the fraction of the view's Monte Carlo rays that reach the voxel.
-    Scoring a view against a field U (N,) is the dot product sum_i w_i U[id_i].
+    with weights (float32, the share of a full observation the view gives the voxel). Scoring a
+    view against a field U (N,) is the dot product sum_i w_i U[id_i].
+    record_ids (int32) / record_centres ((K, 3) metres): the voxels the masks may hold (for the
+    frustum decay).
     """
 
     def __init__(
         self,
         spec: GridSpec,
         seeds: np.ndarray,
-        forward: np.ndarray,
         rotations: np.ndarray,
         indptr: np.ndarray,
         voxel_ids: np.ndarray,
         weights: np.ndarray,
+        record_ids: np.ndarray,
+        params: VisibilityParams,
     ) -> None:
         self.spec = spec
         self.seeds = seeds
-        self.forward = forward
         self.rotations = rotations
+        self.forward = rotations[..., 2] if rotations.size else np.zeros((0, 0, 3))
         self.indptr = indptr
         self.voxel_ids = voxel_ids
         self.weights = weights
+        self.record_ids = record_ids
+        self.record_centres = spec.centers_of(record_ids)
+        self.params = params
 
     @property
     def num_seeds(self) -> int:
@@ -206,7 +274,7 @@ class VisibilityCache:
 
     @property
     def num_bins(self) -> int:
-        return int(self.forward.shape[0])
+        return int(self.rotations.shape[1]) if self.rotations.ndim == 4 else 0
 
     @property
     def num_views(self) -> int:
@@ -218,17 +286,18 @@ class VisibilityCache:
         spec: GridSpec,
         occupancy: np.ndarray,
         seeds: np.ndarray,
+        rotations: np.ndarray,
         params: VisibilityParams | None = None,
         relevant: np.ndarray | None = None,
         threads: int | None = None,
     ) -> VisibilityCache:
-        """Cast params.mc_rays rays per (seed, bin) with first-hit termination on occupied voxels.
+        """Dense masks of every (seed, orientation) view: every relevant voxel visible from the
+        seed (cube-map z-buffer of the occupied voxels) and inside the view's frustum.
 
-        occupancy: (N,) int8 (-1 unknown, 0 free, 1 occupied). seeds: (S, 3) camera centres.
-        relevant: (N,) bool, the voxels recorded in the masks (default: every voxel that is not
-        known free; a field that is 0 elsewhere scores the same, with far smaller masks). Rays
-        are cast only towards the bounding box of the relevant voxels.
-        threads: worker threads (default: CPU count); the result does not depend on it.
+        occupancy: (N,) int8 (-1 unknown, 0 free, 1 occupied). seeds: (S, 3); rotations:
+        (S, B, 3, 3) or (B, 3, 3) shared by every seed. relevant: (N,) bool, the voxels recorded
+        (default: every voxel that is not known free). threads: worker threads (default: CPU
+        count); the result does not depend on it.
         """
         params = params or VisibilityParams()
         params.validate()
@@ -238,73 +307,58 @@ class VisibilityCache:
                 "occupancy", occupancy.shape, f"({spec.num_voxels},) int8 flat occupancy"
             )
         seeds = np.ascontiguousarray(np.asarray(seeds, dtype=np.float64).reshape(-1, 3))
+        rotations = np.asarray(rotations, np.float64)
+        if rotations.ndim == 3:
+            rotations = np.broadcast_to(rotations, (seeds.shape[0], *rotations.shape))
+        rotations = np.ascontiguousarray(rotations)
+        if rotations.shape[:1] != seeds.shape[:1] or rotations.shape[2:] != (3, 3):
+            raise InputError(
+                "rotations", rotations.shape, f"({seeds.shape[0]}, B, 3, 3) view rotations"
+            )
         if relevant is None:
             relevant = occupancy != 0
-        relevant = np.ascontiguousarray(relevant, dtype=np.bool_)
-        forward, rotations = orientation_bins(params)
-        dirs, t_far = frustum_rays(params)
-        rel_ids = np.flatnonzero(relevant)
-        if rel_ids.size:
-            ijk = np.stack(np.unravel_index(rel_ids, spec.shape), axis=1)
-            box_lo = spec.lower + ijk.min(axis=0) * spec.voxel_size
-            box_hi = spec.lower + (ijk.max(axis=0) + 1) * spec.voxel_size
-        else:
-            box_lo = box_hi = spec.lower.copy()
-        tan_x = np.tan(np.deg2rad(params.hfov_deg) / 2)
-        cos_half_diag = 1.0 / np.sqrt(1.0 + tan_x**2 * (1.0 + (params.height / params.width) ** 2))
-        scale_by_range = params.weighting == "coverage"
-        if scale_by_range:
-            # Rays are uniform on the image plane z = 1 (area 4 tan_x tan_y): each stands for
-            # area / R there, i.e. a solid angle of (area / R) cos^3 of its angle to the axis.
-            tan_y = tan_x * params.height / params.width
-            cos_axis = dirs[:, 2] / np.linalg.norm(dirs, axis=1)
-            ray_weight = (4 * tan_x * tan_y / dirs.shape[0]) * cos_axis**3 / spec.voxel_size**2
-        else:
-            ray_weight = np.full(dirs.shape[0], 1.0 / dirs.shape[0])
-        shape = np.asarray(spec.shape, np.int64)
-        flags = (occupancy == 1).astype(np.uint8) * VOXEL_OCCUPIED
-        flags |= relevant.astype(np.uint8) * VOXEL_RELEVANT
+        record_ids = np.flatnonzero(relevant).astype(np.int32)
+        centres = spec.centers_of(record_ids)
+        occ_centres = spec.centers_of(np.flatnonzero(occupancy == 1))
         threads = max(1, min(threads or os.cpu_count() or 1, max(1, seeds.shape[0])))
-        # Small chunks handed out in order balance the threads (seeds differ a lot in cost);
-        # each thread reuses one scratch pair for all its chunks.
         n_chunks = min(seeds.shape[0], threads * CHUNKS_PER_THREAD) if threads > 1 else 1
         chunks = np.array_split(np.arange(seeds.shape[0]), max(1, n_chunks))
         scratch = threading.local()
-        ray_weight = np.ascontiguousarray(ray_weight, np.float64)
+        tol = 0.9 * spec.voxel_size  # the surface layer counts, one voxel behind it does not
 
         def run(idx: np.ndarray):
-            if not hasattr(scratch, "counts"):
-                scratch.counts = np.zeros(spec.num_voxels, np.float64)
-                scratch.touched = np.empty(spec.num_voxels, np.int32)
-            return visibility_masks(
+            if not hasattr(scratch, "zbuf"):
+                scratch.zbuf = np.empty((6, params.face_res, params.face_res), np.float64)
+            return seed_view_masks(
                 np.ascontiguousarray(seeds[idx]),
-                rotations,
-                dirs,
-                t_far,
-                spec.lower,
+                np.ascontiguousarray(rotations[idx]),
+                occ_centres,
+                centres,
+                record_ids,
                 spec.voxel_size,
-                shape,
-                flags,
-                box_lo,
-                box_hi,
-                cos_half_diag,
-                ray_weight,
-                scale_by_range,
-                scratch.counts,
-                scratch.touched,
+                params.max_range,
+                params.near,
+                params.tan_x,
+                params.tan_y,
+                params.focal,
+                params.pixels_per_voxel,
+                tol,
+                scratch.zbuf,
             )
 
-        if threads == 1:
+        if seeds.shape[0] == 0:
+            parts = []
+        elif threads == 1:
             parts = [run(chunks[0])]
         else:
             with ThreadPoolExecutor(max_workers=threads) as pool:
                 parts = list(pool.map(run, chunks))
-        nnz = np.concatenate([p[0] for p in parts])
+        nnz = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
         indptr = np.zeros(nnz.size + 1, np.int64)
         np.cumsum(nnz, out=indptr[1:])
         voxel_ids = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int32)
         weights = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0, np.float32)
-        return cls(spec, seeds, forward, rotations, indptr, voxel_ids, weights)
+        return cls(spec, seeds, rotations, indptr, voxel_ids, weights, record_ids, params)
 
     def score(self, field: np.ndarray) -> np.ndarray:
         """(num_views,) float64 mask-weighted utility of every view under field U (N,)."""
@@ -326,6 +380,20 @@ class VisibilityCache:
         """(4, 4) T_world_cam of a view (optical frame)."""
         s, b = divmod(int(view), self.num_bins)
         T = np.eye(4)
-        T[:3, :3] = self.rotations[b]
+        T[:3, :3] = self.rotations[s, b]
         T[:3, 3] = self.seeds[s]
         return T
+
+    def frustum(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """int32 ids of the recorded voxels inside the frustum of a pose, occluded or not (the
+        paper's frustum decay acts on all of them)."""
+        p = self.params
+        inside = in_frustum(
+            self.record_centres,
+            np.ascontiguousarray(T_world_cam, np.float64),
+            p.near,
+            p.max_range,
+            p.tan_x,
+            p.tan_y,
+        )
+        return self.record_ids[inside]

@@ -38,6 +38,9 @@ STRING = "std_msgs/msg/String"
 IMAGE_QUEUE_DEPTH = 64  # the initial views (15 at room level) can arrive in one burst
 
 
+SIGMA_SOURCES = ("constant", "confidence")
+
+
 class SemanticsNode:
     NODE_NAME = "semantics"
 
@@ -74,6 +77,15 @@ class SemanticsNode:
         defaults = SemanticParams().to_flat()
         self.params = SemanticParams.from_flat({k: p(k, v) for k, v in defaults.items()})
         self.require_depth = bool(p("require_depth", True))
+        # sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's
+        # weights alone, independent of the depth backbone, so the no-feed-forward and no-VLM
+        # ablations each remove one thing) or "confidence" (1 - perception confidence).
+        self.sigma_source = p("sigma_source", "constant")
+        if self.sigma_source not in SIGMA_SOURCES:
+            log.error(
+                f"sigma_source: got {self.sigma_source!r}, expected one of {SIGMA_SOURCES}; using constant"
+            )
+            self.sigma_source = "constant"
         topics = {
             "color": p("color_topic", "/area3d/camera/color/image_raw"),
             "depth": p("depth_topic", "/area3d/camera/depth/image_raw"),
@@ -214,15 +226,19 @@ class SemanticsNode:
     def _publish_usem(self, stamp: int) -> None:
         """U_sem of one frame once both its weight map and its confidence are known (lock held)."""
         view = self.views.get(stamp)
+        by_confidence = self.sigma_source == "confidence"
         if (
             stamp not in self.weights
             or view is None
-            or view.confidence is None
+            or (by_confidence and view.confidence is None)
             or stamp in self.published_usem
         ):
             return
-        sigma = sigma_from_confidence(view.confidence)
         weight = self.weights[stamp]
+        if by_confidence:
+            sigma = sigma_from_confidence(view.confidence)
+        else:
+            sigma = np.ones(weight.shape, np.float32)
         if weight.shape != sigma.shape:
             # Perception may run at another resolution; the mask is smooth, so resampling is exact enough.
             weight = cv2.resize(

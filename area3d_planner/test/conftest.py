@@ -12,6 +12,8 @@ def set_occupancy(grid: FusedGrid, occ: np.ndarray, conf: float = 0.9) -> None:
     grid.conf_sum[:] = 0
     grid.hit_count[occ == 1] = 1
     grid.conf_sum[occ == 1] = conf
+    grid.log_residual[:] = 0
+    grid.log_residual[occ == 1] = np.log1p(-min(conf, grid.max_confidence))
     grid.free_count[occ == 0] = 1
 
 

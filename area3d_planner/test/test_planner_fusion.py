@@ -40,11 +40,26 @@ def test_depth_frame_marks_wall_occupied_space_before_it_free_and_behind_it_unkn
     assert geo[at(grid, [0.85, 0.5, 0.5])] == 1.0
 
 
-def test_pixels_without_return_carve_free_space_to_max_range():
+def test_pixels_without_return_carve_nothing_by_default():
+    # a dropout (dark, specular, grazing surface, noise) looks exactly like empty space
+    grid = make_grid(gamma=0.01)
+    depth, T = wall_frame()
+    depth[:, :32] = np.nan
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=5.0, stride=1)
+    occ = grid.occupancy()
+    assert occ[at(grid, [0.35, 0.4, 0.5])] == 0  # carved along the rays that hit the wall
+    # left half of the image (world +y, the camera looks along +x with y down): never carved
+    assert occ[at(grid, [0.35, 0.8, 0.5])] == -1
+    assert occ[at(grid, [0.35, 0.3, 0.5])] == 0
+
+
+def test_pixels_without_return_carve_free_space_to_max_range_when_asked():
     grid = make_grid(gamma=0.01)
     depth, T = wall_frame()
     depth[:] = np.nan
-    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=0.6, stride=1)
+    grid.integrate_depth(
+        depth, np.ones_like(depth), K, T, max_range=0.6, stride=1, carve_no_return=True
+    )
     occ = grid.occupancy()
     assert occ[at(grid, [0.45, 0.5, 0.5])] == 0
     assert occ[at(grid, [0.9, 0.5, 0.5])] == -1  # beyond z = 0.6 m from the camera
@@ -70,8 +85,25 @@ def test_gamma_zero_ablation_leaves_unobserved_uncertainty_only():
     depth, T = wall_frame()
     grid.integrate_depth(depth, np.ones_like(depth), K, T, stride=1)
     u = grid.fused()
-    assert u[at(grid, [0.62, 0.5, 0.5])] == 0.0  # full confidence surface, no gamma
+    # a full-confidence surface: one observation lowers it to 1 - max_confidence, no gamma
+    assert u[at(grid, [0.62, 0.5, 0.5])] == pytest.approx(1.0 - grid.max_confidence)
     assert u[at(grid, [0.85, 0.5, 0.5])] == 1.0
+
+
+def test_each_observation_lowers_geometric_uncertainty_under_the_product_rule():
+    product, mean = make_grid(gamma=0.0), make_grid(gamma=0.0, geometric_rule="mean")
+    depth, T = wall_frame()
+    v = at(product, [0.62, 0.5, 0.5])
+    seen = []
+    for _ in range(4):
+        for grid in (product, mean):
+            grid.integrate_depth(depth, np.full_like(depth, 0.5), K, T, stride=1)
+        seen.append((product.geometric()[v], mean.geometric()[v]))
+    g_product = [p for p, _ in seen]
+    np.testing.assert_allclose(g_product, 0.5 ** np.arange(1, 5), rtol=1e-5)
+    assert all(m == pytest.approx(0.5) for _, m in seen)  # the mean rule never falls
+    with pytest.raises(InputError, match="geometric_rule"):
+        make_grid(gamma=0.0, geometric_rule="median")
 
 
 def test_semantic_is_the_mean_of_the_splatted_maps_and_weighted_into_the_field():
@@ -82,7 +114,9 @@ def test_semantic_is_the_mean_of_the_splatted_maps_and_weighted_into_the_field()
     grid.integrate_semantic(np.full_like(depth, 0.6), depth, K, T)
     v = at(grid, [0.62, 0.5, 0.5])
     assert grid.semantic()[v] == pytest.approx(0.4)
-    assert grid.fused()[v] == pytest.approx(0.5 * 0.4)
+    g = grid.geometric()[v]
+    # the semantic term falls with the observations at half G's rate on a log scale
+    assert grid.fused()[v] == pytest.approx(g + 0.5 * 0.4 * np.sqrt(g))
     assert grid.semantic()[at(grid, [0.35, 0.5, 0.5])] == 0.0
 
 

@@ -17,10 +17,11 @@ def config(**kw):
         roi_min=(0.3, 0.0, 0.0),
         roi_max=(1.0, 1.0, 1.0),
         voxel_size=0.05,
+        level="room",
         seed_spacing=0.2,
         yaw_bins=6,
         pitch_bins=2,
-        mc_rays=32,
+        face_res=32,
         budget=6,
     )
     base.update(kw)
@@ -144,7 +145,7 @@ def test_field_independent_policies_continue_their_sequence_in_closed_loop(polic
 
 def test_uniform_views_keep_the_working_distance_of_the_captured_frames():
     roomy = dict(workspace_min=(-1.0, -1.0, 0.0), workspace_max=(2.0, 2.0, 2.0))
-    srv = NextBestViewServer(config(budget=8, policy="uniform", **roomy))
+    srv = NextBestViewServer(config(budget=8, policy="uniform", level="object", **roomy))
     srv.add_frame(1, *frame())
     poses, _ = srv.plan(PlanRequest(None, 1, 0))
     centre = np.array([0.65, 0.5, 0.5])  # ROI centre
@@ -184,10 +185,9 @@ def test_closed_loop_requests_remember_the_decay_of_views_already_committed():
     cache = srv.context.cache()
     decay = srv.context.committed_decay
     assert decay is not None and np.isclose(decay.min(), 0.7) and decay.max() == 1.0
-    # the decayed voxels are exactly the committed view's mask
+    # the decayed voxels are exactly those inside the frustum of the pose sent to the camera
     committed = np.flatnonzero(decay < 1.0)
-    masks = [set(cache.mask(v)[0].tolist()) for v in range(cache.num_views)]
-    assert any(set(committed.tolist()) == m for m in masks)
+    np.testing.assert_array_equal(committed, np.sort(cache.frustum(first[0])))
     # with no new frame, the next request does not send the camera back to the same view
     second, _ = srv.plan(PlanRequest(None, 1, 1))
     assert not np.allclose(first[0], second[0])
@@ -293,3 +293,27 @@ def test_a_request_waits_for_the_rebuild_that_covers_its_stamp():
     finally:
         gate.set()
         srv.close()
+
+
+def test_the_grid_keeps_within_its_voxel_budget_and_puts_box_faces_mid_voxel():
+    big = config(
+        workspace_min=(-3.0, -2.0, 0.0), workspace_max=(3.0, 2.0, 2.5), roi_min=(-3.0, -2.0, 0.0),
+        roi_max=(3.0, 2.0, 2.5), voxel_size=0.0, voxel_budget=200_000, level="auto",
+    )
+    spec = big.grid_spec()
+    assert spec.num_voxels <= 200_000
+    assert big.resolved_level() == "room" and spec.voxel_size > 0.05  # coarser than the level's
+    small = config(voxel_size=0.0, level="object", roi_min=(0.3, 0.0, 0.73))
+    spec = small.grid_spec()
+    assert spec.voxel_size == 0.01  # object level default fits the budget
+    # a support plane at the ROI's floor (a table top at z = 0.73) lies mid-voxel
+    k = (0.73 - spec.lower[2]) / spec.voxel_size
+    assert abs(k - np.floor(k) - 0.5) < 1e-6
+
+
+def test_level_is_room_when_the_camera_works_inside_the_region():
+    inside = config(level="auto", workspace_min=(0.1, 0.1, 0.1), workspace_max=(0.9, 0.9, 0.9), roi_min=(0, 0, 0))
+    around = config(level="auto", workspace_min=(-1, -1, 0), workspace_max=(2, 2, 2))
+    assert inside.resolved_level() == "room" and around.resolved_level() == "object"
+    with pytest.raises(InputError, match="level"):
+        NextBestViewServer(config(level="galaxy"))

@@ -1,5 +1,3 @@
-import dataclasses
-
 import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
@@ -10,17 +8,28 @@ from area3d_planner.greedy import GreedyParams, lazy_greedy
 from area3d_planner.visibility import (
     VisibilityCache,
     VisibilityParams,
-    candidate_seeds,
+    lattice_positions,
+    look_at,
     look_rotation,
     orientation_bins,
+    shell_positions,
+    shell_rotations,
+    valid_seeds,
 )
 
-FAST = VisibilityParams(yaw_bins=8, pitch_bins=3, pitch_min_deg=-30, pitch_max_deg=30, mc_rays=128)
+FAST = VisibilityParams(
+    level="room", yaw_bins=8, pitch_bins=3, pitch_min_deg=-30, pitch_max_deg=30, face_res=32
+)
+
+
+def candidate_seeds(lo, hi, spacing, spec, occ, clearance=0.05, unknown_ok_outside=None):
+    points = lattice_positions(lo, hi, spacing)
+    return points[valid_seeds(points, spec, occ, lo, hi, clearance, unknown_ok_outside)]
 
 
 def test_orientation_bins_are_optical_frames_with_zero_roll():
     forward, rotations = orientation_bins(VisibilityParams())
-    assert forward.shape == (60, 3) and rotations.shape == (60, 3, 3)
+    assert forward.shape == (48, 3) and rotations.shape == (48, 3, 3)
     for f, R in zip(forward, rotations, strict=True):
         np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
         assert np.linalg.det(R) > 0
@@ -31,71 +40,151 @@ def test_orientation_bins_are_optical_frames_with_zero_roll():
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
 
 
-def test_seeds_stay_in_the_workspace_and_clear_of_geometry():
+def test_shells_surround_the_region_at_the_working_distance_and_look_at_it():
+    params = VisibilityParams(shell_scales=(0.8, 1.2), shell_elevations_deg=(0.0, 30.0, 60.0))
+    centre = np.array([0.1, -0.2, 0.8])
+    points = shell_positions(centre, 0.5, params)
+    r = np.linalg.norm(points - centre, axis=1)
+    assert set(np.round(r, 9)) == {0.4, 0.6}
+    elevation = np.degrees(np.arcsin((points[:, 2] - centre[2]) / r))
+    assert set(np.round(elevation, 6)) == {0.0, 30.0, 60.0}
+    # azimuths go all the way round on every ring
+    az = np.degrees(np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0]))
+    assert az.max() - az.min() > 300
+    rotations = shell_rotations(points, centre, 20.0)
+    assert rotations.shape == (len(points), 5, 3, 3)
+    to_centre = (centre - points) / r[:, None]
+    np.testing.assert_allclose(rotations[:, 0, :, 2], to_centre, atol=1e-9)
+    off_axis = np.degrees(np.arccos(np.clip(np.einsum("pbi,pi->pb", rotations[:, 1:, :, 2], to_centre), -1, 1)))
+    # pitch offsets turn by exactly the fan angle, yaw offsets by at most it (less when tilted)
+    np.testing.assert_allclose(off_axis[:, 2:], 20.0, atol=1e-6)
+    assert np.all((off_axis[:, :2] > 5.0) & (off_axis[:, :2] <= 20.0 + 1e-6))
+
+
+def test_seeds_stay_in_the_workspace_and_clear_of_occupied_voxels():
     rng = np.random.default_rng(3)
     spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.05)
     occ = np.where(rng.random(spec.num_voxels) < 0.03, 1, 0).astype(np.int8)
     lo, hi = np.array([0.1, 0.0, 0.2]), np.array([0.9, 1.0, 0.8])
-    seeds = candidate_seeds(lo, hi, 0.1, spec, occ, clearance=0.05)
+    seeds = candidate_seeds(lo, hi, 0.1, spec, occ)
     assert seeds.shape[0] > 0
     assert np.all((seeds >= lo) & (seeds <= hi))
     d = cdist(seeds, spec.centers()[occ == 1]).min(axis=1)
     assert np.all(d > 0.05 + 0.025)
     # and nothing valid was dropped: every lattice point clear of geometry is a seed
-    all_pts = candidate_seeds(lo, hi, 0.1, spec, np.zeros_like(occ), clearance=0.05)
+    all_pts = candidate_seeds(lo, hi, 0.1, spec, np.zeros_like(occ))
     clear = cdist(all_pts, spec.centers()[occ == 1]).min(axis=1) > 0.075
     assert clear.sum() == seeds.shape[0]
 
 
-def test_seeds_in_unknown_space_need_permission():
+def test_seeds_in_unknown_space_only_outside_the_given_box():
     spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.05)
     occ = np.full(spec.num_voxels, -1, np.int8)
-    assert candidate_seeds(np.zeros(3), np.ones(3), 0.25, spec, occ).shape[0] == 0
-    assert (
-        candidate_seeds(np.zeros(3), np.ones(3), 0.25, spec, occ, allow_unknown=True).shape[0] == 64
-    )
+    lo, hi = np.zeros(3), np.ones(3)
+    assert candidate_seeds(lo, hi, 0.25, spec, occ).shape[0] == 0
+    box = (np.full(3, 0.3), np.full(3, 0.7))
+    seeds = candidate_seeds(lo, hi, 0.25, spec, occ, unknown_ok_outside=box)
+    inside = np.all((seeds >= box[0]) & (seeds <= box[1]), axis=1)
+    assert seeds.shape[0] == 64 - 8 and not inside.any()
+
+
+def wall_scene(distance: float, size: float = 0.01):
+    spec = GridSpec.from_bounds(np.array([0.0, -1.0, -1.0]), np.array([1.5, 1.0, 1.0]), size)
+    occ = np.full(spec.shape, -1, np.int8)
+    wall_i = int(round(distance / size))
+    occ[:wall_i] = 0  # free in front of the wall, unknown behind it
+    occ[wall_i] = 1
+    return spec, occ.ravel(), wall_i
 
 
 def test_voxels_behind_an_occupied_wall_are_never_in_a_mask():
-    spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.05)
-    occ = np.full(spec.shape, -1, np.int8)
-    occ[:10] = 0  # free half x < 0.5 where the cameras are
-    occ[10] = 1  # a full wall x in [0.5, 0.55)
-    seeds = candidate_seeds(np.zeros(3), np.array([0.45, 1.0, 1.0]), 0.15, spec, occ.ravel())
-    cache = VisibilityCache.build(spec, occ.ravel(), seeds, FAST)
+    spec, occ, wall_i = wall_scene(0.5, 0.05)
+    seeds = candidate_seeds(np.array([0.0, -0.9, -0.9]), np.array([0.45, 0.9, 0.9]), 0.3, spec, occ)
+    cache = VisibilityCache.build(spec, occ, seeds, orientation_bins(FAST)[1], FAST)
     ix = np.unravel_index(cache.voxel_ids, spec.shape)[0]
     assert cache.voxel_ids.size > 0
-    assert ix.max() == 10  # the wall is seen, nothing behind it
-    assert np.all(cache.weights > 0)
-    fraction = VisibilityCache.build(
-        spec, occ.ravel(), seeds, dataclasses.replace(FAST, weighting="ray_fraction")
-    )
-    assert np.all(fraction.weights > 0) and np.all(fraction.weights <= 1)
+    assert ix.max() == wall_i  # the wall is seen, nothing behind it
+    assert np.all(cache.weights > 0) and np.all(cache.weights <= 1)
 
 
-@pytest.mark.parametrize("distance", [0.3, 0.6])
-def test_coverage_weights_count_the_voxels_a_view_sees_at_any_distance(distance):
-    # A wall filling the whole frustum: the weights of one view must add up to the number of wall
-    # voxels inside the frustum, each foreshortened by the cosine of its viewing angle (what a
-    # camera's pixels actually cover), near or far.
-    size = 0.01
-    spec = GridSpec.from_bounds(np.array([0.0, -1.0, -1.0]), np.array([1.0, 1.0, 1.0]), size)
-    occ = np.zeros(spec.shape, np.int8)
-    wall_i = int(round(distance / size))
-    occ[wall_i] = 1
-    params = VisibilityParams(
-        yaw_bins=4, pitch_bins=1, pitch_min_deg=0, pitch_max_deg=0, mc_rays=4096
+@pytest.mark.parametrize("distance", [0.4, 1.2])
+def test_weights_are_the_share_of_pixels_a_voxel_needs_that_it_gets(distance):
+    # A wall filling the frustum: every wall voxel in the frustum is in the mask with weight
+    # min(1, (f s / z)^2 / pixels_per_voxel); near, every voxel is fully observed, far, less.
+    spec, occ, wall_i = wall_scene(distance)
+    params = VisibilityParams(level="room", face_res=256)
+    R = look_rotation(np.array([1.0, 0.0, 0.0]))
+    cache = VisibilityCache.build(spec, occ, np.zeros((1, 3)), R[None], params)
+    ids, weights = cache.mask(0)
+    ijk = np.stack(np.unravel_index(ids, spec.shape), axis=1)
+    assert np.all(ijk[:, 0] == wall_i)
+    centres = spec.centers_of(ids)
+    expected = np.minimum(1.0, (params.focal * 0.01 / centres[:, 0]) ** 2 / params.pixels_per_voxel)
+    np.testing.assert_allclose(weights, expected, rtol=1e-5)
+    # ... and the wall voxels inside the frustum are there (dense, nothing sampled); voxels seen
+    # obliquely may hide behind their nearer neighbours (the z-buffer's "acne"), few of them
+    wall = np.flatnonzero(np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i)
+    in_view = np.intersect1d(wall, cache.frustum(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), 1]])))
+    c = spec.centers_of(in_view)
+    steep = c[:, 0] / np.linalg.norm(c, axis=1) > np.cos(np.deg2rad(30))
+    assert set(in_view[steep].tolist()) <= set(ids.tolist())
+    assert len(ids) >= 0.9 * len(in_view)
+    assert set(ids.tolist()) <= set(in_view.tolist())
+
+
+def fused_clutter(seed: int):
+    """A grid fused from depth frames of random boxes on a floor, as the planner sees it."""
+    rng = np.random.default_rng(seed)
+    spec = GridSpec.from_bounds(np.array([-0.6, -0.6, -0.05]), np.array([0.6, 0.6, 0.6]), 0.02)
+    grid = FusedGrid(spec, np.array([-0.3, -0.3, 0.0]), np.array([0.3, 0.3, 0.3]), gamma=0.01)
+    c = spec.centers()
+    solid = c[:, 2] < 0.0
+    for _ in range(6):
+        lo = np.append(rng.uniform(-0.25, 0.15, 2), 0.0)
+        hi = lo + np.append(rng.uniform(0.04, 0.12, 2), rng.uniform(0.05, 0.25))
+        solid |= np.all((c >= lo) & (c <= hi), axis=1)
+    from area3d_planner.test.conftest import set_occupancy
+
+    occ = np.where(solid, -1, 0).astype(np.int8)
+    # surface voxels (solid with a free 6-neighbour) seen as occupied; the rest stays unknown
+    vol = solid.reshape(spec.shape)
+    shell = vol & ~(
+        np.roll(vol, 1, 0) & np.roll(vol, -1, 0) & np.roll(vol, 1, 1) & np.roll(vol, -1, 1)
+        & np.roll(vol, 1, 2) & np.roll(vol, -1, 2)
     )
-    cache = VisibilityCache.build(spec, occ.ravel(), np.array([[0.0, 0.0, 0.0]]), params)
-    view = int(np.argmax(cache.forward[:, 0]))  # the bin looking along +x
-    ids, weights = cache.mask(view)
-    assert np.all(np.unravel_index(ids, spec.shape)[0] == wall_i)
-    depth = wall_i * size  # the wall's front face
-    c = (np.arange(-1.0, 1.0, size) + size / 2)[:, None]
-    y, z = np.broadcast_arrays(c, c.T)
-    in_view = (np.abs(y) <= depth) & (np.abs(z) <= depth * 480 / 640)  # 90 degree hfov, 4:3
-    expected = np.sum(depth / np.sqrt(depth**2 + y**2 + z**2)[in_view])
-    assert abs(weights.sum() - expected) < 0.05 * expected
+    seen = shell.ravel() & (rng.random(spec.num_voxels) < 0.6)
+    occ[seen] = 1
+    set_occupancy(grid, occ, conf=0.6)
+    return grid
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_scores_converge_towards_a_16x_denser_reference(seed):
+    grid = fused_clutter(seed)
+    occ = grid.occupancy()
+    params = VisibilityParams(shell_elevations_deg=(0.0, 20.0, 45.0, 70.0))
+    centre = 0.5 * (grid.roi_lo + grid.roi_hi)
+    points = shell_positions(centre, 0.6, params)
+    points = points[valid_seeds(points, grid.spec, occ, grid.spec.lower, grid.spec.upper, 0.05, (grid.roi_lo, grid.roi_hi))]
+    rotations = shell_rotations(points, centre, params.fan_deg)
+    U = grid.fused()
+
+    def scores(face_res):
+        p = VisibilityParams(shell_elevations_deg=params.shell_elevations_deg, face_res=face_res)
+        return VisibilityCache.build(grid.spec, occ, points, rotations, p).score(U)
+
+    reference = scores(4 * params.face_res)  # 16x the pixels
+    useful = reference > 0
+    assert useful.sum() > 100
+    errors = []
+    for face_res in (params.face_res // 4, params.face_res):
+        s = scores(face_res)
+        errors.append(np.median(np.abs(s[useful] - reference[useful]) / reference[useful]))
+        # the view ranked best is (nearly) the reference's best
+        assert reference[np.argmax(s)] >= 0.8 * reference.max()
+    # the default resolution is 4x closer to the reference than a 4x coarser one would be
+    assert errors[1] < 0.5 * errors[0]
+    assert errors[1] < 0.25
 
 
 def test_masks_do_not_depend_on_the_thread_count():
@@ -103,11 +192,24 @@ def test_masks_do_not_depend_on_the_thread_count():
     rng = np.random.default_rng(1)
     occ = rng.choice(np.array([-1, 0, 1], np.int8), size=spec.num_voxels, p=[0.3, 0.65, 0.05])
     seeds = rng.random((7, 3))
-    a = VisibilityCache.build(spec, occ, seeds, FAST, threads=1)
-    b = VisibilityCache.build(spec, occ, seeds, FAST, threads=2)
+    rotations = orientation_bins(FAST)[1]
+    a = VisibilityCache.build(spec, occ, seeds, rotations, FAST, threads=1)
+    b = VisibilityCache.build(spec, occ, seeds, rotations, FAST, threads=2)
     np.testing.assert_array_equal(a.indptr, b.indptr)
     np.testing.assert_array_equal(a.voxel_ids, b.voxel_ids)
     np.testing.assert_array_equal(a.weights, b.weights)
+
+
+def test_the_frustum_holds_occluded_voxels_too_and_nothing_outside_it():
+    spec, occ, wall_i = wall_scene(0.5, 0.05)
+    T = look_at(np.zeros(3), np.array([1.0, 0.0, 0.0]))
+    cache = VisibilityCache.build(spec, occ, np.zeros((1, 3)), T[None, :3, :3], FAST)
+    ids = cache.frustum(T)
+    ix = np.unravel_index(ids, spec.shape)[0]
+    assert ix.max() > wall_i  # behind the wall: decayed by the paper's frustum rule
+    c = spec.centers_of(ids)
+    assert np.all(np.abs(c[:, 1]) <= c[:, 0] + 1e-9)  # inside the 90 degree horizontal fov
+    assert np.all(c[:, 0] <= FAST.max_range)
 
 
 def test_first_view_looks_into_the_unobserved_pocket_through_its_opening(
@@ -116,7 +218,8 @@ def test_first_view_looks_into_the_unobserved_pocket_through_its_opening(
     spec = pocket_grid.spec
     occ = pocket_grid.occupancy()
     seeds = candidate_seeds(np.full(3, 0.05), np.full(3, 0.95), 0.1, spec, occ, clearance=0.05)
-    cache = VisibilityCache.build(spec, occ, seeds, VisibilityParams(mc_rays=256))
+    params = VisibilityParams(level="room", face_res=64)
+    cache = VisibilityCache.build(spec, occ, seeds, orientation_bins(params)[1], params)
     sel = lazy_greedy(cache, pocket_grid.fused(), 1, GreedyParams())
     view = sel.views[0]
     ids, w = cache.mask(view)

@@ -1,0 +1,195 @@
+"""Dense visibility of voxels from a camera centre: a cube-map z-buffer of the occupied voxels.
+
+Every candidate camera position gets one panoramic depth buffer (six square faces of `face_res`
+pixels) into which the occupied voxels are splatted; a voxel is visible from that position when
+its centre is no farther than the nearest occupied voxel in its direction (plus a tolerance of
+`tol` metres, so the surface layer itself counts). Every voxel is tested, none is sampled: the
+only approximation is the buffer's angular resolution (90 / face_res degrees at a face's centre).
+
+All kernels address voxels by the caller's ids and work on (N, 3) float64 voxel centres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# Half the angular size of a voxel splatted into the buffer, in voxel edges over range: 0.5 is the
+# inscribed sphere, so the splats of neighbouring surface voxels touch without covering each
+# other's centres (a surface seen obliquely does not hide itself).
+SPLAT_HALF_EXTENT = 0.87
+MAX_SPLAT_PIXELS = 24  # half width cap of one splat, pixels (a voxel right at the camera)
+
+
+@njit(cache=True, inline="always")
+def _cube_coords(dx, dy, dz):
+    """(face 0..5, u, v) of a direction: u, v in [-1, 1] on the face of the major axis."""
+    ax, ay, az = abs(dx), abs(dy), abs(dz)
+    if ax >= ay and ax >= az:
+        return (0 if dx > 0 else 1), dy / ax, dz / ax
+    if ay >= az:
+        return (2 if dy > 0 else 3), dx / ay, dz / ay
+    return (4 if dz > 0 else 5), dx / az, dy / az
+
+
+@njit(cache=True, inline="always")
+def _pixel(c, n):
+    i = int((c + 1.0) * 0.5 * n)
+    return min(max(i, 0), n - 1)
+
+
+@njit(cache=True, nogil=True)
+def fill_zbuffer(origin, occ_centres, voxel_size, max_range, zbuf):
+    """Splat occupied voxel centres (M, 3) into zbuf (6, n, n) float64 (set to inf first) as their
+    range from `origin` (3,), keeping the nearest per pixel. Voxels beyond max_range are skipped.
+    A splat that crosses a face edge is drawn on the neighbouring face too (no gaps at cube edges)."""
+    n = zbuf.shape[1]
+    zbuf[:] = np.inf
+    half = 0.5 * n
+    d = np.empty(3)
+    for k in range(occ_centres.shape[0]):
+        for a in range(3):
+            d[a] = occ_centres[k, a] - origin[a]
+        r = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        if r < 1e-9 or r > max_range:
+            continue
+        alpha = SPLAT_HALF_EXTENT * voxel_size / r
+        for a in range(3):
+            if d[a] == 0.0:
+                continue
+            m = abs(d[a])
+            if m < alpha * r:  # this face's axis is (nearly) perpendicular to the voxel
+                continue
+            face = 2 * a + (0 if d[a] > 0 else 1)
+            b = 1 if a == 0 else 0
+            c = 1 if a == 2 else 2
+            u = d[b] / m
+            v = d[c] / m
+            eu = min(alpha * (1.0 + u * u) * half, MAX_SPLAT_PIXELS)
+            ev = min(alpha * (1.0 + v * v) * half, MAX_SPLAT_PIXELS)
+            pu = (u + 1.0) * half
+            pv = (v + 1.0) * half
+            if pu + eu < 0 or pu - eu >= n or pv + ev < 0 or pv - ev >= n:
+                continue
+            i0 = max(int(np.floor(pu - eu)), 0)
+            i1 = min(int(np.floor(pu + eu)), n - 1)
+            j0 = max(int(np.floor(pv - ev)), 0)
+            j1 = min(int(np.floor(pv + ev)), n - 1)
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    if r < zbuf[face, i, j]:
+                        zbuf[face, i, j] = r
+
+
+@njit(cache=True, nogil=True)
+def visible_from(origin, centres, zbuf, voxel_size, tol, max_range, out):
+    """Indices k of centres (N, 3) visible from origin given its filled zbuf; writes them to
+    out (N,) int64 and returns their count. Visible: range <= max_range and no farther than the
+    buffer at the pixel of its centre plus tol metres (voxel_size: unused, the footprint is the
+    centre pixel)."""
+    n = zbuf.shape[1]
+    count = 0
+    for k in range(centres.shape[0]):
+        dx = centres[k, 0] - origin[0]
+        dy = centres[k, 1] - origin[1]
+        dz = centres[k, 2] - origin[2]
+        r = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if r < 1e-9 or r > max_range:
+            continue
+        face, u, v = _cube_coords(dx, dy, dz)
+        if r <= zbuf[face, _pixel(u, n), _pixel(v, n)] + tol:
+            out[count] = k
+            count += 1
+    return count
+
+
+@njit(cache=True, nogil=True)
+def seed_view_masks(
+    seeds,
+    rotations,
+    occ_centres,
+    centres,
+    ids,
+    voxel_size,
+    max_range,
+    near,
+    tan_x,
+    tan_y,
+    focal,
+    pixels_per_voxel,
+    tol,
+    zbuf,
+):
+    """Visibility masks of every view at every seed, as CSR rows.
+
+    seeds: (S, 3) camera centres; rotations: (S, B, 3, 3) R_world_cam of each seed's B views;
+    occ_centres: (M, 3) occupied voxel centres (the occluders); centres: (N, 3) centres of the
+    voxels to record, ids: (N,) int32 their flat ids. A voxel is in view b when it is visible from
+    the seed (see `visible_from`) and inside the view's frustum (optical z in [near, max_range],
+    |x| <= tan_x z, |y| <= tan_y z). Its weight is the share of a full observation the view's
+    resolution allows: min(1, (focal * voxel_size / z)^2 / pixels_per_voxel), i.e. the pixels
+    the voxel covers over the pixels a voxel needs.
+    zbuf: (6, n, n) float64 scratch. Returns (nnz (S*B,) int64, ids int32, weights float32).
+    """
+    n_seeds = seeds.shape[0]
+    n_views = rotations.shape[1]
+    nnz = np.zeros(n_seeds * n_views, np.int64)
+    cap = 1 << 16
+    out_ids = np.empty(cap, np.int32)
+    out_w = np.empty(cap, np.float32)
+    total = 0
+    visible = np.empty(centres.shape[0], np.int64)
+    fs2 = (focal * voxel_size) ** 2
+    for s in range(n_seeds):
+        o = seeds[s]
+        fill_zbuffer(o, occ_centres, voxel_size, max_range, zbuf)
+        n_vis = visible_from(o, centres, zbuf, voxel_size, tol, max_range, visible)
+        for b in range(n_views):
+            R = rotations[s, b]
+            if total + n_vis > cap:
+                while total + n_vis > cap:
+                    cap *= 2
+                grown_ids = np.empty(cap, np.int32)
+                grown_w = np.empty(cap, np.float32)
+                grown_ids[:total] = out_ids[:total]
+                grown_w[:total] = out_w[:total]
+                out_ids = grown_ids
+                out_w = grown_w
+            count = 0
+            for q in range(n_vis):
+                k = visible[q]
+                dx = centres[k, 0] - o[0]
+                dy = centres[k, 1] - o[1]
+                dz = centres[k, 2] - o[2]
+                z = R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz
+                if z < near or z > max_range:
+                    continue
+                x = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
+                if abs(x) > tan_x * z:
+                    continue
+                y = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
+                if abs(y) > tan_y * z:
+                    continue
+                out_ids[total + count] = ids[k]
+                out_w[total + count] = min(1.0, fs2 / (z * z) / pixels_per_voxel)
+                count += 1
+            nnz[s * n_views + b] = count
+            total += count
+    return nnz, out_ids[:total].copy(), out_w[:total].copy()
+
+
+@njit(cache=True)
+def in_frustum(centres, T, near, max_range, tan_x, tan_y):
+    """(N,) bool: voxel centres (N, 3) inside the frustum of the optical-frame pose T (4, 4)."""
+    out = np.zeros(centres.shape[0], np.bool_)
+    for k in range(centres.shape[0]):
+        dx = centres[k, 0] - T[0, 3]
+        dy = centres[k, 1] - T[1, 3]
+        dz = centres[k, 2] - T[2, 3]
+        z = T[0, 2] * dx + T[1, 2] * dy + T[2, 2] * dz
+        if z < near or z > max_range:
+            continue
+        x = T[0, 0] * dx + T[1, 0] * dy + T[2, 0] * dz
+        y = T[0, 1] * dx + T[1, 1] * dy + T[2, 1] * dz
+        out[k] = abs(x) <= tan_x * z and abs(y) <= tan_y * z
+    return out
