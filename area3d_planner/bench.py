@@ -13,7 +13,13 @@ import numpy as np
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import FREE, FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy
-from area3d_planner.visibility import VisibilityCache, VisibilityParams, candidate_seeds
+from area3d_planner.visibility import (
+    VisibilityCache,
+    VisibilityParams,
+    lattice_positions,
+    orientation_bins,
+    valid_seeds,
+)
 
 TARGET_CACHE_S = 5.0
 TARGET_SELECT_S = 1.0
@@ -79,10 +85,12 @@ def bench_grid(
     grid: FusedGrid, ws_lo, ws_hi, seed_spacing: float, views: int, params: VisibilityParams
 ) -> dict:
     occ = grid.occupancy()
-    seeds = candidate_seeds(ws_lo, ws_hi, seed_spacing, grid.spec, occ, allow_unknown=True)
-    relevant = grid.roi_mask & (occ != FREE)
     t0 = time.perf_counter()
-    cache = VisibilityCache.build(grid.spec, occ, seeds, params, relevant=relevant)
+    seeds = lattice_positions(ws_lo, ws_hi, seed_spacing)
+    seeds = seeds[valid_seeds(seeds, grid.spec, occ, ws_lo, ws_hi, 0.05)]
+    relevant = grid.roi_mask & (occ != FREE)
+    rotations = orientation_bins(params)[1]
+    cache = VisibilityCache.build(grid.spec, occ, seeds, rotations, params, relevant=relevant)
     t_cache = time.perf_counter() - t0
     U = grid.fused()
     gp = GreedyParams()
@@ -128,12 +136,9 @@ def object_frames(scene_name: str = "single_object") -> tuple[object, list]:
 
 
 def _planner_overrides(scene) -> dict:
-    from area3d_planner.node import LEVEL_DEFAULTS
+    from area3d_bringup.launch_description import planner_region
 
-    values = dict(LEVEL_DEFAULTS[scene.level], gamma=float(scene.gamma))
-    for key in ("workspace_min", "workspace_max", "roi_min", "roi_max"):
-        values[key] = tuple(float(v) for v in getattr(scene, key))
-    return values
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in planner_region(scene).items()}
 
 
 def bench_server(requests: int = 50) -> dict:
@@ -143,7 +148,7 @@ def bench_server(requests: int = 50) -> dict:
 
     scene, frames = object_frames()
     config = PlannerConfig(**{**_planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
-    server = NextBestViewServer(config, scene=scene, background=True)
+    server = NextBestViewServer(config, background=True)
     try:
         t0 = time.perf_counter()
         for i, (depth, conf, K, T) in enumerate(frames):
@@ -196,7 +201,9 @@ def bench_transport(requests: int = 50, domain_id: int | None = None) -> dict:
 
     scene, frames = object_frames()
     dds_config.use_loopback(domain_id if domain_id is not None else 100 + os.getpid() % 100)
-    params = {"scene": scene.name, "mode": "closed_loop", "budget": 10**6}
+    from area3d_bringup.launch_description import planner_region
+
+    params = {**planner_region(scene), "mode": "closed_loop", "budget": 10**6}
     lines: list[str] = []
     with tempfile.TemporaryDirectory() as workdir:
         launcher = Launcher(
@@ -303,7 +310,7 @@ def bench_transport(requests: int = 50, domain_id: int | None = None) -> dict:
 
 def run_bench(
     views: int = 40,
-    mc_rays: int = 256,
+    face_res: int = 256,
     synthetic_only: bool = False,
     print_table: bool = True,
     service: bool = True,
@@ -313,10 +320,10 @@ def run_bench(
     """Figures per grid (see bench_grid), the in-process plan latency (bench_server) and the
     service round trip over loopback DDS (bench_transport); prints a rich table with targets
     and ratios. Parts that cannot run here (no renderer, no DDS) report their error."""
-    params = VisibilityParams(mc_rays=mc_rays)
+    params = VisibilityParams(level="room", face_res=face_res)
     # warm the numba kernels so compile time is not measured
     warm, lo, hi = synthetic_room(30, 0.2)
-    bench_grid(warm, lo, hi, 2.0, 2, VisibilityParams(mc_rays=8))
+    bench_grid(warm, lo, hi, 2.0, 2, VisibilityParams(level="room", face_res=8))
     results: dict = {}
     if not synthetic_only:
         try:

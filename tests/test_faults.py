@@ -159,7 +159,6 @@ def test_planner_answers_early_and_malformed_requests_with_an_empty_plan_and_kee
         ("planner",),
         {
             "planner": {
-                "scene": "single_object",
                 "width": W,
                 "height": H,
                 "sync_timeout_s": 1.0,
