@@ -64,7 +64,7 @@ def run_bench_eval(
         "reference_images_s": timings["reference"],
         "final_completion": result["final"]["completion"],
         "final_fscore": result["final"]["fscore"],
-        "final_psnr": result["final"].get("psnr"),
+        "final_psnr_roi": result["final"].get("psnr_roi"),
     }
 
 

@@ -1,11 +1,13 @@
 """Evaluate one run directory: reconstruct after n = 4, 8, ... views, compare with the ground truth,
 write RUN_DIR/metrics.json.
 
-Held-out images: the scene's eval views are rendered by the simulator (ground truth) and the TSDF
-mesh is rendered at the same poses by ray casting. The reference image keeps only pixels whose
-ground-truth surface lies in the region to reconstruct (the ROI); the rest is black, as is every
-pixel where the reconstruction has no surface. `psnr`/`ssim` are over all pixels of these images;
-`psnr_roi`/`ssim_roi` only over the pixels where the ground truth sees the ROI.
+Held-out images: the scene's eval views are rendered by the simulator (ground truth, lit by the
+scene's own lights, not by MuJoCo's camera-mounted headlight) and the TSDF mesh is rendered at the
+same poses by ray casting. The reference image keeps only pixels whose ground-truth surface lies in
+the region to reconstruct (the ROI); the rest is black, as is every pixel where the reconstruction
+has no surface. `psnr_roi`/`ssim_roi`, the headline figures, are over the pixels where the ground
+truth sees the ROI; `psnr`/`ssim` over whole images (secondary: they also score the black
+background, which every reconstruction matches).
 """
 
 from __future__ import annotations
@@ -65,7 +67,11 @@ def default_checkpoints(
 def _sim_renderer(scene: Any, width: int, height: int, hfov_deg: float) -> Any:
     from sim_bridge.render import RgbdRenderer
 
-    return RgbdRenderer(scene, width=width, height=height, hfov_deg=hfov_deg)
+    # Scene lights only, as for the captured frames (the simulated camera uses the same renderer):
+    # a camera-mounted light would make the reference colours depend on the held-out view.
+    return RgbdRenderer(
+        scene, width=width, height=height, hfov_deg=hfov_deg, camera_headlight=False
+    )
 
 
 def _load_scene(scene: Any, name: str) -> Any:

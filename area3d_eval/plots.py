@@ -20,12 +20,12 @@ METRIC_LABELS = {
     "completion": "completion ratio (higher is better)",
     "chamfer": "Chamfer distance [m] (lower is better)",
     "fscore": "F-score (higher is better)",
-    "psnr": "PSNR [dB] (higher is better)",
-    "ssim": "SSIM (higher is better)",
+    "psnr_roi": "PSNR on the region [dB] (higher is better)",
+    "ssim_roi": "SSIM on the region (higher is better)",
+    "psnr": "PSNR, whole image [dB] (secondary)",
+    "ssim": "SSIM, whole image (secondary)",
     "accuracy": "accuracy [m] (lower is better)",
     "completeness": "completeness [m] (lower is better)",
-    "psnr_roi": "PSNR on ROI pixels [dB]",
-    "ssim_roi": "SSIM on ROI pixels",
 }
 
 

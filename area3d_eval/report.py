@@ -17,15 +17,22 @@ import numpy as np
 from area3d_eval import plots
 from area3d_eval.rundir import EVAL_DIR, Episode, iter_frames, read_episode, read_grid, read_metrics
 
-# (key in metrics.json, column title, higher is better, scale for display, format)
+# (key in metrics.json, column title, higher is better, scale for display, format). PSNR and SSIM
+# are the region's (pixels where the ground truth sees the ROI): the whole-image figures also score
+# the black background outside the region, which a reconstruction matches for free.
 TABLE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
     ("completion", "Comp. ratio", True, 1.0, "{:.3f}"),
     ("chamfer", "Chamfer [mm]", False, 1000.0, "{:.2f}"),
     ("fscore", "F-score", True, 1.0, "{:.3f}"),
-    ("psnr", "PSNR [dB]", True, 1.0, "{:.2f}"),
-    ("ssim", "SSIM", True, 1.0, "{:.3f}"),
+    ("psnr_roi", "PSNR region [dB]", True, 1.0, "{:.2f}"),
+    ("ssim_roi", "SSIM region", True, 1.0, "{:.3f}"),
 )
-CURVE_METRICS = ("completion", "fscore", "chamfer", "psnr")
+# Secondary, in a table of their own: PSNR / SSIM over whole held-out images.
+WHOLE_IMAGE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
+    ("psnr", "PSNR whole image [dB]", True, 1.0, "{:.2f}"),
+    ("ssim", "SSIM whole image", True, 1.0, "{:.3f}"),
+)
+CURVE_METRICS = ("completion", "fscore", "chamfer", "psnr_roi", "ssim_roi")
 PREVIEW_POINTS = 4000  # scene points drawn behind the chosen views when no GT sample was saved
 
 HOW_TO_READ = """\
@@ -34,9 +41,11 @@ the scene's initial views. The captured RGB-D frames are fused into a TSDF mesh 
 scene's ground-truth surface. *Completion ratio* is the share of ground-truth surface points within
 tau of the reconstruction (tau = 1 cm for objects, 5 cm for rooms); *Chamfer* is the mean of the two
 average nearest-surface distances (reconstruction to ground truth and back; lower is better);
-*F-score* combines precision and recall at tau. *PSNR* and *SSIM* compare the mesh rendered at
-held-out views with the simulator's images (everything outside the region to reconstruct is black in
-both). Cells show the mean over runs (seeds) and, when there are several, ± one standard deviation;
+*F-score* combines precision and recall at tau. *PSNR region* and *SSIM region* compare the mesh
+rendered at held-out views with the simulator's images, only over the pixels where the ground truth
+sees the region to reconstruct (a pixel the reconstruction leaves empty counts as black there). The
+whole-image PSNR / SSIM in the second table also count the black background outside the region,
+which every reconstruction matches for free: they are shown for reference only. Cells show the mean over runs (seeds) and, when there are several, ± one standard deviation;
 the best value of each column is bold. The curves show how each metric grows with the number of
 views: a policy whose curve rises earlier reaches the same quality with fewer views. The view plots
 show where each run put its camera (grey = initial views, colour = order of the planned views); the
@@ -97,7 +106,7 @@ def aggregate(
     rows = []
     for (scene, policy), runs in sorted(groups.items()):
         row: dict[str, Any] = {"scene": scene, "policy": policy, "runs": len(runs)}
-        for key, *_ in TABLE_METRICS:
+        for key, *_ in TABLE_METRICS + WHOLE_IMAGE_METRICS:
             values = np.array([_value(r.metrics.get("final", {}).get(key)) for r in runs])
             values = values[np.isfinite(values)]
             row[key] = float(values.mean()) if values.size else float("nan")
@@ -117,6 +126,7 @@ def _cell(row: dict[str, Any] | None, key: str, scale: float, fmt: str) -> str:
 
 def _table(
     rows: list[dict[str, Any]],
+    metrics: tuple[tuple[str, str, bool, float, str], ...] = TABLE_METRICS,
 ) -> tuple[list[str], list[str], list[list[str]], list[list[bool]]]:
     """(scenes, policies, cells[policy][scene x metric], bold[policy][...]) of the paper-style table."""
     scenes = sorted({r["scene"] for r in rows})
@@ -125,7 +135,7 @@ def _table(
     cells, bold = [], []
     best: dict[tuple[str, str], float] = {}
     for scene in scenes:
-        for key, _, higher, *_ in TABLE_METRICS:
+        for key, _, higher, *_ in metrics:
             values = [
                 index[(scene, p)][key]
                 for p in policies
@@ -137,7 +147,7 @@ def _table(
         row_cells, row_bold = [], []
         for scene in scenes:
             r = index.get((scene, policy))
-            for key, _, _, scale, fmt in TABLE_METRICS:
+            for key, _, _, scale, fmt in metrics:
                 row_cells.append(_cell(r, key, scale, fmt))
                 row_bold.append(
                     r is not None
@@ -248,31 +258,43 @@ def write_report(
     records = load_runs([Path(p) for p in run_dirs], evaluate_missing)
     rows = aggregate(records)
     scenes, policies, cells, bold = _table(rows)
+    whole = _table(rows, WHOLE_IMAGE_METRICS)[2:]
     curves, timing_png = _figures(records, fig_dir) if records else ({}, None)
     md_path = out_dir / "report.md"
     html_path = out_dir / "report.html"
     md_path.write_text(
-        _markdown(title, records, scenes, policies, cells, bold, curves, timing_png, out_dir)
+        _markdown(
+            title, records, scenes, policies, (cells, bold), whole, curves, timing_png, out_dir
+        )
     )
     html_path.write_text(
-        _html(title, records, scenes, policies, cells, bold, curves, timing_png, out_dir)
+        _html(title, records, scenes, policies, (cells, bold), whole, curves, timing_png, out_dir)
     )
     return md_path, html_path
 
 
-def _markdown(title, records, scenes, policies, cells, bold, curves, timing_png, out_dir) -> str:
+def _markdown_table(scenes, policies, cells, bold, metrics) -> list[str]:
+    arrows = {name: ("↑" if higher else "↓") for _, name, higher, *_ in metrics}
+    header = ["Policy"] + [
+        f"{scene}: {name} {arrows[name]}" for scene in scenes for _, name, *_ in metrics
+    ]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for policy, row_cells, row_bold in zip(policies, cells, bold, strict=True):
+        shown = [f"**{c}**" if b else c for c, b in zip(row_cells, row_bold, strict=True)]
+        lines.append("| " + " | ".join([policy, *shown]) + " |")
+    return lines
+
+
+def _markdown(
+    title, records, scenes, policies, headline, whole, curves, timing_png, out_dir
+) -> str:
     lines = [f"# {title}", "", "## How to read this report", "", HOW_TO_READ, "", "## Results", ""]
     if not records:
         lines += ["No evaluated runs.", ""]
         return "\n".join(lines)
-    header = ["Policy"] + [f"{scene}: {name}" for scene in scenes for _, name, *_ in TABLE_METRICS]
-    arrows = {name: ("↑" if higher else "↓") for _, name, higher, *_ in TABLE_METRICS}
-    header = ["Policy"] + [f"{h} {arrows[h.split(': ', 1)[1]]}" for h in header[1:]]
-    lines.append("| " + " | ".join(header) + " |")
-    lines.append("|" + "---|" * len(header))
-    for policy, row_cells, row_bold in zip(policies, cells, bold, strict=True):
-        shown = [f"**{c}**" if b else c for c, b in zip(row_cells, row_bold, strict=True)]
-        lines.append("| " + " | ".join([policy, *shown]) + " |")
+    lines += _markdown_table(scenes, policies, *headline, TABLE_METRICS)
+    lines += ["", "Whole-image PSNR / SSIM (secondary: they also score the black background):", ""]
+    lines += _markdown_table(scenes, policies, *whole, WHOLE_IMAGE_METRICS)
     lines += [
         "",
         f"Runs: {len(records)}. Thresholds tau: "
@@ -324,7 +346,28 @@ p.howto { background: #f8f8f8; padding: 1em; border-left: 4px solid #888; }
 """
 
 
-def _html(title, records, scenes, policies, cells, bold, curves, timing_png, out_dir) -> str:
+def _html_table(scenes, policies, cells, bold, metrics) -> list[str]:
+    e = html.escape
+    parts = ["<table><tr><th rowspan='2'>Policy</th>"]
+    parts += [f"<th colspan='{len(metrics)}'>{e(s)}</th>" for s in scenes]
+    parts.append("</tr><tr>")
+    parts += [
+        f"<th>{e(name)} {'&uarr;' if higher else '&darr;'}</th>"
+        for _ in scenes
+        for _, name, higher, *_ in metrics
+    ]
+    parts.append("</tr>")
+    for policy, row_cells, row_bold in zip(policies, cells, bold, strict=True):
+        tds = "".join(
+            f"<td>{'<b>' + e(c) + '</b>' if b else e(c)}</td>"
+            for c, b in zip(row_cells, row_bold, strict=True)
+        )
+        parts.append(f"<tr><td class='policy'>{e(policy)}</td>{tds}</tr>")
+    parts.append("</table>")
+    return parts
+
+
+def _html(title, records, scenes, policies, headline, whole, curves, timing_png, out_dir) -> str:
     e = html.escape
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(title)}</title><style>{CSS}</style></head><body>"
@@ -335,22 +378,11 @@ def _html(title, records, scenes, policies, cells, bold, curves, timing_png, out
     if not records:
         parts.append("<p>No evaluated runs.</p></body></html>")
         return "".join(parts)
-    parts.append("<table><tr><th rowspan='2'>Policy</th>")
-    parts += [f"<th colspan='{len(TABLE_METRICS)}'>{e(s)}</th>" for s in scenes]
-    parts.append("</tr><tr>")
-    parts += [
-        f"<th>{e(name)} {'&uarr;' if higher else '&darr;'}</th>"
-        for _ in scenes
-        for _, name, higher, *_ in TABLE_METRICS
-    ]
-    parts.append("</tr>")
-    for policy, row_cells, row_bold in zip(policies, cells, bold, strict=True):
-        tds = "".join(
-            f"<td>{'<b>' + e(c) + '</b>' if b else e(c)}</td>"
-            for c, b in zip(row_cells, row_bold, strict=True)
-        )
-        parts.append(f"<tr><td class='policy'>{e(policy)}</td>{tds}</tr>")
-    parts.append("</table>")
+    parts += _html_table(scenes, policies, *headline, TABLE_METRICS)
+    parts.append(
+        "<p>Whole-image PSNR / SSIM (secondary: they also score the black background):</p>"
+    )
+    parts += _html_table(scenes, policies, *whole, WHOLE_IMAGE_METRICS)
     parts.append("<h2>Metrics against the number of views</h2>")
     for scene in scenes:
         imgs = "".join(

@@ -18,14 +18,21 @@ import mujoco
 import numpy as np
 
 from sim_bridge import meshes
-from sim_bridge.scenes import GAMMA, INITIAL_VIEWS, SCENES_DIR, TAU, Scene, scene_to_json
+from sim_bridge.scenes import (
+    GAMMA,
+    INITIAL_VIEWS,
+    ROI_RIM,
+    SCENES_DIR,
+    TAU,
+    Scene,
+    scene_to_json,
+)
 from sim_bridge.textures import write_texture
 from sim_bridge.views import look_at, orbit_views
 
 SEED = 7  # fixed so that regenerating gives the same scenes
 TABLE_TOP_Z = 0.75  # metres, a standard table height
 TABLE_SIZE = (0.9, 0.6, 0.03)  # metres, full extents of the table top
-ROI_RIM = 0.06  # metres of table top around the objects that belong to the ROI
 SETTLE_SECONDS = 3.0  # simulated time for the drop to come to rest
 WIDTH, HEIGHT = 640, 480  # offscreen buffer for the default camera resolution
 
@@ -278,9 +285,14 @@ VIEW_CLEARANCE_ROOM = 0.4  # metres: bundled room views keep this far from every
 
 
 def _room_shell(
-    doc: _Mjcf, folder: Path, wall_kind=("noise", (215, 210, 195), (235, 232, 222))
+    doc: _Mjcf,
+    folder: Path,
+    wall_kind=("noise", (215, 210, 195), (235, 232, 222)),
+    half: tuple[float, float] = ROOM_HALF,
 ) -> None:
-    hx, hy = ROOM_HALF
+    """Floor slab and four walls around an interior of 2 half[0] x 2 half[1] m centred on the
+    origin, with a doorway in the north wall."""
+    hx, hy = half
     floor = doc.material(folder, "floor", "stripes", (130, 95, 60), (175, 135, 90), repeat=(3, 3))
     wall = doc.material(folder, "wall", *wall_kind, repeat=(2, 2), seed=5)
     t, h = WALL_THICK, WALL_HEIGHT

@@ -53,6 +53,13 @@ class RgbdRenderer:
 
     K follows the shared convention: square pixels, principal point at the image centre. Depth is
     metres along the optical z axis, NaN where nothing was hit or beyond `max_range`.
+
+    Lighting: MuJoCo's headlight is mounted on the camera, so its diffuse and specular light make a
+    surface's colour change with the viewing direction, which no fused colour map can reproduce at
+    a held-out view. When the model has lights of its own and `camera_headlight` is False (the
+    default), the headlight's diffuse and specular parts are switched off and the scene is lit by
+    its own lights plus the headlight's ambient term (the same from every direction).
+    `scene_lit` says whether that happened; a model without lights keeps its full headlight.
     """
 
     def __init__(
@@ -62,6 +69,7 @@ class RgbdRenderer:
         height: int = 480,
         hfov_deg: float = HFOV_DEG,
         max_range: float = MAX_RANGE,
+        camera_headlight: bool = False,
     ) -> None:
         if not (isinstance(width, int | np.integer) and width > 0):
             raise ValueError(f"width: got {width!r}, expected a positive integer (pixels)")
@@ -82,6 +90,10 @@ class RgbdRenderer:
         spec.visual.global_.offheight = max(self.height, spec.visual.global_.offheight)
         spec.worldbody.add_camera(name=CAMERA_NAME, fovy=fovy)
         self.model = spec.compile()
+        self.scene_lit = not camera_headlight and self.model.nlight > 0
+        if self.scene_lit:
+            self.model.vis.headlight.diffuse[:] = 0.0
+            self.model.vis.headlight.specular[:] = 0.0
         extent = self.model.stat.extent
         self.model.vis.map.znear = ZNEAR / extent
         self.model.vis.map.zfar = 2.0 * max(self.max_range, 1.0) / extent

@@ -116,3 +116,15 @@ def test_ssim_of_flat_images_is_the_luminance_term():
     a, b = np.full((32, 32), 100, np.uint8), np.full((32, 32), 140, np.uint8)
     c1 = (0.01 * 255) ** 2
     assert ssim(a, b) == pytest.approx((2 * 100 * 140 + c1) / (100**2 + 140**2 + c1))
+
+
+def test_completion_does_not_fall_when_the_reconstruction_grows_elsewhere():
+    # The same surface plus a large patch far away: a fixed-size sample of the reconstruction
+    # would spread thinner over the plane and lose GT points; the exact distance does not.
+    gt = plane()
+    far = trimesh.creation.box(extents=[3.0, 3.0, 0.01])
+    far.apply_translation([0.0, 0.0, 2.0])
+    alone = surface_metrics(gt, gt, TAU, num_points=2000)
+    grown = surface_metrics(trimesh.util.concatenate([gt, far]), gt, TAU, num_points=2000)
+    assert alone["completion"] == 1.0 and grown["completion"] == 1.0
+    assert grown["completeness"] < 1e-6

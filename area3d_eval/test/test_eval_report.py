@@ -98,12 +98,17 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     md, page = md_path.read_text(), html_path.read_text()
 
     rows = [line for line in md.splitlines() if line.startswith("| ")]
-    assert rows[0].startswith("| Policy | synthetic_object: Comp. ratio")
-    assert (
-        sum(r.startswith("| uniform |") for r in rows) == 1
-        and sum(r.startswith("| area3d |") for r in rows) == 1
-    )
-    uniform_row = next(r for r in rows if r.startswith("| uniform |"))
+    starts = [i for i, r in enumerate(rows) if r.startswith("| Policy |")]
+    assert len(starts) == 2  # the headline table and the whole-image table
+    headline, second = rows[: starts[1]], rows[starts[1] :]
+    assert headline[0].startswith("| Policy | synthetic_object: Comp. ratio")
+    # headline table: PSNR / SSIM on the region; the whole-image ones in a second table
+    assert "PSNR region [dB]" in headline[0] and "whole image" not in headline[0]
+    assert "PSNR whole image [dB]" in second[0] and "Comp. ratio" not in second[0]
+    for table in (headline, second):
+        assert sum(r.startswith("| uniform |") for r in table) == 1
+        assert sum(r.startswith("| area3d |") for r in table) == 1
+    uniform_row = next(r for r in headline if r.startswith("| uniform |"))
     assert "±" in uniform_row  # two seeds: mean ± std
     assert "How to read this report" in md and "How to read this report" in page
     assert (
@@ -115,7 +120,10 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
     srcs = re.findall(r"<img src='([^']+)'", page)
     assert sorted(links) == sorted(srcs)
-    assert len(links) == 4 + 3 + 1 + 1  # curves, views per run, one uncertainty figure, timings
+    assert len(links) == 5 + 3 + 1 + 1  # curves, views per run, one uncertainty figure, timings
+    assert any("psnr_roi" in link for link in links) and not any(
+        link.endswith("_psnr.png") for link in links
+    )  # the curves show the region's PSNR, not the whole image's
     for link in links:
         assert (md_path.parent / link).is_file(), link
     assert any("uncertainty" in link for link in links)
@@ -127,3 +135,22 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     )
     finals = [json.loads((r / "metrics.json").read_text())["final"]["fscore"] for r in runs[:2]]
     assert table[("synthetic_object", "uniform")]["fscore"] == pytest.approx(np.mean(finals))
+
+
+def test_held_out_references_are_lit_by_the_scene_lights_not_a_headlight():
+    from area3d_eval.evaluate import _sim_renderer
+    from sim_bridge.scenes import load_scene
+
+    sim_scene = load_scene("five_objects")
+    made = []
+
+    def factory(*args):
+        made.append(_sim_renderer(*args))
+        return made[-1]
+
+    _, images, masks = reference_images(sim_scene, factory, 80, 60, 90.0)
+    headlight = made[0].model.vis.headlight
+    assert made[0].scene_lit and np.all(headlight.diffuse == 0) and np.all(headlight.specular == 0)
+    roi_pixels = np.concatenate([img[m] for img, m in zip(images, masks, strict=True)])
+    assert len(roi_pixels) > 1000 and roi_pixels.mean() > 40  # lit, not black
+    assert (roi_pixels.max(axis=1) < 10).mean() < 0.05

@@ -92,3 +92,34 @@ def test_bad_renderer_arguments_are_rejected_with_the_field_name():
         RgbdRenderer(scene, hfov_deg=200.0)
     with pytest.raises(ValueError, match="width"):
         RgbdRenderer(scene, width=0)
+
+
+@pytest.mark.parametrize("name", ["clutter7_a", "living_room"])
+def test_scenes_are_lit_by_their_own_lights_not_a_camera_headlight(name):
+    scene = load_scene(name)
+    with RgbdRenderer(scene, width=160, height=120) as renderer:
+        assert renderer.scene_lit and renderer.model.nlight > 0
+        assert np.all(renderer.model.vis.headlight.diffuse == 0)
+        assert np.all(renderer.model.vis.headlight.specular == 0)
+        assert np.all(renderer.model.vis.headlight.ambient > 0)  # direction-free, kept
+        rgb, depth = renderer.render(scene.eval_views[3])
+    seen = np.isfinite(depth)
+    assert rgb[seen].mean() > 40  # not black
+    assert (rgb[seen].max(axis=1) < 10).mean() < 0.05
+    with RgbdRenderer(scene, width=160, height=120, camera_headlight=True) as renderer:
+        assert not renderer.scene_lit and np.all(renderer.model.vis.headlight.diffuse > 0)
+        lit, _ = renderer.render(scene.eval_views[3])
+    assert lit[seen].mean() > rgb[seen].mean() + 5  # the headlight did add light before
+
+
+def test_a_model_without_lights_keeps_its_headlight(tmp_path):
+    path = tmp_path / "dark.xml"
+    path.write_text(
+        '<mujoco><worldbody><geom type="box" size="0.1 0.1 0.1" rgba="0.8 0.8 0.8 1"/>'
+        "</worldbody></mujoco>"
+    )
+    scene = load_scene(path)
+    with RgbdRenderer(scene, width=80, height=60) as renderer:
+        assert not renderer.scene_lit and np.all(renderer.model.vis.headlight.diffuse > 0)
+        rgb, depth = renderer.render(look_at(np.array([0.4, -0.4, 0.3]), np.zeros(3)))
+    assert rgb[np.isfinite(depth)].mean() > 60

@@ -112,9 +112,10 @@ def test_a_user_mjcf_gets_derived_bounds_and_views(tmp_path):
     path.write_text(USER_MJCF)
     scene = load_scene(str(path))
     assert scene.level == "object" and scene.name == "user_scene"
-    # ROI = bounding box of the two solid geoms (the plane is not part of it)
-    assert np.allclose(scene.roi_min, [-0.3, -0.1, 0.0], atol=2e-3)
-    assert np.allclose(scene.roi_max, [0.35, 0.2, 0.3], atol=2e-3)
+    # no table: the ground plane is the support; ROI = bounding box of the two solid geoms, 2 cm
+    # below the support and above the tallest
+    assert np.allclose(scene.roi_min, [-0.3, -0.1, -0.02], atol=2e-3)
+    assert np.allclose(scene.roi_max, [0.35, 0.2, 0.32], atol=2e-3)
     assert np.all(scene.workspace_min[:2] < scene.roi_min[:2]) and np.all(
         scene.workspace_max > scene.roi_max
     )

@@ -1,0 +1,193 @@
+"""Generated hold-out scenes and metadata derived from geometry alone (no sidecar JSON)."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from area3d_perception.backproject import backproject
+from sim_bridge.holdout_scenes import write_holdout_scene
+from sim_bridge.render import RgbdRenderer
+from sim_bridge.scenes import SCENES_DIR, load_scene, scene_layout
+from sim_bridge.validity import check_pose
+
+HOLDOUT = [("tabletop", 0), ("tabletop", 3), ("alcove_room", 0), ("alcove_room", 1)]
+LEVEL = {"tabletop": "object", "alcove_room": "room"}
+
+
+@pytest.fixture(scope="module")
+def holdout(tmp_path_factory):
+    root = tmp_path_factory.mktemp("holdout")
+    return {
+        (kind, seed): load_scene(write_holdout_scene(kind, root / f"{kind}_{seed}", seed))
+        for kind, seed in HOLDOUT
+    }
+
+
+def geom_box(scene, name):
+    """(lo, hi) world bounding box of a named geom of the scene."""
+    from sim_bridge.geoms import geom_meshes
+
+    model, data = scene.model()
+    return geom_meshes(model, data, [model.geom(name).id])[0].bounds
+
+
+def assert_views_valid_and_distinct(scene):
+    views = np.concatenate([scene.initial_views, scene.eval_views])
+    for T in views:
+        check = check_pose(scene, T)
+        assert check.ok, check.reason
+    gap = np.linalg.norm(
+        scene.eval_views[:, None, :3, 3] - scene.initial_views[None, :, :3, 3], axis=2
+    )
+    assert gap.min() > 0.05  # no held-out view sits on an initial one
+
+
+def roi_share_of_depth(scene, T, size=(240, 180)):
+    """Share of a view's valid depth pixels that back-project into the scene's ROI."""
+    with RgbdRenderer(scene, width=size[0], height=size[1]) as renderer:
+        _, depth = renderer.render(T)
+    points, _ = backproject(depth, renderer.K, T)
+    assert len(points) > 0.3 * depth.size
+    return np.all((points >= scene.roi_min) & (points <= scene.roi_max), axis=1).mean()
+
+
+@pytest.mark.parametrize(("kind", "seed"), HOLDOUT)
+def test_holdout_scene_is_derived_from_geometry_at_the_right_level(holdout, kind, seed):
+    scene = holdout[(kind, seed)]
+    assert not list(scene.mjcf_path.parent.glob("*.json"))
+    assert scene.name == f"{kind}_s{seed}" and scene.level == LEVEL[kind]
+    assert scene.initial_views.shape == ((4, 4, 4) if kind == "tabletop" else (15, 4, 4))
+    assert len(scene.eval_views) >= 18
+    assert np.all(scene.roi_min < scene.roi_max)
+    assert np.all(scene.workspace_min < scene.workspace_max)
+    assert_views_valid_and_distinct(scene)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_tabletop_roi_holds_the_objects_and_not_the_floor_or_legs(holdout, seed):
+    scene = holdout[("tabletop", seed)]
+    for name in ("cupboard_top", "cupboard_back", "hidden_box", "box"):
+        lo, hi = geom_box(scene, name)
+        assert np.all(lo >= scene.roi_min - 1e-6) and np.all(hi <= scene.roi_max + 1e-6), name
+    model, _ = scene.model()
+    for body in ("mug", "bottle", "hidden_blob"):
+        geom = model.body(body).geomadr[0]
+        lo, hi = geom_box(scene, model.geom(geom).name or geom)
+        assert np.all(lo >= scene.roi_min - 1e-6) and np.all(hi <= scene.roi_max + 1e-6), body
+    _, leg_top = geom_box(scene, "table_leg0")
+    _, table_top = geom_box(scene, "table_top")
+    assert scene.roi_min[2] > leg_top[2]  # legs (and the floor under them) are outside
+    assert table_top[2] - 0.03 < scene.roi_min[2] < table_top[2]  # a slab of the top is inside
+    assert scene.ground_truth_mesh().vertices[:, 2].min() > 0.7
+    assert scene.workspace_min[2] > table_top[2]  # the camera stays above the support
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_alcove_room_roi_is_the_interior_and_the_camera_stays_inside(holdout, seed):
+    scene = holdout[("alcove_room", seed)]
+    # 5 x 4 m interior, floor at 0, walls 2.6 m high, 0.1 m thick
+    assert np.allclose(scene.roi_min[:2], [-2.51, -2.01], atol=1e-3)
+    assert np.allclose(scene.roi_max[:2], [2.51, 2.01], atol=1e-3)
+    assert scene.roi_min[2] < 0.0 and scene.roi_max[2] > 2.0
+    assert np.all(scene.workspace_min[:2] >= [-2.5, -2.0]) and np.all(
+        scene.workspace_max[:2] <= [2.5, 2.0]
+    )
+    assert scene.workspace_min[2] >= 0.3 and scene.workspace_max[2] <= 2.3
+    heights = np.round(scene.eval_views[:, 2, 3], 2)
+    assert len(np.unique(heights)) >= 2  # held-out views at several heights
+    yaws = np.arctan2(scene.initial_views[:, 1, 2], scene.initial_views[:, 0, 2])
+    assert np.ptp(np.unwrap(np.sort(yaws))) > np.pi  # initial views look in many directions
+    assert np.all(scene.initial_views[:, 2, 2] < 0)  # ... all slightly down
+
+
+@pytest.mark.parametrize(("kind", "seed"), [("tabletop", 0), ("alcove_room", 1)])
+def test_initial_views_see_the_roi(holdout, kind, seed):
+    scene = holdout[(kind, seed)]
+    for T in scene.initial_views[:2]:
+        assert roi_share_of_depth(scene, T) > (0.4 if kind == "tabletop" else 0.9)
+
+
+@pytest.mark.parametrize("name", ["clutter7_a", "living_room"])
+def test_a_bundled_scene_without_its_sidecar_derives_the_same_roi(tmp_path, name):
+    for f in (SCENES_DIR / name).iterdir():
+        if f.suffix != ".json":
+            shutil.copy(f, tmp_path / f.name)
+    bundled, derived = load_scene(name), load_scene(tmp_path / "scene.xml")
+    assert derived.level == bundled.level
+    assert np.allclose(derived.roi_min, bundled.roi_min, atol=0.01)
+    assert np.allclose(derived.roi_max, bundled.roi_max, atol=0.01)
+    assert_views_valid_and_distinct(derived)
+    assert roi_share_of_depth(derived, derived.initial_views[0]) > 0.4
+
+
+def box(lo, hi):
+    return np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+
+
+def test_layout_of_a_table_keeps_the_objects_and_drops_legs_and_floor():
+    parts = [
+        box([-0.6, -0.4, 0.71], [0.6, 0.4, 0.75]),  # table top
+        *[
+            box([x - 0.02, y - 0.02, 0.0], [x + 0.02, y + 0.02, 0.71])
+            for x in (-0.5, 0.5)
+            for y in (-0.3, 0.3)
+        ],
+        box([0.0, 0.0, 0.75], [0.1, 0.1, 0.85]),  # an object
+        box([-3.0, -3.0, 1.9], [-2.9, -2.9, 2.0]),  # a lamp far off the table: not on the support
+    ]
+    lo, hi = np.array([p[0] for p in parts]), np.array([p[1] for p in parts])
+    layout = scene_layout(lo[:-1], hi[:-1], plane_z=0.0)
+    assert layout["level"] == "object" and layout["support_z"] == pytest.approx(0.75)
+    assert np.allclose(layout["roi_min"], [-0.06, -0.06, 0.73])
+    assert np.allclose(layout["roi_max"], [0.16, 0.16, 0.87])
+    assert layout["workspace_min"][2] > 0.75
+    # the far lamp makes the footprint room-sized: the scene is then treated as a room
+    assert scene_layout(lo, hi, plane_z=0.0)["level"] == "room"
+
+
+def test_layout_of_a_small_walled_room_is_a_room_by_its_walls():
+    # a 2.0 x 1.4 m closet (footprint diagonal 2.4 m < ROOM_DIAGONAL) with 2.4 m walls
+    lo = np.array(
+        [[-1.1, -0.8, -0.1], [-1.1, -0.8, 0], [1.0, -0.8, 0], [-1.1, -0.8, 0], [-1.1, 0.7, 0]]
+    )
+    hi = np.array(
+        [[1.1, 0.8, 0.0], [-1.0, 0.8, 2.4], [1.1, 0.8, 2.4], [1.1, -0.7, 2.4], [1.1, 0.8, 2.4]]
+    )
+    layout = scene_layout(lo, hi)
+    assert layout["level"] == "room" and layout["floor_z"] == pytest.approx(0.0)
+    assert np.allclose(layout["interior_min"], [-1.0, -0.7, 0.0])
+    assert np.allclose(layout["interior_max"], [1.0, 0.7, 2.4])
+    assert np.allclose(layout["workspace_min"], [-0.7, -0.4, 0.4])
+    assert np.allclose(layout["workspace_max"], [0.7, 0.4, 2.0])
+
+
+def test_holdout_writer_rejects_bad_input(tmp_path):
+    with pytest.raises(ValueError, match="kind: got 'castle'"):
+        write_holdout_scene("castle", tmp_path / "a")
+    with pytest.raises(ValueError, match="seed: got -1"):
+        write_holdout_scene("tabletop", tmp_path / "b", -1)
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "scene.json").write_text("{}")
+    with pytest.raises(ValueError, match="folder: got .*scene.json"):
+        write_holdout_scene("tabletop", tmp_path / "c")
+
+
+def test_a_room_mjcf_without_metadata_puts_every_view_inside_the_walls(tmp_path):
+    path = tmp_path / "bare_room.xml"
+    path.write_text(
+        """<mujoco><worldbody><light directional="true" dir="0 0 -1"/>
+        <geom type="plane" size="0 0 0.1"/>
+        <geom type="box" pos="0 -2.05 1.3" size="3.1 0.05 1.3"/>
+        <geom type="box" pos="0 2.05 1.3" size="3.1 0.05 1.3"/>
+        <geom type="box" pos="-3.05 0 1.3" size="0.05 2 1.3"/>
+        <geom type="box" pos="3.05 0 1.3" size="0.05 2 1.3"/>
+        <geom type="box" pos="0.5 0.3 0.4" size="0.6 0.4 0.4"/>
+        </worldbody></mujoco>"""
+    )
+    scene = load_scene(path)
+    assert scene.level == "room" and len(scene.initial_views) == 15
+    eyes = np.concatenate([scene.initial_views, scene.eval_views])[:, :3, 3]
+    assert np.all(np.abs(eyes[:, 0]) < 3.0) and np.all(np.abs(eyes[:, 1]) < 2.0)
+    assert np.all((eyes[:, 2] > 0.3) & (eyes[:, 2] < 2.5))
+    assert_views_valid_and_distinct(scene)
