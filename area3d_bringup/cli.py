@@ -227,6 +227,9 @@ def bench_episode(
     ),
     budget: int = typer.Option(None),
     out: Path = typer.Option(Path("runs/bench")),
+    in_process: bool = typer.Option(
+        False, help="call the nodes' cores in one process (same views, no transport; faster)"
+    ),
 ) -> None:
     """Every policy on every object-level scene with several seeds; prints the table."""
     from area3d_bringup.episode_bench import run_episode_bench
@@ -238,6 +241,7 @@ def bench_episode(
         budget=budget,
         out=out,
         console=console,
+        in_process=in_process,
     )
 
 

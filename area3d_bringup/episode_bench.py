@@ -24,6 +24,7 @@ def run_episode_bench(
     budget: int | None,
     out: Path,
     console: Console,
+    in_process: bool = False,
 ) -> dict:
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
     from area3d_eval.report import aggregate, write_report
@@ -58,13 +59,24 @@ def run_episode_bench(
                         domain_id=domain_id,
                     )
                     try:
-                        run_dir = run_episode(config, progress=progress)
+                        if in_process:  # the same cores in one process: no transport, same views
+                            from area3d_bringup.inprocess import run_inprocess_episode
+
+                            t0 = time.monotonic()
+                            run_dir = run_inprocess_episode(
+                                scene, policy, seed, out / stamp, budget, run_name=config.run_name
+                            )
+                            episode = json.loads((run_dir / "episode.json").read_text())
+                            episode["timings_s"]["episode_total"] = time.monotonic() - t0
+                            (run_dir / "episode.json").write_text(json.dumps(episode))
+                        else:
+                            run_dir = run_episode(config, progress=progress)
                         run_dirs.append(run_dir)
                         timings = json.loads((run_dir / "episode.json").read_text())["timings_s"]
                         episode_seconds.setdefault((scene, policy), []).append(
                             timings.get("episode_total", np.nan)
                         )
-                    except EpisodeError as err:
+                    except (EpisodeError, ValueError) as err:
                         failures.append(f"{scene}/{policy}/s{seed}: {err}")
                     progress.advance(overall)
     md, html = write_report(run_dirs, out / stamp / "report")
