@@ -52,19 +52,29 @@ def sample_surface(
 ) -> np.ndarray:
     """(num_points, 3) float64 points uniform by area on the triangle mesh; (0, 3) if it has no area.
 
-    vertices (V, 3) metres; triangles (F, 3) vertex indices.
+    vertices (V, 3) metres; triangles (F, 3) vertex indices. The sample depends on the surface, not
+    on how its triangles are listed: Open3D's multi-threaded mesh extraction lists the same
+    triangles in a different order from run to run, so the triangles are put in a canonical order
+    first (each starting at its lexicographically smallest corner, orientation kept, then sorted).
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
     if len(triangles) == 0 or num_points <= 0:
         return np.zeros((0, 3))
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    corners = vertices[triangles]  # (F, 3 corners, 3)
+    flat = corners.reshape(-1, 3)
+    rank = np.empty(len(flat), dtype=np.int64)
+    rank[np.lexsort(flat.T[::-1])] = np.arange(len(flat))
+    start = np.argmin(rank.reshape(-1, 3), axis=1)
+    corners = corners[np.arange(len(corners))[:, None], (start[:, None] + np.arange(3)) % 3]
+    corners = corners[np.lexsort(corners.reshape(-1, 9).T[::-1])]
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     total = area.sum()
     if not total > 0:
         return np.zeros((0, 3))
     rng = np.random.default_rng(seed)
-    face = rng.choice(len(triangles), size=num_points, p=area / total)
+    face = rng.choice(len(corners), size=num_points, p=area / total)
     r1, r2 = rng.random(num_points), rng.random(num_points)
     flip = r1 + r2 > 1.0  # reflect into the triangle: uniform barycentric sampling
     r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)

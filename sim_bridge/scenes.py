@@ -130,12 +130,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
     for sidecar in (path.with_suffix(".json"), path.parent / "scene.json"):
         if sidecar.is_file():
             return _from_sidecar(path, json.loads(sidecar.read_text()))
-    try:
-        return derive_scene(path)
-    except ValueError as err:  # MuJoCo's XML / compile errors do not name the file
-        raise ValueError(
-            f"scene file {str(path)!r}: MuJoCo could not load it: {err}".strip()
-        ) from err
+    return derive_scene(path)
 
 
 def _from_sidecar(path: Path, meta: dict) -> Scene:
@@ -196,7 +191,12 @@ def derive_scene(path: Path, name: str | None = None) -> Scene:
         gamma=GAMMA["object"],
         tau=TAU["object"],
     )
-    model, data = scene.model()
+    try:
+        model, data = scene.model()
+    except ValueError as err:  # MuJoCo's XML / compile errors do not name the file
+        raise ValueError(
+            f"scene file {str(path)!r}: MuJoCo could not load it: {err}".strip()
+        ) from err
     ids = solid_geom_ids(model)
     if len(ids) == 0:
         raise ValueError(
@@ -227,6 +227,12 @@ def scene_layout(lo: np.ndarray, hi: np.ndarray, plane_z: float | None = None) -
     "interior_min", "interior_max" (3,) (room level: inside the walls, floor to top).
     """
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    if lo.ndim != 2 or lo.shape[1:] != (3,) or len(lo) == 0 or hi.shape != lo.shape:
+        raise ValueError(
+            f"lo, hi: got shapes {lo.shape}, {hi.shape}, expected two (G, 3) arrays with G >= 1"
+        )
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi >= lo)):
+        raise ValueError("lo, hi: got non-finite or inverted boxes, expected finite lo <= hi")
     size = hi - lo
     area = size[:, 0] * size[:, 1]
     thin = size[:, 2] <= SLAB_MAX_THICKNESS

@@ -128,3 +128,15 @@ def test_completion_does_not_fall_when_the_reconstruction_grows_elsewhere():
     grown = surface_metrics(trimesh.util.concatenate([gt, far]), gt, TAU, num_points=2000)
     assert alone["completion"] == 1.0 and grown["completion"] == 1.0
     assert grown["completeness"] < 1e-6
+
+
+def test_surface_sample_does_not_depend_on_the_order_of_the_triangles():
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    rng = np.random.default_rng(0)
+    faces = mesh.faces[rng.permutation(len(mesh.faces))]
+    faces = np.roll(faces, 1, axis=1)  # same triangles, same orientation, other first corner
+    perm = rng.permutation(len(mesh.vertices))  # and the vertices listed in another order
+    inverse = np.argsort(perm)
+    a = sample_surface(mesh.vertices, mesh.faces, 500, seed=3)
+    b = sample_surface(mesh.vertices[perm], inverse[faces], 500, seed=3)
+    assert np.allclose(a, b)

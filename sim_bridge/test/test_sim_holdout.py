@@ -162,6 +162,13 @@ def test_layout_of_a_small_walled_room_is_a_room_by_its_walls():
     assert np.allclose(layout["workspace_max"], [0.7, 0.4, 2.0])
 
 
+def test_layout_rejects_boxes_of_the_wrong_shape_or_inverted():
+    with pytest.raises(ValueError, match=r"lo, hi: got shapes \(2, 2\)"):
+        scene_layout(np.zeros((2, 2)), np.ones((2, 2)))
+    with pytest.raises(ValueError, match="inverted"):
+        scene_layout(np.ones((1, 3)), np.zeros((1, 3)))
+
+
 def test_holdout_writer_rejects_bad_input(tmp_path):
     with pytest.raises(ValueError, match="kind: got 'castle'"):
         write_holdout_scene("castle", tmp_path / "a")
