@@ -474,12 +474,18 @@ def run_episode(
                 )
 
         # Replay what an interrupted episode had already captured, so the new graph knows it.
+        # One frame at a time, each waited for until fused: saved stamps may lie further apart than
+        # any pairing horizon in the graph, and parts of a later frame must never overtake an
+        # earlier one, or perception and the planner would drop it as too old.
         if frames:
             t = time.monotonic()
-            for frame in frames:
+            for i, frame in enumerate(frames):
                 manager.replay(frame)
-                time.sleep(0.05)
-            manager.wait_fused(len(frames), config.fuse_timeout_s)
+                if not manager.wait_fused(i + 1, config.fuse_timeout_s):
+                    log_sink(
+                        f"[mission_manager] replayed frame {i} (stamp {frame.stamp_ns}) not fused "
+                        f"after {config.fuse_timeout_s:.0f} s; going on"
+                    )
             add_time("replay", time.monotonic() - t)
 
         for T in scene.initial_views[len(frames) : n_init] if len(frames) < n_init else []:

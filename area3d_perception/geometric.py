@@ -333,15 +333,22 @@ def carve_depth_frame(
     stride: int = CARVE_STRIDE,
     max_range: float = MAX_RANGE,
     surface_margin: float = 0.0,
-    carve_no_return: bool = True,
+    carve_no_return: bool | np.ndarray = True,
 ) -> np.ndarray:
     """Carve the free space seen by one depth frame into `free_count` (see `carve_free_space`).
 
-    carve_no_return: also carve along pixels with no return, up to `max_range`. Turn it off when
-    dropouts are common (dark or specular surfaces), since a dropout looks like empty space.
+    carve_no_return: also carve along pixels with no return, up to `max_range`: True for all of
+    them, False for none (a dropout of a dark or specular surface looks like empty space), or an
+    (H, W) bool mask of the no-return pixels that may carve.
     """
     points, hit = frame_rays(depth, K, T_world_cam, stride, max_range)
-    if not carve_no_return:
+    if isinstance(carve_no_return, np.ndarray):
+        mask = np.asarray(carve_no_return, bool)
+        if mask.shape != np.shape(depth):
+            raise InputError("carve_no_return", mask.shape, f"the depth shape {np.shape(depth)}")
+        keep = hit | mask[::stride, ::stride].reshape(-1)
+        points, hit = points[keep], hit[keep]
+    elif not carve_no_return:
         points, hit = points[hit], hit[hit]
     return carve_free_space(spec, T_world_cam[:3, 3], points, free_count, hit, surface_margin)
 

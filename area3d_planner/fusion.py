@@ -6,6 +6,7 @@ demand, so the planner can copy `fused()` and decay the copy while it selects vi
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
@@ -23,6 +24,10 @@ LOG_ODDS_MAX = float(np.log(0.97 / 0.03))
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 1
 GEOMETRIC_RULES = ("product", "mean")
+NO_RETURN_RULES = ("none", "regions", "all")
+# No-return pixels farther than this from any return (pixels) are open space (sky, a window, a
+# doorway beyond range); nearer ones are dropouts of a surface and carve nothing.
+NO_RETURN_REGION_PX = 6
 
 
 def _check_pose(T: np.ndarray, field: str) -> np.ndarray:
@@ -42,6 +47,16 @@ def _check_K(K: np.ndarray) -> np.ndarray:
             "K", K.tolist() if K.size == 9 else K.shape, "3x3 intrinsics with fx, fy > 0"
         )
     return K
+
+
+def _no_return_carving(depth: np.ndarray, rule: str) -> bool | np.ndarray:
+    """What `carve_depth_frame` may carve along no-return pixels under `rule` (see integrate_depth)."""
+    if rule != "regions":
+        return rule == "all"
+    returns = np.isfinite(depth).astype(np.uint8)
+    size = 2 * NO_RETURN_REGION_PX + 1
+    near_return = cv2.dilate(returns, np.ones((size, size), np.uint8)) > 0
+    return ~near_return
 
 
 class FusedGrid:
@@ -66,6 +81,7 @@ class FusedGrid:
         semantic_weight: float = 1.0,  # equal weight of both fields (paper fuses them unweighted)
         geometric_rule: str = "product",
         max_confidence: float = 0.9,  # one view lowers a voxel's uncertainty at most 10-fold
+        hidden_unknown_weight: float = 1.0,
     ) -> None:
         if geometric_rule not in GEOMETRIC_RULES:
             raise InputError("geometric_rule", geometric_rule, f"one of {', '.join(GEOMETRIC_RULES)}")
@@ -92,6 +108,9 @@ class FusedGrid:
         self.semantic_weight = float(semantic_weight)
         self.geometric_rule = geometric_rule
         self.max_confidence = float(max_confidence)
+        if not (0.0 <= hidden_unknown_weight <= 1.0):
+            raise InputError("hidden_unknown_weight", hidden_unknown_weight, "a value in [0, 1]")
+        self.hidden_unknown_weight = float(hidden_unknown_weight)
         n = spec.num_voxels
         self.conf_sum = np.zeros(n, np.float32)
         self.hit_count = np.zeros(n, np.float32)
@@ -113,17 +132,20 @@ class FusedGrid:
         T_world_cam: np.ndarray,
         max_range: float = 5.0,  # paper, supplement: max depth 5 m
         stride: int = 2,  # carve every 2nd pixel row/column; surface hits use every pixel
-        carve_no_return: bool = False,
+        no_return: str = "regions",
     ) -> None:
         """Fuse one frame: surface evidence into hit voxels, free space along every ray.
 
         depth: (H, W) float32 metres along optical z, NaN = no return. conf: (H, W) float32 in
         [0, 1] (NaN = no confidence, pixel skipped). Each voxel counts at most one hit and one
         free observation per frame (hits win); its confidence sample is the frame's mean over
-        the pixels that land in it. Pixels with no return carve nothing unless carve_no_return
-        (then out to z = max_range): a dropout of a real sensor (dark, specular or grazing
-        surface, noise) looks exactly like empty space.
+        the pixels that land in it. Pixels with no return carve out to z = max_range by
+        `no_return`: "all" of them, "none", or only those in "regions" of no return (farther than
+        NO_RETURN_REGION_PX from any return: sky, open space beyond range); an isolated dropout of
+        a real sensor (dark, specular or grazing surface, noise) is not empty space.
         """
+        if no_return not in NO_RETURN_RULES:
+            raise InputError("no_return", no_return, f"one of {', '.join(NO_RETURN_RULES)}")
         depth = np.asarray(depth)
         conf = np.asarray(conf)
         if depth.ndim != 2:
@@ -160,7 +182,7 @@ class FusedGrid:
             np.zeros(self.spec.shape, np.uint16),
             stride,
             max_range,
-            carve_no_return=carve_no_return,
+            carve_no_return=_no_return_carving(depth, no_return),
         ).reshape(-1)
         free = (crossed > 0) & ~hit
         self.conf_sum[hit] += frame_conf.astype(np.float32)
@@ -230,6 +252,8 @@ class FusedGrid:
         """
         occ = self.occupancy() if occ is None else occ
         g = np.full(self.spec.num_voxels, self.unobserved_uncertainty, np.float32)
+        if self.hidden_unknown_weight < 1.0:
+            g[(occ == UNKNOWN) & ~self.frontier(occ)] *= np.float32(self.hidden_unknown_weight)
         g[occ == FREE] = 0.0
         surf = occ == OCCUPIED
         if self.geometric_rule == "product":
@@ -237,6 +261,26 @@ class FusedGrid:
         else:
             g[surf] = 1.0 - self.conf_sum[surf] / self.hit_count[surf]
         return g
+
+    def frontier(self, occ: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool: unknown voxels with a known-free face neighbour, where an unseen surface can
+        start (the boundary of what the camera has carved); deeper unknown voxels are hidden."""
+        occ = self.occupancy() if occ is None else occ
+        return self.boundary(occ) & (occ == UNKNOWN)
+
+    def boundary(self, occ: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool: voxels that are not known free but have a known-free face neighbour: the
+        surface of everything the camera has not carved away (occupied or unknown)."""
+        occ = (self.occupancy() if occ is None else occ).reshape(self.spec.shape)
+        free = occ == FREE
+        near = np.zeros_like(free)
+        for axis in range(3):
+            a = [slice(None)] * 3
+            b = [slice(None)] * 3
+            a[axis], b[axis] = slice(1, None), slice(None, -1)
+            near[tuple(a)] |= free[tuple(b)]
+            near[tuple(b)] |= free[tuple(a)]
+        return ((occ != FREE) & near).reshape(-1)
 
     def semantic(self) -> np.ndarray:
         """(N,) float32 mean splatted U_sem per voxel (0 where no semantic frame landed)."""

@@ -137,18 +137,27 @@ class PlanningContext:
         """Candidate views and the visibility caches named in `kinds` (see `cache`) for an
         occupancy snapshot (N,) int8, without touching the context: ((seeds, rotations), caches)."""
         candidates = self.candidate_views(occupancy)
-        caches = {
-            kind: VisibilityCache.build(
-                self.grid.spec,
-                occupancy,
-                candidates[0],
-                candidates[1],
-                self.visibility,
-                relevant=self._relevant(kind, occupancy),
-            )
-            for kind in kinds
-        }
+        caches = {kind: self._build_cache(kind, occupancy, *candidates) for kind in kinds}
         return candidates, caches
+
+    def _build_cache(
+        self, kind: str, occupancy: np.ndarray, seeds: np.ndarray, rotations: np.ndarray
+    ) -> VisibilityCache:
+        occluders = None
+        relevant = self._relevant(kind, occupancy)
+        if self.visibility.unknown_occludes:
+            # everything not carved hides what is behind it: only its boundary can be seen
+            occluders = self.grid.boundary(occupancy)
+            relevant = relevant & occluders
+        return VisibilityCache.build(
+            self.grid.spec,
+            occupancy,
+            seeds,
+            rotations,
+            self.visibility,
+            relevant=relevant,
+            occluders=occluders,
+        )
 
     def install(self, candidates: tuple, caches: dict) -> None:
         """Use candidates and caches made by `build` (replaces the current ones and the fields)."""
@@ -194,15 +203,7 @@ class PlanningContext:
         """Visibility cache recording the ROI voxels that are not known free."""
         if relevant not in self._caches:
             occ = self.grid.occupancy()
-            seeds, rotations = self.candidates()
-            self._caches[relevant] = VisibilityCache.build(
-                self.grid.spec,
-                occ,
-                seeds,
-                rotations,
-                self.visibility,
-                relevant=self._relevant(relevant, occ),
-            )
+            self._caches[relevant] = self._build_cache(relevant, occ, *self.candidates())
         return self._caches[relevant]
 
 

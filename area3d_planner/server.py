@@ -26,8 +26,10 @@ CACHE_WAIT_S = 120.0  # a request waits at most this long for the background reb
 
 # Where the paper distinguishes object level and scene (room) level.
 LEVEL_DEFAULTS = {
-    "object": {"voxel_size": 0.01, "gamma": 0.01, "budget": 25},  # paper: gamma, T; voxel: ours
-    "room": {"voxel_size": 0.05, "gamma": 0.005, "budget": 40},
+    # paper: gamma, T; ours: voxel, z-buffer resolution (about half a voxel's angle at the working
+    # distance: 1 cm at 0.7 m, 5 cm at 2 m)
+    "object": {"voxel_size": 0.01, "gamma": 0.01, "budget": 25, "face_res": 256},
+    "room": {"voxel_size": 0.05, "gamma": 0.005, "budget": 40, "face_res": 128},
 }
 LEVELS = ("auto", "object", "room")
 
@@ -48,7 +50,8 @@ class PlannerConfig:
     # the workspace lies inside the region (grown by 10 %), object otherwise.
     level: str = "auto"
     voxel_size: float = 0.0  # metres; 0 = the level's (0.01 object, 0.05 room), coarser if needed
-    voxel_budget: int = 4_000_000  # the grid over workspace + ROI never holds more voxels
+    voxel_budget: int = 4_000_000  # the grid never holds more voxels than this
+    map_margin: float = 0.1  # metres mapped around the ROI (object level; rooms map the workspace too)
     gamma: float = -1.0  # < 0 = the level's; paper, supplement: 0.01 object, 0.005 scene level
     eta: float = 0.3  # paper, supplement: decay factor
     decay: str = "frustum"  # the paper decays the whole frustum; "visible": only the mask
@@ -56,15 +59,17 @@ class PlannerConfig:
     unobserved_uncertainty: float = 1.0  # DESIGN.md: unobserved space = high uncertainty
     geometric_rule: str = "product"  # each observation lowers uncertainty; "mean": 1 - mean conf
     max_confidence: float = 0.9  # one observation lowers a voxel's uncertainty at most 10-fold
-    carve_no_return: bool = False  # a dropout looks like free space: do not carve along it
+    hidden_unknown_weight: float = 1.0  # unknown voxels not next to free space count this much
+    no_return: str = "regions"  # carve along no-return pixels: "regions" (sky, not dropouts) | all | none
     clearance: float = 0.05  # metres, camera centre to the nearest occupied voxel
     seed_spacing: float = 0.5  # metres, room level lattice of camera positions
     shell_scales: tuple = (0.8, 1.0, 1.25)  # object level shells, x the working distance
     fan_deg: float = 20.0  # object level: orientations +-fan around "look at the region"
     yaw_bins: int = 12  # room level orientations
     pitch_bins: int = 4
-    face_res: int = 256  # cube-map z-buffer resolution of the visibility test, pixels per face
+    face_res: int = 0  # cube-map z-buffer pixels per face edge; 0 = the level's (256 object, 128 room)
     pixels_per_voxel: float = 16.0  # a voxel covering this many pixels counts fully observed
+    unknown_occludes: bool = True  # a view counts the first non-free layer it sees
     hfov_deg: float = 90.0  # paper: FOV 90 degrees
     max_range: float = 5.0  # paper: max depth 5 m
     width: int = 640
@@ -92,6 +97,8 @@ class PlannerConfig:
             )
         if int(self.voxel_budget) < 1000:
             raise InputError("voxel_budget", self.voxel_budget, "an integer >= 1000 voxels")
+        if not (np.isfinite(self.map_margin) and self.map_margin >= 0):
+            raise InputError("map_margin", self.map_margin, "a value >= 0 metres")
         if not (np.isfinite(self.voxel_size) and self.voxel_size >= 0):
             raise InputError("voxel_size", self.voxel_size, "a value >= 0 metres (0 = automatic)")
         for name in ("workspace", "roi"):
@@ -113,14 +120,20 @@ class PlannerConfig:
         return "room" if inside else "object"
 
     def grid_spec(self) -> GridSpec:
-        """The voxel grid over workspace + ROI: the level's voxel size, or the smallest multiple of
-        1 mm that keeps the grid within voxel_budget; origin half a voxel below the box, so planes
-        at the box faces (a table top, a floor) lie mid-voxel and not on a voxel boundary."""
-        lo = np.minimum(np.asarray(self.workspace_min, float), np.asarray(self.roi_min, float))
-        hi = np.maximum(np.asarray(self.workspace_max, float), np.asarray(self.roi_max, float))
+        """The voxel grid: the ROI grown by map_margin (room level: and the workspace, where the
+        camera moves); the level's voxel size, or the smallest multiple of 1 mm that keeps the grid
+        within voxel_budget; origin half a voxel below the ROI's corner, so planes at the box faces
+        (a table top, a floor) lie mid-voxel and not on a voxel boundary."""
+        roi_lo, roi_hi = np.asarray(self.roi_min, float), np.asarray(self.roi_max, float)
+        lo, hi = roi_lo - self.map_margin, roi_hi + self.map_margin
+        if self.resolved_level() == "room":
+            lo = np.minimum(lo, np.asarray(self.workspace_min, float))
+            hi = np.maximum(hi, np.asarray(self.workspace_max, float))
         voxel = self.voxel_size or LEVEL_DEFAULTS[self.resolved_level()]["voxel_size"]
         while True:
-            spec = GridSpec.from_bounds(lo - 0.5 * voxel, hi + 0.5 * voxel, voxel)
+            # whole voxels from the ROI corner outwards, so the ROI faces stay mid-voxel
+            start = roi_lo - (np.ceil((roi_lo - lo) / voxel - 1e-9) + 0.5) * voxel
+            spec = GridSpec.from_bounds(start, hi + 0.5 * voxel, voxel)
             if spec.num_voxels <= int(self.voxel_budget):
                 return spec
             voxel = np.ceil(1000 * voxel * (spec.num_voxels / self.voxel_budget) ** (1 / 3)) / 1000
@@ -183,6 +196,7 @@ class NextBestViewServer:
             c.semantic_weight,
             c.geometric_rule,
             c.max_confidence,
+            c.hidden_unknown_weight,
         )
         self.context = PlanningContext(
             grid=self.grid,
@@ -200,8 +214,9 @@ class NextBestViewServer:
                 width=c.width,
                 height=c.height,
                 max_range=c.max_range,
-                face_res=c.face_res,
+                face_res=c.face_res or LEVEL_DEFAULTS[level]["face_res"],
                 pixels_per_voxel=c.pixels_per_voxel,
+                unknown_occludes=c.unknown_occludes,
             ),
             greedy=GreedyParams(
                 eta=c.eta,
@@ -256,7 +271,7 @@ class NextBestViewServer:
                 T,
                 self.config.max_range,
                 self.config.carve_stride,
-                self.config.carve_no_return,
+                self.config.no_return,
             )
             self._frames[int(stamp_ns)] = _Frame(
                 np.asarray(depth, np.float32), np.asarray(K, float), np.asarray(T, float)

@@ -57,6 +57,9 @@ class VisibilityParams:
     # A voxel counts as fully observed by a view where it covers at least this many pixels (4 x 4);
     # fewer pixels count in proportion: the resolution term of the utility.
     pixels_per_voxel: float = 16.0
+    # Unknown space hides what lies behind it, like the surface it may hold: a view counts the
+    # first non-free layer it sees (expected new surface), not the depth of an unknown column.
+    unknown_occludes: bool = True
 
     def validate(self) -> None:
         if self.level not in LEVELS:
@@ -290,13 +293,15 @@ class VisibilityCache:
         params: VisibilityParams | None = None,
         relevant: np.ndarray | None = None,
         threads: int | None = None,
+        occluders: np.ndarray | None = None,
     ) -> VisibilityCache:
         """Dense masks of every (seed, orientation) view: every relevant voxel visible from the
         seed (cube-map z-buffer of the occupied voxels) and inside the view's frustum.
 
         occupancy: (N,) int8 (-1 unknown, 0 free, 1 occupied). seeds: (S, 3); rotations:
         (S, B, 3, 3) or (B, 3, 3) shared by every seed. relevant: (N,) bool, the voxels recorded
-        (default: every voxel that is not known free). threads: worker threads (default: CPU
+        (default: every voxel that is not known free). occluders: (N,) bool, the voxels splatted
+        into the z-buffer (default: the occupied ones). threads: worker threads (default: CPU
         count); the result does not depend on it.
         """
         params = params or VisibilityParams()
@@ -319,7 +324,9 @@ class VisibilityCache:
             relevant = occupancy != 0
         record_ids = np.flatnonzero(relevant).astype(np.int32)
         centres = spec.centers_of(record_ids)
-        occ_centres = spec.centers_of(np.flatnonzero(occupancy == 1))
+        if occluders is None:
+            occluders = occupancy == 1
+        occ_centres = spec.centers_of(np.flatnonzero(occluders))
         threads = max(1, min(threads or os.cpu_count() or 1, max(1, seeds.shape[0])))
         n_chunks = min(seeds.shape[0], threads * CHUNKS_PER_THREAD) if threads > 1 else 1
         chunks = np.array_split(np.arange(seeds.shape[0]), max(1, n_chunks))

@@ -40,26 +40,36 @@ def test_depth_frame_marks_wall_occupied_space_before_it_free_and_behind_it_unkn
     assert geo[at(grid, [0.85, 0.5, 0.5])] == 1.0
 
 
-def test_pixels_without_return_carve_nothing_by_default():
-    # a dropout (dark, specular, grazing surface, noise) looks exactly like empty space
-    grid = make_grid(gamma=0.01)
+def test_isolated_dropouts_carve_nothing_but_regions_without_return_do():
+    # a dropout (dark, specular, grazing surface, noise) is not empty space; open sky is
     depth, T = wall_frame()
+    depth[30:33, 50:53] = np.nan  # a small dropout on the wall
+    grid = make_grid(gamma=0.01)
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=5.0, stride=1)
+    behind = grid.spec.centers()[:, 0] > 0.65
+    assert not np.any(grid.occupancy()[behind] == 0)  # nothing behind the wall was carved
+    # half of the image without any return: that region carves out to max range
     depth[:, :32] = np.nan
+    grid = make_grid(gamma=0.01)
     grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=5.0, stride=1)
     occ = grid.occupancy()
-    assert occ[at(grid, [0.35, 0.4, 0.5])] == 0  # carved along the rays that hit the wall
-    # left half of the image (world +y, the camera looks along +x with y down): never carved
+    assert occ[at(grid, [0.9, 0.9, 0.5])] == 0  # world +y is the image's left half
+    assert occ[at(grid, [0.9, 0.1, 0.5])] == -1  # behind the wall on the other side
+    # "none": no pixel without return carves
+    grid = make_grid(gamma=0.01)
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=5.0, stride=1, no_return="none")
+    occ = grid.occupancy()
     assert occ[at(grid, [0.35, 0.8, 0.5])] == -1
-    assert occ[at(grid, [0.35, 0.3, 0.5])] == 0
+    assert occ[at(grid, [0.35, 0.3, 0.5])] == 0  # carved along the rays that hit the wall
+    with pytest.raises(InputError, match="no_return"):
+        grid.integrate_depth(depth, np.ones_like(depth), K, T, no_return="some")
 
 
 def test_pixels_without_return_carve_free_space_to_max_range_when_asked():
     grid = make_grid(gamma=0.01)
     depth, T = wall_frame()
     depth[:] = np.nan
-    grid.integrate_depth(
-        depth, np.ones_like(depth), K, T, max_range=0.6, stride=1, carve_no_return=True
-    )
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=0.6, stride=1, no_return="all")
     occ = grid.occupancy()
     assert occ[at(grid, [0.45, 0.5, 0.5])] == 0
     assert occ[at(grid, [0.9, 0.5, 0.5])] == -1  # beyond z = 0.6 m from the camera
