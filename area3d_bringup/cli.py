@@ -223,7 +223,10 @@ def bench_episode(
         "area3d,random,uniform,vlm_naive,volumetric_ig,no_vlm,no_ff,gamma0"
     ),
     scenes_: str = typer.Option(
-        "", "--scenes", help="comma list (default: all object-level scenes)"
+        "", "--scenes", help="comma list of names or MJCF paths (default: every bundled scene)"
+    ),
+    holdout: bool = typer.Option(
+        True, help="also generate and run the hold-out scenes (tabletop, alcove room)"
     ),
     budget: int = typer.Option(None),
     out: Path = typer.Option(Path("runs/bench")),
@@ -231,7 +234,7 @@ def bench_episode(
         False, help="call the nodes' cores in one process (same views, no transport; faster)"
     ),
 ) -> None:
-    """Every policy on every object-level scene with several seeds; prints the table."""
+    """Every policy on every scene with several seeds; prints the table."""
     from area3d_bringup.episode_bench import run_episode_bench
 
     run_episode_bench(
@@ -242,6 +245,7 @@ def bench_episode(
         out=out,
         console=console,
         in_process=in_process,
+        holdout=holdout,
     )
 
 

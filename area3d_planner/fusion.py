@@ -84,7 +84,9 @@ class FusedGrid:
         hidden_unknown_weight: float = 1.0,
     ) -> None:
         if geometric_rule not in GEOMETRIC_RULES:
-            raise InputError("geometric_rule", geometric_rule, f"one of {', '.join(GEOMETRIC_RULES)}")
+            raise InputError(
+                "geometric_rule", geometric_rule, f"one of {', '.join(GEOMETRIC_RULES)}"
+            )
         if not (0.0 < max_confidence < 1.0):
             raise InputError("max_confidence", max_confidence, "a value in (0, 1)")
         roi_lo = np.asarray(roi_lo, dtype=np.float64)

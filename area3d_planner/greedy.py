@@ -87,7 +87,11 @@ def range_gain(
 
 
 def decay_committed(
-    cache: VisibilityCache, U: np.ndarray, view: int, eta: float, region: str = "frustum",
+    cache: VisibilityCache,
+    U: np.ndarray,
+    view: int,
+    eta: float,
+    region: str = "frustum",
     pose: np.ndarray | None = None,
 ) -> None:
     """U <- (1 - eta) U, in place, on the frustum of a committed view (the paper) or on its mask.

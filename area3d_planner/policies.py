@@ -344,7 +344,9 @@ def _valid_points(context: PlanningContext, pts: np.ndarray, centre: np.ndarray)
     level unknown space outside the region counts as usable, as for the shells."""
     g = context.grid
     margin = context.clearance + g.spec.voxel_size
-    outside = (g.roi_lo - margin, g.roi_hi + margin) if context.visibility.level == "object" else None
+    outside = (
+        (g.roi_lo - margin, g.roi_hi + margin) if context.visibility.level == "object" else None
+    )
     return valid_seeds(
         pts,
         g.spec,

@@ -28,8 +28,21 @@ CACHE_WAIT_S = 120.0  # a request waits at most this long for the background reb
 LEVEL_DEFAULTS = {
     # paper: gamma, T; ours: voxel, z-buffer resolution (about half a voxel's angle at the working
     # distance: 1 cm at 0.7 m, 5 cm at 2 m)
-    "object": {"voxel_size": 0.01, "gamma": 0.01, "budget": 25, "face_res": 256},
-    "room": {"voxel_size": 0.05, "gamma": 0.005, "budget": 40, "face_res": 128},
+    # and the resolution term (a pixel footprint of 2.5 mm object, 6 mm room on the surface)
+    "object": {
+        "voxel_size": 0.01,
+        "gamma": 0.01,
+        "budget": 25,
+        "face_res": 256,
+        "pixels_per_voxel": 16.0,
+    },
+    "room": {
+        "voxel_size": 0.05,
+        "gamma": 0.005,
+        "budget": 40,
+        "face_res": 128,
+        "pixels_per_voxel": 64.0,
+    },
 }
 LEVELS = ("auto", "object", "room")
 
@@ -51,7 +64,9 @@ class PlannerConfig:
     level: str = "auto"
     voxel_size: float = 0.0  # metres; 0 = the level's (0.01 object, 0.05 room), coarser if needed
     voxel_budget: int = 4_000_000  # the grid never holds more voxels than this
-    map_margin: float = 0.1  # metres mapped around the ROI (object level; rooms map the workspace too)
+    map_margin: float = (
+        0.1  # metres mapped around the ROI (object level; rooms map the workspace too)
+    )
     gamma: float = -1.0  # < 0 = the level's; paper, supplement: 0.01 object, 0.005 scene level
     eta: float = 0.3  # paper, supplement: decay factor
     decay: str = "frustum"  # the paper decays the whole frustum; "visible": only the mask
@@ -60,15 +75,19 @@ class PlannerConfig:
     geometric_rule: str = "product"  # each observation lowers uncertainty; "mean": 1 - mean conf
     max_confidence: float = 0.9  # one observation lowers a voxel's uncertainty at most 10-fold
     hidden_unknown_weight: float = 1.0  # unknown voxels not next to free space count this much
-    no_return: str = "regions"  # carve along no-return pixels: "regions" (sky, not dropouts) | all | none
+    no_return: str = (
+        "regions"  # carve along no-return pixels: "regions" (sky, not dropouts) | all | none
+    )
     clearance: float = 0.05  # metres, camera centre to the nearest occupied voxel
     seed_spacing: float = 0.5  # metres, room level lattice of camera positions
     shell_scales: tuple = (0.8, 1.0, 1.25)  # object level shells, x the working distance
     fan_deg: float = 20.0  # object level: orientations +-fan around "look at the region"
     yaw_bins: int = 12  # room level orientations
     pitch_bins: int = 4
-    face_res: int = 0  # cube-map z-buffer pixels per face edge; 0 = the level's (256 object, 128 room)
-    pixels_per_voxel: float = 16.0  # a voxel covering this many pixels counts fully observed
+    face_res: int = (
+        0  # cube-map z-buffer pixels per face edge; 0 = the level's (256 object, 128 room)
+    )
+    pixels_per_voxel: float = 0.0  # fully observed from this many pixels; 0 = 16 object, 64 room
     unknown_occludes: bool = True  # a view counts the first non-free layer it sees
     hfov_deg: float = 90.0  # paper: FOV 90 degrees
     max_range: float = 5.0  # paper: max depth 5 m
@@ -93,24 +112,35 @@ class PlannerConfig:
         make_policy(self.policy)
         if int(self.budget) < 0:
             raise InputError(
-                "budget", self.budget, "an integer >= 1 (total views, initial ones included; 0 = the paper's)"
+                "budget",
+                self.budget,
+                "an integer >= 1 (total views, initial ones included; 0 = the paper's)",
             )
         if int(self.voxel_budget) < 1000:
             raise InputError("voxel_budget", self.voxel_budget, "an integer >= 1000 voxels")
         if not (np.isfinite(self.map_margin) and self.map_margin >= 0):
             raise InputError("map_margin", self.map_margin, "a value >= 0 metres")
+        if not (np.isfinite(self.pixels_per_voxel) and self.pixels_per_voxel >= 0):
+            raise InputError(
+                "pixels_per_voxel", self.pixels_per_voxel, "a value > 0 (0 = the level's)"
+            )
         if not (np.isfinite(self.voxel_size) and self.voxel_size >= 0):
             raise InputError("voxel_size", self.voxel_size, "a value >= 0 metres (0 = automatic)")
         for name in ("workspace", "roi"):
             lo = np.asarray(getattr(self, f"{name}_min"), float)
             hi = np.asarray(getattr(self, f"{name}_max"), float)
-            if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(hi - lo)) or not np.all(hi > lo):
+            if (
+                lo.shape != (3,)
+                or hi.shape != (3,)
+                or not np.all(np.isfinite(hi - lo))
+                or not np.all(hi > lo)
+            ):
                 raise InputError(
                     f"{name}_min/{name}_max", [lo.tolist(), hi.tolist()], "min < max on every axis"
                 )
 
     def resolved_level(self) -> str:
-        """"object" or "room": the configured level, or the automatic rule for "auto"."""
+        """ "object" or "room": the configured level, or the automatic rule for "auto"."""
         if self.level != "auto":
             return self.level
         roi_lo, roi_hi = np.asarray(self.roi_min, float), np.asarray(self.roi_max, float)
@@ -215,7 +245,7 @@ class NextBestViewServer:
                 height=c.height,
                 max_range=c.max_range,
                 face_res=c.face_res or LEVEL_DEFAULTS[level]["face_res"],
-                pixels_per_voxel=c.pixels_per_voxel,
+                pixels_per_voxel=c.pixels_per_voxel or LEVEL_DEFAULTS[level]["pixels_per_voxel"],
                 unknown_occludes=c.unknown_occludes,
             ),
             greedy=GreedyParams(

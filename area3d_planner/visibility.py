@@ -155,9 +155,7 @@ def orientation_bins(params: VisibilityParams) -> tuple[np.ndarray, np.ndarray]:
     return forward, rotations
 
 
-def shell_positions(
-    centre: np.ndarray, radius: float, params: VisibilityParams
-) -> np.ndarray:
+def shell_positions(centre: np.ndarray, radius: float, params: VisibilityParams) -> np.ndarray:
     """(P, 3) positions on the shells around `centre` at shell_scales * radius, one ring per
     elevation, azimuths spaced so that neighbours on a ring are about as far apart as on the
     lowest ring."""
@@ -215,7 +213,12 @@ def valid_seeds(
     """
     lo = np.asarray(workspace_lo, dtype=np.float64)
     hi = np.asarray(workspace_hi, dtype=np.float64)
-    if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo) or not np.all(np.isfinite(hi - lo)):
+    if (
+        lo.shape != (3,)
+        or hi.shape != (3,)
+        or not np.all(hi > lo)
+        or not np.all(np.isfinite(hi - lo))
+    ):
         raise InputError(
             "workspace", [lo.tolist(), hi.tolist()], "workspace_min < workspace_max on every axis"
         )

@@ -57,7 +57,9 @@ def test_isolated_dropouts_carve_nothing_but_regions_without_return_do():
     assert occ[at(grid, [0.9, 0.1, 0.5])] == -1  # behind the wall on the other side
     # "none": no pixel without return carves
     grid = make_grid(gamma=0.01)
-    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=5.0, stride=1, no_return="none")
+    grid.integrate_depth(
+        depth, np.ones_like(depth), K, T, max_range=5.0, stride=1, no_return="none"
+    )
     occ = grid.occupancy()
     assert occ[at(grid, [0.35, 0.8, 0.5])] == -1
     assert occ[at(grid, [0.35, 0.3, 0.5])] == 0  # carved along the rays that hit the wall

@@ -297,8 +297,13 @@ def test_a_request_waits_for_the_rebuild_that_covers_its_stamp():
 
 def test_the_grid_keeps_within_its_voxel_budget_and_puts_box_faces_mid_voxel():
     big = config(
-        workspace_min=(-3.0, -2.0, 0.0), workspace_max=(3.0, 2.0, 2.5), roi_min=(-3.0, -2.0, 0.0),
-        roi_max=(3.0, 2.0, 2.5), voxel_size=0.0, voxel_budget=200_000, level="auto",
+        workspace_min=(-3.0, -2.0, 0.0),
+        workspace_max=(3.0, 2.0, 2.5),
+        roi_min=(-3.0, -2.0, 0.0),
+        roi_max=(3.0, 2.0, 2.5),
+        voxel_size=0.0,
+        voxel_budget=200_000,
+        level="auto",
     )
     spec = big.grid_spec()
     assert spec.num_voxels <= 200_000
@@ -312,7 +317,12 @@ def test_the_grid_keeps_within_its_voxel_budget_and_puts_box_faces_mid_voxel():
 
 
 def test_level_is_room_when_the_camera_works_inside_the_region():
-    inside = config(level="auto", workspace_min=(0.1, 0.1, 0.1), workspace_max=(0.9, 0.9, 0.9), roi_min=(0, 0, 0))
+    inside = config(
+        level="auto",
+        workspace_min=(0.1, 0.1, 0.1),
+        workspace_max=(0.9, 0.9, 0.9),
+        roi_min=(0, 0, 0),
+    )
     around = config(level="auto", workspace_min=(-1, -1, 0), workspace_max=(2, 2, 2))
     assert inside.resolved_level() == "room" and around.resolved_level() == "object"
     with pytest.raises(InputError, match="level"):

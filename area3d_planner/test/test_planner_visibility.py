@@ -55,7 +55,9 @@ def test_shells_surround_the_region_at_the_working_distance_and_look_at_it():
     assert rotations.shape == (len(points), 5, 3, 3)
     to_centre = (centre - points) / r[:, None]
     np.testing.assert_allclose(rotations[:, 0, :, 2], to_centre, atol=1e-9)
-    off_axis = np.degrees(np.arccos(np.clip(np.einsum("pbi,pi->pb", rotations[:, 1:, :, 2], to_centre), -1, 1)))
+    off_axis = np.degrees(
+        np.arccos(np.clip(np.einsum("pbi,pi->pb", rotations[:, 1:, :, 2], to_centre), -1, 1))
+    )
     # pitch offsets turn by exactly the fan angle, yaw offsets by at most it (less when tilted)
     np.testing.assert_allclose(off_axis[:, 2:], 20.0, atol=1e-6)
     assert np.all((off_axis[:, :2] > 5.0) & (off_axis[:, :2] <= 20.0 + 1e-6))
@@ -124,7 +126,9 @@ def test_weights_are_the_share_of_pixels_a_voxel_needs_that_it_gets(distance):
     # ... and the wall voxels inside the frustum are there (dense, nothing sampled); voxels seen
     # obliquely may hide behind their nearer neighbours (the z-buffer's "acne"), few of them
     wall = np.flatnonzero(np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i)
-    in_view = np.intersect1d(wall, cache.frustum(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), 1]])))
+    in_view = np.intersect1d(
+        wall, cache.frustum(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), 1]]))
+    )
     c = spec.centers_of(in_view)
     steep = c[:, 0] / np.linalg.norm(c, axis=1) > np.cos(np.deg2rad(30))
     assert set(in_view[steep].tolist()) <= set(ids.tolist())
@@ -149,8 +153,12 @@ def fused_clutter(seed: int):
     # surface voxels (solid with a free 6-neighbour) seen as occupied; the rest stays unknown
     vol = solid.reshape(spec.shape)
     shell = vol & ~(
-        np.roll(vol, 1, 0) & np.roll(vol, -1, 0) & np.roll(vol, 1, 1) & np.roll(vol, -1, 1)
-        & np.roll(vol, 1, 2) & np.roll(vol, -1, 2)
+        np.roll(vol, 1, 0)
+        & np.roll(vol, -1, 0)
+        & np.roll(vol, 1, 1)
+        & np.roll(vol, -1, 1)
+        & np.roll(vol, 1, 2)
+        & np.roll(vol, -1, 2)
     )
     seen = shell.ravel() & (rng.random(spec.num_voxels) < 0.6)
     occ[seen] = 1
@@ -165,7 +173,17 @@ def test_scores_converge_towards_a_16x_denser_reference(seed):
     params = VisibilityParams(shell_elevations_deg=(0.0, 20.0, 45.0, 70.0))
     centre = 0.5 * (grid.roi_lo + grid.roi_hi)
     points = shell_positions(centre, 0.6, params)
-    points = points[valid_seeds(points, grid.spec, occ, grid.spec.lower, grid.spec.upper, 0.05, (grid.roi_lo, grid.roi_hi))]
+    points = points[
+        valid_seeds(
+            points,
+            grid.spec,
+            occ,
+            grid.spec.lower,
+            grid.spec.upper,
+            0.05,
+            (grid.roi_lo, grid.roi_hi),
+        )
+    ]
     rotations = shell_rotations(points, centre, params.fan_deg)
     U = grid.fused()
 
@@ -233,3 +251,25 @@ def test_first_view_looks_into_the_unobserved_pocket_through_its_opening(
     for s in np.flatnonzero(closed):
         for b in range(cache.num_bins):
             assert not pocket_interior[cache.mask(s * cache.num_bins + b)[0]].any()
+
+
+def test_with_unknown_occluding_a_view_counts_the_first_unknown_layer_not_the_column():
+    spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.05)
+    grid = FusedGrid(spec, np.zeros(3), np.ones(3), gamma=0.01)
+    occ = np.full(spec.shape, -1, np.int8)
+    occ[:10] = 0  # carved: x < 0.5; everything beyond is unknown, nothing is occupied
+    from area3d_planner.test.conftest import set_occupancy
+
+    set_occupancy(grid, occ.ravel())
+    boundary = grid.boundary()
+    ix = np.unravel_index(np.flatnonzero(boundary), spec.shape)[0]
+    assert np.all(ix == 10)  # the unknown voxels next to carved space
+    R = look_rotation(np.array([1.0, 0.0, 0.0]))[None]
+    seed = np.array([[0.1, 0.5, 0.5]])
+    optimistic = VisibilityCache.build(spec, occ.ravel(), seed, R, FAST)
+    first_layer = VisibilityCache.build(
+        spec, occ.ravel(), seed, R, FAST, relevant=boundary, occluders=boundary
+    )
+    assert np.unravel_index(optimistic.mask(0)[0], spec.shape)[0].max() > 15  # the whole column
+    layer = np.unravel_index(first_layer.mask(0)[0], spec.shape)[0]
+    assert layer.size > 0 and np.all(layer == 10)
