@@ -28,7 +28,7 @@ CACHE_WAIT_S = 120.0  # a request waits at most this long for the background reb
 LEVEL_DEFAULTS = {
     # paper: gamma, T; ours: voxel, z-buffer resolution (about half a voxel's angle at the working
     # distance: 1 cm at 0.7 m, 5 cm at 2 m)
-    # and the resolution term (a pixel footprint of 2.5 mm object, 6 mm room on the surface)
+    # and the resolution term (a pixel footprint of 1.8 mm object, 6 mm room on the surface)
     "object": {
         "voxel_size": 0.01,
         "gamma": 0.01,
@@ -87,7 +87,7 @@ class PlannerConfig:
     face_res: int = (
         0  # cube-map z-buffer pixels per face edge; 0 = the level's (256 object, 128 room)
     )
-    pixels_per_voxel: float = 0.0  # fully observed from this many pixels; 0 = 16 object, 64 room
+    pixels_per_voxel: float = 0.0  # fully observed from this many pixels; 0 = 32 object, 64 room
     unknown_occludes: bool = True  # a view counts the first non-free layer it sees
     hfov_deg: float = 90.0  # paper: FOV 90 degrees
     max_range: float = 5.0  # paper: max depth 5 m
