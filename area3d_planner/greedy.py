@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
-from area3d_planner.raycast import decay_view
+from area3d_planner.masks import decay_view
 from area3d_planner.visibility import VisibilityCache
 
 DECAY_REGIONS = ("frustum", "visible")

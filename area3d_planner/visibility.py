@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
-from area3d_planner.raycast import score_all_views, score_views
+from area3d_planner.masks import score_all_views, score_views
 from area3d_planner.zbuffer import in_frustum, seed_view_masks
 
 UP = np.array([0.0, 0.0, 1.0])
