@@ -1,0 +1,34 @@
+import numpy as np
+
+from area3d_bringup.inprocess import run_inprocess_episode
+from area3d_eval.rundir import frame_files, read_episode, read_frame
+from sim_bridge.scenes import load_scene
+from sim_bridge.validity import check_pose
+
+
+def test_an_in_process_episode_writes_the_run_directory_of_area3d_run(tmp_path):
+    run_dir = run_inprocess_episode("single_object", "area3d", 0, tmp_path, budget=6)
+    episode = read_episode(run_dir)
+    scene = load_scene("single_object")
+    assert episode.kinds() == ["initial"] * 4 + ["planned"] * 2
+    assert episode.level == "object" and episode.budget == 6
+    files = frame_files(run_dir)
+    assert len(files) == 6
+    poses = episode.poses()
+    np.testing.assert_allclose(poses[:4], scene.initial_views, atol=1e-9)
+    for path, T in zip(files, poses, strict=True):
+        frame = read_frame(path)
+        np.testing.assert_allclose(frame.T_world_cam, T)
+        assert np.isfinite(frame.depth).mean() > 0.5
+    for T in poses[4:]:
+        assert check_pose(scene, T).ok
+        # planned views are new places, not a repeat of a captured one
+        assert np.min(np.linalg.norm(poses[:4, :3, 3] - T[:3, 3], axis=1)) > 0.05
+    assert episode.timings_s["planning"] > 0 and episode.timings_s["perception"] > 0
+
+
+def test_an_in_process_episode_refuses_an_unknown_policy(tmp_path):
+    import pytest
+
+    with pytest.raises(ValueError, match="policy"):
+        run_inprocess_episode("single_object", "best", 0, tmp_path, budget=5)
