@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
 from area3d_planner.masks import score_all_views, score_views
-from area3d_planner.zbuffer import in_frustum, seed_view_masks
+from area3d_planner.zbuffer import in_frustum, new_zbuffer, seed_view_masks
 
 UP = np.array([0.0, 0.0, 1.0])
 CHUNKS_PER_THREAD = 8  # seed chunks per worker thread when building masks (load balance)
@@ -110,17 +110,16 @@ class VisibilityParams:
 
 
 def look_rotation(forward: np.ndarray) -> np.ndarray:
-    """(3, 3) R_world_cam of an optical frame with z along `forward`, x horizontal (zero roll), y down.
-
-    forward: (3,) direction, need not be unit; straight up/down falls back to x = world +x.
+    """(..., 3, 3) R_world_cam of optical frames with z along `forward` (..., 3), x horizontal
+    (zero roll), y down. forward need not be unit; straight up/down falls back to x = world +x.
     """
     z = np.asarray(forward, dtype=np.float64)
-    z = z / np.linalg.norm(z)
+    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
     x = np.cross(z, UP)
-    nx = np.linalg.norm(x)
-    x = np.array([1.0, 0.0, 0.0]) if nx < 1e-9 else x / nx
+    nx = np.linalg.norm(x, axis=-1, keepdims=True)
+    x = np.where(nx < 1e-9, np.array([1.0, 0.0, 0.0]), x / np.maximum(nx, 1e-12))
     y = np.cross(z, x)
-    return np.stack([x, y, z], axis=1)
+    return np.stack([x, y, z], axis=-1)
 
 
 def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -151,8 +150,7 @@ def orientation_bins(params: VisibilityParams) -> tuple[np.ndarray, np.ndarray]:
         )
     yy, pp = np.meshgrid(yaws, pitches, indexing="ij")
     forward = _direction(yy.ravel(), pp.ravel())
-    rotations = np.stack([look_rotation(f) for f in forward])
-    return forward, rotations
+    return forward, look_rotation(forward)
 
 
 def shell_positions(centre: np.ndarray, radius: float, params: VisibilityParams) -> np.ndarray:
@@ -181,8 +179,7 @@ def shell_rotations(positions: np.ndarray, target: np.ndarray, fan_deg: float) -
     out = np.empty((positions.shape[0], len(offsets), 3, 3))
     for b, (dy, dp) in enumerate(offsets):
         p = np.clip(pitch + dp, -np.deg2rad(89.0), np.deg2rad(89.0))
-        for i, fwd in enumerate(_direction(yaw + dy, p)):
-            out[i, b] = look_rotation(fwd)
+        out[:, b] = look_rotation(_direction(yaw + dy, p))
     return out
 
 
@@ -338,7 +335,7 @@ class VisibilityCache:
 
         def run(idx: np.ndarray):
             if not hasattr(scratch, "zbuf"):
-                scratch.zbuf = np.empty((6, params.face_res, params.face_res), np.float64)
+                scratch.zbuf, scratch.dirty = new_zbuffer(params.face_res)
             return seed_view_masks(
                 np.ascontiguousarray(seeds[idx]),
                 np.ascontiguousarray(rotations[idx]),
@@ -354,6 +351,7 @@ class VisibilityCache:
                 params.pixels_per_voxel,
                 tol,
                 scratch.zbuf,
+                scratch.dirty,
             )
 
         if seeds.shape[0] == 0:

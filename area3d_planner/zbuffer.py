@@ -39,12 +39,28 @@ def _pixel(c, n):
 
 
 @njit(cache=True, nogil=True)
-def fill_zbuffer(origin, occ_centres, voxel_size, max_range, zbuf):
-    """Splat occupied voxel centres (M, 3) into zbuf (6, n, n) float64 (set to inf first) as their
-    range from `origin` (3,), keeping the nearest per pixel. Voxels beyond max_range are skipped.
-    A splat that crosses a face edge is drawn on the neighbouring face too (no gaps at cube edges)."""
+def _clear(zbuf, dirty):
+    """Set the pixels of zbuf inside each face's dirty rectangle (6, 4: i0, i1, j0, j1) to inf
+    and mark every face clean; pixels outside the rectangles are inf already."""
+    for f in range(6):
+        if dirty[f, 0] <= dirty[f, 1]:
+            zbuf[f, dirty[f, 0] : dirty[f, 1] + 1, dirty[f, 2] : dirty[f, 3] + 1] = np.inf
+        dirty[f, 0] = zbuf.shape[1]
+        dirty[f, 1] = -1
+        dirty[f, 2] = zbuf.shape[2]
+        dirty[f, 3] = -1
+
+
+@njit(cache=True, nogil=True)
+def fill_zbuffer(origin, occ_centres, voxel_size, max_range, zbuf, dirty):
+    """Splat occupied voxel centres (M, 3) into zbuf (6, n, n) float32 as their range from
+    `origin` (3,), keeping the nearest per pixel. Voxels beyond max_range are skipped. A splat
+    that crosses a face edge is drawn on the neighbouring face too (no gaps at cube edges).
+    dirty: (6, 4) int64 rectangles written by the previous fill (all inf before the first one:
+    np.full(..., inf) and `_clear` semantics); only they are cleared, which for a small scene
+    seen from afar is a small part of the panorama."""
     n = zbuf.shape[1]
-    zbuf[:] = np.inf
+    _clear(zbuf, dirty)
     half = 0.5 * n
     d = np.empty(3)
     for k in range(occ_centres.shape[0]):
@@ -75,10 +91,14 @@ def fill_zbuffer(origin, occ_centres, voxel_size, max_range, zbuf):
             i1 = min(int(np.floor(pu + eu)), n - 1)
             j0 = max(int(np.floor(pv - ev)), 0)
             j1 = min(int(np.floor(pv + ev)), n - 1)
+            dirty[face, 0] = min(dirty[face, 0], i0)
+            dirty[face, 1] = max(dirty[face, 1], i1)
+            dirty[face, 2] = min(dirty[face, 2], j0)
+            dirty[face, 3] = max(dirty[face, 3], j1)
             for i in range(i0, i1 + 1):
                 for j in range(j0, j1 + 1):
                     if r < zbuf[face, i, j]:
-                        zbuf[face, i, j] = r
+                        zbuf[face, i, j] = np.float32(r)
 
 
 @njit(cache=True, nogil=True)
@@ -119,6 +139,7 @@ def seed_view_masks(
     pixels_per_voxel,
     tol,
     zbuf,
+    dirty,
 ):
     """Visibility masks of every view at every seed, as CSR rows.
 
@@ -129,7 +150,8 @@ def seed_view_masks(
     |x| <= tan_x z, |y| <= tan_y z). Its weight is the share of a full observation the view's
     resolution allows: min(1, (focal * voxel_size / z)^2 / pixels_per_voxel), i.e. the pixels
     the voxel covers over the pixels a voxel needs.
-    zbuf: (6, n, n) float64 scratch. Returns (nnz (S*B,) int64, ids int32, weights float32).
+    zbuf: (6, n, n) float32 scratch, all inf, with its dirty (6, 4) int64 rectangles (see
+    `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32, weights float32).
     """
     n_seeds = seeds.shape[0]
     n_views = rotations.shape[1]
@@ -142,7 +164,7 @@ def seed_view_masks(
     fs2 = (focal * voxel_size) ** 2
     for s in range(n_seeds):
         o = seeds[s]
-        fill_zbuffer(o, occ_centres, voxel_size, max_range, zbuf)
+        fill_zbuffer(o, occ_centres, voxel_size, max_range, zbuf, dirty)
         n_vis = visible_from(o, centres, zbuf, voxel_size, tol, max_range, visible)
         for b in range(n_views):
             R = rotations[s, b]
@@ -193,3 +215,11 @@ def in_frustum(centres, T, near, max_range, tan_x, tan_y):
         y = T[0, 1] * dx + T[1, 1] * dy + T[2, 1] * dz
         out[k] = abs(x) <= tan_x * z and abs(y) <= tan_y * z
     return out
+
+
+def new_zbuffer(face_res: int) -> tuple[np.ndarray, np.ndarray]:
+    """A clean cube-map z-buffer (6, n, n) float32 of inf and its (6, 4) dirty rectangles (none)."""
+    dirty = np.empty((6, 4), np.int64)
+    dirty[:, 0::2] = face_res
+    dirty[:, 1::2] = -1
+    return np.full((6, face_res, face_res), np.inf, np.float32), dirty
