@@ -60,6 +60,9 @@ class VisibilityParams:
     # Unknown space hides what lies behind it, like the surface it may hold: a view counts the
     # first non-free layer it sees (expected new surface), not the depth of an unknown column.
     unknown_occludes: bool = True
+    # Weigh each voxel by the cosine between its free-space side and the direction to the camera
+    # (the surface it may hold is seen foreshortened at a grazing angle).
+    incidence: bool = True
 
     def validate(self) -> None:
         if self.level not in LEVELS:
@@ -238,6 +241,25 @@ def valid_seeds(
     return ok & allowed
 
 
+def free_side_normals(spec: GridSpec, occupancy: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """(K, 3) unit normals of voxels `ids`: the mean direction to their known-free face neighbours
+    (where a surface they hold faces), zero for voxels with none."""
+    free = (np.asarray(occupancy).reshape(spec.shape) == 0)
+    ijk = np.stack(np.unravel_index(np.asarray(ids, np.int64), spec.shape), axis=1)
+    shape = np.asarray(spec.shape)
+    n = np.zeros((ijk.shape[0], 3))
+    for axis in range(3):
+        for step in (-1, 1):
+            nb = ijk.copy()
+            nb[:, axis] += step
+            ok = (nb[:, axis] >= 0) & (nb[:, axis] < shape[axis])
+            hit = np.zeros(ijk.shape[0], bool)
+            hit[ok] = free[tuple(nb[ok].T)]
+            n[hit, axis] += step
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
 class VisibilityCache:
     """Cached visibility masks of every candidate view (seed s, orientation b), view index s * B + b.
 
@@ -324,6 +346,10 @@ class VisibilityCache:
             relevant = occupancy != 0
         record_ids = np.flatnonzero(relevant).astype(np.int32)
         centres = spec.centers_of(record_ids)
+        if params.incidence:
+            normals = free_side_normals(spec, occupancy, record_ids)
+        else:
+            normals = np.zeros((record_ids.size, 3))
         if occluders is None:
             occluders = occupancy == 1
         occ_centres = spec.centers_of(np.flatnonzero(occluders))
@@ -342,6 +368,7 @@ class VisibilityCache:
                 occ_centres,
                 centres,
                 record_ids,
+                normals,
                 spec.voxel_size,
                 params.max_range,
                 params.near,

@@ -130,6 +130,7 @@ def seed_view_masks(
     occ_centres,
     centres,
     ids,
+    normals,
     voxel_size,
     max_range,
     near,
@@ -148,8 +149,10 @@ def seed_view_masks(
     voxels to record, ids: (N,) int32 their flat ids. A voxel is in view b when it is visible from
     the seed (see `visible_from`) and inside the view's frustum (optical z in [near, max_range],
     |x| <= tan_x z, |y| <= tan_y z). Its weight is the share of a full observation the view's
-    resolution allows: min(1, (focal * voxel_size / z)^2 / pixels_per_voxel), i.e. the pixels
-    the voxel covers over the pixels a voxel needs.
+    resolution allows: min(1, (focal * voxel_size / z)^2 * cos / pixels_per_voxel), i.e. the
+    pixels its surface covers over the pixels a voxel needs; cos is the cosine between the
+    voxel's normal (N, 3) (unit, towards free space; zero = unknown, cos taken as 1) and the
+    direction to the camera, so a surface seen at a grazing angle counts little.
     zbuf: (6, n, n) float32 scratch, all inf, with its dirty (6, 4) int64 rectangles (see
     `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32, weights float32).
     """
@@ -192,8 +195,16 @@ def seed_view_masks(
                 y = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
                 if abs(y) > tan_y * z:
                     continue
+                cos = 1.0
+                nn = normals[k, 0] * normals[k, 0] + normals[k, 1] * normals[k, 1]
+                nn += normals[k, 2] * normals[k, 2]
+                if nn > 0.0:
+                    r = np.sqrt(dx * dx + dy * dy + dz * dz)
+                    cos = -(normals[k, 0] * dx + normals[k, 1] * dy + normals[k, 2] * dz) / r
+                    if cos <= 0.0:
+                        continue
                 out_ids[total + count] = ids[k]
-                out_w[total + count] = min(1.0, fs2 / (z * z) / pixels_per_voxel)
+                out_w[total + count] = min(1.0, fs2 * cos / (z * z) / pixels_per_voxel)
                 count += 1
             nnz[s * n_views + b] = count
             total += count

@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
@@ -112,7 +114,7 @@ def test_voxels_behind_an_occupied_wall_are_never_in_a_mask():
 @pytest.mark.parametrize("distance", [0.4, 1.2])
 def test_weights_are_the_share_of_pixels_a_voxel_needs_that_it_gets(distance):
     # A wall filling the frustum: every wall voxel in the frustum is in the mask with weight
-    # min(1, (f s / z)^2 / pixels_per_voxel); near, every voxel is fully observed, far, less.
+    # min(1, (f s / z)^2 cos / pixels_per_voxel); near, every voxel is fully observed, far, less.
     spec, occ, wall_i = wall_scene(distance)
     params = VisibilityParams(level="room", face_res=256)
     R = look_rotation(np.array([1.0, 0.0, 0.0]))
@@ -121,7 +123,11 @@ def test_weights_are_the_share_of_pixels_a_voxel_needs_that_it_gets(distance):
     ijk = np.stack(np.unravel_index(ids, spec.shape), axis=1)
     assert np.all(ijk[:, 0] == wall_i)
     centres = spec.centers_of(ids)
-    expected = np.minimum(1.0, (params.focal * 0.01 / centres[:, 0]) ** 2 / params.pixels_per_voxel)
+    # the wall's free side faces the camera (-x): its surface is foreshortened by cos = x / r
+    cos = centres[:, 0] / np.linalg.norm(centres, axis=1)
+    expected = np.minimum(
+        1.0, (params.focal * 0.01 / centres[:, 0]) ** 2 * cos / params.pixels_per_voxel
+    )
     np.testing.assert_allclose(weights, expected, rtol=1e-5)
     # ... and the wall voxels inside the frustum are there (dense, nothing sampled); voxels seen
     # obliquely may hide behind their nearer neighbours (the z-buffer's "acne"), few of them
@@ -273,3 +279,23 @@ def test_with_unknown_occluding_a_view_counts_the_first_unknown_layer_not_the_co
     assert np.unravel_index(optimistic.mask(0)[0], spec.shape)[0].max() > 15  # the whole column
     layer = np.unravel_index(first_layer.mask(0)[0], spec.shape)[0]
     assert layer.size > 0 and np.all(layer == 10)
+
+
+def test_free_side_normals_point_to_the_carved_side_and_grazing_views_count_less():
+    from area3d_planner.visibility import free_side_normals
+
+    spec, occ, wall_i = wall_scene(0.5, 0.05)
+    wall = np.flatnonzero(np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i)
+    normals = free_side_normals(spec, occ, wall[:5])
+    np.testing.assert_allclose(normals, np.tile([-1.0, 0.0, 0.0], (5, 1)))
+    behind = np.flatnonzero(np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i + 3)
+    assert not free_side_normals(spec, occ, behind[:5]).any()  # no free neighbour: no normal
+    R = look_rotation(np.array([1.0, 0.0, 0.0]))[None]
+    fine = dataclasses.replace(FAST, pixels_per_voxel=1e4)  # no voxel saturates at weight 1
+    face_on = VisibilityCache.build(spec, occ, np.array([[0.0, 0.0, 0.0]]), R, fine)
+    R_oblique = look_rotation(np.array([1.0, 0.8, 0.0]))[None]
+    oblique = VisibilityCache.build(spec, occ, np.array([[0.0, -0.6, 0.0]]), R_oblique, fine)
+    flat = dataclasses.replace(fine, incidence=False)
+    oblique_flat = VisibilityCache.build(spec, occ, np.array([[0.0, -0.6, 0.0]]), R_oblique, flat)
+    assert oblique.weights.sum() < oblique_flat.weights.sum()
+    assert face_on.weights.size > 0
