@@ -65,8 +65,9 @@ def run(
     params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
     param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
     domain_id: int = typer.Option(
-        None, help="ROS_DOMAIN_ID for the graph (default: $ROS_DOMAIN_ID or 0)"
+        None, help="ROS_DOMAIN_ID for the graph (default: $ROS_DOMAIN_ID, else a free domain)"
     ),
+    namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
@@ -82,6 +83,7 @@ def run(
         params_file=params,
         overrides=_overrides(param),
         domain_id=domain_id,
+        namespace=namespace,
     )
     columns = (
         TextColumn("{task.description}"),
@@ -89,8 +91,9 @@ def run(
         TextColumn("{task.completed}/{task.total}"),
         TimeElapsedColumn(),
     )
-    graph_domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
-    console.print(f"graph on ROS_DOMAIN_ID={graph_domain}, Cyclone DDS pinned to 127.0.0.1")
+    discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
+    graph_domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or "free"
+    console.print(f"graph on ROS_DOMAIN_ID={graph_domain}, discovery {discovery} (rclpy, Fast DDS)")
     try:
         with Progress(*columns, console=console) as progress:
             run_dir = run_episode(config, resume=resume, progress=progress)
@@ -129,30 +132,23 @@ def report(
 def launch(
     params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
     param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
-    loopback: bool = typer.Option(
-        False, help="pin Cyclone DDS to 127.0.0.1 (default: your normal DDS network)"
+    localhost: bool = typer.Option(
+        False, help="keep discovery on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)"
     ),
     domain_id: int = typer.Option(None, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)"),
+    namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
 ) -> None:
     """Start the node graph and keep it running (Ctrl-C stops every node)."""
-    import os
     import tempfile
 
     from area3d_bringup.launch_description import build_graph, load_parameters
     from area3d_bringup.launcher import Launcher, NodeDied
+    from area3d_msgs_py import middleware
 
-    env = {}
-    if domain_id is not None:
-        env["ROS_DOMAIN_ID"] = str(domain_id)
-    if loopback:
-        from area3d_msgs_py.dds_config import loopback_config
-
-        env["CYCLONEDDS_URI"] = loopback_config(
-            int(env.get("ROS_DOMAIN_ID", os.environ.get("ROS_DOMAIN_ID", "0")))
-        )
+    env = middleware.graph_env(domain_id, discovery_range="LOCALHOST" if localhost else None)
     specs = build_graph(load_parameters(params), _overrides(param))
     with tempfile.TemporaryDirectory(prefix="area3d-launch-") as workdir:
-        launcher = Launcher(specs, Path(workdir), env=env)
+        launcher = Launcher(specs, Path(workdir), env=env, namespace=namespace)
         launcher.start()
         console.print(f"started {', '.join(s.name for s in specs)}; Ctrl-C stops them")
         code = 0
@@ -179,7 +175,7 @@ def node(
     modules = dict(GRAPH_NODES)
     if name not in modules:
         _fail(f"node: got {name!r}, expected one of {sorted(modules)}")
-    importlib.import_module(modules[name]).main(list(args or []))
+    raise typer.Exit(importlib.import_module(modules[name]).main(list(args or [])) or 0)
 
 
 @app.command()

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from area3d_msgs_py.node import Node
 
 from area3d_bringup.launch_description import GRAPH_NODES, build_graph
 from area3d_bringup.launcher import Launcher
 from area3d_msgs_py import codecs, msgs
-from area3d_msgs_py.node import Node
 from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import load_scene
 

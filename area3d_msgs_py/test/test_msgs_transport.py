@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from area3d_msgs_py.node import Node, load_parameter_file
 
 from area3d_msgs_py import codecs, dds_config, dds_types, msgs
-from area3d_msgs_py.node import Node, load_parameter_file
 from area3d_msgs_py.parameters import parse_ros_args
 
 REPO_ROOT = Path(__file__).resolve().parents[2]

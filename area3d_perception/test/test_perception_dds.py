@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from area3d_msgs_py.node import Node
 
 from area3d_msgs_py import codecs, dds_config, msgs
-from area3d_msgs_py.node import Node
 from area3d_perception.node import (
     COLOR_TOPIC,
     DEPTH_TOPIC,

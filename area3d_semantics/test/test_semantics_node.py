@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 import pytest
+from area3d_msgs_py.node import Node
 
 from area3d_msgs_py import codecs, dds_config, msgs
-from area3d_msgs_py.node import Node
 from area3d_semantics.node import SemanticsNode
 from area3d_semantics.weights import semantic_uncertainty, sigma_from_confidence
 

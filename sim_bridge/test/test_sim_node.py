@@ -62,8 +62,9 @@ def loopback():
 
 
 def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal(loopback):
-    from area3d_msgs_py import codecs, msgs
     from area3d_msgs_py.node import Node
+
+    from area3d_msgs_py import codecs, msgs
 
     proc = subprocess.Popen(
         [
