@@ -191,11 +191,11 @@ def scenes() -> None:
 
 
 BENCHES = {
-    "transport": "area3d_msgs_py.bench",
+    "transport": "area3d_bringup.transport_bench",
     "render": "sim_bridge.bench",
     "perception": "area3d_perception.bench",
     "semantics": "area3d_semantics.bench",
-    "planner": "area3d_planner.bench",
+    "planner": "area3d_bringup.planner_bench",
     "eval": "area3d_eval.bench",
 }
 

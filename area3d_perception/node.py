@@ -183,7 +183,7 @@ def main(args: Sequence[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = PerceptionNode()
-    except (InputError, FileNotFoundError, ImportError) as exc:
+    except (InputError, FileNotFoundError, ImportError, RuntimeError) as exc:
         rclpy.logging.get_logger("perception").fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()
         return 1

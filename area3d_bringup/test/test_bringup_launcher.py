@@ -28,7 +28,7 @@ FAKE_NODE = textwrap.dedent(
     args = sys.argv[1:]
     params_file = args[args.index("--params-file") + 1]
     name = args[args.index("-r") + 1].split(":=")[1]
-    params = yaml.safe_load(open(params_file))[name]["ros__parameters"]
+    params = yaml.safe_load(open(params_file))["/**/" + name]["ros__parameters"]
     print(f"pid={os.getpid()} params={params}", flush=True)
     if params.get("die_after_s") is not None:
         time.sleep(params["die_after_s"]); sys.exit(3)
