@@ -68,6 +68,9 @@ def run(
         None, help="ROS_DOMAIN_ID for the graph (default: $ROS_DOMAIN_ID, else a free domain)"
     ),
     namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
+    nodes: str = typer.Option(
+        "", help="comma list of the graph nodes to start here (default: all; others run elsewhere)"
+    ),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
@@ -84,6 +87,7 @@ def run(
         overrides=_overrides(param),
         domain_id=domain_id,
         namespace=namespace,
+        nodes=tuple(n for n in nodes.split(",") if n) or None,
     )
     columns = (
         TextColumn("{task.description}"),
@@ -137,6 +141,7 @@ def launch(
     ),
     domain_id: int = typer.Option(None, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)"),
     namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
+    nodes: str = typer.Option("", help="comma list of the graph nodes to start (default: all)"),
 ) -> None:
     """Start the node graph and keep it running (Ctrl-C stops every node)."""
     import tempfile
@@ -147,6 +152,11 @@ def launch(
 
     env = middleware.graph_env(domain_id, discovery_range="LOCALHOST" if localhost else None)
     specs = build_graph(load_parameters(params), _overrides(param))
+    names = [n for n in nodes.split(",") if n]
+    unknown = sorted(set(names) - {spec.name for spec in specs})
+    if unknown:
+        _fail(f"nodes: got {unknown}, expected names from {[spec.name for spec in specs]}")
+    specs = [spec for spec in specs if not names or spec.name in names]
     with tempfile.TemporaryDirectory(prefix="area3d-launch-") as workdir:
         launcher = Launcher(specs, Path(workdir), env=env, namespace=namespace)
         launcher.start()

@@ -23,7 +23,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from area3d_bringup.launch_description import build_graph, load_parameters
+from area3d_bringup.launch_description import GRAPH_NODES, build_graph, load_parameters
 from area3d_bringup.launcher import Launcher, NodeDied
 from area3d_bringup.recorder import BagRecorder
 from area3d_eval import rundir
@@ -96,6 +96,8 @@ class EpisodeConfig:
     domain_id: int | None = None  # None: $ROS_DOMAIN_ID, else a free domain
     namespace: str = ""  # ROS namespace of the graph and the runner, e.g. "/robot1"
     transport: str | None = None  # middleware.TRANSPORTS; None: $AREA3D_TRANSPORT or "shm"
+    # graph nodes this runner starts (None: all); the others run elsewhere (`area3d launch --nodes`)
+    nodes: tuple[str, ...] | None = None
     capture_timeout_s: float = 30.0
     plan_timeout_s: float = 120.0
     fuse_timeout_s: float = 30.0
@@ -326,6 +328,9 @@ def run_episode(
 
     if config.policy not in POLICIES:
         raise ValueError(f"policy: got {config.policy!r}, expected one of {sorted(POLICIES)}")
+    graph_names = [name for name, _ in GRAPH_NODES]
+    if config.nodes is not None and not set(config.nodes) <= set(graph_names):
+        raise ValueError(f"nodes: got {list(config.nodes)}, expected names from {graph_names}")
     if config.mode not in ("closed_loop", "batch"):
         raise ValueError(f"mode: got {config.mode!r}, expected 'closed_loop' or 'batch'")
     scene = load_scene(config.scene)
@@ -423,7 +428,8 @@ def run_episode(
         else None
     )
     t0 = time.monotonic()
-    launcher = Launcher(specs, run_dir, env=env, log_sink=log_sink, namespace=config.namespace)
+    local = [spec for spec in specs if config.nodes is None or spec.name in config.nodes]
+    launcher = Launcher(local, run_dir, env=env, log_sink=log_sink, namespace=config.namespace)
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain_id)
     manager = MissionManager(
