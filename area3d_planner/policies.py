@@ -300,9 +300,7 @@ def _valid_points(context: PlanningContext, pts: np.ndarray) -> np.ndarray:
         d, _ = cKDTree(g.spec.centers()[occupied]).query(pts, k=1)
         ok &= d > context.clearance + 0.5 * g.spec.voxel_size
     if context.scene is not None and ok.any():
-        from sim_bridge.validity import valid_positions
-
-        ok &= np.asarray(valid_positions(context.scene, pts, context.clearance), dtype=bool)
+        ok &= np.asarray(context.scene.valid_positions(pts, context.clearance), dtype=bool)
     return ok
 
 

@@ -167,10 +167,8 @@ def candidate_seeds(
     if not allow_unknown and seeds.size:
         vox, inside = spec.flat_index(seeds)
         seeds = seeds[~inside | (occupancy[vox] == 0)]
-    if scene is not None and seeds.size:
-        from sim_bridge.validity import valid_positions
-
-        seeds = seeds[np.asarray(valid_positions(scene, seeds, clearance), dtype=bool)]
+    if scene is not None and seeds.size:  # anything with valid_positions(points, clearance)
+        seeds = seeds[np.asarray(scene.valid_positions(seeds, clearance), dtype=bool)]
     return seeds.reshape(-1, 3)
 
 
