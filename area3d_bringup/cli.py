@@ -172,20 +172,21 @@ def launch(
     raise typer.Exit(code)
 
 
-@app.command()
+@app.command(
+    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+)
 def node(
+    ctx: typer.Context,
     name: str = typer.Argument(..., help="sim_bridge | perception | semantics | planner"),
-    args: list[str] = typer.Argument(
-        None, help="ROS-style arguments: --ros-args -p name:=value ..."
-    ),
 ) -> None:
-    """Run a single node in the foreground."""
+    """Run a single node in the foreground; further arguments go to it, as with `ros2 run`
+    (e.g. `area3d node planner --ros-args -p eta:=0.5 -r __ns:=/robot1`)."""
     from area3d_bringup.launch_description import GRAPH_NODES
 
     modules = dict(GRAPH_NODES)
     if name not in modules:
         _fail(f"node: got {name!r}, expected one of {sorted(modules)}")
-    raise typer.Exit(importlib.import_module(modules[name]).main(list(args or [])) or 0)
+    raise typer.Exit(importlib.import_module(modules[name]).main(list(ctx.args)) or 0)
 
 
 @app.command()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import hashlib
 import os
 import socket
 import tempfile
@@ -80,7 +81,8 @@ def profile_path(transport: str) -> Path:
     text = profile_xml(transport)
     directory = Path(tempfile.gettempdir()) / f"area3d-{os.getuid()}"
     directory.mkdir(mode=0o700, exist_ok=True)
-    path = directory / f"fastdds_{transport}_{abs(hash(text)) % 10**8}.xml"
+    digest = hashlib.sha256(text.encode()).hexdigest()[:12]
+    path = directory / f"fastdds_{transport}_{digest}.xml"
     if not path.is_file() or path.read_text() != text:
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
         tmp.write_text(text)
