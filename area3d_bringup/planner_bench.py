@@ -187,6 +187,7 @@ def bench_transport(requests: int = 50) -> dict:
     once area3d/planner/status says the cache is ready."""
     import json
     import tempfile
+    import threading
     from pathlib import Path
 
     from area3d_bringup.launch_description import NodeSpec, scene_parameters
@@ -273,9 +274,11 @@ def bench_transport(requests: int = 50) -> dict:
                     tolerance=0.0,
                 )
                 req.goal.pose.position.x = 1.0
+                answered = threading.Event()
                 t = time.perf_counter()
                 future = client.call_async(req)
-                if not wait(future.done, 30.0):
+                future.add_done_callback(lambda _, done=answered: done.set())
+                if not answered.wait(30.0):
                     raise RuntimeError("no answer:\n" + "\n".join(lines[-20:]))
                 latencies.append(time.perf_counter() - t)
                 if len(future.result().plan.poses) != 1:

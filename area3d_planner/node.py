@@ -11,7 +11,7 @@ knows only what a robot knows, never the simulator's scene.
 from __future__ import annotations
 
 import json
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Sequence
 from dataclasses import fields
 from typing import Any
@@ -41,6 +41,8 @@ STATUS_TOPIC = "area3d/planner/status"
 VIEWS_TOPIC = "area3d/planner/next_views"
 NBV_SERVICE = "area3d/planner/next_best_view"
 CAMERA_INFO_CACHE = 64
+# Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
+MAX_FRAMES_WITHOUT_INFO = 64
 # Service requests and frame callbacks run on separate threads: a request waits for the frame it
 # names to be fused, which needs the frame callbacks to keep running.
 EXECUTOR_THREADS = 3
@@ -109,6 +111,7 @@ class PlannerNode(Node):
         )
         self.camera_info: OrderedDict[int, np.ndarray] = OrderedDict()
         self.latest_K: np.ndarray | None = None
+        self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
 
         self.grid_pub = self.create_publisher(msgs.PointCloud2, GRID_TOPIC, qos.latched())
         self.status_pub = self.create_publisher(msgs.String, STATUS_TOPIC, qos.reliable(50))
@@ -148,6 +151,9 @@ class PlannerNode(Node):
         self.camera_info[codecs.stamp_to_ns(msg.header.stamp)] = K
         while len(self.camera_info) > CAMERA_INFO_CACHE:
             self.camera_info.popitem(last=False)
+        while self.waiting:
+            stamp, frame = self.waiting.popleft()
+            self._fuse(stamp, frame, self.camera_info.get(stamp, K))
 
     def _part(self, key: str, msg) -> None:
         stamp = codecs.stamp_to_ns(msg.header.stamp)
@@ -161,8 +167,15 @@ class PlannerNode(Node):
             return
         K = self.camera_info.get(stamp, self.latest_K)
         if K is None:
-            self.get_logger().warning(f"frame {stamp}: no camera_info yet, frame dropped")
+            if not self.waiting:
+                self.get_logger().warning(
+                    f"no camera_info on {INFO_TOPIC} yet; holding frames until it arrives"
+                )
+            self.waiting.append((stamp, frame))  # topics arrive in any order
             return
+        self._fuse(stamp, frame, K)
+
+    def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
         self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"])
         self._publish_state(stamp)
 
