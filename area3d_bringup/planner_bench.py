@@ -208,12 +208,12 @@ def bench_transport(requests: int = 50) -> dict:
         )
         statuses = probe.listen(msgs.String, "area3d/planner/status", qos.reliable(50))
         pubs = {
-            key: probe.publisher(kind, topic)
-            for key, kind, topic in (
-                ("depth", msgs.Image, "area3d/perception/depth"),
-                ("conf", msgs.Image, "area3d/perception/confidence"),
-                ("pose", msgs.PoseStamped, "area3d/camera/pose"),
-                ("info", msgs.CameraInfo, "area3d/camera/camera_info"),
+            key: probe.publisher(kind, topic, profile)
+            for key, kind, topic, profile in (
+                ("depth", msgs.Image, "area3d/perception/depth", qos.graph_frames()),
+                ("conf", msgs.Image, "area3d/perception/confidence", qos.graph_frames()),
+                ("pose", msgs.PoseStamped, "area3d/camera/pose", qos.frames()),
+                ("info", msgs.CameraInfo, "area3d/camera/camera_info", qos.frames()),
             )
         }
         client = probe.node.create_client(msgs.GetPlan, "area3d/planner/next_best_view")

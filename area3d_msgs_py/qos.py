@@ -26,6 +26,14 @@ def frames() -> QoSProfile:
     return reliable(FRAME_DEPTH)
 
 
+def graph_frames(depth: int = FRAME_DEPTH) -> QoSProfile:
+    """Per-frame outputs one graph node computes for another (perception -> planner, semantics ->
+    planner): transient-local keep-last ``depth``, on both sides. A reader that matches late (a
+    node whose discovery is still running when the first frames are processed) still gets them;
+    volatile readers (RViz, a recorder) match too."""
+    return latched(depth)
+
+
 def latched(depth: int = 1) -> QoSProfile:
     """Transient-local keep-last: a subscriber that starts late still gets the last ``depth``."""
     return QoSProfile(

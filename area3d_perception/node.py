@@ -92,8 +92,8 @@ class PerceptionNode(Node):
         self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
         self.frames_published = 0
 
-        self.pub_depth = self.create_publisher(msgs.Image, OUT_DEPTH_TOPIC, qos.frames())
-        self.pub_conf = self.create_publisher(msgs.Image, OUT_CONFIDENCE_TOPIC, qos.frames())
+        self.pub_depth = self.create_publisher(msgs.Image, OUT_DEPTH_TOPIC, qos.graph_frames())
+        self.pub_conf = self.create_publisher(msgs.Image, OUT_CONFIDENCE_TOPIC, qos.graph_frames())
         self.create_subscription(
             msgs.Image, COLOR_TOPIC, guarded(self, self.on_color, COLOR_TOPIC), qos.frames()
         )

@@ -117,15 +117,22 @@ class PlannerNode(Node):
         self.status_pub = self.create_publisher(msgs.String, STATUS_TOPIC, qos.reliable(50))
         self.views_pub = self.create_publisher(msgs.Path, VIEWS_TOPIC, qos.reliable())
         frames = MutuallyExclusiveCallbackGroup()
-        for msg_type, topic, callback in (
-            (msgs.Image, DEPTH_TOPIC, lambda m: self._part("depth", m)),
-            (msgs.Image, CONFIDENCE_TOPIC, lambda m: self._part("confidence", m)),
-            (msgs.PoseStamped, POSE_TOPIC, lambda m: self._part("pose", m)),
-            (msgs.CameraInfo, INFO_TOPIC, self._on_camera_info),
-            (msgs.Image, SEMANTIC_TOPIC, self._on_semantic),
+        # perception's and semantics' outputs are transient local (a late match still gets them);
+        # the camera's topics are volatile, as a camera driver publishes them
+        for msg_type, topic, callback, profile in (
+            (msgs.Image, DEPTH_TOPIC, lambda m: self._part("depth", m), qos.graph_frames()),
+            (
+                msgs.Image,
+                CONFIDENCE_TOPIC,
+                lambda m: self._part("confidence", m),
+                qos.graph_frames(),
+            ),
+            (msgs.PoseStamped, POSE_TOPIC, lambda m: self._part("pose", m), qos.frames()),
+            (msgs.CameraInfo, INFO_TOPIC, self._on_camera_info, qos.frames()),
+            (msgs.Image, SEMANTIC_TOPIC, self._on_semantic, qos.graph_frames()),
         ):
             self.create_subscription(
-                msg_type, topic, guarded(self, callback, topic), qos.frames(), callback_group=frames
+                msg_type, topic, guarded(self, callback, topic), profile, callback_group=frames
             )
         self.create_service(
             msgs.GetPlan,

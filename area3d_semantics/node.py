@@ -130,10 +130,10 @@ class SemanticsNode(Node):
 
         self.pub_regions = self.create_publisher(msgs.String, REGIONS_TOPIC, qos.latched())
         self.pub_weight = self.create_publisher(
-            msgs.Image, WEIGHT_TOPIC, qos.reliable(IMAGE_QUEUE_DEPTH)
+            msgs.Image, WEIGHT_TOPIC, qos.graph_frames(IMAGE_QUEUE_DEPTH)
         )
         self.pub_usem = self.create_publisher(
-            msgs.Image, UNCERTAINTY_TOPIC, qos.reliable(IMAGE_QUEUE_DEPTH)
+            msgs.Image, UNCERTAINTY_TOPIC, qos.graph_frames(IMAGE_QUEUE_DEPTH)
         )
         frames = qos.reliable(IMAGE_QUEUE_DEPTH)
         self.create_subscription(
@@ -146,7 +146,7 @@ class SemanticsNode(Node):
             msgs.Image,
             CONFIDENCE_TOPIC,
             guarded(self, self.on_confidence, CONFIDENCE_TOPIC),
-            frames,
+            qos.graph_frames(IMAGE_QUEUE_DEPTH),
         )
         self.create_subscription(
             msgs.String,

@@ -11,7 +11,7 @@ import pytest
 
 from area3d_bringup.launch_description import GRAPH_NODES, build_graph
 from area3d_bringup.launcher import Launcher
-from area3d_msgs_py import codecs, msgs
+from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.probe import Probe
 from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import load_scene
@@ -37,9 +37,10 @@ class Graph:
     def start(self) -> None:
         self.launcher.start()
 
-    def stop(self) -> None:
-        self.launcher.stop()
+    def stop(self) -> dict[str, int]:
+        codes = self.launcher.stop()
         self.probe.close()
+        return codes
 
     def wait_for(self, predicate, timeout_s: float = 30.0) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -62,7 +63,10 @@ def graph_factory(tmp_path: Path) -> Iterator:
 
     yield make
     for graph in graphs:
-        graph.stop()
+        codes = graph.stop()
+        # after all that bad input, each node still stops quietly on the first SIGINT
+        assert all(code == 0 for code in codes.values()), (codes, graph.lines[-20:])
+        assert not any("Traceback" in line for line in graph.lines), graph.lines[-40:]
 
 
 def _frame(scene_name: str = "single_object"):
@@ -149,8 +153,8 @@ def test_planner_answers_early_and_malformed_requests_with_an_empty_plan_and_kee
         },
     )
     client = graph.node.create_client(msgs.GetPlan, "area3d/planner/next_best_view")
-    depth_pub = graph.probe.publisher(msgs.Image, "area3d/perception/depth")
-    conf_pub = graph.probe.publisher(msgs.Image, "area3d/perception/confidence")
+    depth_pub = graph.probe.publisher(msgs.Image, "area3d/perception/depth", qos.graph_frames())
+    conf_pub = graph.probe.publisher(msgs.Image, "area3d/perception/confidence", qos.graph_frames())
     pubs = _camera_publishers(graph)
     status = graph.listen(msgs.String, "area3d/planner/status")
     graph.start()

@@ -50,7 +50,7 @@ class Rig:
         )
         self.color = self.peer.create_publisher(msgs.Image, COLOR_TOPIC, qos.reliable(64))
         self.depth = self.peer.create_publisher(msgs.Image, DEPTH_TOPIC, qos.reliable(64))
-        self.conf = self.peer.create_publisher(msgs.Image, CONFIDENCE_TOPIC, qos.reliable(64))
+        self.conf = self.peer.create_publisher(msgs.Image, CONFIDENCE_TOPIC, qos.graph_frames(64))
         self.request = self.peer.create_publisher(msgs.String, REQUEST_TOPIC, qos.reliable())
         self.executor = MultiThreadedExecutor(context=self.context)
         self.executor.add_node(self.semantics)
