@@ -370,7 +370,7 @@ def run_episode(
     for node, values in POLICIES[config.policy].items():
         overrides.setdefault(node, {}).update(values)
     overrides.setdefault("sim_bridge", {}).update(
-        {"scene": config.scene, "min_readers": EXPECTED_READERS["color"]}
+        {"scene": config.scene, "readers.all": ["mission_manager"]}
     )
     overrides.setdefault("planner", {}).update(
         {"budget": budget, "mode": config.mode, "seed": config.seed}

@@ -51,17 +51,22 @@ PARAMS = (
     ),
     Param("depth_noise", False, "add depth-sensor noise in the renderer"),
     # Volatile topics drop what is published before a reader has matched, and this node's writers
-    # may match a new reader later than other nodes do: a capture waits for its readers.
-    Param(
-        "min_readers",
-        0,
-        "hold each capture until every frame topic has this many matched readers",
-        range=(0, 1000),
+    # may match a new reader later than other nodes do: the first capture waits until the nodes
+    # that read each frame topic are matched (by name, so that other readers do not count).
+    *(
+        Param(f"readers.{key}", readers, f"nodes that must read {topic} before the first capture")
+        for key, topic, readers in (
+            ("color", COLOR_TOPIC, ("perception", "semantics")),
+            ("depth", DEPTH_TOPIC, ("perception", "semantics")),
+            ("camera_info", INFO_TOPIC, ("perception", "planner")),
+            ("pose", POSE_TOPIC, ("perception", "planner")),
+        )
     ),
+    Param("readers.all", ("",), "nodes that must read every frame topic as well ('' = none)"),
     Param(
-        "min_readers_timeout_s",
+        "readers_timeout_s",
         10.0,
-        "longest a capture waits for min_readers, seconds (then it is published anyway)",
+        "longest the first capture waits for its readers, seconds (then it is published anyway)",
         read_only=False,
         range=(0.0, 600.0),
     ),
@@ -108,7 +113,14 @@ class SimBridgeNode(Node):
                 "tf2_msgs does not import (it is not on PyPI; source a ROS 2 install for it): "
                 f"no {TF_TOPIC} / {TF_STATIC_TOPIC}; the camera pose is on {POSE_TOPIC}"
             )
-        self.min_readers = p["min_readers"]
+        everyone = {name for name in p["readers.all"] if name}
+        self.required_readers = {
+            self.pub_color: set(p["readers.color"]) | everyone,
+            self.pub_depth: set(p["readers.depth"]) | everyone,
+            self.pub_info: set(p["readers.camera_info"]) | everyone,
+            self.pub_pose: set(p["readers.pose"]) | everyone,
+        }
+        self.readers_matched = False
         self.create_subscription(
             msgs.PoseStamped, GOAL_TOPIC, guarded(self, self.on_goal, GOAL_TOPIC), qos.frames()
         )
@@ -152,23 +164,32 @@ class SimBridgeNode(Node):
             )
         self._status(stamp_ns, True, "ok")
 
+    def _missing_readers(self) -> dict[str, list[str]]:
+        """{topic: nodes not matched yet} over the frame topics; a node counts once this node has
+        discovered its subscription and the publisher has matched every discovered subscription."""
+        missing = {}
+        for pub, required in self.required_readers.items():
+            subscriptions = self.get_subscriptions_info_by_topic(pub.topic_name)
+            lacking = required - {info.node_name for info in subscriptions}
+            if not lacking and pub.get_subscription_count() < len(subscriptions):
+                lacking = {"(matching)"}
+            if lacking:
+                missing[pub.topic_name] = sorted(lacking)
+        return missing
+
     def _wait_for_readers(self) -> None:
-        if self.min_readers <= 0:
+        if self.readers_matched:
             return
-        pubs = (self.pub_color, self.pub_depth, self.pub_info, self.pub_pose)
-        timeout_s = self.get_parameter("min_readers_timeout_s").value
+        timeout_s = self.get_parameter("readers_timeout_s").value
         deadline = time.monotonic() + timeout_s
-        while any(pub.get_subscription_count() < self.min_readers for pub in pubs):
+        while missing := self._missing_readers():
             if time.monotonic() > deadline:
-                counts = {pub.topic_name: pub.get_subscription_count() for pub in pubs}
                 self.get_logger().warning(
-                    f"publishing with fewer than min_readers={self.min_readers} matched readers "
-                    f"after {timeout_s} s: {counts}"
+                    f"publishing after {timeout_s} s without these readers: {missing}"
                 )
-                self.min_readers = 0  # do not wait again
-                return
+                break
             time.sleep(0.01)
-        self.min_readers = 0  # matched once; later readers are the user's own
+        self.readers_matched = True  # later readers are on their own, as with any camera
 
     def _refuse(self, stamp_ns: int, reason: str) -> None:
         self.get_logger().warning(f"goal at stamp {stamp_ns} refused: {reason}")

@@ -29,6 +29,8 @@ def test_an_independent_rclpy_client_sees_every_output_and_plans_closed_loop_and
             "launch",
             "--localhost",
             "-p",
+            "sim_bridge.readers.all=[independent_client]",  # its first frames wait for the client
+            "-p",
             "sim_bridge.width=320",
             "-p",
             "sim_bridge.height=240",

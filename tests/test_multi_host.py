@@ -87,7 +87,7 @@ def test_camera_and_perception_on_one_host_the_rest_on_another_complete_an_episo
         [
             "ip", "netns", "exec", hosts["a"], sys.executable, "-m", "area3d_bringup.cli",
             "launch", "--nodes", "sim_bridge,perception",
-            "-p", "sim_bridge.min_readers=3", *size,
+            "-p", "sim_bridge.readers.all=[mission_manager]", *size,
         ],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
     )  # fmt: skip

@@ -69,7 +69,15 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
             "-p",
             "height:=120",
             "-p",
-            "min_readers:=1",
+            "readers.all:=[sim_bridge_probe]",
+            "-p",
+            "readers.color:=[sim_bridge_probe]",
+            "-p",
+            "readers.depth:=[sim_bridge_probe]",
+            "-p",
+            "readers.camera_info:=[sim_bridge_probe]",
+            "-p",
+            "readers.pose:=[sim_bridge_probe]",
         ],
         env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)),
         stdout=subprocess.PIPE,
@@ -101,7 +109,7 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
 
     try:
         assert probe.wait_for_readers(goal_pub, 1, TIMEOUT_S), proc.poll()
-        # min_readers: the frame waits until our readers have matched; the status may not yet
+        # readers.*: the frame waits until our readers have matched; the status may not yet
         # have, so the goal is sent again until its status arrives (same stamp, same frame).
         deadline = time.monotonic() + TIMEOUT_S
         while not any(s["stamp_ns"] == stamp_ok for s in statuses()):
