@@ -97,7 +97,14 @@ class Client:
         self.nbv = self.node.create_client(GetPlan, "/area3d/planner/next_best_view")
         self.executor = MultiThreadedExecutor()
         self.executor.add_node(self.node)
-        threading.Thread(target=self.executor.spin, daemon=True).start()
+        self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self.spinner.start()
+
+    def close(self, *nodes):
+        self.executor.shutdown()
+        self.spinner.join(timeout=10)
+        for node in (self.node, *nodes):
+            node.destroy_node()
 
     @staticmethod
     def wait(predicate, what, timeout_s=TIMEOUT_S):
@@ -273,7 +280,7 @@ def main():
         ),
         flush=True,
     )
-    client.executor.shutdown()
+    client.close(late)
     rclpy.try_shutdown()
 
 
