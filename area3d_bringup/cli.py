@@ -124,8 +124,10 @@ def report(
     ),
 ) -> None:
     """Evaluate run directories (if not yet) and write a Markdown + HTML report."""
+    from area3d_eval.rundir import EPISODE_FILE
+
     for run_dir in run_dirs:
-        if not (run_dir / "episode.json").is_file():
+        if not (run_dir / EPISODE_FILE).is_file():
             _fail(f"run dir: got {str(run_dir)!r}, expected a directory containing episode.json")
     out = out or (run_dirs[0] / "report" if len(run_dirs) == 1 else Path("report"))
     md, html = _evaluate_and_report(run_dirs, out)

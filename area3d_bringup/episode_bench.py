@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ def run_episode_bench(
     console: Console,
 ) -> dict:
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
+    from area3d_eval import rundir
     from area3d_eval.report import aggregate, write_report
     from sim_bridge.scenes import list_scenes, load_scene
 
@@ -60,7 +60,7 @@ def run_episode_bench(
                     try:
                         run_dir = run_episode(config, progress=progress)
                         run_dirs.append(run_dir)
-                        timings = json.loads((run_dir / "episode.json").read_text())["timings_s"]
+                        timings = rundir.read_episode(run_dir).timings_s
                         episode_seconds.setdefault((scene, policy), []).append(
                             timings.get("episode_total", np.nan)
                         )

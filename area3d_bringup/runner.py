@@ -109,11 +109,6 @@ def paper_budget(level: str) -> int:
     return 25 if level == "object" else 40
 
 
-def grid_msg_to_npz(msg: Any, path: Path) -> None:
-    cloud = codecs.msg_to_pointcloud(msg)
-    np.savez_compressed(path, **{name: np.asarray(cloud[name]) for name in cloud.dtype.names})
-
-
 def _type_name(msg_type: type) -> str:
     return msgs.type_name_of(msg_type())
 
@@ -345,7 +340,7 @@ def run_episode(
     frames: list[Frame] = []
     if resume is not None:
         run_dir = Path(resume)
-        episode_path = run_dir / "episode.json"
+        episode_path = run_dir / rundir.EPISODE_FILE
         if not episode_path.is_file():
             raise FileNotFoundError(
                 f"resume: got {str(run_dir)!r}, expected a run directory with episode.json"
@@ -412,7 +407,7 @@ def run_episode(
     discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
     env = middleware.graph_env(domain_id, config.transport, discovery)
     os.environ.update(env)  # this process's own participant: same transport and discovery
-    log_path = run_dir / "nodes.log"
+    log_path = run_dir / rundir.LOG_FILE
     log_file = log_path.open("a")
     log_lock = threading.Lock()
 
@@ -421,12 +416,7 @@ def run_episode(
             log_file.write(line + "\n")
             log_file.flush()
 
-    bag_index = len(list(run_dir.glob("bag*")))
-    recorder = (
-        BagRecorder(run_dir / (f"bag_{bag_index}" if bag_index else "bag"))
-        if config.record
-        else None
-    )
+    recorder = BagRecorder(rundir.bag_path(run_dir)) if config.record else None
     t0 = time.monotonic()
     local = [spec for spec in specs if config.nodes is None or spec.name in config.nodes]
     launcher = Launcher(local, run_dir, env=env, log_sink=log_sink, namespace=config.namespace)
@@ -518,8 +508,9 @@ def run_episode(
                 f"[mission_manager] the planner has not fused all {n_init} initial views after "
                 f"{config.fuse_timeout_s:.0f} s; planning with what it has"
             )
-        if manager.latest_grid is not None and not (run_dir / "grid_initial.npz").exists():
-            grid_msg_to_npz(_grid(manager.latest_grid), run_dir / "grid_initial.npz")
+        initial_grid = run_dir / rundir.GRID_INITIAL_FILE
+        if manager.latest_grid is not None and not initial_grid.exists():
+            rundir.write_grid(initial_grid, _grid(manager.latest_grid))
 
         planned = len(frames) - n_init
         refused = 0
@@ -559,7 +550,7 @@ def run_episode(
         perception_depth = manager.resolve_topic_name("area3d/perception/depth")
         manager.wait_until(lambda: manager.received.get(perception_depth, 0) >= len(frames), 10.0)
         if manager.latest_grid is not None:
-            grid_msg_to_npz(_grid(manager.latest_grid), run_dir / "grid_final.npz")
+            rundir.write_grid(run_dir / rundir.GRID_FINAL_FILE, _grid(manager.latest_grid))
         add_time("episode_total", time.monotonic() - t0)
         save_episode()
     except NodeDied as err:
@@ -593,12 +584,12 @@ def _spin(executor: SingleThreadedExecutor) -> None:
         pass
 
 
-def _grid(cdr: bytes) -> Any:
-    return msgs.deserialize(cdr, "sensor_msgs/msg/PointCloud2")
+def _grid(cdr: bytes) -> np.ndarray:
+    return codecs.msg_to_pointcloud(msgs.deserialize(cdr, "sensor_msgs/msg/PointCloud2"))
 
 
 def episode_summary(run_dir: Path) -> dict:
-    data = json.loads((Path(run_dir) / "episode.json").read_text())
+    data = json.loads((Path(run_dir) / rundir.EPISODE_FILE).read_text())
     return {k: data[k] for k in ("scene", "policy", "seed", "budget", "mode")} | {
         "views": len(data["views"])
     }

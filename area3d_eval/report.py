@@ -15,7 +15,16 @@ from typing import Any
 import numpy as np
 
 from area3d_eval import plots
-from area3d_eval.rundir import EVAL_DIR, Episode, iter_frames, read_episode, read_grid, read_metrics
+from area3d_eval.rundir import (
+    EVAL_DIR,
+    GRID_FINAL_FILE,
+    GRID_INITIAL_FILE,
+    Episode,
+    iter_frames,
+    read_episode,
+    read_grid,
+    read_metrics,
+)
 from area3d_perception.backproject import depth_to_world
 
 # (key in metrics.json, column title, higher is better, scale for display, format)
@@ -180,8 +189,8 @@ def _figures(
             roi=roi,
         )
         slices = plots.plot_grid_slices(
-            read_grid(r.path / "grid_initial.npz"),
-            read_grid(r.path / "grid_final.npz"),
+            read_grid(r.path / GRID_INITIAL_FILE),
+            read_grid(r.path / GRID_FINAL_FILE),
             fig_dir / f"{stem}_uncertainty.png",
             title=r.label,
         )

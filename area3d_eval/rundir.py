@@ -36,6 +36,10 @@ EPISODE_FILE = "episode.json"
 METRICS_FILE = "metrics.json"
 FRAMES_DIR = "frames"
 EVAL_DIR = "eval"
+GRID_INITIAL_FILE = "grid_initial.npz"
+GRID_FINAL_FILE = "grid_final.npz"
+LOG_FILE = "nodes.log"
+BAG_DIR = "bag"
 GRID_FIELDS = ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy")
 
 
@@ -177,6 +181,18 @@ def iter_frames(run_dir: Path, limit: int | None = None) -> Iterator[Frame]:
     files = frame_files(run_dir)
     for path in files if limit is None else files[:limit]:
         yield read_frame(path)
+
+
+def write_grid(path: Path, cloud: np.ndarray) -> Path:
+    """Write a grid_*.npz from the planner's cloud (structured array with GRID_FIELDS)."""
+    np.savez_compressed(path, **{name: np.asarray(cloud[name]) for name in cloud.dtype.names})
+    return Path(path)
+
+
+def bag_path(run_dir: Path) -> Path:
+    """A new bag directory: `bag/` for the first part of an episode, `bag_N/` after N resumes."""
+    parts = len(list(Path(run_dir).glob(BAG_DIR + "*")))
+    return Path(run_dir) / (f"{BAG_DIR}_{parts}" if parts else BAG_DIR)
 
 
 def read_grid(path: Path) -> dict[str, np.ndarray] | None:
