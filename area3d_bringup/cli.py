@@ -65,7 +65,11 @@ def run(
     params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
     param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
     domain_id: int = typer.Option(
-        None, help="ROS_DOMAIN_ID for the graph (default: $ROS_DOMAIN_ID or 0)"
+        None, help="ROS_DOMAIN_ID for the graph (default: $ROS_DOMAIN_ID, else a free domain)"
+    ),
+    namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
+    nodes: str = typer.Option(
+        "", help="comma list of the graph nodes to start here (default: all; others run elsewhere)"
     ),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
@@ -82,6 +86,8 @@ def run(
         params_file=params,
         overrides=_overrides(param),
         domain_id=domain_id,
+        namespace=namespace,
+        nodes=tuple(n for n in nodes.split(",") if n) or None,
     )
     columns = (
         TextColumn("{task.description}"),
@@ -89,8 +95,9 @@ def run(
         TextColumn("{task.completed}/{task.total}"),
         TimeElapsedColumn(),
     )
-    graph_domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID", "0")
-    console.print(f"graph on ROS_DOMAIN_ID={graph_domain}, Cyclone DDS pinned to 127.0.0.1")
+    discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
+    graph_domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or "free"
+    console.print(f"graph on ROS_DOMAIN_ID={graph_domain}, discovery {discovery} (rclpy, Fast DDS)")
     try:
         with Progress(*columns, console=console) as progress:
             run_dir = run_episode(config, resume=resume, progress=progress)
@@ -117,8 +124,10 @@ def report(
     ),
 ) -> None:
     """Evaluate run directories (if not yet) and write a Markdown + HTML report."""
+    from area3d_eval.rundir import EPISODE_FILE
+
     for run_dir in run_dirs:
-        if not (run_dir / "episode.json").is_file():
+        if not (run_dir / EPISODE_FILE).is_file():
             _fail(f"run dir: got {str(run_dir)!r}, expected a directory containing episode.json")
     out = out or (run_dirs[0] / "report" if len(run_dirs) == 1 else Path("report"))
     md, html = _evaluate_and_report(run_dirs, out)
@@ -129,30 +138,29 @@ def report(
 def launch(
     params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
     param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
-    loopback: bool = typer.Option(
-        False, help="pin Cyclone DDS to 127.0.0.1 (default: your normal DDS network)"
+    localhost: bool = typer.Option(
+        False, help="keep discovery on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)"
     ),
     domain_id: int = typer.Option(None, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)"),
+    namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
+    nodes: str = typer.Option("", help="comma list of the graph nodes to start (default: all)"),
 ) -> None:
     """Start the node graph and keep it running (Ctrl-C stops every node)."""
-    import os
     import tempfile
 
     from area3d_bringup.launch_description import build_graph, load_parameters
     from area3d_bringup.launcher import Launcher, NodeDied
+    from area3d_msgs_py import middleware
 
-    env = {}
-    if domain_id is not None:
-        env["ROS_DOMAIN_ID"] = str(domain_id)
-    if loopback:
-        from area3d_msgs_py.dds_config import loopback_config
-
-        env["CYCLONEDDS_URI"] = loopback_config(
-            int(env.get("ROS_DOMAIN_ID", os.environ.get("ROS_DOMAIN_ID", "0")))
-        )
+    env = middleware.graph_env(domain_id, discovery_range="LOCALHOST" if localhost else None)
     specs = build_graph(load_parameters(params), _overrides(param))
+    names = [n for n in nodes.split(",") if n]
+    unknown = sorted(set(names) - {spec.name for spec in specs})
+    if unknown:
+        _fail(f"nodes: got {unknown}, expected names from {[spec.name for spec in specs]}")
+    specs = [spec for spec in specs if not names or spec.name in names]
     with tempfile.TemporaryDirectory(prefix="area3d-launch-") as workdir:
-        launcher = Launcher(specs, Path(workdir), env=env)
+        launcher = Launcher(specs, Path(workdir), env=env, namespace=namespace)
         launcher.start()
         console.print(f"started {', '.join(s.name for s in specs)}; Ctrl-C stops them")
         code = 0
@@ -166,20 +174,21 @@ def launch(
     raise typer.Exit(code)
 
 
-@app.command()
+@app.command(
+    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+)
 def node(
+    ctx: typer.Context,
     name: str = typer.Argument(..., help="sim_bridge | perception | semantics | planner"),
-    args: list[str] = typer.Argument(
-        None, help="ROS-style arguments: --ros-args -p name:=value ..."
-    ),
 ) -> None:
-    """Run a single node in the foreground."""
+    """Run a single node in the foreground; further arguments go to it, as with `ros2 run`
+    (e.g. `area3d node planner --ros-args -p eta:=0.5 -r __ns:=/robot1`)."""
     from area3d_bringup.launch_description import GRAPH_NODES
 
     modules = dict(GRAPH_NODES)
     if name not in modules:
         _fail(f"node: got {name!r}, expected one of {sorted(modules)}")
-    importlib.import_module(modules[name]).main(list(args or []))
+    raise typer.Exit(importlib.import_module(modules[name]).main(list(ctx.args)) or 0)
 
 
 @app.command()
@@ -195,11 +204,11 @@ def scenes() -> None:
 
 
 BENCHES = {
-    "transport": "area3d_msgs_py.bench",
+    "transport": "area3d_bringup.transport_bench",
     "render": "sim_bridge.bench",
     "perception": "area3d_perception.bench",
     "semantics": "area3d_semantics.bench",
-    "planner": "area3d_planner.bench",
+    "planner": "area3d_bringup.planner_bench",
     "eval": "area3d_eval.bench",
 }
 

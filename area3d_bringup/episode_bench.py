@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ def run_episode_bench(
     holdout: bool = False,
 ) -> dict:
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
+    from area3d_eval import rundir
     from area3d_eval.report import aggregate, write_report
     from sim_bridge.scenes import list_scenes
 
@@ -78,9 +78,9 @@ def run_episode_bench(
                         else:
                             run_dir = run_episode(config, progress=progress)
                         run_dirs.append(run_dir)
-                        episode = json.loads((run_dir / "episode.json").read_text())
-                        episode_seconds.setdefault((episode["scene"], policy), []).append(
-                            episode["timings_s"].get("episode_total", np.nan)
+                        episode = rundir.read_episode(run_dir)
+                        episode_seconds.setdefault((episode.scene, policy), []).append(
+                            episode.timings_s.get("episode_total", np.nan)
                         )
                     except (EpisodeError, ValueError) as err:
                         failures.append(f"{scene}/{policy}/s{seed}: {err}")

@@ -9,13 +9,12 @@ from pathlib import Path
 
 import yaml
 
-#: (node name, python module with `main(argv)`) in start order: the camera first, the planner last.
-GRAPH_NODES: tuple[tuple[str, str], ...] = (
-    ("sim_bridge", "sim_bridge.node"),
-    ("perception", "area3d_perception.node"),
-    ("semantics", "area3d_semantics.node"),
-    ("planner", "area3d_planner.node"),
-)
+from area3d_bringup.graph import GRAPH_NODES
+
+__all__ = ["GRAPH_NODES", "NodeSpec", "build_graph", "load_parameters", "scene_parameters"]
+
+# Node sections of a parameter file apply to the node in any namespace.
+ANY_NAMESPACE = "/**/"
 
 
 @dataclass
@@ -47,8 +46,18 @@ def load_parameters(path: Path | None = None) -> dict[str, dict]:
     out: dict[str, dict] = {}
     for node_name, section in data.items():
         params = (section or {}).get("ros__parameters", {}) if isinstance(section, dict) else {}
-        out[str(node_name).lstrip("/")] = dict(params or {})
+        out[str(node_name).removeprefix(ANY_NAMESPACE).lstrip("/")] = dict(params or {})
     return out
+
+
+def scene_parameters(scene_name: str) -> dict[str, dict]:
+    """What the planner and semantics are told about a scene, as a robot would be: the level's
+    defaults, the region of interest and the workspace box (never the scene's geometry)."""
+    from sim_bridge.scenes import load_scene
+
+    scene = load_scene(scene_name)
+    planner = {**planner_region(scene), "gamma": float(scene.gamma)}
+    return {"planner": planner, "semantics": {"num_initial_views": len(scene.initial_views)}}
 
 
 def parse_override(text: str) -> tuple[str, str, object]:
@@ -77,24 +86,26 @@ def build_graph(
     overrides: dict[str, dict] | None = None,
     nodes: tuple[tuple[str, str], ...] = GRAPH_NODES,
 ) -> list[NodeSpec]:
-    """The node specs for one launch: bundled defaults <- `params` <- `overrides`."""
+    """The node specs for one launch: what the camera's scene tells the planner <- bundled
+    defaults (or `params`) <- `overrides`."""
     merged = copy.deepcopy(load_parameters() if params is None else params)
     for node, values in (overrides or {}).items():
         merged.setdefault(node, {}).update(values)
-    planner = merged.setdefault("planner", {})
+    names = {name for name, _ in nodes}
     scene = merged.get("sim_bridge", {}).get("scene")
-    if scene and "roi_min" not in planner:
-        from sim_bridge.scenes import load_scene
-
-        for key, value in planner_region(load_scene(scene)).items():
-            planner.setdefault(key, value)
+    if scene and names & {"planner", "semantics"}:
+        derived = scene_parameters(scene)
+        for node, values in derived.items():
+            merged[node] = {**values, **merged.get(node, {})}
+        for node, values in (overrides or {}).items():
+            merged[node].update(values)
     shared = merged.get("**", {})
     return [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
 
 
 def write_params_file(specs: list[NodeSpec], path: Path) -> Path:
     """Write the specs' parameters as one ROS 2 parameter YAML file (what each node process reads)."""
-    data = {spec.name: {"ros__parameters": spec.parameters} for spec in specs}
+    data = {ANY_NAMESPACE + spec.name: {"ros__parameters": spec.parameters} for spec in specs}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path

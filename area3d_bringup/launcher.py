@@ -1,7 +1,7 @@
 """Start every node of a launch description as its own OS process and stop them all together.
 
-Each node runs `python -m MODULE --ros-args --params-file FILE -r __node:=NAME`, the same argument
-convention `ros2 run` uses. Output lines are prefixed with `[name]` and forwarded. Ctrl-C, SIGTERM or
+Each node runs `python -m MODULE --ros-args --params-file FILE -r __node:=NAME [-r __ns:=NS]`, the
+same arguments `ros2 run` and `ros2 launch` give a node. Output lines are prefixed with `[name]` and forwarded. Ctrl-C, SIGTERM or
 the death of any node stops all of them: SIGINT first, then SIGTERM, then SIGKILL, and every child
 also gets SIGKILL from the kernel if the launcher itself dies (PR_SET_PDEATHSIG), so no orphans remain.
 """
@@ -43,7 +43,9 @@ class Launcher:
     """Runs a list of `NodeSpec` as child processes.
 
     log_sink: called with each prefixed output line (default: write to stderr).
-    env: extra environment for the children (e.g. ROS_DOMAIN_ID, CYCLONEDDS_URI).
+    env: extra environment for the children (e.g. ROS_DOMAIN_ID, `middleware.graph_env()`).
+    namespace: ROS namespace of every node (`-r __ns:=NAMESPACE`), e.g. "/robot1".
+    ros_args: more `--ros-args` arguments for every node, e.g. ["-r", "from:=to"].
     """
 
     def __init__(
@@ -52,8 +54,12 @@ class Launcher:
         workdir: Path,
         env: dict[str, str] | None = None,
         log_sink: Callable[[str], None] | None = None,
+        namespace: str = "",
+        ros_args: list[str] | None = None,
     ):
         self.specs = specs
+        self.namespace = namespace
+        self.ros_args = list(ros_args or [])
         self.workdir = Path(workdir)
         self.env = {**os.environ, **(env or {}), "PYTHONUNBUFFERED": "1"}
         self.log_sink = log_sink or (lambda line: print(line, file=sys.stderr, flush=True))
@@ -74,6 +80,8 @@ class Launcher:
                 str(params_file),
                 "-r",
                 f"__node:={spec.name}",
+                *(["-r", f"__ns:={self.namespace}"] if self.namespace else []),
+                *self.ros_args,
             ]
             proc = subprocess.Popen(
                 cmd,

@@ -1,19 +1,27 @@
-"""Record the messages an episode sees as a rosbag2 (MCAP) file that `ros2 bag play` and Foxglove open."""
+"""Record what an episode's graph publishes as a rosbag2 (MCAP) that `ros2 bag play` and Foxglove open.
+
+Messages arrive as the CDR bytes rclpy received (``raw=True`` subscriptions) and are written as
+they are; each topic's connection carries the ROS 2 message definition (from the rosbags Jazzy
+type store), so readers without the message packages can decode the bag.
+"""
 
 from __future__ import annotations
 
 import threading
+from collections import Counter
 from pathlib import Path
 
 from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
 
-from area3d_msgs_py import msgs
+_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 
 class BagRecorder:
-    """Append messages to `path` (a new rosbag2 directory, storage MCAP).
+    """Append serialised messages to `path` (a new rosbag2 directory, storage MCAP).
 
-    `write(topic, type_name, stamp_ns, msg)` may be called from any thread.
+    `write(topic, type_name, stamp_ns, cdr)` may be called from any thread; `counts` says how many
+    messages each topic holds.
     """
 
     def __init__(self, path: Path):
@@ -26,19 +34,22 @@ class BagRecorder:
         self._writer.open()
         self._connections: dict[str, object] = {}
         self._lock = threading.Lock()
-        self.count = 0
+        self.counts: Counter[str] = Counter()
 
-    def write(self, topic: str, type_name: str, stamp_ns: int, msg: object) -> None:
-        data = msgs.serialize(msg)
+    @property
+    def count(self) -> int:
+        return sum(self.counts.values())
+
+    def write(self, topic: str, type_name: str, stamp_ns: int, cdr: bytes) -> None:
         with self._lock:
             if self._writer is None:
                 return
             conn = self._connections.get(topic)
             if conn is None:
-                conn = self._writer.add_connection(topic, type_name, typestore=msgs.typestore)
+                conn = self._writer.add_connection(topic, type_name, typestore=_TYPESTORE)
                 self._connections[topic] = conn
-            self._writer.write(conn, int(stamp_ns), data)
-            self.count += 1
+            self._writer.write(conn, int(stamp_ns), bytes(cdr))
+            self.counts[topic] += 1
 
     def close(self) -> None:
         with self._lock:

@@ -16,14 +16,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
 
-from area3d_bringup.launch_description import build_graph, load_parameters, planner_region
+from area3d_bringup.launch_description import GRAPH_NODES, build_graph, load_parameters
 from area3d_bringup.launcher import Launcher, NodeDied
 from area3d_bringup.recorder import BagRecorder
-from area3d_msgs_py import codecs, msgs
-from area3d_msgs_py.node import Node
+from area3d_eval import rundir
+from area3d_eval.rundir import Frame
+from area3d_msgs_py import codecs, middleware, msgs, qos
 
 #: policy name -> parameter overrides {node: {param: value}}; ablations are configurations.
 POLICIES: dict[str, dict[str, dict]] = {
@@ -40,27 +45,36 @@ POLICIES: dict[str, dict[str, dict]] = {
     "gamma0": {"planner": {"policy": "area3d", "gamma": 0.0}},
 }
 
+# Relative names (the graph's namespace applies); {key: (topic, type)}.
 CAMERA_TOPICS = {
-    "color": ("/area3d/camera/color/image_raw", "sensor_msgs/msg/Image"),
-    "depth": ("/area3d/camera/depth/image_raw", "sensor_msgs/msg/Image"),
-    "info": ("/area3d/camera/camera_info", "sensor_msgs/msg/CameraInfo"),
-    "pose": ("/area3d/camera/pose", "geometry_msgs/msg/PoseStamped"),
+    "color": ("area3d/camera/color/image_raw", msgs.Image),
+    "depth": ("area3d/camera/depth/image_raw", msgs.Image),
+    "info": ("area3d/camera/camera_info", msgs.CameraInfo),
+    "pose": ("area3d/camera/pose", msgs.PoseStamped),
 }
-RECORDED_TOPICS = {
-    **{topic: type_name for topic, type_name in CAMERA_TOPICS.values()},
-    "/tf": "tf2_msgs/msg/TFMessage",
-    "/tf_static": "tf2_msgs/msg/TFMessage",
-    "/area3d/camera/status": "std_msgs/msg/String",
-    "/area3d/semantics/regions": "std_msgs/msg/String",
-    "/area3d/planner/next_views": "nav_msgs/msg/Path",
-    "/area3d/planner/status": "std_msgs/msg/String",
+GOAL_TOPIC = "area3d/camera/goal_pose"
+CAMERA_STATUS_TOPIC = "area3d/camera/status"
+GRID_TOPIC = "area3d/planner/uncertainty_grid"
+PLANNER_STATUS_TOPIC = "area3d/planner/status"
+NBV_SERVICE = "area3d/planner/next_best_view"
+TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
+#: what the bag holds besides the camera topics and the goals: {topic: (type, latched)}
+GRAPH_OUTPUTS = {
+    CAMERA_STATUS_TOPIC: (msgs.String, False),
+    "area3d/perception/depth": (msgs.Image, False),
+    "area3d/perception/confidence": (msgs.Image, False),
+    "area3d/semantics/regions": (msgs.String, True),
+    "area3d/semantics/weight": (msgs.Image, False),
+    "area3d/semantics/uncertainty": (msgs.Image, False),
+    GRID_TOPIC: (msgs.PointCloud2, True),
+    "area3d/planner/next_views": (msgs.Path, False),
+    PLANNER_STATUS_TOPIC: (msgs.String, False),
 }
-# Readers each camera topic has once the graph is up (the runner's own included): DDS volatile
+# Readers each camera topic has once the graph is up (the runner's own included): volatile
 # topics drop what is published before a reader has matched, so goals and replayed frames wait.
 EXPECTED_READERS = {"goal": 1, "color": 3, "depth": 3, "info": 3, "pose": 3}
-GRID_TOPIC = "/area3d/planner/uncertainty_grid"
-NBV_SERVICE = "/area3d/planner/next_best_view"
-GOAL_TOPIC = "/area3d/camera/goal_pose"
+# The grid is published after every fusion; the runner's reader keeps a backlog of them.
+GRID_READER_DEPTH = 100
 
 
 class EpisodeError(RuntimeError):
@@ -79,20 +93,15 @@ class EpisodeConfig:
     record: bool = True
     params_file: Path | None = None
     overrides: dict[str, dict] = field(default_factory=dict)
-    domain_id: int | None = None
+    domain_id: int | None = None  # None: $ROS_DOMAIN_ID, else a free domain
+    namespace: str = ""  # ROS namespace of the graph and the runner, e.g. "/robot1"
+    transport: str | None = None  # middleware.TRANSPORTS; None: $AREA3D_TRANSPORT or "shm"
+    # graph nodes this runner starts (None: all); the others run elsewhere (`area3d launch --nodes`)
+    nodes: tuple[str, ...] | None = None
     capture_timeout_s: float = 30.0
     plan_timeout_s: float = 120.0
     fuse_timeout_s: float = 30.0
     startup_timeout_s: float = 90.0
-
-
-@dataclass
-class Frame:
-    stamp_ns: int
-    rgb: np.ndarray
-    depth: np.ndarray
-    K: np.ndarray
-    T_world_cam: np.ndarray
 
 
 def paper_budget(level: str) -> int:
@@ -100,109 +109,101 @@ def paper_budget(level: str) -> int:
     return 25 if level == "object" else 40
 
 
-def save_frame(run_dir: Path, index: int, frame: Frame) -> Path:
-    path = run_dir / "frames" / f"{index:04d}.npz"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(
-        tmp,
-        rgb=frame.rgb,
-        depth=frame.depth,
-        K=frame.K,
-        T_world_cam=frame.T_world_cam,
-        stamp_ns=np.int64(frame.stamp_ns),
-    )
-    os.replace(tmp, path)
-    return path
+def _type_name(msg_type: type) -> str:
+    return msgs.type_name_of(msg_type())
 
 
-def load_frame(path: Path) -> Frame:
-    with np.load(path) as data:
-        return Frame(
-            int(data["stamp_ns"]), data["rgb"], data["depth"], data["K"], data["T_world_cam"]
-        )
-
-
-def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
-
-
-def grid_msg_to_npz(msg: object, path: Path) -> None:
-    cloud = codecs.msg_to_pointcloud(msg)
-    np.savez_compressed(path, **{name: np.asarray(cloud[name]) for name in cloud.dtype.names})
-
-
-class MissionManager:
-    """The runner's own node: sends goals, collects frames, calls the next-best-view service."""
+class MissionManager(Node):
+    """The runner's node: sends goals, collects frames, records the graph, calls the planner."""
 
     def __init__(
         self,
-        node: Node,
         recorder: BagRecorder | None,
         alive_check: Callable[[], None] = lambda: None,
+        **kwargs: Any,
     ):
-        self.node = node
+        super().__init__("mission_manager", **kwargs)
         self.recorder = recorder
         self.alive_check = alive_check  # raises when a node of the graph has died
         self._lock = threading.Condition()
-        self._parts: dict[int, dict[str, object]] = {}
+        self._parts: dict[int, dict[str, Any]] = {}
         self._status: dict[int, dict] = {}
         self.planner_status: dict = {}
-        self.latest_grid: object | None = None
-        self.goal_pub = node.create_publisher("geometry_msgs/msg/PoseStamped", GOAL_TOPIC)
+        self.latest_grid: bytes | None = None
+        self.received: dict[str, int] = {}
+        self.goal_pub = self.create_publisher(msgs.PoseStamped, GOAL_TOPIC, qos.frames())
         self.replay_pubs = {
-            key: node.create_publisher(type_name, topic)
-            for key, (topic, type_name) in CAMERA_TOPICS.items()
+            key: self.create_publisher(msg_type, topic, qos.frames())
+            for key, (topic, msg_type) in CAMERA_TOPICS.items()
         }
-        for key, (topic, type_name) in CAMERA_TOPICS.items():
-            node.create_subscription(type_name, topic, self._on_part(key, topic, type_name))
-        for topic, type_name in RECORDED_TOPICS.items():
-            if topic not in {t for t, _ in CAMERA_TOPICS.values()}:
-                latched = topic == "/tf_static"
-                node.create_subscription(
-                    type_name, topic, self._on_other(topic, type_name), latched=latched
-                )
-        node.create_subscription(
-            "sensor_msgs/msg/PointCloud2", GRID_TOPIC, self._on_grid, latched=True
-        )
-        self.client = node.create_client("nav_msgs/srv/GetPlan", NBV_SERVICE)
+        for key, (topic, msg_type) in CAMERA_TOPICS.items():
+            self._listen(topic, msg_type, qos.frames(), self._on_part(key, msg_type))
+        for topic, (msg_type, latched) in GRAPH_OUTPUTS.items():
+            depth = GRID_READER_DEPTH if topic == GRID_TOPIC else qos.FRAME_DEPTH
+            profile = qos.latched(depth) if latched else qos.reliable(depth)
+            self._listen(topic, msg_type, profile, self._on_output(topic))
+        self.tf_from_graph = msgs.TFMessage is not None
+        if self.tf_from_graph:
+            self._listen(TF_TOPIC, msgs.TFMessage, qos.reliable(100), None)
+            self._listen(TF_STATIC_TOPIC, msgs.TFMessage, qos.latched(), None)
+        self.client = self.create_client(msgs.GetPlan, NBV_SERVICE)
 
-    # -- callbacks (spin thread) ------------------------------------------------------------
-    def _record(self, topic: str, type_name: str, stamp_ns: int, msg: object) -> None:
-        if self.recorder is not None:
-            self.recorder.write(topic, type_name, stamp_ns or self.node.now_ns(), msg)
+    # -- callbacks (executor thread) ---------------------------------------------------------
+    def _listen(self, topic: str, msg_type: type, profile, handle) -> None:
+        type_name = _type_name(msg_type)
+        resolved = self.resolve_topic_name(topic)
 
-    def _on_part(self, key: str, topic: str, type_name: str) -> Callable[[object], None]:
-        def callback(msg: object) -> None:
-            stamp = codecs.stamp_to_ns(msg.header.stamp)
-            self._record(topic, type_name, stamp, msg)
+        def callback(cdr: bytes) -> None:
+            msg = msgs.deserialize(cdr, type_name)
+            stamp = codecs.stamp_to_ns(msg.header.stamp) if hasattr(msg, "header") else 0
+            self.record(resolved, type_name, stamp, cdr)
             with self._lock:
-                self._parts.setdefault(stamp, {})[key] = msg
+                self.received[resolved] = self.received.get(resolved, 0) + 1
+                if handle is not None:
+                    handle(msg, cdr)
                 self._lock.notify_all()
 
-        return callback
+        self.create_subscription(msg_type, topic, callback, profile, raw=True)
 
-    def _on_other(self, topic: str, type_name: str) -> Callable[[object], None]:
-        def callback(msg: object) -> None:
-            self._record(topic, type_name, 0, msg)
-            if topic == "/area3d/camera/status":
+    def record(self, topic: str, type_name: str, stamp_ns: int, cdr: bytes) -> None:
+        if self.recorder is not None:
+            stamp = stamp_ns or self.get_clock().now().nanoseconds
+            self.recorder.write(topic, type_name, stamp, cdr)
+
+    def _on_part(self, key: str, msg_type: type) -> Callable[[Any, bytes], None]:
+        def handle(msg: Any, cdr: bytes) -> None:
+            stamp = codecs.stamp_to_ns(msg.header.stamp)
+            self._parts.setdefault(stamp, {})[key] = msg
+            if key == "pose" and not self.tf_from_graph:
+                self._record_tf(stamp, codecs.pose_to_matrix(msg.pose))
+
+        return handle
+
+    def _on_output(self, topic: str) -> Callable[[Any, bytes], None]:
+        def handle(msg: Any, cdr: bytes) -> None:
+            if topic == CAMERA_STATUS_TOPIC:
                 status = json.loads(msg.data)
-                with self._lock:
-                    self._status[int(status.get("stamp_ns", 0))] = status
-                    self._lock.notify_all()
-            elif topic == "/area3d/planner/status":
-                with self._lock:
-                    self.planner_status = json.loads(msg.data)
-                    self._lock.notify_all()
+                self._status[int(status.get("stamp_ns", 0))] = status
+            elif topic == PLANNER_STATUS_TOPIC:
+                self.planner_status = json.loads(msg.data)
+            elif topic == GRID_TOPIC:
+                self.latest_grid = cdr
 
-        return callback
+        return handle
 
-    def _on_grid(self, msg: object) -> None:
-        with self._lock:
-            self.latest_grid = msg
-            self._lock.notify_all()
+    def _record_tf(self, stamp_ns: int, T_world_opt: np.ndarray) -> None:
+        """TF as sim_bridge would publish it, written to the bag (tf2_msgs does not import here)."""
+        from area3d_bringup.tf_bag import static_tf_cdr, tf_cdr
+
+        if self.recorder is None:
+            return
+        if not self.recorder.counts.get(TF_STATIC_TOPIC):
+            self.recorder.write(
+                TF_STATIC_TOPIC, "tf2_msgs/msg/TFMessage", stamp_ns, static_tf_cdr(stamp_ns)
+            )
+        self.recorder.write(
+            TF_TOPIC, "tf2_msgs/msg/TFMessage", stamp_ns, tf_cdr(stamp_ns, T_world_opt)
+        )
 
     # -- episode steps (main thread) --------------------------------------------------------
     def wait_for_readers(self, timeout_s: float) -> list[str]:
@@ -220,11 +221,14 @@ class MissionManager:
 
     def capture(self, T_world_cam: np.ndarray, timeout_s: float) -> Frame | str:
         """Send the camera to `T_world_cam`; the frame, or the camera's reason for refusing."""
-        stamp = self.node.now_ns()
+        stamp = self.get_clock().now().nanoseconds
         goal = msgs.PoseStamped(
             header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T_world_cam)
         )
-        self._record(GOAL_TOPIC, "geometry_msgs/msg/PoseStamped", stamp, goal)
+        self.record(
+            self.resolve_topic_name(GOAL_TOPIC), "geometry_msgs/msg/PoseStamped", stamp,
+            msgs.serialize(goal),
+        )  # fmt: skip
         self.goal_pub.publish(goal)
         deadline = time.monotonic() + timeout_s
         with self._lock:
@@ -245,11 +249,11 @@ class MissionManager:
                 self.alive_check()
         K, _, _ = codecs.camera_info_to_intrinsics(parts["info"])
         return Frame(
-            stamp,
-            codecs.msg_to_image(parts["color"]),
-            codecs.msg_to_image(parts["depth"]),
-            K,
-            codecs.pose_to_matrix(parts["pose"].pose),
+            rgb=codecs.msg_to_image(parts["color"]),
+            depth=codecs.msg_to_image(parts["depth"]),
+            K=K,
+            T_world_cam=codecs.pose_to_matrix(parts["pose"].pose),
+            stamp_ns=stamp,
         )
 
     def replay(self, frame: Frame) -> None:
@@ -268,17 +272,20 @@ class MissionManager:
             )
         )
 
-    def wait_fused(self, count: int, timeout_s: float, key: str = "frames_fused") -> bool:
-        """Wait until the planner reports at least `count` fused frames (or semantic maps, by `key`)."""
+    def wait_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
         with self._lock:
-            while int(self.planner_status.get(key, 0)) < count:
+            while not predicate():
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
                 self._lock.wait(min(remaining, 0.1))
                 self.alive_check()
         return True
+
+    def wait_fused(self, count: int, timeout_s: float, key: str = "frames_fused") -> bool:
+        """Wait until the planner reports at least `count` fused frames (or semantic maps, by `key`)."""
+        return self.wait_until(lambda: int(self.planner_status.get(key, 0)) >= count, timeout_s)
 
     def plan(self, current: Frame, count: int, timeout_s: float) -> list[np.ndarray]:
         """Ask the planner for `count` views (0 = what the budget allows) from the current pose."""
@@ -294,48 +301,31 @@ class MissionManager:
             tolerance=0.0,
         )
         request.goal.pose.position.x = float(count)
-        # The call runs on a daemon thread so that a planner dying mid-call is noticed at once.
-        result: dict[str, object] = {}
-
-        def call() -> None:
-            try:
-                result["response"] = self.client.call(request, timeout_s)
-            except Exception as err:  # handed to the caller below
-                result["error"] = err
-
-        caller = threading.Thread(target=call, name="next-best-view-call", daemon=True)
-        caller.start()
-        while caller.is_alive():
-            caller.join(0.1)
+        future = self.client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        deadline = time.monotonic() + timeout_s
+        # Poll so that a planner dying mid-call is noticed at once.
+        while not done.wait(0.1):
             self.alive_check()
-        if "error" in result:
-            raise result["error"]
-        response = result["response"]
-        self._record(
-            "/area3d/planner/next_views", "nav_msgs/msg/Path", current.stamp_ns, response.plan
-        )
+            if time.monotonic() > deadline:
+                self.client.remove_pending_request(future)
+                raise TimeoutError(f"no answer from {NBV_SERVICE} within {timeout_s:.0f} s")
+        response = future.result()
         return [codecs.pose_to_matrix(p.pose) for p in response.plan.poses]
-
-
-def _spin_in_background(node: Node, stop: threading.Event) -> threading.Thread:
-    def loop() -> None:
-        while not stop.is_set():
-            node.spin_once(0.05)
-
-    thread = threading.Thread(target=loop, name="mission-manager-spin", daemon=True)
-    thread.start()
-    return thread
 
 
 def run_episode(
     config: EpisodeConfig, resume: Path | None = None, progress: object | None = None
 ) -> Path:
     """Run one episode; returns the run directory (frames, episode.json, bag, grids)."""
-    from area3d_msgs_py.dds_config import use_loopback
     from sim_bridge.scenes import load_scene
 
     if config.policy not in POLICIES:
         raise ValueError(f"policy: got {config.policy!r}, expected one of {sorted(POLICIES)}")
+    graph_names = [name for name, _ in GRAPH_NODES]
+    if config.nodes is not None and not set(config.nodes) <= set(graph_names):
+        raise ValueError(f"nodes: got {list(config.nodes)}, expected names from {graph_names}")
     if config.mode not in ("closed_loop", "batch"):
         raise ValueError(f"mode: got {config.mode!r}, expected 'closed_loop' or 'batch'")
     scene = load_scene(config.scene)
@@ -350,7 +340,7 @@ def run_episode(
     frames: list[Frame] = []
     if resume is not None:
         run_dir = Path(resume)
-        episode_path = run_dir / "episode.json"
+        episode_path = run_dir / rundir.EPISODE_FILE
         if not episode_path.is_file():
             raise FileNotFoundError(
                 f"resume: got {str(run_dir)!r}, expected a run directory with episode.json"
@@ -360,7 +350,7 @@ def run_episode(
         config.seed, budget = saved["seed"], saved["budget"]
         scene = load_scene(config.scene)
         views = saved["views"]
-        frames = [load_frame(run_dir / "frames" / f"{v['index']:04d}.npz") for v in views]
+        frames = [rundir.read_frame(rundir.frame_path(run_dir, v["index"])) for v in views]
         timings = saved.get("timings_s", {})
     else:
         name = (
@@ -374,18 +364,27 @@ def run_episode(
     overrides: dict[str, dict] = {}
     for node, values in POLICIES[config.policy].items():
         overrides.setdefault(node, {}).update(values)
-    overrides.setdefault("sim_bridge", {})["scene"] = config.scene
-    overrides.setdefault("planner", {}).update(
-        {"budget": budget, "mode": config.mode, "seed": config.seed, **planner_region(scene)}
+    overrides.setdefault("sim_bridge", {}).update(
+        {"scene": config.scene, "readers.all": ["mission_manager"]}
     )
-    overrides.setdefault("semantics", {})["num_initial_views"] = n_init
+    overrides.setdefault("planner", {}).update(
+        {"budget": budget, "mode": config.mode, "seed": config.seed}
+    )
     for node, values in config.overrides.items():
         overrides.setdefault(node, {}).update(values)
     specs = build_graph(load_parameters(config.params_file), overrides)
 
+    recorded: dict[str, int] = dict(saved.get("recorded", {})) if resume is not None else {}
+    lease = middleware.DomainLease(config.domain_id)
+    domain_id = lease.domain_id
+
     def save_episode() -> None:
-        _write_json(
-            run_dir / "episode.json",
+        counts = dict(recorded)
+        if recorder is not None:
+            for topic, n in recorder.counts.items():
+                counts[topic] = counts.get(topic, 0) + n
+        rundir.write_episode(
+            run_dir,
             {
                 "scene": config.scene,
                 "policy": config.policy,
@@ -396,19 +395,19 @@ def run_episode(
                 "views": views,
                 "timings_s": timings,
                 "config": {spec.name: spec.parameters for spec in specs},
+                "ros": {"domain_id": domain_id, "namespace": config.namespace},
+                "recorded": counts,
             },
         )
 
     def add_time(stage: str, seconds: float) -> None:
         timings[stage] = timings.get(stage, 0.0) + seconds
 
-    domain_id = (
-        config.domain_id
-        if config.domain_id is not None
-        else int(os.environ.get("ROS_DOMAIN_ID", "0"))
-    )
-    use_loopback(domain_id)
-    log_path = run_dir / "nodes.log"
+    # Discovery stays on this machine unless the caller's environment says otherwise.
+    discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
+    env = middleware.graph_env(domain_id, config.transport, discovery)
+    os.environ.update(env)  # this process's own participant: same transport and discovery
+    log_path = run_dir / rundir.LOG_FILE
     log_file = log_path.open("a")
     log_lock = threading.Lock()
 
@@ -417,18 +416,24 @@ def run_episode(
             log_file.write(line + "\n")
             log_file.flush()
 
-    bag_index = len(list(run_dir.glob("bag*")))
-    recorder = (
-        BagRecorder(run_dir / (f"bag_{bag_index}" if bag_index else "bag"))
-        if config.record
-        else None
-    )
+    recorder = BagRecorder(rundir.bag_path(run_dir)) if config.record else None
     t0 = time.monotonic()
-    launcher = Launcher(specs, run_dir, log_sink=log_sink)
-    stop = threading.Event()
-    node = Node("mission_manager")
-    manager = MissionManager(node, recorder, alive_check=launcher.check)
-    spinner = _spin_in_background(node, stop)
+    local = [spec for spec in specs if config.nodes is None or spec.name in config.nodes]
+    launcher = Launcher(local, run_dir, env=env, log_sink=log_sink, namespace=config.namespace)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    manager = MissionManager(
+        recorder, alive_check=launcher.check, context=context, namespace=config.namespace or None
+    )
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(manager)
+    spinner = threading.Thread(target=_spin, args=(executor,), name="mission-manager", daemon=True)
+    spinner.start()
+    log_sink(
+        f"[mission_manager] graph on ROS_DOMAIN_ID={domain_id}"
+        f"{' (picked: free)' if lease.picked else ''}, namespace {config.namespace or '/'}, "
+        f"transport {env[middleware.TRANSPORT_ENV]}, discovery {discovery}"
+    )
     task = None
     try:
         launcher.start()
@@ -451,7 +456,7 @@ def run_episode(
 
         def keep(frame: Frame, kind: str, stage_times: dict) -> None:
             index = len(frames)
-            save_frame(run_dir, index, frame)
+            rundir.write_frame(run_dir, index, *frame, stamp_ns=frame.stamp_ns)
             frames.append(frame)
             views.append(
                 {
@@ -509,8 +514,9 @@ def run_episode(
                 f"[mission_manager] the planner has not fused all {n_init} initial views after "
                 f"{config.fuse_timeout_s:.0f} s; planning with what it has"
             )
-        if manager.latest_grid is not None and not (run_dir / "grid_initial.npz").exists():
-            grid_msg_to_npz(manager.latest_grid, run_dir / "grid_initial.npz")
+        initial_grid = run_dir / rundir.GRID_INITIAL_FILE
+        if manager.latest_grid is not None and not initial_grid.exists():
+            rundir.write_grid(initial_grid, _grid(manager.latest_grid))
 
         planned = len(frames) - n_init
         refused = 0
@@ -546,8 +552,11 @@ def run_episode(
                     {"plan": plan_s / len(poses), "capture": time.monotonic() - t},
                 )
         manager.wait_fused(len(frames), 10.0)
+        # Let the bag catch up with what the planner and perception published for the last frame.
+        perception_depth = manager.resolve_topic_name("area3d/perception/depth")
+        manager.wait_until(lambda: manager.received.get(perception_depth, 0) >= len(frames), 10.0)
         if manager.latest_grid is not None:
-            grid_msg_to_npz(manager.latest_grid, run_dir / "grid_final.npz")
+            rundir.write_grid(run_dir / rundir.GRID_FINAL_FILE, _grid(manager.latest_grid))
         add_time("episode_total", time.monotonic() - t0)
         save_episode()
     except NodeDied as err:
@@ -561,18 +570,32 @@ def run_episode(
             f"{err}\nkept {len(frames)} captured views in {run_dir}; continue with --resume {run_dir}"
         ) from err
     finally:
-        stop.set()
-        spinner.join(timeout=2.0)
         launcher.stop()
-        node.shutdown()
+        executor.shutdown()
+        spinner.join(timeout=2.0)
+        manager.destroy_node()
+        context.try_shutdown()
         if recorder is not None:
             recorder.close()
+        save_episode()
+        lease.release()
         log_file.close()
     return run_dir
 
 
+def _spin(executor: SingleThreadedExecutor) -> None:
+    try:
+        executor.spin()
+    except Exception:  # the context was shut down under it: the episode is over
+        pass
+
+
+def _grid(cdr: bytes) -> np.ndarray:
+    return codecs.msg_to_pointcloud(msgs.deserialize(cdr, "sensor_msgs/msg/PointCloud2"))
+
+
 def episode_summary(run_dir: Path) -> dict:
-    data = json.loads((Path(run_dir) / "episode.json").read_text())
+    data = json.loads((Path(run_dir) / rundir.EPISODE_FILE).read_text())
     return {k: data[k] for k in ("scene", "policy", "seed", "budget", "mode")} | {
         "views": len(data["views"])
     }

@@ -40,6 +40,7 @@ from area3d_eval.rundir import (
     to_jsonable,
 )
 from area3d_msgs_py.errors import InputError
+from area3d_perception.backproject import depth_to_world
 
 CHECKPOINT_STEP = (
     4  # evaluate after every 4th view (4 = |O_0| at object level, the paper's setting)
@@ -94,12 +95,9 @@ def reference_images(
     images, masks = [], []
     try:
         K = np.asarray(renderer.K, dtype=np.float64)
-        u = (np.arange(width) + 0.5 - K[0, 2]) / K[0, 0]
-        v = (np.arange(height) + 0.5 - K[1, 2]) / K[1, 1]
-        rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
         for T in np.asarray(scene.eval_views, dtype=np.float64):
             rgb, depth = renderer.render(T)
-            world = (rays * depth[..., None]) @ T[:3, :3].T + T[:3, 3]
+            world = depth_to_world(depth, K, T)
             inside = np.isfinite(depth) & np.all((world >= lo) & (world <= hi), axis=-1)
             images.append(np.where(inside[..., None], rgb, 0).astype(np.uint8))
             masks.append(inside)

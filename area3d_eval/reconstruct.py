@@ -14,6 +14,7 @@ import numpy as np
 
 from area3d_eval.open3d_loader import import_open3d
 from area3d_msgs_py.errors import InputError
+from area3d_perception.backproject import depth_to_world
 
 BLOCK_RESOLUTION = 8  # voxels per block edge (Open3D's default)
 INITIAL_BLOCK_COUNT = 20_000  # hash map capacity to start with; it grows on demand
@@ -64,14 +65,7 @@ def mask_outside_box(
     depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, lo: np.ndarray, hi: np.ndarray
 ) -> np.ndarray:
     """Depth with NaN wherever the back-projected point falls outside the box [lo, hi] (world)."""
-    h, w = depth.shape
-    u = (np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]
-    v = (np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]
-    cam = (
-        np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
-        * depth[..., None]
-    )
-    world = cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    world = depth_to_world(depth, K, T_world_cam)
     inside = np.all((world >= lo) & (world <= hi), axis=-1)
     return np.where(inside, depth, np.nan).astype(np.float32)
 

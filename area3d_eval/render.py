@@ -8,6 +8,7 @@ import numpy as np
 
 from area3d_eval.open3d_loader import import_open3d
 from area3d_msgs_py.errors import InputError
+from area3d_perception.backproject import pixel_rays
 
 UNCOLOURED_GREY = 0.5  # colour of meshes without vertex colours, in [0, 1]
 
@@ -45,10 +46,8 @@ def camera_rays(K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int)
     Directions are R K^-1 [u, v, 1], not normalised: their optical z component is 1, so the hit
     parameter t of a ray is the depth along optical z.
     """
-    u = (np.arange(width) + 0.5 - K[0, 2]) / K[0, 0]
-    v = (np.arange(height) + 0.5 - K[1, 2]) / K[1, 1]
-    cam = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
-    directions = cam @ T_world_cam[:3, :3].T
+    cam = pixel_rays(K, height, width).astype(np.float64)
+    directions = cam @ np.asarray(T_world_cam, dtype=np.float64)[:3, :3].T
     origins = np.broadcast_to(T_world_cam[:3, 3], directions.shape)
     return np.concatenate([origins, directions], axis=-1).astype(np.float32)
 

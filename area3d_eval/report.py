@@ -15,7 +15,17 @@ from typing import Any
 import numpy as np
 
 from area3d_eval import plots
-from area3d_eval.rundir import EVAL_DIR, Episode, iter_frames, read_episode, read_grid, read_metrics
+from area3d_eval.rundir import (
+    EVAL_DIR,
+    GRID_FINAL_FILE,
+    GRID_INITIAL_FILE,
+    Episode,
+    iter_frames,
+    read_episode,
+    read_grid,
+    read_metrics,
+)
+from area3d_perception.backproject import depth_to_world
 
 # (key in metrics.json, column title, higher is better, scale for display, format). PSNR and SSIM
 # are the region's (pixels where the ground truth sees the ROI): the whole-image figures also score
@@ -189,8 +199,8 @@ def _figures(
             roi=roi,
         )
         slices = plots.plot_grid_slices(
-            read_grid(r.path / "grid_initial.npz"),
-            read_grid(r.path / "grid_final.npz"),
+            read_grid(r.path / GRID_INITIAL_FILE),
+            read_grid(r.path / GRID_FINAL_FILE),
             fig_dir / f"{stem}_uncertainty.png",
             title=r.label,
         )
@@ -207,16 +217,7 @@ def _scene_points(r: RunRecord) -> np.ndarray:
         return np.load(sample)
     points = []
     for frame in iter_frames(r.path):
-        d = frame.depth[::4, ::4]
-        h, w = d.shape
-        K = frame.K
-        u = ((np.arange(w) * 4 + 0.5) - K[0, 2]) / K[0, 0]
-        v = ((np.arange(h) * 4 + 0.5) - K[1, 2]) / K[1, 1]
-        cam = (
-            np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
-            * d[..., None]
-        )
-        world = cam.reshape(-1, 3) @ frame.T_world_cam[:3, :3].T + frame.T_world_cam[:3, 3]
+        world = depth_to_world(frame.depth, frame.K, frame.T_world_cam)[::4, ::4].reshape(-1, 3)
         points.append(world[np.all(np.isfinite(world), axis=1)])
     if not points:
         return np.zeros((0, 3))

@@ -4,11 +4,15 @@ Layout (all paths relative to RUN_DIR):
 
 - `episode.json`: {"scene", "policy", "seed", "budget", "level", "mode",
   "views": [{"index", "stamp_ns", "T_world_cam" (4x4 list), "kind": "initial" | "planned",
-  "stage_times_s": {...}}], "timings_s": {stage: seconds}, "config": {...}}
+  "stage_times_s": {...}}], "timings_s": {stage: seconds}, "config": {...},
+  "ros": {"domain_id", "namespace"}, "recorded": {topic: message count in the bag}}
 - `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
   K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index.
 - `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays
   x, y, z, uncertainty, geometric, semantic, occupancy (one entry per voxel).
+- `bag/`: rosbag2 MCAP of everything the graph published (`bag_N/` for resumed parts); the
+  message count of each topic is in episode.json under "recorded".
+- `nodes.log`, `params.yaml`: every node's log and the parameters it was started with.
 - `metrics.json` (written by `area3d_eval.evaluate.evaluate_run`).
 - `eval/` (written by evaluation): `reconstruction.ply` (final TSDF mesh cropped to the ROI) and
   `gt_sample.npy` (a few thousand ground-truth surface points for plots).
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +36,10 @@ EPISODE_FILE = "episode.json"
 METRICS_FILE = "metrics.json"
 FRAMES_DIR = "frames"
 EVAL_DIR = "eval"
+GRID_INITIAL_FILE = "grid_initial.npz"
+GRID_FINAL_FILE = "grid_final.npz"
+LOG_FILE = "nodes.log"
+BAG_DIR = "bag"
 GRID_FIELDS = ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy")
 
 
@@ -106,7 +115,9 @@ def write_episode(run_dir: Path, episode: dict[str, Any]) -> Path:
     """Write episode.json (numpy arrays in it become lists)."""
     path = Path(run_dir) / EPISODE_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(to_jsonable(episode), indent=2))
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(to_jsonable(episode), indent=1))
+    os.replace(tmp, path)
     return path
 
 
@@ -123,7 +134,9 @@ def write_frame(
     T_world_cam: np.ndarray,
     stamp_ns: int = 0,
 ) -> Path:
-    """Write RUN_DIR/frames/NNNN.npz in the layout above (uncompressed: it is read back often)."""
+    """Write RUN_DIR/frames/NNNN.npz in the layout above (uncompressed: it is read back often).
+
+    Written to a temporary file and renamed, so a crash never leaves half a frame."""
     rgb = np.asarray(rgb)
     depth = np.asarray(depth)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
@@ -132,14 +145,16 @@ def write_frame(
         raise InputError("depth", f"shape {depth.shape}", f"(H, W) = {rgb.shape[:2]} like rgb")
     path = frame_path(run_dir, index)
     path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
     np.savez(
-        path,
+        tmp,
         rgb=rgb,
         depth=depth.astype(np.float32),
         K=np.asarray(K, dtype=np.float64),
         T_world_cam=np.asarray(T_world_cam, dtype=np.float64),
         stamp_ns=np.int64(stamp_ns),
     )
+    os.replace(tmp, path)
     return path
 
 
@@ -157,7 +172,8 @@ def read_frame(path: Path) -> Frame:
 
 def frame_files(run_dir: Path) -> list[Path]:
     """RUN_DIR/frames/*.npz sorted by view index."""
-    return sorted((Path(run_dir) / FRAMES_DIR).glob("*.npz"), key=lambda p: int(p.stem))
+    files = (Path(run_dir) / FRAMES_DIR).glob("*.npz")
+    return sorted((p for p in files if p.stem.isdigit()), key=lambda p: int(p.stem))
 
 
 def iter_frames(run_dir: Path, limit: int | None = None) -> Iterator[Frame]:
@@ -165,6 +181,18 @@ def iter_frames(run_dir: Path, limit: int | None = None) -> Iterator[Frame]:
     files = frame_files(run_dir)
     for path in files if limit is None else files[:limit]:
         yield read_frame(path)
+
+
+def write_grid(path: Path, cloud: np.ndarray) -> Path:
+    """Write a grid_*.npz from the planner's cloud (structured array with GRID_FIELDS)."""
+    np.savez_compressed(path, **{name: np.asarray(cloud[name]) for name in cloud.dtype.names})
+    return Path(path)
+
+
+def bag_path(run_dir: Path) -> Path:
+    """A new bag directory: `bag/` for the first part of an episode, `bag_N/` after N resumes."""
+    parts = len(list(Path(run_dir).glob(BAG_DIR + "*")))
+    return Path(run_dir) / (f"{BAG_DIR}_{parts}" if parts else BAG_DIR)
 
 
 def read_grid(path: Path) -> dict[str, np.ndarray] | None:

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
+from area3d_perception.backproject import backproject
 
 INSTALL_HINT = 'pip install -e ".[ml]" gsplat lpips  (on a machine with an NVIDIA GPU and CUDA)'
 SH_C0 = 0.28209479177387814  # zeroth spherical-harmonic basis constant, 1 / (2 sqrt(pi))
@@ -63,16 +64,9 @@ def init_points_from_frames(
     """
     points, colours = [], []
     for rgb, depth, K, T in frames:
-        depth = np.asarray(depth, dtype=np.float64)
-        h, w = depth.shape
-        u = (np.arange(w) + 0.5 - K[0, 2]) / K[0, 0]
-        v = (np.arange(h) + 0.5 - K[1, 2]) / K[1, 1]
-        valid = np.isfinite(depth) & (depth > 0)
-        vv, uu = np.nonzero(valid)
-        d = depth[vv, uu]
-        cam = np.stack([u[uu] * d, v[vv] * d, d], axis=1)
-        points.append(cam @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3])
-        colours.append(np.asarray(rgb)[vv, uu].astype(np.float64) / 255.0)
+        world, pixel = backproject(depth, K, T)
+        points.append(world)
+        colours.append(np.asarray(rgb).reshape(-1, 3)[pixel].astype(np.float64) / 255.0)
     if not points or sum(len(p) for p in points) == 0:
         raise InputError(
             "frames",

@@ -1,8 +1,11 @@
-"""ROS 2 message types, numpy codecs and the rclpy / Cyclone DDS transport.
+"""ROS 2 message classes, numpy codecs, QoS, middleware setup and declared parameters.
 
-- ``msgs``: message classes (ROS 2 Jazzy, from rosbags) and CDR ``serialize`` / ``deserialize``
+- ``msgs``: the generated message classes of the ROS 2 wheels, ``serialize`` / ``deserialize``
 - ``codecs``: Image / PointCloud2 / Pose / CameraInfo <-> numpy
-- ``node``: ``Node`` and ``run_node``, on rclpy when available, else Cyclone DDS
-- ``dds_config``: ``use_loopback(domain_id)`` to keep DDS traffic on 127.0.0.1
+- ``qos``: the graph's QoS profiles
+- ``middleware``: Fast DDS transport profile, graph environment, ``DomainLease``
+- ``parameters``: ``Param`` and ``declare_parameters`` (typed, described, validated)
+- ``guard``: callbacks that log bad input instead of ending the node
+- ``probe``: a node of one's own beside a graph (tests, benchmarks, scripts)
 - ``errors``: ``InputError`` for bad input at a boundary
 """

@@ -1,4 +1,4 @@
-"""numpy <-> ROS 2 message codecs: Image, PointCloud2, Pose / Transform, CameraInfo, stamps.
+"""numpy <-> ROS 2 message codecs (on the generated rclpy message classes): Image, PointCloud2, Pose / Transform, CameraInfo, stamps.
 
 Conventions: images are (H, W, 3) uint8 in rgb order, (H, W) uint8 for mono8 and (H, W) float32
 metres for depth (NaN = no return); poses are 4x4 float64 homogeneous matrices; stamps are int
@@ -45,6 +45,14 @@ _DTYPE_TO_POINTFIELD = {v: k for k, v in POINTFIELD_DTYPES.items()}
 QUATERNION_NORM_TOLERANCE = 1e-3
 # Rotation orthonormality tolerance on max |R^T R - I| (float64 poses composed a few times).
 ROTATION_TOLERANCE = 1e-5
+
+
+def _bytes_of(data: Any) -> np.ndarray:
+    """(N,) uint8 view of a message's byte sequence (array.array, bytes or a list of ints)."""
+    try:
+        return np.frombuffer(data, dtype=np.uint8)
+    except TypeError:
+        return np.asarray(data, dtype=np.uint8).reshape(-1)
 
 
 # stamps --------------------------------------------------------------------------------------
@@ -107,11 +115,11 @@ def image_to_msg(array: np.ndarray, encoding: str, stamp_ns: int, frame_id: str)
                 "array.dtype", str(array.dtype), "float metres or uint16 millimetres for 16UC1"
             )
     height, width = array.shape[:2]
-    data = np.ascontiguousarray(pixels).reshape(-1).view(np.uint8)
+    data = np.ascontiguousarray(pixels).tobytes()
     return msgs.Image(
         header=header(stamp_ns, frame_id),
-        height=height,
-        width=width,
+        height=int(height),
+        width=int(width),
         encoding=encoding,
         is_bigendian=0,
         step=width * IMAGE_ENCODINGS[encoding][0] * IMAGE_ENCODINGS[encoding][1],
@@ -134,7 +142,7 @@ def msg_to_image(msg: Any) -> np.ndarray:
     row_bytes = width * channels * size
     if step < row_bytes:
         raise InputError("step", step, f">= width * bytes per pixel = {row_bytes} for {encoding}")
-    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    data = _bytes_of(msg.data)
     if data.size != height * step:
         raise InputError("data", f"{data.size} bytes", f"height * step = {height * step} bytes")
     order = ">" if msg.is_bigendian and size > 1 else "<"
@@ -187,7 +195,9 @@ def pointcloud_to_msg(points: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
             )
             orders.add(big)
         fields.append(
-            msgs.PointField(name=name, offset=offset, datatype=_DTYPE_TO_POINTFIELD[code], count=1)
+            msgs.PointField(
+                name=name, offset=int(offset), datatype=_DTYPE_TO_POINTFIELD[code], count=1
+            )
         )
     if len(orders) > 1:
         raise InputError("points.dtype", str(points.dtype), "all fields in one byte order")
@@ -202,13 +212,13 @@ def pointcloud_to_msg(points: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
     point_step = points.dtype.itemsize
     return msgs.PointCloud2(
         header=header(stamp_ns, frame_id),
-        height=height,
-        width=width,
+        height=int(height),
+        width=int(width),
         fields=fields,
         is_bigendian=is_bigendian,
         point_step=point_step,
         row_step=point_step * width,
-        data=flat.view(np.uint8).reshape(-1),
+        data=flat.tobytes(),
         is_dense=is_dense,
     )
 
@@ -257,7 +267,7 @@ def msg_to_pointcloud(msg: Any) -> np.ndarray:
     height, width, row_step = int(msg.height), int(msg.width), int(msg.row_step)
     if row_step < width * dtype.itemsize:
         raise InputError("row_step", row_step, f">= width * point_step = {width * dtype.itemsize}")
-    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    data = _bytes_of(msg.data)
     if data.size != height * row_step:
         raise InputError(
             "data", f"{data.size} bytes", f"height * row_step = {height * row_step} bytes"
@@ -401,7 +411,7 @@ def intrinsics_to_camera_info(
         height=int(height),
         width=int(width),
         distortion_model="plumb_bob",
-        d=np.zeros(5, dtype=np.float64),
+        d=[0.0] * 5,
         k=K.reshape(-1).copy(),
         r=np.eye(3).reshape(-1),
         p=P.reshape(-1),

@@ -1,114 +1,159 @@
-"""ROS 2 parameter files and ``--ros-args`` command lines."""
+"""Declared, typed and described ROS 2 parameters for the graph's nodes.
+
+    PARAMS = (
+        Param("budget", 25, "total views, O_0 included (paper: 25 object, 40 room)", range=(1, 1000)),
+        Param("policy", "area3d", "next-best-view policy", choices=("area3d", "random")),
+        Param("sync_timeout_s", 5.0, "wait for a request's frame", read_only=False, range=(0, 600)),
+    )
+    values = declare_parameters(node, PARAMS)
+
+Each becomes ``node.declare_parameter(name, default, ParameterDescriptor(...))`` with its type,
+description, range and read-only flag; rclpy enforces type, range and read-only on every set, and
+the callback installed here refuses values outside ``choices`` or failing ``check`` with a reason.
+Keys in the parameter file or ``-p`` that no declaration uses are reported by name.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
-import yaml
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from area3d_msgs_py.errors import InputError
 
-WILDCARD_SECTION = "/**"
+#: declared by rclpy itself on every node
+BUILTIN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 
 
-def load_parameter_file(path: str | Path, node_name: str) -> dict[str, Any]:
-    """Parameters of ``node_name`` from a ROS 2 parameter YAML file.
+@dataclass(frozen=True)
+class Param:
+    """One parameter: ``range`` is inclusive (numbers), ``choices`` the allowed strings, ``check``
+    returns an error text for a bad value (or None)."""
 
-    ``/**`` applies to every node, then ``<node_name>`` (or ``/<node_name>``) overrides it; nested
-    dictionaries are flattened to dotted names as ROS 2 does (``a: {b: 1}`` -> ``a.b``).
+    name: str
+    default: Any
+    description: str
+    read_only: bool = True
+    range: tuple[float, float] | None = None
+    choices: tuple[str, ...] | None = None
+    check: Callable[[Any], str | None] | None = None  # value -> expectation when refused
+
+    def descriptor(self) -> ParameterDescriptor:
+        text = self.description
+        if self.choices:
+            text += f" (one of: {', '.join(self.choices)})"
+        descriptor = ParameterDescriptor(
+            name=self.name,
+            type=Parameter.Type.from_parameter_value(self.default).value,
+            description=text,
+            read_only=self.read_only,
+        )
+        if self.range is not None:
+            lo, hi = self.range
+            if isinstance(self.default, float):
+                descriptor.floating_point_range = [
+                    FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)
+                ]
+            elif isinstance(self.default, int) and not isinstance(self.default, bool):
+                descriptor.integer_range = [
+                    IntegerRange(from_value=int(lo), to_value=int(hi), step=0)
+                ]
+        return descriptor
+
+    def problem(self, value: Any) -> str | None:
+        """What was expected when ``value`` is refused (beyond rclpy's type and range checks)."""
+        if self.choices is not None and value not in self.choices:
+            return f"one of {', '.join(self.choices)}"
+        if self.check is not None:
+            return self.check(value)
+        return None
+
+
+def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:
+    """Declare ``params`` on ``node``; returns {name: value at start}.
+
+    A value from the parameter file that is refused raises ``InputError`` naming the parameter,
+    the value and what was expected. Ints given for float parameters are widened, as ROS 2 YAML
+    users expect (``max_range: 5``).
     """
-    path = Path(path)
+    params = list(params)
+    registry: dict[str, Param] = getattr(node, "_area3d_params", None) or {}
+    if not registry:
+        node._area3d_params = registry
+        node.add_on_set_parameters_callback(lambda changes: _on_set(registry, changes))
+    overrides = getattr(node, "_parameter_overrides", {})
+    values: dict[str, Any] = {}
+    for p in params:
+        override = overrides.get(p.name)
+        if (
+            override is not None
+            and isinstance(p.default, float)
+            and override.type_ == Parameter.Type.INTEGER
+        ):
+            overrides[p.name] = Parameter(p.name, Parameter.Type.DOUBLE, float(override.value))
+        if override is not None and (
+            isinstance(p.default, list | tuple)
+            and override.type_ != Parameter.Type.from_parameter_value(p.default)
+        ):
+            widened = [float(v) for v in override.value] if _all_numbers(override.value) else None
+            if widened is not None and isinstance(p.default[0], float):
+                overrides[p.name] = Parameter(p.name, Parameter.Type.DOUBLE_ARRAY, widened)
+        default = list(p.default) if isinstance(p.default, tuple) else p.default
+        try:
+            value = node.declare_parameter(p.name, default, p.descriptor()).value
+        except Exception as exc:  # rclpy's type / range exceptions
+            given = overrides[p.name].value if p.name in overrides else default
+            raise InputError(p.name, given, f"{p.descriptor().description} ({exc})") from None
+        problem = p.problem(value)
+        if problem:
+            raise InputError(p.name, value, problem)
+        registry[p.name] = p
+        values[p.name] = tuple(value) if isinstance(p.default, tuple) else value
+    return values
+
+
+def _all_numbers(values: Any) -> bool:
     try:
-        document = yaml.safe_load(path.read_text()) or {}
-    except FileNotFoundError:
-        raise InputError(
-            "params_file", str(path), "an existing ROS 2 parameter YAML file"
-        ) from None
-    if not isinstance(document, dict):
-        raise InputError("params_file", str(path), "a mapping 'node_name: {ros__parameters: ...}'")
-    result: dict[str, Any] = {}
-    for section in (WILDCARD_SECTION, node_name, "/" + node_name):
-        body = document.get(section)
-        if body is None:
+        return all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+    except TypeError:
+        return False
+
+
+def _on_set(registry: dict[str, Param], changes: list[Parameter]) -> SetParametersResult:
+    for change in changes:
+        spec = registry.get(change.name)
+        if spec is None:
             continue
-        if not isinstance(body, dict) or not isinstance(body.get("ros__parameters", {}), dict):
-            raise InputError(f"{path.name}:{section}", body, "a mapping with 'ros__parameters'")
-        result.update(_flatten(body.get("ros__parameters") or {}))
-    return result
+        problem = spec.problem(change.value)
+        if problem:
+            reason = str(InputError(change.name, change.value, problem))
+            return SetParametersResult(successful=False, reason=reason)
+    return SetParametersResult(successful=True)
 
 
-def _flatten(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, value in values.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            flat.update(_flatten(value, name + "."))
-        else:
-            flat[name] = value
-    return flat
+def unknown_parameters(node: Node) -> list[str]:
+    """Names given in the parameter file or ``-p`` for this node that it did not declare."""
+    overrides = getattr(node, "_parameter_overrides", {})
+    declared = set(node._parameters) | BUILTIN_PARAMETERS
+    return sorted(name for name in overrides if name not in declared)
 
 
-@dataclass
-class RosArgs:
-    """What ``--ros-args`` said: node name override, parameter files, parameter overrides, remaps."""
-
-    node_name: str | None = None
-    params_files: list[str] = field(default_factory=list)
-    overrides: dict[str, Any] = field(default_factory=dict)
-    remaps: dict[str, str] = field(default_factory=dict)
-    log_level: str | None = None
-    other: list[str] = field(default_factory=list)
-
-    def parameters(self, node_name: str) -> dict[str, Any]:
-        """Parameters for ``node_name``: files in order, then ``-p`` overrides."""
-        params: dict[str, Any] = {}
-        for path in self.params_files:
-            params.update(load_parameter_file(path, node_name))
-        params.update(self.overrides)
-        return params
-
-
-def parse_ros_args(argv: list[str]) -> RosArgs:
-    """Parse ``[args] --ros-args --params-file F -p name:=value -r __node:=NAME --log-level L [--]``.
-
-    ``-p`` values are YAML-typed (``-p budget:=25`` is an int, ``-p mode:=batch`` a string).
-    """
-    args = RosArgs()
-    in_ros = False
-    it = iter(argv)
-    for token in it:
-        if token == "--ros-args":
-            in_ros = True
-            continue
-        if token == "--" and in_ros:
-            in_ros = False
-            continue
-        if not in_ros:
-            args.other.append(token)
-            continue
-        if token in ("--params-file", "-p", "--param", "-r", "--remap", "--log-level"):
-            value = next(it, None)
-            if value is None:
-                raise InputError(token, None, "a value after the flag")
-            if token == "--params-file":
-                args.params_files.append(value)
-            elif token in ("-p", "--param"):
-                name, sep, text = value.partition(":=")
-                if not sep or not name:
-                    raise InputError("-p", value, "'name:=value'")
-                args.overrides[name] = yaml.safe_load(text) if text else ""
-            elif token in ("-r", "--remap"):
-                src, sep, dst = value.partition(":=")
-                if not sep or not src or not dst:
-                    raise InputError("-r", value, "'from:=to'")
-                if src in ("__node", "__name"):
-                    args.node_name = dst
-                else:
-                    args.remaps[src] = dst
-            else:
-                args.log_level = value
-        else:
-            raise InputError("--ros-args", token, "--params-file, -p, -r or --log-level")
-    return args
+def report_unknown_parameters(node: Node) -> list[str]:
+    """Log a warning naming each unknown parameter (a typo in a YAML file is not silent)."""
+    unknown = unknown_parameters(node)
+    if unknown:
+        known = sorted(set(node._parameters) - BUILTIN_PARAMETERS)
+        node.get_logger().warning(
+            f"unknown parameters for node {node.get_name()!r} ignored: {', '.join(unknown)} "
+            f"(declared: {', '.join(known)})"
+        )
+    return unknown

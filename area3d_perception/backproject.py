@@ -71,3 +71,15 @@ def backproject(
     T = np.ascontiguousarray(T_world_cam, dtype=np.float64)
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     return _backproject(depth, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T)
+
+
+def depth_to_world(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float64 world point of every pixel, NaN where the depth is NaN.
+
+    The dense form of `backproject` (same rays, `pixel_rays`), for image-shaped masks and samples.
+    depth: (H, W) metres along the optical z axis. T_world_cam: (4, 4) optical-frame pose.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    cam = pixel_rays(K, *depth.shape) * depth[..., None]
+    return cam @ T[:3, :3].T + T[:3, 3]

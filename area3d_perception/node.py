@@ -2,94 +2,120 @@
 
 Subscribes the camera's color, depth, camera info and optical-frame pose, pairs them by stamp
 (`StampSync`), runs `FrameEstimator` and publishes depth and confidence with the source frame's
-stamp and frame_id.
+stamp and frame_id. Topic names are relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections import deque
+from collections.abc import Sequence
 from typing import Any
 
-from area3d_msgs_py import codecs
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from area3d_msgs_py import codecs, middleware, msgs, qos
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.node import Node, run_node
-from area3d_perception.estimator import FEEDFORWARD_WINDOW, FrameEstimator, check_frame
+from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
 from area3d_perception.frame_sync import MAX_AGE_NS, StampSync
 from area3d_perception.sensor_model import RgbdSensorParams
 
-COLOR_TOPIC = "/area3d/camera/color/image_raw"
-DEPTH_TOPIC = "/area3d/camera/depth/image_raw"
-INFO_TOPIC = "/area3d/camera/camera_info"
-POSE_TOPIC = "/area3d/camera/pose"
-OUT_DEPTH_TOPIC = "/area3d/perception/depth"
-OUT_CONFIDENCE_TOPIC = "/area3d/perception/confidence"
+COLOR_TOPIC = "area3d/camera/color/image_raw"
+DEPTH_TOPIC = "area3d/camera/depth/image_raw"
+INFO_TOPIC = "area3d/camera/camera_info"
+POSE_TOPIC = "area3d/camera/pose"
+OUT_DEPTH_TOPIC = "area3d/perception/depth"
+OUT_CONFIDENCE_TOPIC = "area3d/perception/confidence"
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
 MAX_FRAMES_WITHOUT_INFO = 8
 
+PARAMS = (
+    Param("backend", "rgbd", "depth + confidence estimator", choices=BACKENDS),
+    Param("checkpoint", "", "local VGGT / Depth Anything 3 weights (never downloaded at run time)"),
+    Param("device", "auto", "torch device of a feed-forward backend: auto | cpu | cuda[:N]"),
+    Param("noise", False, "inject simulated depth-sensor noise into the incoming depth"),
+    Param("noise_seed", 0, "seed of the injected noise", range=(0, 2**31 - 1)),
+    Param("window", FEEDFORWARD_WINDOW, "views per feed-forward pass", range=(1, 256)),
+    Param(
+        "confidence_normalization",
+        "inverse",
+        "how a feed-forward confidence >= 1 maps to [0, 1]",
+        choices=("inverse", "percentile"),
+    ),
+    Param("use_depth", True, "pair frames with the camera's depth (False: colour-only backends)"),
+    Param(
+        "sync_max_age_s",
+        MAX_AGE_NS / 1e9,
+        "parts of a frame wait this long for their partners, seconds",
+        range=(0.0, 3600.0),
+    ),
+    *(
+        Param(
+            f"sensor.{f.name}",
+            f.default,
+            f"RgbdSensorParams.{f.name} (depth-camera noise / confidence model)",
+            range=(0, 1e6),
+        )
+        for f in dataclasses.fields(RgbdSensorParams)
+    ),
+)
 
-# Frames arrive in bursts (the initial views); ROS default depth 10 would drop the oldest while
-# this node is busy, and every captured frame matters, so frame topics keep a deeper queue.
-FRAME_QUEUE_DEPTH = 50
 
-
-class PerceptionNode:
+class PerceptionNode(Node):
     """Wires parameters, subscriptions and publishers around `FrameEstimator`."""
 
-    NODE_NAME = "perception"
-
-    def __init__(self, node: Node) -> None:
-        self.node = node
-        self.log = node.get_logger()
-        backend = node.declare_parameter("backend", "rgbd")
-        checkpoint = node.declare_parameter("checkpoint", "")
-        device = node.declare_parameter("device", "auto")
-        noise = bool(node.declare_parameter("noise", False))
-        noise_seed = int(node.declare_parameter("noise_seed", 0))
-        window = int(node.declare_parameter("window", FEEDFORWARD_WINDOW))
-        normalization = node.declare_parameter("confidence_normalization", "inverse")
-        self.use_depth = bool(node.declare_parameter("use_depth", True))
-        max_age_s = float(node.declare_parameter("sync_max_age_s", MAX_AGE_NS / 1e9))
-        sensor_values = {
-            f.name: node.declare_parameter(f"sensor.{f.name}", f.default)
-            for f in dataclasses.fields(RgbdSensorParams)
-        }
-        sensor = RgbdSensorParams(**sensor_values)
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("perception", **kwargs)
+        p = declare_parameters(self, PARAMS)
+        report_unknown_parameters(self)
+        sensor = RgbdSensorParams(
+            **{f.name: p[f"sensor.{f.name}"] for f in dataclasses.fields(RgbdSensorParams)}
+        )
+        self.use_depth = p["use_depth"]
         self.estimator = FrameEstimator(
-            backend=backend,
+            backend=p["backend"],
             sensor=sensor,
-            noise=noise,
-            noise_seed=noise_seed,
-            checkpoint=checkpoint,
-            device=device,
-            window=window,
-            confidence_normalization=normalization,
+            noise=p["noise"],
+            noise_seed=p["noise_seed"],
+            checkpoint=p["checkpoint"],
+            device=p["device"],
+            window=p["window"],
+            confidence_normalization=p["confidence_normalization"],
         )
         keys = ("color", "depth", "pose") if self.use_depth else ("color", "pose")
-        self.sync = StampSync(keys, max_age_ns=int(max_age_s * 1e9))
+        self.sync = StampSync(keys, max_age_ns=int(p["sync_max_age_s"] * 1e9))
         self.camera: tuple[Any, int, int] | None = None
         self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
         self.frames_published = 0
 
-        self.pub_depth = node.create_publisher("sensor_msgs/msg/Image", OUT_DEPTH_TOPIC)
-        self.pub_conf = node.create_publisher("sensor_msgs/msg/Image", OUT_CONFIDENCE_TOPIC)
-        node.create_subscription(
-            "sensor_msgs/msg/Image", COLOR_TOPIC, self.on_color, depth=FRAME_QUEUE_DEPTH
+        self.pub_depth = self.create_publisher(msgs.Image, OUT_DEPTH_TOPIC, qos.graph_frames())
+        self.pub_conf = self.create_publisher(msgs.Image, OUT_CONFIDENCE_TOPIC, qos.graph_frames())
+        self.create_subscription(
+            msgs.Image, COLOR_TOPIC, guarded(self, self.on_color, COLOR_TOPIC), qos.frames()
         )
         if self.use_depth:
-            node.create_subscription(
-                "sensor_msgs/msg/Image", DEPTH_TOPIC, self.on_depth, depth=FRAME_QUEUE_DEPTH
+            self.create_subscription(
+                msgs.Image, DEPTH_TOPIC, guarded(self, self.on_depth, DEPTH_TOPIC), qos.frames()
             )
-        node.create_subscription(
-            "sensor_msgs/msg/CameraInfo", INFO_TOPIC, self.on_camera_info, depth=FRAME_QUEUE_DEPTH
+        self.create_subscription(
+            msgs.CameraInfo,
+            INFO_TOPIC,
+            guarded(self, self.on_camera_info, INFO_TOPIC),
+            qos.frames(),
         )
-        node.create_subscription(
-            "geometry_msgs/msg/PoseStamped", POSE_TOPIC, self.on_pose, depth=FRAME_QUEUE_DEPTH
+        self.create_subscription(
+            msgs.PoseStamped, POSE_TOPIC, guarded(self, self.on_pose, POSE_TOPIC), qos.frames()
         )
-        self.log.info(f"backend={backend} noise={noise} use_depth={self.use_depth}")
+        self.get_logger().info(
+            f"backend={p['backend']} noise={p['noise']} use_depth={self.use_depth}"
+        )
 
     # inputs ---------------------------------------------------------------------------------
-    def on_color(self, msg: Any) -> None:
+    def on_color(self, msg: msgs.Image) -> None:
         self._add("color", msg, codecs.msg_to_image)
 
     def on_depth(self, msg: Any) -> None:
@@ -102,7 +128,7 @@ class PerceptionNode:
         try:
             self.camera = codecs.camera_info_to_intrinsics(msg)
         except InputError as exc:
-            self.log.warning(f"camera_info rejected: {exc}")
+            self.get_logger().warning(f"camera_info rejected: {exc}")
             return
         while self.waiting:
             stamp, parts = self.waiting.popleft()
@@ -113,16 +139,18 @@ class PerceptionNode:
         try:
             value = (decode(msg), msg.header.frame_id)
         except InputError as exc:
-            self.log.warning(f"{key} at stamp {stamp} rejected: {exc}")
+            self.get_logger().warning(f"{key} at stamp {stamp} rejected: {exc}")
             return
         parts = self.sync.add(key, stamp, value)
         for dropped in self.sync.pop_dropped():
-            self.log.warning(f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}")
+            self.get_logger().warning(
+                f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}"
+            )
         if parts is None:
             return
         if self.camera is None:
             if not self.waiting:
-                self.log.warning(
+                self.get_logger().warning(
                     f"no camera_info on {INFO_TOPIC} yet; holding frames until it arrives"
                 )
             self.waiting.append((stamp, parts))
@@ -140,18 +168,33 @@ class PerceptionNode:
             check_frame(rgb, depth, (width, height))
             result = self.estimator.process(rgb, depth, K, T_world_cam)
         except InputError as exc:
-            self.log.warning(f"frame at stamp {stamp} rejected: {exc}")
+            self.get_logger().warning(f"frame at stamp {stamp} rejected: {exc}")
             return
         for note in result.notes:
-            self.log.warning(f"frame at stamp {stamp}: {note}")
+            self.get_logger().warning(f"frame at stamp {stamp}: {note}")
         self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
         self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
         self.frames_published += 1
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(args: Sequence[str] | None = None) -> int:
     """Process entry point: `python -m area3d_perception.node [--ros-args ...]`."""
-    return run_node(PerceptionNode, argv, name=PerceptionNode.NODE_NAME)
+    middleware.configure()
+    rclpy.init(args=args)
+    try:
+        node = PerceptionNode()
+    except (InputError, FileNotFoundError, ImportError, RuntimeError) as exc:
+        rclpy.logging.get_logger("perception").fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

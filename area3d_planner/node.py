@@ -1,102 +1,171 @@
 """The planner node: fuses perception (+ semantics) frames and serves next-best-view requests.
 
-Subscribes /area3d/perception/depth, /area3d/perception/confidence, /area3d/camera/pose and
-/area3d/camera/camera_info (paired by stamp), /area3d/semantics/uncertainty. Publishes the latched
-/area3d/planner/uncertainty_grid, /area3d/planner/status and /area3d/planner/next_views; serves
-/area3d/planner/next_best_view (nav_msgs/srv/GetPlan).
+Subscribes area3d/perception/depth, area3d/perception/confidence, area3d/camera/pose and
+area3d/camera/camera_info (paired by stamp), area3d/semantics/uncertainty. Publishes the latched
+area3d/planner/uncertainty_grid (after every fused frame), area3d/planner/status and
+area3d/planner/next_views; serves area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Names are
+relative: `__ns` moves them all. The region of interest and workspace are parameters: the planner
+knows only what a robot knows, never the simulator's scene.
 """
 
 from __future__ import annotations
 
 import json
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Sequence
 from dataclasses import fields
+from typing import Any
 
 import numpy as np
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
 
-from area3d_msgs_py import codecs, msgs
-from area3d_msgs_py.node import Node, run_node
+from area3d_msgs_py import codecs, middleware, msgs, qos
+from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from area3d_perception.frame_sync import StampSync
 from area3d_planner.cloud import grid_to_msg
-from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+from area3d_planner.policies import POLICIES
+from area3d_planner.fusion import GEOMETRIC_RULES, NO_RETURN_RULES
+from area3d_planner.greedy import DECAY_REGIONS
+from area3d_planner.server import LEVELS, MODES, NextBestViewServer, PlannerConfig, PlanRequest
 
+DEPTH_TOPIC = "area3d/perception/depth"
+CONFIDENCE_TOPIC = "area3d/perception/confidence"
+POSE_TOPIC = "area3d/camera/pose"
+INFO_TOPIC = "area3d/camera/camera_info"
+SEMANTIC_TOPIC = "area3d/semantics/uncertainty"
+GRID_TOPIC = "area3d/planner/uncertainty_grid"
+STATUS_TOPIC = "area3d/planner/status"
+VIEWS_TOPIC = "area3d/planner/next_views"
+NBV_SERVICE = "area3d/planner/next_best_view"
 CAMERA_INFO_CACHE = 64
+# Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
+MAX_FRAMES_WITHOUT_INFO = 64
+# Service requests and frame callbacks run on separate threads: a request waits for the frame it
+# names to be fused, which needs the frame callbacks to keep running.
+EXECUTOR_THREADS = 3
 
 
-# Frames arrive in bursts (the initial views); ROS default depth 10 would drop the oldest while
-# this node is busy, and every captured frame matters, so frame topics keep a deeper queue.
-FRAME_QUEUE_DEPTH = 50
+def _xyz(value: Any) -> str | None:
+    return None if len(value) == 3 else "3 numbers [x, y, z] in metres"
 
 
-class PlannerNode:
-    NODE_NAME = "planner"
+def _positive(value: Any) -> str | None:
+    return None if len(value) > 0 and min(value) > 0 else "one or more numbers > 0"
 
-    def __init__(self, node: Node) -> None:
-        self.node = node
-        log = node.get_logger()
-        values = {}
-        for f in fields(PlannerConfig):
-            default = getattr(PlannerConfig, f.name)
-            value = node.declare_parameter(
-                f.name, list(default) if isinstance(default, tuple) else default
-            )
-            values[f.name] = tuple(value) if isinstance(default, tuple) else value
-        self.sync_timeout_s = float(node.declare_parameter("sync_timeout_s", 5.0))
+
+def _config_param(name: str, default: Any) -> Param:
+    description = f"PlannerConfig.{name} (area3d_planner/server.py)"
+    if name == "policy":
+        return Param(name, default, "next-best-view policy", choices=tuple(sorted(POLICIES)))
+    if name == "mode":
+        return Param(
+            name,
+            default,
+            "closed_loop: re-plan after each view; batch: all views at once",
+            choices=MODES,
+        )
+    choices = {
+        "level": LEVELS,
+        "decay": DECAY_REGIONS,
+        "geometric_rule": GEOMETRIC_RULES,
+        "no_return": NO_RETURN_RULES,
+    }
+    if name in choices:
+        return Param(name, default, description, choices=choices[name])
+    if name == "shell_scales":
+        return Param(name, tuple(float(v) for v in default), description, check=_positive)
+    if name == "gamma":  # -1: the level's (paper: 0.01 object, 0.005 scene level)
+        return Param(name, float(default), description + "; < 0 = the level's", range=(-1.0, 1e6))
+    if isinstance(default, tuple):
+        return Param(name, tuple(float(v) for v in default), description + ", metres", check=_xyz)
+    if isinstance(default, bool) or isinstance(default, str):
+        return Param(name, default, description)
+    if isinstance(default, int):
+        return Param(name, default, description, range=(0, 2**31 - 1))
+    return Param(name, float(default), description, range=(0.0, 1e6))
+
+
+PARAMS = (
+    *(_config_param(f.name, getattr(PlannerConfig, f.name)) for f in fields(PlannerConfig)),
+    Param(
+        "sync_timeout_s",
+        5.0,
+        "how long a request waits for the frame it names to be fused, seconds",
+        read_only=False,
+        range=(0.0, 600.0),
+    ),
+    Param("eager_cache", True, "rebuild seeds and visibility masks right after each fused frame"),
+    # Perception's output for a frame can trail the camera's pose by seconds (first frames, a
+    # feed-forward model on CPU), so parts wait this long for their partners.
+    Param(
+        "sync_max_age_s",
+        60.0,
+        "parts of a frame wait this long for their partners, seconds",
+        range=(0.0, 3600.0),
+    ),
+)
+
+
+class PlannerNode(Node):
+    """Wires parameters, subscriptions, publishers and the service around `NextBestViewServer`."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("planner", **kwargs)
+        p = declare_parameters(self, PARAMS)
+        report_unknown_parameters(self)
+        config = PlannerConfig(**{f.name: p[f.name] for f in fields(PlannerConfig)})
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
-        eager = bool(node.declare_parameter("eager_cache", True))
         self.server = NextBestViewServer(
-            PlannerConfig(**values), background=eager, on_refresh=self._on_refresh
+            config, background=p["eager_cache"], on_refresh=self._on_refresh
         )
-        # Perception's output for a frame can trail the camera's pose by seconds (first frames,
-        # a feed-forward model on CPU), so parts wait this long for their partners.
-        max_age_s = float(node.declare_parameter("sync_max_age_s", 60.0))
-        self.sync = StampSync(("depth", "confidence", "pose"), max_age_ns=int(max_age_s * 1e9))
+        self.sync = StampSync(
+            ("depth", "confidence", "pose"), max_age_ns=int(p["sync_max_age_s"] * 1e9)
+        )
         self.camera_info: OrderedDict[int, np.ndarray] = OrderedDict()
         self.latest_K: np.ndarray | None = None
+        self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
 
-        self.grid_pub = node.create_publisher(
-            "sensor_msgs/msg/PointCloud2", "/area3d/planner/uncertainty_grid", latched=True, depth=1
+        self.grid_pub = self.create_publisher(msgs.PointCloud2, GRID_TOPIC, qos.latched())
+        self.status_pub = self.create_publisher(msgs.String, STATUS_TOPIC, qos.reliable(50))
+        self.views_pub = self.create_publisher(msgs.Path, VIEWS_TOPIC, qos.reliable())
+        frames = MutuallyExclusiveCallbackGroup()
+        # perception's and semantics' outputs are transient local (a late match still gets them);
+        # the camera's topics are volatile, as a camera driver publishes them
+        for msg_type, topic, callback, profile in (
+            (msgs.Image, DEPTH_TOPIC, lambda m: self._part("depth", m), qos.graph_frames()),
+            (
+                msgs.Image,
+                CONFIDENCE_TOPIC,
+                lambda m: self._part("confidence", m),
+                qos.graph_frames(),
+            ),
+            (msgs.PoseStamped, POSE_TOPIC, lambda m: self._part("pose", m), qos.frames()),
+            (msgs.CameraInfo, INFO_TOPIC, self._on_camera_info, qos.frames()),
+            (msgs.Image, SEMANTIC_TOPIC, self._on_semantic, qos.graph_frames()),
+        ):
+            self.create_subscription(
+                msg_type, topic, guarded(self, callback, topic), profile, callback_group=frames
+            )
+        self.create_service(
+            msgs.GetPlan,
+            NBV_SERVICE,
+            self._on_request,
+            callback_group=MutuallyExclusiveCallbackGroup(),
         )
-        self.status_pub = node.create_publisher("std_msgs/msg/String", "/area3d/planner/status")
-        self.views_pub = node.create_publisher("nav_msgs/msg/Path", "/area3d/planner/next_views")
-        node.create_subscription(
-            "sensor_msgs/msg/Image",
-            "/area3d/perception/depth",
-            lambda m: self._part("depth", m),
-            depth=FRAME_QUEUE_DEPTH,
+        self.get_logger().info(
+            f"planner ready: policy={config.policy} mode={config.mode} "
+            f"voxels={self.server.grid.spec.num_voxels}"
         )
-        node.create_subscription(
-            "sensor_msgs/msg/Image",
-            "/area3d/perception/confidence",
-            lambda m: self._part("confidence", m),
-            depth=FRAME_QUEUE_DEPTH,
-        )
-        node.create_subscription(
-            "geometry_msgs/msg/PoseStamped",
-            "/area3d/camera/pose",
-            lambda m: self._part("pose", m),
-            depth=FRAME_QUEUE_DEPTH,
-        )
-        node.create_subscription(
-            "sensor_msgs/msg/CameraInfo",
-            "/area3d/camera/camera_info",
-            self._on_camera_info,
-            depth=FRAME_QUEUE_DEPTH,
-        )
-        node.create_subscription(
-            "sensor_msgs/msg/Image",
-            "/area3d/semantics/uncertainty",
-            self._on_semantic,
-            depth=FRAME_QUEUE_DEPTH,
-        )
-        node.create_service(
-            "nav_msgs/srv/GetPlan", "/area3d/planner/next_best_view", self._on_request
-        )
-        log.info(
-            f"planner ready: policy={values['policy']} mode={values['mode']} voxels={self.server.grid.spec.num_voxels}"
-        )
+
+    def destroy_node(self) -> None:
+        self.server.close()
+        super().destroy_node()
 
     def _on_refresh(self) -> None:
         self.status_pub.publish(msgs.String(data=json.dumps(self.server.status())))
@@ -107,21 +176,31 @@ class PlannerNode:
         self.camera_info[codecs.stamp_to_ns(msg.header.stamp)] = K
         while len(self.camera_info) > CAMERA_INFO_CACHE:
             self.camera_info.popitem(last=False)
+        while self.waiting:
+            stamp, frame = self.waiting.popleft()
+            self._fuse(stamp, frame, self.camera_info.get(stamp, K))
 
     def _part(self, key: str, msg) -> None:
         stamp = codecs.stamp_to_ns(msg.header.stamp)
         value = codecs.pose_to_matrix(msg.pose) if key == "pose" else codecs.msg_to_image(msg)
         frame = self.sync.add(key, stamp, value)
         for dropped in self.sync.pop_dropped():
-            self.node.get_logger().warning(
+            self.get_logger().warning(
                 f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}"
             )
         if frame is None:
             return
         K = self.camera_info.get(stamp, self.latest_K)
         if K is None:
-            self.node.get_logger().warning(f"frame {stamp}: no camera_info yet, frame dropped")
+            if not self.waiting:
+                self.get_logger().warning(
+                    f"no camera_info on {INFO_TOPIC} yet; holding frames until it arrives"
+                )
+            self.waiting.append((stamp, frame))  # topics arrive in any order
             return
+        self._fuse(stamp, frame, K)
+
+    def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
         self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"])
         self._publish_state(stamp)
 
@@ -134,24 +213,36 @@ class PlannerNode:
         self.grid_pub.publish(grid_to_msg(self.server.grid, stamp_ns, "world"))
         self.status_pub.publish(msgs.String(data=json.dumps(self.server.status())))
 
-    def _on_request(self, request):
-        log = self.node.get_logger()
+    def _on_request(self, request: msgs.GetPlan_Request, response: msgs.GetPlan_Response):
+        try:
+            response.plan = self._plan(request)
+        except Exception as exc:  # an empty plan, and the node keeps serving
+            self.get_logger().error(f"next_best_view: request failed: {exc}")
+            response.plan = msgs.Path(header=codecs.header(self._now_ns(), "world"))
+        return response
+
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def _plan(self, request: msgs.GetPlan_Request) -> msgs.Path:
+        log = self.get_logger()
+        sync_timeout_s = self.get_parameter("sync_timeout_s").value
         stamp = codecs.stamp_to_ns(request.start.header.stamp)
         try:
             start = codecs.pose_to_matrix(request.start.pose)
         except ValueError as exc:
             log.warning(f"next_best_view: start pose rejected ({exc}); planning without a start")
             start = None
-        if not self.server.wait_fused(stamp, self.sync_timeout_s):
+        if not self.server.wait_fused(stamp, sync_timeout_s):
             log.warning(
-                f"next_best_view: frame {stamp} not fused after {self.sync_timeout_s} s; planning with what is fused"
+                f"next_best_view: frame {stamp} not fused after {sync_timeout_s} s; planning with what is fused"
             )
         poses, reason = self.server.plan(
             PlanRequest(start, stamp, int(round(request.goal.pose.position.x)))
         )
         if reason:
             log.warning(f"next_best_view: {reason}")
-        now = self.node.now_ns()
+        now = self._now_ns()
         hdr = codecs.header(now, "world")
         path = msgs.Path(
             header=hdr,
@@ -162,11 +253,29 @@ class PlannerNode:
         )
         self.views_pub.publish(path)
         self.status_pub.publish(msgs.String(data=json.dumps(self.server.status())))
-        return msgs.GetPlan_Response(plan=path)
+        return path
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    return run_node(PlannerNode, argv, name="planner")
+def main(args: Sequence[str] | None = None) -> int:
+    middleware.configure()
+    rclpy.init(args=args)
+    try:
+        node = PlannerNode()
+    except (InputError, FileNotFoundError) as exc:
+        rclpy.logging.get_logger("planner").fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

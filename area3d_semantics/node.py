@@ -3,7 +3,8 @@
 Subscribes color, depth and perception confidence; once the first num_initial_views frames are in,
 asks the backend once with all of them (on a worker thread, so callbacks keep running), publishes
 the regions as JSON, one weight map per frame and, as each frame's confidence arrives, its U_sem.
-Any message on the request topic re-runs the query on the frames collected so far.
+Any message on the request topic re-runs the query on the frames collected so far. Topic names
+are relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
@@ -11,12 +12,18 @@ from __future__ import annotations
 import json
 import threading
 from collections.abc import Sequence
+from typing import Any
 
 import cv2
 import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
 
-from area3d_msgs_py import codecs, msgs
-from area3d_msgs_py.node import Node, run_node
+from area3d_msgs_py import codecs, middleware, msgs, qos
+from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from area3d_semantics.analysis import FALLBACKS, Analysis, analyze_views
 from area3d_semantics.backends import (
     BACKEND_NAMES,
@@ -33,69 +40,86 @@ from area3d_semantics.weights import (
     weight_map,
 )
 
-IMAGE = "sensor_msgs/msg/Image"
-STRING = "std_msgs/msg/String"
+COLOR_TOPIC = "area3d/camera/color/image_raw"
+DEPTH_TOPIC = "area3d/camera/depth/image_raw"
+CONFIDENCE_TOPIC = "area3d/perception/confidence"
+REQUEST_TOPIC = "area3d/semantics/request"
+REGIONS_TOPIC = "area3d/semantics/regions"
+WEIGHT_TOPIC = "area3d/semantics/weight"
+UNCERTAINTY_TOPIC = "area3d/semantics/uncertainty"
 IMAGE_QUEUE_DEPTH = 64  # the initial views (15 at room level) can arrive in one burst
 
+PARAMS = (
+    Param("backend", "heuristic", "region analyser", choices=BACKEND_NAMES),
+    Param("base_url", "http://127.0.0.1:8000/v1", "OpenAI-compatible server (backend openai)"),
+    Param("model", "OpenGVLab/InternVL3-8B", "VLM name (paper: InternVL3)"),
+    Param("api_key_env", "OPENAI_API_KEY", "environment variable holding the API key"),
+    Param("timeout_s", 60.0, "VLM request timeout, seconds", range=(0.1, 3600.0)),
+    Param("retries", 2, "VLM request retries", range=(0, 100)),
+    Param("max_tokens", 2048, "VLM answer length limit", range=(16, 65536)),
+    Param("model_dir", "", "local model directory (backend transformers)"),
+    Param("device", "auto", "torch device (backend transformers)"),
+    Param("trust_remote_code", False, "let transformers run the model's own code"),
+    # |O_0| = 4 at object level (paper, Sec. 4); the runner sets 15 for rooms.
+    Param(
+        "num_initial_views", 4, "views in the one initial VLM query (paper: |O_0|)", range=(1, 1000)
+    ),
+    Param(
+        "fallback",
+        "heuristic",
+        "what replaces an unusable VLM answer",
+        read_only=False,
+        choices=FALLBACKS,
+    ),
+    Param(
+        "requery_scope",
+        "all",
+        "frames a re-query analyses: all so far, or the latest num_initial_views",
+        read_only=False,
+        choices=("all", "latest"),
+    ),
+    Param("require_depth", True, "a view needs its depth before it is analysed"),
+    # sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's weights
+    # alone, independent of the depth backbone, so the no-feed-forward and no-VLM ablations each
+    # remove one thing) or "confidence" (1 - perception confidence, the paper's backbone sigma).
+    Param(
+        "sigma_source",
+        "constant",
+        "backbone uncertainty sigma in U_sem",
+        choices=("constant", "confidence"),
+    ),
+    *(
+        Param(
+            name,
+            float(value),
+            f"SemanticParams {name} (area3d_semantics/weights.py)",
+            range=(0.0, 1e6),
+        )
+        for name, value in SemanticParams().to_flat().items()
+    ),
+)
 
-SIGMA_SOURCES = ("constant", "confidence")
 
+class SemanticsNode(Node):
+    """Wires parameters, subscriptions and publishers around `analyze_views` and the weight maps."""
 
-class SemanticsNode:
-    NODE_NAME = "semantics"
-
-    def __init__(self, node: Node) -> None:
-        self.node = node
-        log = node.get_logger()
-        p = node.declare_parameter
-        self.backend_name = p("backend", "heuristic")
-        if self.backend_name not in BACKEND_NAMES:
-            log.error(
-                f"backend: got {self.backend_name!r}, expected one of {BACKEND_NAMES}; using heuristic"
-            )
-            self.backend_name = "heuristic"
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("semantics", **kwargs)
+        p = declare_parameters(self, PARAMS)
+        report_unknown_parameters(self)
+        log = self.get_logger()
+        self.backend_name = p["backend"]
         options = {
-            "base_url": p("base_url", "http://127.0.0.1:8000/v1"),
-            "model": p("model", "OpenGVLab/InternVL3-8B"),  # the paper's VLM (InternVL3)
-            "api_key_env": p("api_key_env", "OPENAI_API_KEY"),
-            "timeout_s": p("timeout_s", 60.0),
-            "retries": p("retries", 2),
-            "max_tokens": p("max_tokens", 2048),
-            "model_dir": p("model_dir", ""),
-            "device": p("device", "auto"),
-            "trust_remote_code": p("trust_remote_code", False),
-        }
-        # |O_0| = 4 at object level (paper, Sec. 4); the runner sets 15 for rooms.
-        self.num_initial_views = int(p("num_initial_views", 4))
-        self.fallback = p("fallback", "heuristic")
-        if self.fallback not in FALLBACKS:
-            log.error(
-                f"fallback: got {self.fallback!r}, expected one of {FALLBACKS}; using heuristic"
+            key: p[key]
+            for key in (
+                "base_url", "model", "api_key_env", "timeout_s", "retries", "max_tokens",
+                "model_dir", "device", "trust_remote_code",
             )
-            self.fallback = "heuristic"
-        self.requery_scope = p("requery_scope", "all")  # "all" frames so far | "latest" N
-        defaults = SemanticParams().to_flat()
-        self.params = SemanticParams.from_flat({k: p(k, v) for k, v in defaults.items()})
-        self.require_depth = bool(p("require_depth", True))
-        # sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's
-        # weights alone, independent of the depth backbone, so the no-feed-forward and no-VLM
-        # ablations each remove one thing) or "confidence" (1 - perception confidence).
-        self.sigma_source = p("sigma_source", "constant")
-        if self.sigma_source not in SIGMA_SOURCES:
-            log.error(
-                f"sigma_source: got {self.sigma_source!r}, expected one of {SIGMA_SOURCES}; using constant"
-            )
-            self.sigma_source = "constant"
-        topics = {
-            "color": p("color_topic", "/area3d/camera/color/image_raw"),
-            "depth": p("depth_topic", "/area3d/camera/depth/image_raw"),
-            "confidence": p("confidence_topic", "/area3d/perception/confidence"),
-            "request": p("request_topic", "/area3d/semantics/request"),
-            "regions": p("regions_topic", "/area3d/semantics/regions"),
-            "weight": p("weight_topic", "/area3d/semantics/weight"),
-            "uncertainty": p("uncertainty_topic", "/area3d/semantics/uncertainty"),
-        }
-
+        }  # fmt: skip
+        self.num_initial_views = p["num_initial_views"]
+        self.params = SemanticParams.from_flat({k: p[k] for k in SemanticParams().to_flat()})
+        self.require_depth = p["require_depth"]
+        self.sigma_source = p["sigma_source"]
         try:
             self.backend = make_backend(self.backend_name, **options)
         except (VLMError, ValueError) as exc:
@@ -114,19 +138,44 @@ class SemanticsNode:
         self._worker: threading.Thread | None = None
         self._pending_request = False
 
-        self.pub_regions = node.create_publisher(STRING, topics["regions"], latched=True, depth=1)
-        self.pub_weight = node.create_publisher(IMAGE, topics["weight"], depth=IMAGE_QUEUE_DEPTH)
-        self.pub_usem = node.create_publisher(IMAGE, topics["uncertainty"], depth=IMAGE_QUEUE_DEPTH)
-        node.create_subscription(IMAGE, topics["color"], self.on_color, depth=IMAGE_QUEUE_DEPTH)
-        node.create_subscription(IMAGE, topics["depth"], self.on_depth, depth=IMAGE_QUEUE_DEPTH)
-        node.create_subscription(
-            IMAGE, topics["confidence"], self.on_confidence, depth=IMAGE_QUEUE_DEPTH
+        self.pub_regions = self.create_publisher(msgs.String, REGIONS_TOPIC, qos.latched())
+        self.pub_weight = self.create_publisher(
+            msgs.Image, WEIGHT_TOPIC, qos.graph_frames(IMAGE_QUEUE_DEPTH)
         )
-        node.create_subscription(STRING, topics["request"], self.on_request)
+        self.pub_usem = self.create_publisher(
+            msgs.Image, UNCERTAINTY_TOPIC, qos.graph_frames(IMAGE_QUEUE_DEPTH)
+        )
+        frames = qos.reliable(IMAGE_QUEUE_DEPTH)
+        self.create_subscription(
+            msgs.Image, COLOR_TOPIC, guarded(self, self.on_color, COLOR_TOPIC), frames
+        )
+        self.create_subscription(
+            msgs.Image, DEPTH_TOPIC, guarded(self, self.on_depth, DEPTH_TOPIC), frames
+        )
+        self.create_subscription(
+            msgs.Image,
+            CONFIDENCE_TOPIC,
+            guarded(self, self.on_confidence, CONFIDENCE_TOPIC),
+            qos.graph_frames(IMAGE_QUEUE_DEPTH),
+        )
+        self.create_subscription(
+            msgs.String,
+            REQUEST_TOPIC,
+            guarded(self, self.on_request, REQUEST_TOPIC),
+            qos.reliable(),
+        )
         log.info(
-            f"backend={self.backend.name} fallback={self.fallback} num_initial_views={self.num_initial_views} "
-            f"lambda={self.params.lam}"
+            f"backend={self.backend.name} fallback={self.fallback} "
+            f"num_initial_views={self.num_initial_views} lambda={self.params.lam}"
         )
+
+    @property
+    def fallback(self) -> str:
+        return self.get_parameter("fallback").value
+
+    @property
+    def requery_scope(self) -> str:
+        return self.get_parameter("requery_scope").value
 
     # callbacks -----------------------------------------------------------------------------
     def on_color(self, msg) -> None:
@@ -153,7 +202,7 @@ class SemanticsNode:
             if self.requery_scope == "latest":
                 stamps = stamps[-self.num_initial_views :]
         if not stamps:
-            self.node.get_logger().warning(
+            self.get_logger().warning(
                 "semantics request: no complete frames yet, nothing to analyse"
             )
             return
@@ -179,7 +228,7 @@ class SemanticsNode:
             self._worker.start()
 
     def _run(self, stamps: list[int], reason: str) -> None:
-        log = self.node.get_logger()
+        log = self.get_logger()
         with self._lock:
             views = [self.views.get(s) for s in stamps]
         views = [v for v in views if v is not None and v.rgb is not None]
@@ -218,7 +267,7 @@ class SemanticsNode:
                     codecs.image_to_msg(weight, "32FC1", view.stamp_ns, view.frame_id)
                 )
                 self._publish_usem(view.stamp_ns)
-        self.node.get_logger().info(
+        self.get_logger().info(
             f"published {len(analysis.regions)} regions over {len(views)} frames "
             f"(backend={analysis.backend}, fallback={analysis.fallback_used})"
         )
@@ -249,8 +298,23 @@ class SemanticsNode:
         self.published_usem.add(stamp)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    return run_node(SemanticsNode, argv, name=SemanticsNode.NODE_NAME)
+def main(args: Sequence[str] | None = None) -> int:
+    middleware.configure()
+    rclpy.init(args=args)
+    try:
+        node = SemanticsNode()
+    except (InputError, FileNotFoundError) as exc:
+        rclpy.logging.get_logger("semantics").fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

@@ -1,21 +1,26 @@
 """sim_bridge node: a simulated RGB-D camera that captures a frame at every goal pose it is sent.
 
-Subscribes /area3d/camera/goal_pose (PoseStamped, optical frame in `world`); publishes color,
-depth, camera_info, the capture pose, TF (world -> camera_link -> camera_optical_frame) and a
-status line per goal.
+Subscribes area3d/camera/goal_pose (PoseStamped, optical frame in `world`); publishes color,
+depth, camera_info, the capture pose, a status line per goal and, where `tf2_msgs` imports, TF
+(world -> camera_link -> camera_optical_frame). Topic names are relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
 
-from area3d_msgs_py import codecs, msgs
+from area3d_msgs_py import codecs, middleware, msgs, qos
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.node import Node, run_node
+from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from sim_bridge.camera import R_LINK_OPTICAL, SimCamera, link_from_optical
 from sim_bridge.scenes import load_scene
 
@@ -23,55 +28,112 @@ WORLD_FRAME = "world"
 LINK_FRAME = "camera_link"
 OPTICAL_FRAME = "camera_optical_frame"
 
-GOAL_TOPIC = "/area3d/camera/goal_pose"
-COLOR_TOPIC = "/area3d/camera/color/image_raw"
-DEPTH_TOPIC = "/area3d/camera/depth/image_raw"
-INFO_TOPIC = "/area3d/camera/camera_info"
-POSE_TOPIC = "/area3d/camera/pose"
-STATUS_TOPIC = "/area3d/camera/status"
+GOAL_TOPIC = "area3d/camera/goal_pose"
+COLOR_TOPIC = "area3d/camera/color/image_raw"
+DEPTH_TOPIC = "area3d/camera/depth/image_raw"
+INFO_TOPIC = "area3d/camera/camera_info"
+POSE_TOPIC = "area3d/camera/pose"
+STATUS_TOPIC = "area3d/camera/status"
+TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
+
+PARAMS = (
+    Param("scene", "single_object", "bundled scene name or path to a MuJoCo MJCF file"),
+    Param("width", 640, "image width, pixels", range=(8, 8192)),
+    Param("height", 480, "image height, pixels", range=(8, 8192)),
+    Param("hfov_deg", 90.0, "horizontal field of view, degrees (paper: 90)", range=(1.0, 179.0)),
+    Param("max_range", 5.0, "maximum depth, metres (paper: 5 m)", range=(0.01, 1000.0)),
+    Param(
+        "clearance",
+        0.05,
+        "goals closer than this to geometry are refused, metres",
+        range=(0.0, 10.0),
+    ),
+    Param("depth_noise", False, "add depth-sensor noise in the renderer"),
+    # Volatile topics drop what is published before a reader has matched, and this node's writers
+    # may match a new reader later than other nodes do: the first capture waits until the nodes
+    # that read each frame topic are matched (by name, so that other readers do not count).
+    *(
+        Param(f"readers.{key}", readers, f"nodes that must read {topic} before the first capture")
+        for key, topic, readers in (
+            ("color", COLOR_TOPIC, ("perception", "semantics")),
+            ("depth", DEPTH_TOPIC, ("perception", "semantics")),
+            ("camera_info", INFO_TOPIC, ("perception", "planner")),
+            ("pose", POSE_TOPIC, ("perception", "planner")),
+        )
+    ),
+    Param("readers.all", ("",), "nodes that must read every frame topic as well ('' = none)"),
+    Param(
+        "readers_timeout_s",
+        10.0,
+        "longest the first capture waits for its readers, seconds (then it is published anyway)",
+        read_only=False,
+        range=(0.0, 600.0),
+    ),
+)
 
 
-class SimBridgeNode:
+class SimBridgeNode(Node):
     """Wires parameters and topics around `SimCamera`."""
 
-    NODE_NAME = "sim_bridge"
-
-    def __init__(self, node: Node) -> None:
-        self.node = node
-        scene_name = node.declare_parameter("scene", "single_object")
-        width = int(node.declare_parameter("width", 640))
-        height = int(node.declare_parameter("height", 480))
-        hfov_deg = float(node.declare_parameter("hfov_deg", 90.0))  # paper, Sec. 4: FOV 90 deg
-        max_range = float(node.declare_parameter("max_range", 5.0))  # paper, Sec. 4: 5 m
-        clearance = float(node.declare_parameter("clearance", 0.05))
-        depth_noise = bool(node.declare_parameter("depth_noise", False))
-        self.scene = load_scene(scene_name)
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("sim_bridge", **kwargs)
+        p = declare_parameters(self, PARAMS)
+        report_unknown_parameters(self)
+        self.scene = load_scene(p["scene"])
         self.camera = SimCamera(
-            self.scene, width, height, hfov_deg, max_range, clearance, depth_noise
+            self.scene,
+            p["width"],
+            p["height"],
+            p["hfov_deg"],
+            p["max_range"],
+            p["clearance"],
+            p["depth_noise"],
         )
-        self.pub_color = node.create_publisher("sensor_msgs/msg/Image", COLOR_TOPIC)
-        self.pub_depth = node.create_publisher("sensor_msgs/msg/Image", DEPTH_TOPIC)
-        self.pub_info = node.create_publisher("sensor_msgs/msg/CameraInfo", INFO_TOPIC)
-        self.pub_pose = node.create_publisher("geometry_msgs/msg/PoseStamped", POSE_TOPIC)
-        self.pub_status = node.create_publisher("std_msgs/msg/String", STATUS_TOPIC)
-        self.pub_tf = node.create_publisher("tf2_msgs/msg/TFMessage", "/tf")
-        self.pub_tf_static = node.create_publisher(
-            "tf2_msgs/msg/TFMessage", "/tf_static", latched=True
-        )
-        T_link_opt = np.eye(4)
-        T_link_opt[:3, :3] = R_LINK_OPTICAL
-        self.pub_tf_static.publish(
-            msgs.TFMessage(
-                transforms=[_transform(T_link_opt, node.now_ns(), LINK_FRAME, OPTICAL_FRAME)]
+        self.pub_color = self.create_publisher(msgs.Image, COLOR_TOPIC, qos.frames())
+        self.pub_depth = self.create_publisher(msgs.Image, DEPTH_TOPIC, qos.frames())
+        self.pub_info = self.create_publisher(msgs.CameraInfo, INFO_TOPIC, qos.frames())
+        self.pub_pose = self.create_publisher(msgs.PoseStamped, POSE_TOPIC, qos.frames())
+        self.pub_status = self.create_publisher(msgs.String, STATUS_TOPIC, qos.frames())
+        self.pub_tf = self.pub_tf_static = None
+        if msgs.TFMessage is not None:
+            self.pub_tf = self.create_publisher(msgs.TFMessage, TF_TOPIC, qos.reliable(100))
+            self.pub_tf_static = self.create_publisher(
+                msgs.TFMessage, TF_STATIC_TOPIC, qos.latched()
             )
+            T_link_opt = np.eye(4)
+            T_link_opt[:3, :3] = R_LINK_OPTICAL
+            self.pub_tf_static.publish(
+                msgs.TFMessage(
+                    transforms=[_transform(T_link_opt, self._now_ns(), LINK_FRAME, OPTICAL_FRAME)]
+                )
+            )
+        else:
+            self.get_logger().info(
+                "tf2_msgs does not import (it is not on PyPI; source a ROS 2 install for it): "
+                f"no {TF_TOPIC} / {TF_STATIC_TOPIC}; the camera pose is on {POSE_TOPIC}"
+            )
+        everyone = {name for name in p["readers.all"] if name}
+        self.required_readers = {
+            self.pub_color: set(p["readers.color"]) | everyone,
+            self.pub_depth: set(p["readers.depth"]) | everyone,
+            self.pub_info: set(p["readers.camera_info"]) | everyone,
+            self.pub_pose: set(p["readers.pose"]) | everyone,
+        }
+        self.readers_matched = False
+        self.create_subscription(
+            msgs.PoseStamped, GOAL_TOPIC, guarded(self, self.on_goal, GOAL_TOPIC), qos.frames()
         )
-        node.create_subscription("geometry_msgs/msg/PoseStamped", GOAL_TOPIC, self.on_goal)
-        node.get_logger().info(
-            f"scene {self.scene.name!r} ({self.scene.level}), {width}x{height}, hfov {hfov_deg} deg, waiting for {GOAL_TOPIC}"
+        self.get_logger().info(
+            f"scene {self.scene.name!r} ({self.scene.level}), {p['width']}x{p['height']}, "
+            f"hfov {p['hfov_deg']} deg, waiting for {self.resolve_topic_name(GOAL_TOPIC)}"
         )
 
-    def on_goal(self, msg: Any) -> None:
-        stamp_ns = codecs.stamp_to_ns(msg.header.stamp) or self.node.now_ns()
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def on_goal(self, msg: msgs.PoseStamped) -> None:
+        stamp_ns = codecs.stamp_to_ns(msg.header.stamp) or self._now_ns()
         try:
             T = codecs.pose_to_matrix(msg.pose)
         except InputError as exc:
@@ -81,6 +143,7 @@ class SimBridgeNode:
         if not capture.ok:
             self._refuse(stamp_ns, capture.reason)
             return
+        self._wait_for_readers()
         self.pub_color.publish(codecs.image_to_msg(capture.rgb, "rgb8", stamp_ns, OPTICAL_FRAME))
         self.pub_depth.publish(codecs.image_to_msg(capture.depth, "32FC1", stamp_ns, OPTICAL_FRAME))
         self.pub_info.publish(
@@ -93,15 +156,43 @@ class SimBridgeNode:
                 header=codecs.header(stamp_ns, WORLD_FRAME), pose=codecs.matrix_to_pose(T)
             )
         )
-        self.pub_tf.publish(
-            msgs.TFMessage(
-                transforms=[_transform(link_from_optical(T), stamp_ns, WORLD_FRAME, LINK_FRAME)]
+        if self.pub_tf is not None:
+            self.pub_tf.publish(
+                msgs.TFMessage(
+                    transforms=[_transform(link_from_optical(T), stamp_ns, WORLD_FRAME, LINK_FRAME)]
+                )
             )
-        )
         self._status(stamp_ns, True, "ok")
 
+    def _missing_readers(self) -> dict[str, list[str]]:
+        """{topic: nodes not matched yet} over the frame topics; a node counts once this node has
+        discovered its subscription and the publisher has matched every discovered subscription."""
+        missing = {}
+        for pub, required in self.required_readers.items():
+            subscriptions = self.get_subscriptions_info_by_topic(pub.topic_name)
+            lacking = required - {info.node_name for info in subscriptions}
+            if not lacking and pub.get_subscription_count() < len(subscriptions):
+                lacking = {"(matching)"}
+            if lacking:
+                missing[pub.topic_name] = sorted(lacking)
+        return missing
+
+    def _wait_for_readers(self) -> None:
+        if self.readers_matched:
+            return
+        timeout_s = self.get_parameter("readers_timeout_s").value
+        deadline = time.monotonic() + timeout_s
+        while missing := self._missing_readers():
+            if time.monotonic() > deadline:
+                self.get_logger().warning(
+                    f"publishing after {timeout_s} s without these readers: {missing}"
+                )
+                break
+            time.sleep(0.01)
+        self.readers_matched = True  # later readers are on their own, as with any camera
+
     def _refuse(self, stamp_ns: int, reason: str) -> None:
-        self.node.get_logger().warning(f"goal at stamp {stamp_ns} refused: {reason}")
+        self.get_logger().warning(f"goal at stamp {stamp_ns} refused: {reason}")
         self._status(stamp_ns, False, reason)
 
     def _status(self, stamp_ns: int, ok: bool, reason: str) -> None:
@@ -118,8 +209,23 @@ def _transform(T: np.ndarray, stamp_ns: int, parent: str, child: str) -> Any:
     )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    return run_node(SimBridgeNode, argv, name=SimBridgeNode.NODE_NAME)
+def main(args: Sequence[str] | None = None) -> int:
+    middleware.configure()
+    rclpy.init(args=args)
+    try:
+        node = SimBridgeNode()
+    except (InputError, FileNotFoundError) as exc:
+        rclpy.logging.get_logger("sim_bridge").fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

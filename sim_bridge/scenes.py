@@ -108,6 +108,13 @@ class Scene:
             self._cache["gt"] = clip_to_box(self.scene_mesh(), self.roi_min, self.roi_max)
         return self._cache["gt"].copy()
 
+    def valid_positions(self, points: np.ndarray, clearance: float) -> np.ndarray:
+        """(N,) bool: camera centres inside the workspace and clear of geometry
+        (`sim_bridge.validity.valid_positions`); what a planner given this scene may check."""
+        from sim_bridge.validity import valid_positions
+
+        return valid_positions(self, points, clearance)
+
 
 def list_scenes() -> list[str]:
     """Names of the bundled scenes."""

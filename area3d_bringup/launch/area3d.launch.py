@@ -1,4 +1,5 @@
-"""`ros2 launch area3d_bringup area3d.launch.py [params_file:=FILE]`: the AREA3D graph under ROS 2."""
+"""`ros2 launch area3d_bringup area3d.launch.py [params_file:=FILE] [namespace:=NS]`: the AREA3D graph
+under a sourced ROS 2 (the same node list as `area3d launch`)."""
 
 from pathlib import Path
 
@@ -8,13 +9,7 @@ from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-# (package, executable, node name): the same graph `area3d launch` starts.
-NODES = (
-    ("sim_bridge", "sim_bridge_node", "sim_bridge"),
-    ("area3d_perception", "perception_node", "perception"),
-    ("area3d_semantics", "semantics_node", "semantics"),
-    ("area3d_planner", "planner_node", "planner"),
-)
+from area3d_bringup.graph import NODES
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -22,16 +17,18 @@ def generate_launch_description() -> LaunchDescription:
         Path(get_package_share_directory("area3d_bringup")) / "config" / "area3d.yaml"
     )
     params_file = LaunchConfiguration("params_file")
+    namespace = LaunchConfiguration("namespace")
     nodes = [
         Node(
-            package=package,
-            executable=executable,
-            name=name,
+            package=node.package,
+            executable=node.executable,
+            name=node.name,
+            namespace=namespace,
             parameters=[params_file],
             output="screen",
             emulate_tty=True,
         )
-        for package, executable, name in NODES
+        for node in NODES
     ]
     return LaunchDescription(
         [
@@ -39,6 +36,9 @@ def generate_launch_description() -> LaunchDescription:
                 "params_file",
                 default_value=default_params,
                 description="ROS 2 parameter YAML for every AREA3D node",
+            ),
+            DeclareLaunchArgument(
+                "namespace", default_value="", description="namespace of the whole graph"
             ),
             *nodes,
         ]

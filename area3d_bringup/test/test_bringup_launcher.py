@@ -28,7 +28,7 @@ FAKE_NODE = textwrap.dedent(
     args = sys.argv[1:]
     params_file = args[args.index("--params-file") + 1]
     name = args[args.index("-r") + 1].split(":=")[1]
-    params = yaml.safe_load(open(params_file))[name]["ros__parameters"]
+    params = yaml.safe_load(open(params_file))["/**/" + name]["ros__parameters"]
     print(f"pid={os.getpid()} params={params}", flush=True)
     if params.get("die_after_s") is not None:
         time.sleep(params["die_after_s"]); sys.exit(3)
@@ -172,3 +172,29 @@ def test_override_values_are_yaml_typed():
 def test_missing_params_file_is_named(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.yaml"):
         load_parameters(tmp_path / "nope.yaml")
+
+
+def test_nodes_stop_quietly_on_sigint_even_when_the_launcher_ignores_it(tmp_path):
+    """A launcher started in the background by a shell inherits SIGINT as ignored; its nodes must
+    still stop on the SIGINT it sends them, at once and with exit code 0."""
+    specs = build_graph(
+        overrides={"sim_bridge": {"width": 64, "height": 48}},
+        nodes=(("sim_bridge", "sim_bridge.node"),),
+    )
+    lines: list[str] = []
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        launcher = Launcher(specs, tmp_path, log_sink=lines.append)
+        launcher.start()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    try:
+        deadline = time.monotonic() + 60
+        while not any("waiting for" in line for line in lines) and time.monotonic() < deadline:
+            launcher.check()
+            time.sleep(0.05)
+        assert any("waiting for" in line for line in lines), lines
+    finally:
+        codes = launcher.stop(grace_s=20.0)
+    assert codes == {"sim_bridge": 0}, lines[-10:]
+    assert not any("Traceback" in line for line in lines)

@@ -315,3 +315,4 @@ def test_bad_intrinsics_and_stamps_are_rejected():
 
 def test_unknown_message_type_is_rejected():
     raises_field("type_name", msgs.get, "sensor_msgs/msg/Nope")
+    raises_field("type_name", msgs.get, "not a type")

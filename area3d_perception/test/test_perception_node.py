@@ -1,9 +1,12 @@
-"""The perception node on a stand-in Node: pairing, publishing and bad input, without transport."""
+"""The perception node in-process: pairing, publishing and bad input, callbacks called directly."""
 
 import numpy as np
 import pytest
+import rclpy
+from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs
+from area3d_msgs_py.guard import guarded
 from area3d_perception.node import (
     COLOR_TOPIC,
     DEPTH_TOPIC,
@@ -45,27 +48,33 @@ class Pub:
         self.sent.append(msg)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def ros_context():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    pytest.perception_context = context
+    yield context
+    context.try_shutdown()
+
+
 class FakeNode:
-    """The parts of area3d_msgs_py.node.Node that PerceptionNode uses."""
+    """A real PerceptionNode whose outputs and log are captured and whose callbacks are called
+    directly (no transport): `subs[topic](msg)`, `pubs[topic].sent`, `log.warnings()`."""
 
     def __init__(self, parameters=None):
-        self.params = dict(parameters or {})
-        self.subs = {}
-        self.pubs = {}
+        overrides = [Parameter(k, value=v) for k, v in (parameters or {}).items()]
+        self.node = PerceptionNode(context=pytest.perception_context, parameter_overrides=overrides)
         self.log = Log()
-
-    def declare_parameter(self, name, default):
-        return self.params.get(name, default)
-
-    def get_logger(self):
-        return self.log
-
-    def create_publisher(self, type_name, topic, latched=False, depth=10):
-        self.pubs[topic] = Pub()
-        return self.pubs[topic]
-
-    def create_subscription(self, type_name, topic, callback, latched=False, depth=10):
-        self.subs[topic] = callback
+        self.node.get_logger = lambda: self.log
+        self.pubs = {OUT_DEPTH_TOPIC: Pub(), OUT_CONFIDENCE_TOPIC: Pub()}
+        self.node.pub_depth = self.pubs[OUT_DEPTH_TOPIC]
+        self.node.pub_conf = self.pubs[OUT_CONFIDENCE_TOPIC]
+        self.subs = {
+            COLOR_TOPIC: guarded(self.node, self.node.on_color, COLOR_TOPIC),
+            DEPTH_TOPIC: guarded(self.node, self.node.on_depth, DEPTH_TOPIC),
+            INFO_TOPIC: guarded(self.node, self.node.on_camera_info, INFO_TOPIC),
+            POSE_TOPIC: guarded(self.node, self.node.on_pose, POSE_TOPIC),
+        }
 
 
 def send_frame(node, stamp, depth=None, rgb=None, info=True, order=("color", "depth", "pose")):
@@ -88,7 +97,6 @@ def send_frame(node, stamp, depth=None, rgb=None, info=True, order=("color", "de
 
 def test_a_complete_frame_is_published_with_its_stamp_and_frame():
     node = FakeNode()
-    PerceptionNode(node)
     send_frame(node, 5 * S, order=("pose", "depth", "color"))
     (depth_msg,) = node.pubs[OUT_DEPTH_TOPIC].sent
     (conf_msg,) = node.pubs[OUT_CONFIDENCE_TOPIC].sent
@@ -102,15 +110,12 @@ def test_a_complete_frame_is_published_with_its_stamp_and_frame():
 
 def test_uniform_backend_parameter_is_honoured():
     node = FakeNode({"backend": "uniform"})
-    PerceptionNode(node)
     send_frame(node, 1 * S)
     assert np.all(codecs.msg_to_image(node.pubs[OUT_CONFIDENCE_TOPIC].sent[0]) == 1.0)
 
 
 def test_sensor_parameters_reach_the_model():
     near, far = FakeNode(), FakeNode({"sensor.sigma_ref": 0.005})
-    PerceptionNode(near)
-    PerceptionNode(far)
     send_frame(near, 1 * S)
     send_frame(far, 1 * S)
     a = codecs.msg_to_image(near.pubs[OUT_CONFIDENCE_TOPIC].sent[0])
@@ -120,7 +125,6 @@ def test_sensor_parameters_reach_the_model():
 
 def test_frames_wait_for_camera_info():
     node = FakeNode()
-    PerceptionNode(node)
     send_frame(node, 1 * S, info=False)
     assert node.pubs[OUT_DEPTH_TOPIC].sent == []
     assert any("camera_info" in w for w in node.log.warnings())
@@ -130,7 +134,6 @@ def test_frames_wait_for_camera_info():
 
 def test_mismatched_color_and_depth_sizes_reject_the_frame_with_a_reason():
     node = FakeNode()
-    PerceptionNode(node)
     send_frame(node, 1 * S, rgb=np.zeros((H, W + 2, 3), np.uint8))
     assert node.pubs[OUT_DEPTH_TOPIC].sent == []
     assert any("rejected" in w and "color" in w for w in node.log.warnings())
@@ -140,7 +143,6 @@ def test_mismatched_color_and_depth_sizes_reject_the_frame_with_a_reason():
 
 def test_infinite_and_negative_depth_are_logged_and_treated_as_missing():
     node = FakeNode()
-    PerceptionNode(node)
     depth = np.full((H, W), 2.0, np.float32)
     depth[0, :4] = np.inf
     depth[1, :3] = -0.5
@@ -156,7 +158,6 @@ def test_infinite_and_negative_depth_are_logged_and_treated_as_missing():
 
 def test_a_pose_without_images_is_dropped_after_the_age_limit():
     node = FakeNode({"sync_max_age_s": 2.0})
-    PerceptionNode(node)
     pose = msgs.PoseStamped(
         header=codecs.header(1 * S, "world"), pose=codecs.matrix_to_pose(np.eye(4))
     )
@@ -168,7 +169,6 @@ def test_a_pose_without_images_is_dropped_after_the_age_limit():
 
 def test_a_pose_with_a_non_unit_quaternion_is_rejected_not_fatal():
     node = FakeNode()
-    PerceptionNode(node)
     bad = codecs.matrix_to_pose(np.eye(4))
     bad.orientation.w = 3.0
     node.subs[POSE_TOPIC](msgs.PoseStamped(header=codecs.header(1 * S, "world"), pose=bad))
@@ -177,4 +177,9 @@ def test_a_pose_with_a_non_unit_quaternion_is_rejected_not_fatal():
 
 def test_a_missing_vggt_checkpoint_fails_at_start_naming_it():
     with pytest.raises(RuntimeError, match="nowhere/model.pt"):
-        PerceptionNode(FakeNode({"backend": "vggt", "checkpoint": "/nowhere/model.pt"}))
+        FakeNode({"backend": "vggt", "checkpoint": "/nowhere/model.pt"})
+
+
+def test_a_backend_outside_the_choices_is_refused_at_start_naming_it():
+    with pytest.raises(ValueError, match="backend: got 'nope', expected one of rgbd"):
+        FakeNode({"backend": "nope"})

@@ -1,63 +1,69 @@
-"""The semantics node on a real (loopback) DDS graph: one query with the initial views, regions
-JSON, one weight map and one U_sem per frame with the frame's stamp, re-query on request."""
+"""The semantics node over rclpy (in-process, real topics): one query with the initial views,
+regions JSON, one weight map and one U_sem per frame with the frame's stamp, re-query on request."""
 
 import json
-import os
 import socket
+import threading
 import time
 
 import numpy as np
 import pytest
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.parameter import Parameter
 
-from area3d_msgs_py import codecs, dds_config, msgs
-from area3d_msgs_py.node import Node
-from area3d_semantics.node import SemanticsNode
+from area3d_msgs_py import codecs, msgs, qos
+from area3d_semantics.node import (
+    COLOR_TOPIC,
+    CONFIDENCE_TOPIC,
+    DEPTH_TOPIC,
+    REGIONS_TOPIC,
+    REQUEST_TOPIC,
+    UNCERTAINTY_TOPIC,
+    WEIGHT_TOPIC,
+    SemanticsNode,
+)
 from area3d_semantics.weights import semantic_uncertainty, sigma_from_confidence
 
-DOMAIN_ID = 1 + (os.getpid() + 97) % 200
 H, W = 60, 80
-TIMEOUT_S = 20.0
-
-
-@pytest.fixture(scope="module", autouse=True)
-def loopback():
-    with dds_config.loopback_domain(DOMAIN_ID):
-        yield
+TIMEOUT_S = 30.0
 
 
 class Rig:
     """The node under test plus a peer node that feeds frames and records the outputs."""
 
     def __init__(self, parameters: dict):
-        self.sem_node = Node("semantics", parameters, backend="dds")
-        self.semantics = SemanticsNode(self.sem_node)
-        self.peer = Node("feeder", backend="dds")
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        overrides = [Parameter(k, value=v) for k, v in parameters.items()]
+        self.semantics = SemanticsNode(context=self.context, parameter_overrides=overrides)
+        self.peer = rclpy.create_node("feeder", context=self.context)
         self.regions, self.weights, self.usem = [], {}, {}
         self.peer.create_subscription(
-            "std_msgs/msg/String", "/area3d/semantics/regions", self.regions.append, latched=True
+            msgs.String, REGIONS_TOPIC, self.regions.append, qos.latched()
         )
         self.peer.create_subscription(
-            "sensor_msgs/msg/Image", "/area3d/semantics/weight", self._store(self.weights), depth=64
+            msgs.Image, WEIGHT_TOPIC, self._store(self.weights), qos.reliable(64)
         )
         self.peer.create_subscription(
-            "sensor_msgs/msg/Image",
-            "/area3d/semantics/uncertainty",
-            self._store(self.usem),
-            depth=64,
+            msgs.Image, UNCERTAINTY_TOPIC, self._store(self.usem), qos.reliable(64)
         )
-        self.color = self.peer.create_publisher(
-            "sensor_msgs/msg/Image", "/area3d/camera/color/image_raw", depth=64
+        self.color = self.peer.create_publisher(msgs.Image, COLOR_TOPIC, qos.reliable(64))
+        self.depth = self.peer.create_publisher(msgs.Image, DEPTH_TOPIC, qos.reliable(64))
+        self.conf = self.peer.create_publisher(msgs.Image, CONFIDENCE_TOPIC, qos.graph_frames(64))
+        self.request = self.peer.create_publisher(msgs.String, REQUEST_TOPIC, qos.reliable())
+        self.executor = MultiThreadedExecutor(context=self.context)
+        self.executor.add_node(self.semantics)
+        self.executor.add_node(self.peer)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        # discovery: every publisher matched before anything is sent
+        self.spin(
+            lambda: all(
+                p.get_subscription_count() >= 1
+                for p in (self.color, self.depth, self.conf, self.request)
+            )
         )
-        self.depth = self.peer.create_publisher(
-            "sensor_msgs/msg/Image", "/area3d/camera/depth/image_raw", depth=64
-        )
-        self.conf = self.peer.create_publisher(
-            "sensor_msgs/msg/Image", "/area3d/perception/confidence", depth=64
-        )
-        self.request = self.peer.create_publisher(
-            "std_msgs/msg/String", "/area3d/semantics/request"
-        )
-        self.spin(lambda: False, 1.5)  # discovery
 
     @staticmethod
     def _store(into):
@@ -68,8 +74,7 @@ class Rig:
     def spin(self, done, timeout_s=TIMEOUT_S):
         deadline = time.monotonic() + timeout_s
         while not done() and time.monotonic() < deadline:
-            self.sem_node.spin_once(0.02)
-            self.peer.spin_once(0.02)
+            time.sleep(0.02)
 
     def frame(self, stamp, image, depth, confidence=None):
         self.color.publish(codecs.image_to_msg(image, "rgb8", stamp, "camera_optical_frame"))
@@ -80,8 +85,11 @@ class Rig:
             )
 
     def close(self):
-        self.peer.shutdown()
-        self.sem_node.shutdown()
+        self.executor.shutdown()
+        self.thread.join(2)
+        self.peer.destroy_node()
+        self.semantics.destroy_node()
+        self.context.try_shutdown()
 
 
 def frames(n):

@@ -1,21 +1,20 @@
-"""The simulated camera core and the sim_bridge node on the wire (Cyclone DDS on loopback)."""
+"""The simulated camera core and the sim_bridge node on the wire (rclpy)."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from sim_bridge.camera import SimCamera, add_depth_noise, link_from_optical
 from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import load_scene
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-DOMAIN_ID = 1 + (os.getpid() + 101) % 200
 TIMEOUT_S = 40.0
 
 
@@ -53,17 +52,9 @@ def test_depth_noise_keeps_holes_and_grows_with_distance():
     assert 0.0005 < near < far
 
 
-@pytest.fixture(scope="module")
-def loopback():
-    from area3d_msgs_py import dds_config
-
-    with dds_config.loopback_domain(DOMAIN_ID):
-        yield
-
-
-def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal(loopback):
-    from area3d_msgs_py import codecs, msgs
-    from area3d_msgs_py.node import Node
+def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
+    from area3d_msgs_py import codecs, msgs, qos
+    from area3d_msgs_py.probe import Probe
 
     proc = subprocess.Popen(
         [
@@ -77,26 +68,35 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal(loopback):
             "width:=160",
             "-p",
             "height:=120",
+            "-p",
+            "readers.all:=[sim_bridge_probe]",
+            "-p",
+            "readers.color:=[sim_bridge_probe]",
+            "-p",
+            "readers.depth:=[sim_bridge_probe]",
+            "-p",
+            "readers.camera_info:=[sim_bridge_probe]",
+            "-p",
+            "readers.pose:=[sim_bridge_probe]",
         ],
         env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)),
         stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
         text=True,
     )
-    node = Node("sim_bridge_probe", backend="dds")
-    got = {k: [] for k in ("status", "color", "depth", "info", "pose", "tf", "tf_static")}
+    probe = Probe("sim_bridge_probe")
     topics = {
-        "status": ("std_msgs/msg/String", "/area3d/camera/status", False),
-        "color": ("sensor_msgs/msg/Image", "/area3d/camera/color/image_raw", False),
-        "depth": ("sensor_msgs/msg/Image", "/area3d/camera/depth/image_raw", False),
-        "info": ("sensor_msgs/msg/CameraInfo", "/area3d/camera/camera_info", False),
-        "pose": ("geometry_msgs/msg/PoseStamped", "/area3d/camera/pose", False),
-        "tf": ("tf2_msgs/msg/TFMessage", "/tf", False),
-        "tf_static": ("tf2_msgs/msg/TFMessage", "/tf_static", True),
+        "status": (msgs.String, "area3d/camera/status"),
+        "color": (msgs.Image, "area3d/camera/color/image_raw"),
+        "depth": (msgs.Image, "area3d/camera/depth/image_raw"),
+        "info": (msgs.CameraInfo, "area3d/camera/camera_info"),
+        "pose": (msgs.PoseStamped, "area3d/camera/pose"),
     }
-    for key, (type_name, topic, latched) in topics.items():
-        node.create_subscription(type_name, topic, got[key].append, latched=latched)
-    goal_pub = node.create_publisher("geometry_msgs/msg/PoseStamped", "/area3d/camera/goal_pose")
+    got = {key: probe.listen(msg_type, topic) for key, (msg_type, topic) in topics.items()}
+    if msgs.TFMessage is not None:
+        got["tf"] = probe.listen(msgs.TFMessage, "/tf")
+        got["tf_static"] = probe.listen(msgs.TFMessage, "/tf_static", qos.latched())
+    goal_pub = probe.publisher(msgs.PoseStamped, "area3d/camera/goal_pose")
     scene = load_scene("single_object")
     T = scene.initial_views[2]
     stamp_ok = 1_700_000_000_000_000_123
@@ -104,41 +104,33 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal(loopback):
     def statuses():
         return [json.loads(m.data) for m in got["status"]]
 
+    def goal(stamp, pose):
+        return msgs.PoseStamped(header=codecs.header(stamp, "world"), pose=pose)
+
     try:
+        assert probe.wait_for_readers(goal_pub, 1, TIMEOUT_S), proc.poll()
+        # readers.*: the frame waits until our readers have matched; the status may not yet
+        # have, so the goal is sent again until its status arrives (same stamp, same frame).
         deadline = time.monotonic() + TIMEOUT_S
-        while (
-            not any(s["stamp_ns"] == stamp_ok for s in statuses()) and time.monotonic() < deadline
-        ):
-            goal_pub.publish(
-                msgs.PoseStamped(
-                    header=codecs.header(stamp_ok, "world"), pose=codecs.matrix_to_pose(T)
-                )
-            )
-            t_end = time.monotonic() + 1.0
-            while time.monotonic() < t_end:
-                node.spin_once(0.05)
+        while not any(s["stamp_ns"] == stamp_ok for s in statuses()):
+            assert time.monotonic() < deadline, proc.poll()
+            goal_pub.publish(goal(stamp_ok, codecs.matrix_to_pose(T)))
+            probe.wait_for(lambda: any(s["stamp_ns"] == stamp_ok for s in statuses()), 1.0)
+        assert probe.wait_for(lambda: got["pose"], TIMEOUT_S)
         assert any(s["stamp_ns"] == stamp_ok and s["ok"] for s in statuses()), proc.poll()
 
         # Invalid goals: a non-unit quaternion and a pose inside the object, each answered with a reason.
-        bad_quat = msgs.PoseStamped(
-            header=codecs.header(stamp_ok + 1, "world"), pose=codecs.matrix_to_pose(T)
-        )
+        bad_quat = goal(stamp_ok + 1, codecs.matrix_to_pose(T))
         bad_quat.pose.orientation.w = 3.0
         inside = T.copy()
         model, data = scene.model()
         inside[:3, 3] = data.xpos[model.body("obj0").id] + [0, 0, 0.06]
         goal_pub.publish(bad_quat)
-        goal_pub.publish(
-            msgs.PoseStamped(
-                header=codecs.header(stamp_ok + 2, "world"), pose=codecs.matrix_to_pose(inside)
-            )
+        goal_pub.publish(goal(stamp_ok + 2, codecs.matrix_to_pose(inside)))
+        probe.wait_for(
+            lambda: len({s["stamp_ns"] for s in statuses()} & {stamp_ok + 1, stamp_ok + 2}) == 2,
+            TIMEOUT_S,
         )
-        deadline = time.monotonic() + TIMEOUT_S
-        while (
-            len({s["stamp_ns"] for s in statuses()} & {stamp_ok + 1, stamp_ok + 2}) < 2
-            and time.monotonic() < deadline
-        ):
-            node.spin_once(0.05)
         by_stamp = {s["stamp_ns"]: s for s in statuses()}
         assert (
             by_stamp[stamp_ok + 1]["ok"] is False
@@ -153,10 +145,8 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal(loopback):
         depth = next(m for m in got["depth"] if codecs.stamp_to_ns(m.header.stamp) == stamp_ok)
         info = next(m for m in got["info"] if codecs.stamp_to_ns(m.header.stamp) == stamp_ok)
         pose = next(m for m in got["pose"] if codecs.stamp_to_ns(m.header.stamp) == stamp_ok)
-        tf = next(
-            m for m in got["tf"] if codecs.stamp_to_ns(m.transforms[0].header.stamp) == stamp_ok
-        )
         assert color.encoding == "rgb8" and depth.encoding == "32FC1"
+        assert color.header.frame_id == depth.header.frame_id == "camera_optical_frame"
         with RgbdRenderer(scene, width=160, height=120) as renderer:
             rgb_ref, depth_ref = renderer.render(T)
         np.testing.assert_allclose(codecs.msg_to_image(depth), depth_ref, atol=1e-5)
@@ -166,24 +156,49 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal(loopback):
         K, width, height = codecs.camera_info_to_intrinsics(info)
         assert (width, height) == (160, 120) and np.allclose(K, renderer.K)
         assert np.allclose(codecs.pose_to_matrix(pose.pose), T, atol=1e-6)
-        # world -> camera_link (dynamic) composed with camera_link -> optical (static) = goal pose
-        static = got["tf_static"][-1].transforms[0]
-        assert (static.header.frame_id, static.child_frame_id) == (
-            "camera_link",
-            "camera_optical_frame",
-        )
-        link = tf.transforms[0]
-        assert (link.header.frame_id, link.child_frame_id) == ("world", "camera_link")
-        composed = codecs.transform_to_matrix(link.transform) @ codecs.transform_to_matrix(
-            static.transform
-        )
-        assert np.allclose(composed, T, atol=1e-6)
+        if msgs.TFMessage is not None:
+            tf = next(
+                m for m in got["tf"] if codecs.stamp_to_ns(m.transforms[0].header.stamp) == stamp_ok
+            )
+            static = got["tf_static"][-1].transforms[0]
+            link = tf.transforms[0]
+            composed = codecs.transform_to_matrix(link.transform) @ codecs.transform_to_matrix(
+                static.transform
+            )
+            assert np.allclose(composed, T, atol=1e-6)
     finally:
-        node.shutdown()
+        probe.close()
         if proc.poll() is None:
-            proc.terminate()
+            proc.send_signal(signal.SIGINT)
         try:
-            proc.communicate(timeout=10)
+            output, _ = proc.communicate(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
-            proc.communicate()
+            output, _ = proc.communicate()
+    assert proc.returncode == 0, output  # a quiet, prompt exit on SIGINT
+    assert "Traceback" not in output
+    if msgs.TFMessage is None:  # said once, in the log
+        assert output.count("tf2_msgs does not import") == 1
+
+
+def test_tf_in_the_bag_composes_to_the_optical_frame_pose():
+    """Without tf2_msgs the runner writes TF into the bag; world -> camera_link composed with
+    camera_link -> camera_optical_frame is the camera's optical-frame pose."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from area3d_bringup.tf_bag import static_tf_cdr, tf_cdr
+    from area3d_msgs_py import codecs
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T = load_scene("single_object").initial_views[1]
+    link = store.deserialize_cdr(tf_cdr(5, T), "tf2_msgs/msg/TFMessage").transforms[0]
+    static = store.deserialize_cdr(static_tf_cdr(5), "tf2_msgs/msg/TFMessage").transforms[0]
+    assert (link.header.frame_id, link.child_frame_id) == ("world", "camera_link")
+    assert (static.header.frame_id, static.child_frame_id) == (
+        "camera_link",
+        "camera_optical_frame",
+    )
+    composed = codecs.transform_to_matrix(link.transform) @ codecs.transform_to_matrix(
+        static.transform
+    )
+    assert np.allclose(composed, T, atol=1e-6)
