@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from pathlib import Path
@@ -72,9 +73,9 @@ def run_episode_bench(
                             run_dir = run_inprocess_episode(
                                 scene, policy, seed, out / stamp, budget, run_name=config.run_name
                             )
-                            episode = json.loads((run_dir / "episode.json").read_text())
+                            episode = json.loads((run_dir / rundir.EPISODE_FILE).read_text())
                             episode["timings_s"]["episode_total"] = time.monotonic() - t0
-                            (run_dir / "episode.json").write_text(json.dumps(episode))
+                            rundir.write_episode(run_dir, episode)
                         else:
                             run_dir = run_episode(config, progress=progress)
                         run_dirs.append(run_dir)

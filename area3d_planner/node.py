@@ -28,9 +28,9 @@ from area3d_msgs_py.guard import guarded
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from area3d_perception.frame_sync import StampSync
 from area3d_planner.cloud import grid_to_msg
-from area3d_planner.policies import POLICIES
 from area3d_planner.fusion import GEOMETRIC_RULES, NO_RETURN_RULES
 from area3d_planner.greedy import DECAY_REGIONS
+from area3d_planner.policies import POLICIES
 from area3d_planner.server import LEVELS, MODES, NextBestViewServer, PlannerConfig, PlanRequest
 
 DEPTH_TOPIC = "area3d/perception/depth"

@@ -89,7 +89,7 @@ class PlannerConfig:
     )
     pixels_per_voxel: float = 0.0  # fully observed from this many pixels; 0 = 32 object, 64 room
     unknown_occludes: bool = True  # a view counts the first non-free layer it sees
-    incidence: bool = True  # a surface seen at a grazing angle counts by its cosine
+    incidence: bool = False  # a surface seen at a grazing angle counts by its cosine (off: no gain measured)
     hfov_deg: float = 90.0  # paper: FOV 90 degrees
     max_range: float = 5.0  # paper: max depth 5 m
     width: int = 640

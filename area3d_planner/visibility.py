@@ -62,7 +62,7 @@ class VisibilityParams:
     unknown_occludes: bool = True
     # Weigh each voxel by the cosine between its free-space side and the direction to the camera
     # (the surface it may hold is seen foreshortened at a grazing angle).
-    incidence: bool = True
+    incidence: bool = False
 
     def validate(self) -> None:
         if self.level not in LEVELS:

@@ -116,7 +116,7 @@ def test_weights_are_the_share_of_pixels_a_voxel_needs_that_it_gets(distance):
     # A wall filling the frustum: every wall voxel in the frustum is in the mask with weight
     # min(1, (f s / z)^2 cos / pixels_per_voxel); near, every voxel is fully observed, far, less.
     spec, occ, wall_i = wall_scene(distance)
-    params = VisibilityParams(level="room", face_res=256)
+    params = VisibilityParams(level="room", face_res=256, incidence=True)
     R = look_rotation(np.array([1.0, 0.0, 0.0]))
     cache = VisibilityCache.build(spec, occ, np.zeros((1, 3)), R[None], params)
     ids, weights = cache.mask(0)
@@ -291,7 +291,7 @@ def test_free_side_normals_point_to_the_carved_side_and_grazing_views_count_less
     behind = np.flatnonzero(np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i + 3)
     assert not free_side_normals(spec, occ, behind[:5]).any()  # no free neighbour: no normal
     R = look_rotation(np.array([1.0, 0.0, 0.0]))[None]
-    fine = dataclasses.replace(FAST, pixels_per_voxel=1e4)  # no voxel saturates at weight 1
+    fine = dataclasses.replace(FAST, pixels_per_voxel=1e4, incidence=True)  # no saturation
     face_on = VisibilityCache.build(spec, occ, np.array([[0.0, 0.0, 0.0]]), R, fine)
     R_oblique = look_rotation(np.array([1.0, 0.8, 0.0]))[None]
     oblique = VisibilityCache.build(spec, occ, np.array([[0.0, -0.6, 0.0]]), R_oblique, fine)
