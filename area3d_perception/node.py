@@ -12,13 +12,12 @@ from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, middleware, msgs, qos
+from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
 from area3d_perception.frame_sync import MAX_AGE_NS, StampSync
@@ -179,22 +178,7 @@ class PerceptionNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Process entry point: `python -m area3d_perception.node [--ros-args ...]`."""
-    middleware.configure()
-    rclpy.init(args=args)
-    try:
-        node = PerceptionNode()
-    except (InputError, FileNotFoundError, ImportError, RuntimeError) as exc:
-        rclpy.logging.get_logger("perception").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(PerceptionNode, "perception", args, startup_errors=(InputError, FileNotFoundError, ImportError, RuntimeError))
 
 
 if __name__ == "__main__":

@@ -17,14 +17,13 @@ from dataclasses import fields
 from typing import Any
 
 import numpy as np
-import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, middleware, msgs, qos
-from area3d_msgs_py.errors import InputError
+from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from area3d_perception.frame_sync import StampSync
 from area3d_planner.cloud import grid_to_msg
@@ -257,25 +256,7 @@ class PlannerNode(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    middleware.configure()
-    rclpy.init(args=args)
-    try:
-        node = PlannerNode()
-    except (InputError, FileNotFoundError) as exc:
-        rclpy.logging.get_logger("planner").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 1
-    executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(PlannerNode, "planner", args, executor=lambda: MultiThreadedExecutor(num_threads=EXECUTOR_THREADS))
 
 
 if __name__ == "__main__":

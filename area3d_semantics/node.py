@@ -16,13 +16,11 @@ from typing import Any
 
 import cv2
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, middleware, msgs, qos
-from area3d_msgs_py.errors import InputError
+from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from area3d_semantics.analysis import FALLBACKS, Analysis, analyze_views
 from area3d_semantics.backends import (
@@ -299,22 +297,7 @@ class SemanticsNode(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    middleware.configure()
-    rclpy.init(args=args)
-    try:
-        node = SemanticsNode()
-    except (InputError, FileNotFoundError) as exc:
-        rclpy.logging.get_logger("semantics").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(SemanticsNode, "semantics", args)
 
 
 if __name__ == "__main__":

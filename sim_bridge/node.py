@@ -13,13 +13,12 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, middleware, msgs, qos
+from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from sim_bridge.camera import R_LINK_OPTICAL, SimCamera, link_from_optical
 from sim_bridge.scenes import load_scene
@@ -210,22 +209,7 @@ def _transform(T: np.ndarray, stamp_ns: int, parent: str, child: str) -> Any:
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    middleware.configure()
-    rclpy.init(args=args)
-    try:
-        node = SimBridgeNode()
-    except (InputError, FileNotFoundError) as exc:
-        rclpy.logging.get_logger("sim_bridge").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(SimBridgeNode, "sim_bridge", args)
 
 
 if __name__ == "__main__":

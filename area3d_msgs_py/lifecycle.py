@@ -1,0 +1,46 @@
+"""A node process's life: configure the middleware, start rclpy, build the node, spin until Ctrl-C
+or shutdown, and tear everything down quietly; the one `main` body every AREA3D node shares."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import rclpy
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+
+from area3d_msgs_py import middleware
+from area3d_msgs_py.errors import InputError
+
+# What a node's constructor raises for a configuration it cannot start with (bad parameters, a
+# missing file, model or library): logged as fatal, exit code 1.
+STARTUP_ERRORS: tuple[type[Exception], ...] = (InputError, FileNotFoundError)
+
+
+def run_node(
+    make_node: Callable[[], Node],
+    name: str,
+    args: Sequence[str] | None = None,
+    startup_errors: tuple[type[Exception], ...] = STARTUP_ERRORS,
+    executor: Callable[[], Executor] = SingleThreadedExecutor,
+) -> int:
+    """Run one node process: 0 after a clean stop (SIGINT, shutdown), 1 when it could not start."""
+    middleware.configure()
+    rclpy.init(args=args)
+    try:
+        node = make_node()
+    except startup_errors as exc:
+        rclpy.logging.get_logger(name).fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    spinner = executor()
+    spinner.add_node(node)
+    try:
+        spinner.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        spinner.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
