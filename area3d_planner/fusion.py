@@ -81,7 +81,6 @@ class FusedGrid:
         semantic_weight: float = 1.0,  # equal weight of both fields (paper fuses them unweighted)
         geometric_rule: str = "product",
         max_confidence: float = 0.9,  # one view lowers a voxel's uncertainty at most 10-fold
-        hidden_unknown_weight: float = 1.0,
     ) -> None:
         if geometric_rule not in GEOMETRIC_RULES:
             raise InputError(
@@ -110,9 +109,6 @@ class FusedGrid:
         self.semantic_weight = float(semantic_weight)
         self.geometric_rule = geometric_rule
         self.max_confidence = float(max_confidence)
-        if not (0.0 <= hidden_unknown_weight <= 1.0):
-            raise InputError("hidden_unknown_weight", hidden_unknown_weight, "a value in [0, 1]")
-        self.hidden_unknown_weight = float(hidden_unknown_weight)
         n = spec.num_voxels
         self.conf_sum = np.zeros(n, np.float32)
         self.hit_count = np.zeros(n, np.float32)
@@ -254,8 +250,6 @@ class FusedGrid:
         """
         occ = self.occupancy() if occ is None else occ
         g = np.full(self.spec.num_voxels, self.unobserved_uncertainty, np.float32)
-        if self.hidden_unknown_weight < 1.0:
-            g[(occ == UNKNOWN) & ~self.frontier(occ)] *= np.float32(self.hidden_unknown_weight)
         g[occ == FREE] = 0.0
         surf = occ == OCCUPIED
         if self.geometric_rule == "product":
@@ -263,12 +257,6 @@ class FusedGrid:
         else:
             g[surf] = 1.0 - self.conf_sum[surf] / self.hit_count[surf]
         return g
-
-    def frontier(self, occ: np.ndarray | None = None) -> np.ndarray:
-        """(N,) bool: unknown voxels with a known-free face neighbour, where an unseen surface can
-        start (the boundary of what the camera has carved); deeper unknown voxels are hidden."""
-        occ = self.occupancy() if occ is None else occ
-        return self.boundary(occ) & (occ == UNKNOWN)
 
     def boundary(self, occ: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: voxels that are not known free but have a known-free face neighbour: the

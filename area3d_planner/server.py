@@ -74,7 +74,6 @@ class PlannerConfig:
     unobserved_uncertainty: float = 1.0  # DESIGN.md: unobserved space = high uncertainty
     geometric_rule: str = "product"  # each observation lowers uncertainty; "mean": 1 - mean conf
     max_confidence: float = 0.9  # one observation lowers a voxel's uncertainty at most 10-fold
-    hidden_unknown_weight: float = 1.0  # unknown voxels not next to free space count this much
     no_return: str = (
         "regions"  # carve along no-return pixels: "regions" (sky, not dropouts) | all | none
     )
@@ -227,7 +226,6 @@ class NextBestViewServer:
             c.semantic_weight,
             c.geometric_rule,
             c.max_confidence,
-            c.hidden_unknown_weight,
         )
         self.context = PlanningContext(
             grid=self.grid,
