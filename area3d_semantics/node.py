@@ -194,11 +194,16 @@ class SemanticsNode(Node):
             self.views.add_confidence(stamp, codecs.msg_to_image(msg))
             self._publish_usem(stamp)
 
+    def _requery_stamps(self) -> list[int]:
+        """The frames a re-query analyses (lock held)."""
+        stamps = self.views.complete
+        if self.requery_scope == "latest":
+            stamps = stamps[-self.num_initial_views :]
+        return list(stamps)
+
     def on_request(self, msg) -> None:
         with self._lock:
-            stamps = self.views.complete
-            if self.requery_scope == "latest":
-                stamps = stamps[-self.num_initial_views :]
+            stamps = self._requery_stamps()
         if not stamps:
             self.get_logger().warning(
                 "semantics request: no complete frames yet, nothing to analyse"
@@ -217,7 +222,7 @@ class SemanticsNode(Node):
 
     def _start(self, stamps: list[int], reason: str) -> None:
         with self._lock:
-            if self._worker is not None and self._worker.is_alive():
+            if self._worker is not None:  # running: it takes this request next
                 self._pending_request = True
                 return
             self._worker = threading.Thread(
@@ -226,6 +231,18 @@ class SemanticsNode(Node):
             self._worker.start()
 
     def _run(self, stamps: list[int], reason: str) -> None:
+        """Analyse `stamps`; a request that arrived meanwhile runs next in this same worker (with
+        every frame complete by then), so no request is lost."""
+        while True:
+            self._analyse(stamps, reason)
+            with self._lock:
+                if not self._pending_request:
+                    self._worker = None
+                    return
+                self._pending_request = False
+                stamps, reason = self._requery_stamps(), "request"
+
+    def _analyse(self, stamps: list[int], reason: str) -> None:
         log = self.get_logger()
         with self._lock:
             views = [self.views.get(s) for s in stamps]
@@ -246,10 +263,6 @@ class SemanticsNode(Node):
                 f"{self.backend.name} answer not used ({analysis.error}); fell back to {analysis.fallback_used}"
             )
         self._publish(analysis, views)
-        with self._lock:
-            again, self._pending_request = self._pending_request, False
-        if again:
-            self.on_request(None)
 
     def _publish(self, analysis: Analysis, views: list) -> None:
         payload = analysis.to_json([v.stamp_ns for v in views])

@@ -175,3 +175,46 @@ def test_unreachable_vlm_falls_back_and_the_node_keeps_running():
             np.testing.assert_allclose(rig.usem[d[0]][0], 1.0, atol=1e-6)
     finally:
         rig.close()
+
+
+def test_requests_arriving_while_a_query_runs_are_answered_by_one_more_query():
+    from area3d_semantics.backends import HeuristicBackend
+
+    class HeldBackend(HeuristicBackend):
+        """The heuristic analyser, held at its first call until released."""
+
+        def __init__(self):
+            super().__init__()
+            self.entered, self.release, self.calls = threading.Event(), threading.Event(), 0
+
+        def analyze(self, images, depths=None):
+            self.calls += 1
+            if self.calls == 1:
+                self.entered.set()
+                assert self.release.wait(TIMEOUT_S)
+            return super().analyze(images, depths)
+
+    rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
+    try:
+        data = frames(3)
+        for stamp, image, depth, _ in data[:2]:
+            rig.frame(stamp, image, depth)
+        rig.spin(lambda: len(rig.regions) == 1)
+        held = HeldBackend()
+        rig.semantics.backend = held
+        rig.request.publish(msgs.String(data="first"))
+        assert held.entered.wait(TIMEOUT_S)
+        rig.frame(*data[2][:3])  # a new frame, then two requests while the first query runs
+        rig.spin(lambda: len(rig.semantics.views.complete) == 3)
+        rig.request.publish(msgs.String(data="second"))
+        rig.request.publish(msgs.String(data="third"))
+        rig.spin(lambda: rig.semantics._pending_request)
+        held.release.set()
+        rig.spin(lambda: len(rig.regions) >= 3)
+        rig.spin(lambda: False, 1.0)
+        # the running query, then one more for both waiting requests, with every frame by then
+        assert len(rig.regions) == 3 and held.calls == 2
+        last = json.loads(rig.regions[-1].data)
+        assert [img["stamp_ns"] for img in last["images"]] == [d[0] for d in data]
+    finally:
+        rig.close()
