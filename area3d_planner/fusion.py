@@ -192,10 +192,11 @@ class FusedGrid:
 
     def integrate_semantic(
         self, u_sem: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray
-    ) -> None:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Splat a per-pixel semantic uncertainty map U_sem (H, W) float32 in [0, 1] as a per-voxel mean.
 
         depth: (H, W) metres of the same frame (NaN = no return; those pixels carry nothing).
+        Returns the contribution (voxel ids, values) so that `retract_semantic` can take it back.
         """
         u_sem = np.asarray(u_sem)
         depth = np.asarray(depth)
@@ -212,12 +213,19 @@ class FusedGrid:
         keep = inside & np.isfinite(u)
         vox, u = vox[keep], np.clip(u[keep], 0.0, 1.0)
         pix_count = np.bincount(vox, minlength=n)
-        hit = pix_count > 0
-        self.sem_sum[hit] += (
-            np.bincount(vox, weights=u, minlength=n)[hit] / pix_count[hit]
-        ).astype(np.float32)
+        hit = np.flatnonzero(pix_count > 0)
+        values = (np.bincount(vox, weights=u, minlength=n)[hit] / pix_count[hit]).astype(np.float32)
+        self.sem_sum[hit] += values
         self.sem_count[hit] += 1.0
         self.semantic_frames += 1
+        return hit, values
+
+    def retract_semantic(self, ids: np.ndarray, values: np.ndarray) -> None:
+        """Take back one `integrate_semantic` contribution (a map replaced by a newer analysis)."""
+        self.sem_sum[ids] -= values
+        self.sem_count[ids] -= 1.0
+        np.maximum(self.sem_sum, 0.0, out=self.sem_sum)
+        self.semantic_frames -= 1
 
     # ------------------------------------------------------------------ fields
     def log_odds(self) -> np.ndarray:

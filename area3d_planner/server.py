@@ -265,6 +265,7 @@ class NextBestViewServer:
         self._fused = threading.Condition(self._lock)
         self._frames: OrderedDict[int, _Frame] = OrderedDict()
         self._pending_semantic: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._semantic_of: dict[int, tuple] = {}  # stamp -> its semantic contribution
         self._fused_stamps: set[int] = set()
         self._refreshed = threading.Condition(self._lock)
         self._map_version = 0  # occupancy changes (fused frames)
@@ -307,7 +308,8 @@ class NextBestViewServer:
                 np.asarray(depth, np.float32), np.asarray(K, float), np.asarray(T, float)
             )
             while len(self._frames) > self.config.frame_cache:
-                self._frames.popitem(last=False)
+                old_stamp, _ = self._frames.popitem(last=False)
+                self._semantic_of.pop(old_stamp, None)
             self._fused_stamps.add(int(stamp_ns))
             self.context.camera_positions.append(np.asarray(T, float)[:3, 3].copy())
             self.context.camera_poses.append(np.asarray(T, float).copy())
@@ -320,7 +322,7 @@ class NextBestViewServer:
                 self.context.invalidate()
             pending = self._pending_semantic.pop(int(stamp_ns), None)
             if pending is not None:
-                self.grid.integrate_semantic(pending, depth, K, T)
+                self._fuse_semantic(int(stamp_ns), pending, self._frames[int(stamp_ns)])
             self._fused.notify_all()
             self._refreshed.notify_all()
 
@@ -334,9 +336,19 @@ class NextBestViewServer:
                 while len(self._pending_semantic) > self.config.frame_cache:
                     self._pending_semantic.popitem(last=False)
                 return False
-            self.grid.integrate_semantic(u_sem, frame.depth, frame.K, frame.T)
+            self._fuse_semantic(int(stamp_ns), u_sem, frame)
             self.context.invalidate_fields()
             return True
+
+    def _fuse_semantic(self, stamp_ns: int, u_sem: np.ndarray, frame: _Frame) -> None:
+        """A semantic map replaces the one fused earlier for the same frame (a re-query's newer
+        analysis), rather than being averaged with it (lock held)."""
+        old = self._semantic_of.pop(stamp_ns, None)
+        if old is not None:
+            self.grid.retract_semantic(*old)
+        self._semantic_of[stamp_ns] = self.grid.integrate_semantic(
+            u_sem, frame.depth, frame.K, frame.T
+        )
 
     def wait_fused(self, stamp_ns: int, timeout_s: float) -> bool:
         """Block until the frame `stamp_ns` (0 = none) has been fused, or timeout; True if it has."""

@@ -327,3 +327,20 @@ def test_level_is_room_when_the_camera_works_inside_the_region():
     assert inside.resolved_level() == "room" and around.resolved_level() == "object"
     with pytest.raises(InputError, match="level"):
         NextBestViewServer(config(level="galaxy"))
+
+
+def test_a_newer_semantic_map_of_a_frame_replaces_the_older_one():
+    srv = NextBestViewServer(config())
+    depth, conf, K_, T = frame()
+    srv.add_frame(7, depth, conf, K_, T)
+    assert srv.add_semantic(7, np.full_like(depth, 0.2))
+    assert srv.add_semantic(7, np.full_like(depth, 0.6))  # a re-query's newer analysis
+    s = srv.grid.semantic()
+    assert srv.grid.semantic_frames == 1
+    np.testing.assert_allclose(s[s > 0], 0.6, rtol=1e-5)
+    # a map of another frame is averaged in as before
+    srv.add_frame(8, depth, conf, K_, T)
+    assert srv.add_semantic(8, np.full_like(depth, 0.2))
+    s = srv.grid.semantic()
+    assert srv.grid.semantic_frames == 2
+    np.testing.assert_allclose(s[s > 0], 0.4, rtol=1e-5)
