@@ -103,33 +103,37 @@ class PlanningContext:
         """Shell radius before any frame is captured: the region's half diagonal plus 0.3 m."""
         return 0.5 * float(np.linalg.norm(self.grid.roi_hi - self.grid.roi_lo)) + 0.3
 
+    def valid_positions(self, points: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
+        """(P,) bool: camera centres `points` (P, 3) the map allows (`valid_seeds`); at object
+        level unknown space outside the region (grown by clearance and a voxel) counts as usable."""
+        g = self.grid
+        outside = None
+        if self.visibility.level == "object":
+            margin = self.clearance + g.spec.voxel_size
+            outside = (g.roi_lo - margin, g.roi_hi + margin)
+        return valid_seeds(
+            points,
+            g.spec,
+            occupancy,
+            self.workspace_lo,
+            self.workspace_hi,
+            self.clearance,
+            unknown_ok_outside=outside,
+        )
+
     def candidate_views(self, occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(positions (S, 3), rotations (S, B, 3, 3)) of the candidate views for an occupancy
         snapshot (N,) int8: shells around the region at object level, a known-free lattice
         inside it at room level (see `visibility.py`)."""
         p = self.visibility
-        g = self.grid
         if p.level == "object":
             centre = self.region_centre()
             radius = self.working_distance() or self.default_distance()
             points = shell_positions(centre, radius, p)
-            margin = self.clearance + g.spec.voxel_size
-            ok = valid_seeds(
-                points,
-                g.spec,
-                occupancy,
-                self.workspace_lo,
-                self.workspace_hi,
-                self.clearance,
-                unknown_ok_outside=(g.roi_lo - margin, g.roi_hi + margin),
-            )
-            points = points[ok]
+            points = points[self.valid_positions(points, occupancy)]
             return points, shell_rotations(points, centre, p.fan_deg)
         points = lattice_positions(self.workspace_lo, self.workspace_hi, p.seed_spacing)
-        ok = valid_seeds(
-            points, g.spec, occupancy, self.workspace_lo, self.workspace_hi, self.clearance
-        )
-        points = points[ok]
+        points = points[self.valid_positions(points, occupancy)]
         _, rotations = orientation_bins(p)
         return points, np.broadcast_to(rotations, (points.shape[0], *rotations.shape)).copy()
 
@@ -328,7 +332,7 @@ class UniformPolicy(Policy):
         phi = i * GOLDEN_ANGLE
         pts = c + radius * np.stack([rxy * np.cos(phi), rxy * np.sin(phi), z], axis=1)
         seeds = context.seeds()
-        valid = _valid_points(context, pts, c)
+        valid = context.valid_positions(pts, context.grid.occupancy())
         poses = []
         for p, ok in zip(pts, valid, strict=True):
             if not ok:
@@ -337,25 +341,6 @@ class UniformPolicy(Policy):
                 p = seeds[int(np.argmin(np.linalg.norm(seeds - p, axis=1)))]
             poses.append(look_at(p, c))
         return poses
-
-
-def _valid_points(context: PlanningContext, pts: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """(N,) bool: the candidate rules (map only) applied to arbitrary camera centres; at object
-    level unknown space outside the region counts as usable, as for the shells."""
-    g = context.grid
-    margin = context.clearance + g.spec.voxel_size
-    outside = (
-        (g.roi_lo - margin, g.roi_hi + margin) if context.visibility.level == "object" else None
-    )
-    return valid_seeds(
-        pts,
-        g.spec,
-        g.occupancy(),
-        context.workspace_lo,
-        context.workspace_hi,
-        context.clearance,
-        unknown_ok_outside=outside,
-    )
 
 
 class VLMNaivePolicy(GreedyFieldPolicy):
