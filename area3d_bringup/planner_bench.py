@@ -25,6 +25,7 @@ TARGET_CACHE_S = 5.0
 TARGET_SELECT_S = 1.0
 TARGET_SPEEDUP = 10.0
 TARGET_ROUND_TRIP_P95_S = 0.05  # one closed-loop view, cache warm
+TARGET_SCORE_ERROR = 0.05  # median |score - reference| / reference, reference 16x the pixels
 
 
 def synthetic_room(
@@ -187,6 +188,53 @@ def bench_closed_loop(scene_name: str, steps: int = 12) -> dict:
         "steps": len(latencies),
         "p50_s": float(np.percentile(lat, 50)),
         "p95_s": float(np.percentile(lat, 95)),
+    }
+
+
+def bench_visibility_accuracy(scene_name: str) -> dict:
+    """Median relative error of every candidate view's score (utility after the initial views)
+    at the level's default `face_res` against a buffer with 16x the pixels (4x `face_res`), with
+    the same candidates, occluders and field."""
+    from dataclasses import replace
+
+    from area3d_perception.sensor_model import rgbd_confidence
+    from area3d_planner.server import NextBestViewServer, PlannerConfig
+    from sim_bridge.render import RgbdRenderer
+    from sim_bridge.scenes import load_scene
+
+    scene = load_scene(scene_name)
+    config = PlannerConfig(**{**_planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
+    server = NextBestViewServer(config, background=False)
+    renderer = RgbdRenderer(scene)
+    try:
+        for stamp, T in enumerate(scene.initial_views, start=1):
+            _, depth = renderer.render(T)
+            server.add_frame(stamp, depth, rgbd_confidence(depth, renderer.K), renderer.K, T)
+    finally:
+        renderer.close()
+    context = server.context
+    occupancy = context.grid.occupancy()
+    candidates = context.candidate_views(occupancy)
+    field = context.grid.fused()
+    face_res = context.visibility.face_res
+    scores = {}
+    for res in (face_res, 4 * face_res):
+        context.visibility = replace(context.visibility, face_res=res)
+        cache = context._build_cache("roi_not_free", occupancy, *candidates)
+        scores[res] = cache.score(field)
+    context.visibility = replace(context.visibility, face_res=face_res)
+    server.close()
+    reference = scores[4 * face_res]
+    useful = reference > 0
+    error = np.abs(scores[face_res][useful] - reference[useful]) / reference[useful]
+    return {
+        "level": config.resolved_level(),
+        "face_res": face_res,
+        "views": int(useful.sum()),
+        "median_error": float(np.median(error)),
+        "p90_error": float(np.percentile(error, 90)),
+        # the reference score of the view ranked best, over the reference's best score
+        "best_view_ratio": float(reference[np.argmax(scores[face_res])] / reference.max()),
     }
 
 
@@ -383,6 +431,12 @@ def run_bench(
                 results[f"closed_loop:{name}"] = bench_closed_loop(name)
             except Exception as exc:  # no renderer
                 results[f"closed_loop:{name}"] = {"error": f"{type(exc).__name__}: {exc}"}
+    if not synthetic_only:
+        for name in ("clutter7_a", "living_room"):
+            try:
+                results[f"visibility:{name}"] = bench_visibility_accuracy(name)
+            except Exception as exc:  # no renderer
+                results[f"visibility:{name}"] = {"error": f"{type(exc).__name__}: {exc}"}
     if transport and not synthetic_only:
         try:
             results["transport:single_object"] = bench_transport(requests)
@@ -424,6 +478,22 @@ def _print(results: dict, views: int) -> None:
                 f"{r['p95_s'] * 1e3:.0f} ms",
                 f"< {target * 1e3:.0f} ms",
                 f"{r['p95_s'] / target:.2f}",
+            )
+            continue
+        if name.startswith("visibility"):
+            table.add_row(
+                name, "views scored / face_res", f"{r['views']} / {r['face_res']}", "", ""
+            )
+            table.add_row(
+                name,
+                "score error vs 16x pixels, median",
+                f"{r['median_error'] * 100:.1f} %",
+                f"< {TARGET_SCORE_ERROR * 100:.0f} %",
+                f"{r['median_error'] / TARGET_SCORE_ERROR:.2f}",
+            )
+            table.add_row(name, "score error, p90", f"{r['p90_error'] * 100:.1f} %", "", "")
+            table.add_row(
+                name, "best view's reference score / best", f"{r['best_view_ratio']:.3f}", "", ""
             )
             continue
         if name.startswith("transport"):

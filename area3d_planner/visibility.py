@@ -357,7 +357,7 @@ class VisibilityCache:
         n_chunks = min(seeds.shape[0], threads * CHUNKS_PER_THREAD) if threads > 1 else 1
         chunks = np.array_split(np.arange(seeds.shape[0]), max(1, n_chunks))
         scratch = threading.local()
-        tol = 0.9 * spec.voxel_size  # the surface layer counts, one voxel behind it does not
+        tol = 0.7 * spec.voxel_size  # the surface layer counts, one voxel behind it does not
 
         def run(idx: np.ndarray):
             if not hasattr(scratch, "zbuf"):

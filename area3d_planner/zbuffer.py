@@ -18,7 +18,9 @@ from numba import njit
 # inscribed sphere, so the splats of neighbouring surface voxels touch without covering each
 # other's centres (a surface seen obliquely does not hide itself).
 SPLAT_HALF_EXTENT = 0.87
-MAX_SPLAT_PIXELS = 24  # half width cap of one splat, pixels (a voxel right at the camera)
+# Cap of a splat's angular half extent, radians (a voxel right at the camera would cover the whole
+# face): an angle, not a pixel count, so the same voxels occlude the same directions at any face_res.
+MAX_SPLAT_HALF_ANGLE = 0.25
 
 
 @njit(cache=True, inline="always")
@@ -69,7 +71,7 @@ def fill_zbuffer(origin, occ_centres, voxel_size, max_range, zbuf, dirty):
         r = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         if r < 1e-9 or r > max_range:
             continue
-        alpha = SPLAT_HALF_EXTENT * voxel_size / r
+        alpha = min(SPLAT_HALF_EXTENT * voxel_size / r, MAX_SPLAT_HALF_ANGLE)
         for a in range(3):
             if d[a] == 0.0:
                 continue
@@ -81,16 +83,29 @@ def fill_zbuffer(origin, occ_centres, voxel_size, max_range, zbuf, dirty):
             c = 1 if a == 2 else 2
             u = d[b] / m
             v = d[c] / m
-            eu = min(alpha * (1.0 + u * u) * half, MAX_SPLAT_PIXELS)
-            ev = min(alpha * (1.0 + v * v) * half, MAX_SPLAT_PIXELS)
+            eu = alpha * (1.0 + u * u) * half
+            ev = alpha * (1.0 + v * v) * half
             pu = (u + 1.0) * half
             pv = (v + 1.0) * half
             if pu + eu < 0 or pu - eu >= n or pv + ev < 0 or pv - ev >= n:
                 continue
-            i0 = max(int(np.floor(pu - eu)), 0)
-            i1 = min(int(np.floor(pu + eu)), n - 1)
-            j0 = max(int(np.floor(pv - ev)), 0)
-            j1 = min(int(np.floor(pv + ev)), n - 1)
+            # the pixels whose centres (i + 0.5) lie inside the splat; at least the one holding
+            # the voxel's own centre. Covering every pixel the splat touches instead would grow
+            # each occluder by up to a pixel, hiding more the coarser the buffer.
+            i0 = int(np.ceil(pu - eu - 0.5))
+            i1 = int(np.floor(pu + eu - 0.5))
+            if i1 < i0:
+                i0 = i1 = int(np.floor(pu))
+            j0 = int(np.ceil(pv - ev - 0.5))
+            j1 = int(np.floor(pv + ev - 0.5))
+            if j1 < j0:
+                j0 = j1 = int(np.floor(pv))
+            i0 = max(i0, 0)
+            i1 = min(i1, n - 1)
+            j0 = max(j0, 0)
+            j1 = min(j1, n - 1)
+            if i1 < i0 or j1 < j0:
+                continue
             dirty[face, 0] = min(dirty[face, 0], i0)
             dirty[face, 1] = max(dirty[face, 1], i1)
             dirty[face, 2] = min(dirty[face, 2], j0)

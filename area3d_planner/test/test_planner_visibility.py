@@ -206,9 +206,10 @@ def test_scores_converge_towards_a_16x_denser_reference(seed):
         errors.append(np.median(np.abs(s[useful] - reference[useful]) / reference[useful]))
         # the view ranked best is (nearly) the reference's best
         assert reference[np.argmax(s)] >= 0.8 * reference.max()
-    # the default resolution is 4x closer to the reference than a 4x coarser one would be
+    # the error falls as the buffer gets finer, and at the default resolution the median scoring
+    # error against the reference is under 5% (issue target)
     assert errors[1] < 0.5 * errors[0]
-    assert errors[1] < 0.25
+    assert errors[1] < 0.05
 
 
 def test_masks_do_not_depend_on_the_thread_count():
