@@ -11,15 +11,9 @@ import time
 import numpy as np
 
 from area3d_perception.grid import GridSpec
-from area3d_planner.fusion import FREE, FusedGrid
+from area3d_planner.fusion import FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy
-from area3d_planner.visibility import (
-    VisibilityCache,
-    VisibilityParams,
-    lattice_positions,
-    orientation_bins,
-    valid_seeds,
-)
+from area3d_planner.visibility import VisibilityParams
 
 TARGET_CACHE_S = 5.0
 TARGET_SELECT_S = 1.0
@@ -85,13 +79,23 @@ def room_scene_grid() -> tuple[FusedGrid, np.ndarray, np.ndarray, str]:
 def bench_grid(
     grid: FusedGrid, ws_lo, ws_hi, seed_spacing: float, views: int, params: VisibilityParams
 ) -> dict:
+    """Candidates and masks built as the planner builds them (a room-level lattice in known-free
+    space; the boundary of carved space occludes and is recorded), then a batch of `views` by lazy
+    and by plain greedy."""
+    from dataclasses import replace
+
+    from area3d_planner.policies import PlanningContext
+
     occ = grid.occupancy()
+    context = PlanningContext(
+        grid=grid,
+        workspace_lo=np.asarray(ws_lo, float),
+        workspace_hi=np.asarray(ws_hi, float),
+        visibility=replace(params, seed_spacing=seed_spacing),
+    )
     t0 = time.perf_counter()
-    seeds = lattice_positions(ws_lo, ws_hi, seed_spacing)
-    seeds = seeds[valid_seeds(seeds, grid.spec, occ, ws_lo, ws_hi, 0.05)]
-    relevant = grid.roi_mask & (occ != FREE)
-    rotations = orientation_bins(params)[1]
-    cache = VisibilityCache.build(grid.spec, occ, seeds, rotations, params, relevant=relevant)
+    _, caches = context.build(occ, ("roi_not_free",))
+    cache = caches["roi_not_free"]
     t_cache = time.perf_counter() - t0
     U = grid.fused()
     gp = GreedyParams()
@@ -397,7 +401,7 @@ def bench_transport(requests: int = 50) -> dict:
 
 def run_bench(
     views: int = 40,
-    face_res: int = 256,
+    face_res: int = 128,  # the room level default
     synthetic_only: bool = False,
     print_table: bool = True,
     service: bool = True,

@@ -214,9 +214,13 @@ def lazy_greedy(
 ) -> Selection:
     """Algorithm 1: a max-priority queue over seeds keyed by an upper bound of their best view.
 
-    Pop the top seed, score its fan of orientations from the cached masks; commit its best view
-    if it still beats the next key (ties: lower seed, then lower bin, as plain greedy), otherwise
-    reinsert it with the fresh key. Same result as `plain_greedy`, far fewer evaluations.
+    Every view keeps an upper bound of its utility (its last score: decay and suppression only
+    lower utilities). Pop the top seed and re-score only those of its views whose bound reaches
+    the next seed's key (the others cannot win this round); commit its best view if that view's
+    score is fresh and still beats the next key (ties: lower seed, then lower bin, as plain
+    greedy), otherwise reinsert the seed keyed by its best bound. Same result as `plain_greedy`, with
+    far fewer single-view evaluations than re-scoring whole seeds (a frustum decay touches most
+    seeds of a room, but only a few of each seed's orientations).
     """
     params = params or GreedyParams()
     U = _check(cache, U, budget, params)
@@ -226,34 +230,39 @@ def lazy_greedy(
     out = Selection(field=U)
     if cache.num_views == 0 or int(budget) == 0:
         return out
-    initial = cache.score(U).reshape(cache.num_seeds, nb) * gain[:, None] + prior[:, None]
-    initial[excluded] = -np.inf
+    bound = cache.score(U).reshape(cache.num_seeds, nb) * gain[:, None] + prior[:, None]
+    bound[excluded] = -np.inf
     out.evaluations += cache.num_views
-    heap = list(zip((-initial.max(axis=1)).tolist(), range(cache.num_seeds), strict=True))
+    fresh = np.ones((cache.num_seeds, nb), bool)  # bound == current utility (since last commit)
+    heap = list(zip((-bound.max(axis=1)).tolist(), range(cache.num_seeds), strict=True))
     heapq.heapify(heap)
-    # A seed re-scored since the last commit has an exact key: popped again, it wins as it is.
-    fresh_scores: dict[int, np.ndarray] = {}
     while heap and len(out.views) < int(budget):
         _, s = heapq.heappop(heap)
-        alive = ~excluded[s]
-        if not alive.any():
+        row = bound[s]
+        row[excluded[s]] = -np.inf
+        if not np.isfinite(row.max()):
+            continue  # every view of the seed is suppressed
+        # re-score, in one pass, the stale views that could still win now: those whose bound
+        # reaches the next seed's key (the others lose to that seed either way)
+        next_key = -heap[0][0] if heap else -np.inf
+        stale = np.flatnonzero(~fresh[s] & (row >= next_key) & (row > -np.inf))
+        if stale.size:
+            row[stale] = cache.score_views(U, s * nb + stale) * gain[s] + prior[s]
+            fresh[s, stale] = True
+            out.evaluations += int(stale.size)
+        best = float(row.max())
+        if not fresh[s][row == best].all():  # a stale bound is still on top: look again later
+            heapq.heappush(heap, (-best, s))
             continue
-        scores = fresh_scores.get(s)
-        if scores is None:
-            scores = cache.score_seed(U, s) * gain[s] + prior[s]
-            out.evaluations += int(alive.sum())
-            scores[~alive] = -np.inf
-            fresh_scores[s] = scores
-        b = int(np.argmax(scores))
-        fresh = float(scores[b])
-        if heap and (-fresh, s) > heap[0]:
-            heapq.heappush(heap, (-fresh, s))
+        if heap and (-best, s) > heap[0]:
+            heapq.heappush(heap, (-best, s))
             continue
+        b = int(np.flatnonzero(fresh[s] & (row == best))[0])
         v = s * nb + b
         out.views.append(v)
-        out.utilities.append(fresh)
+        out.utilities.append(float(best))
         decay_committed(cache, U, v, params.eta, params.decay)
         _nms_suppress(cache, excluded, v, params)
-        fresh_scores.clear()
-        heapq.heappush(heap, (-fresh, s))
+        fresh[:] = False
+        heapq.heappush(heap, (-best, s))
     return out

@@ -19,6 +19,19 @@ def score_views(indptr, ids, weights, field, first, last):
     return out
 
 
+@njit(cache=True, nogil=True)
+def score_view_list(indptr, ids, weights, field, views):
+    """Same sums as `score_views` for the views listed (int64 array, any order)."""
+    out = np.empty(views.shape[0])
+    for q in range(views.shape[0]):
+        v = views[q]
+        acc = 0.0
+        for k in range(indptr[v], indptr[v + 1]):
+            acc += weights[k] * field[ids[k]]
+        out[q] = acc
+    return out
+
+
 @njit(cache=True, parallel=True)
 def score_all_views(indptr, ids, weights, field):
     """Same sums as `score_views` over every view, in parallel (bit-identical per view)."""

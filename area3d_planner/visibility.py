@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
-from area3d_planner.masks import score_all_views, score_views
+from area3d_planner.masks import score_all_views, score_view_list, score_views
 from area3d_planner.zbuffer import in_frustum, new_zbuffer, seed_view_masks
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -405,6 +405,12 @@ class VisibilityCache:
         """(num_bins,) float64 utilities of one seed's views (same sums as `score`)."""
         b = self.num_bins
         return score_views(self.indptr, self.voxel_ids, self.weights, field, seed * b, seed * b + b)
+
+    def score_views(self, field: np.ndarray, views: np.ndarray) -> np.ndarray:
+        """(len(views),) float64 utilities of the given views (the same sums as `score`)."""
+        return score_view_list(
+            self.indptr, self.voxel_ids, self.weights, field, np.asarray(views, np.int64)
+        )
 
     def mask(self, view: int) -> tuple[np.ndarray, np.ndarray]:
         """(voxel ids int32, weights float32) of one view."""
