@@ -32,6 +32,10 @@ class GreedyParams:
     w_dist: float = 0.0  # distance prior weight per metre from the start (paper: "with distance prior", value not published)
     nms_radius: float = 0.1  # metres: light NMS, views at seeds this close to a committed one ...
     nms_angle_deg: float = 30.0  # ... and looking within this angle of it are suppressed
+    # Object level: a view already taken also rules out the candidates in the same direction from
+    # the region centre (within this angle, looking within nms_angle_deg of it) at any range: a
+    # shell nearer or farther along the same ray sees nearly the same surface. 0 = off.
+    nms_centre_angle_deg: float = 0.0
     # Range prior (paper: "with distance prior", form not published): seeds far nearer or farther
     # from the region than the working distance of the captured views see it at another
     # resolution and noise level; gain = exp(-((d - d0) / (range_sigma * d0))^2 / 2). 0 = off.
@@ -55,6 +59,10 @@ class GreedyParams:
             )
         if not (0 <= self.nms_angle_deg <= 180):
             raise InputError("nms_angle_deg", self.nms_angle_deg, "a value in [0, 180] degrees")
+        if not (0 <= self.nms_centre_angle_deg <= 180):
+            raise InputError(
+                "nms_centre_angle_deg", self.nms_centre_angle_deg, "a value in [0, 180] degrees"
+            )
 
 
 @dataclass
@@ -119,17 +127,31 @@ def _nms_suppress(
 
 
 def taken_views(
-    cache: VisibilityCache, poses: list[np.ndarray], params: GreedyParams
+    cache: VisibilityCache,
+    poses: list[np.ndarray],
+    params: GreedyParams,
+    centre: np.ndarray | None = None,
 ) -> np.ndarray:
     """(S, B) bool: candidate views within nms_radius and nms_angle_deg of a view already captured
-    ((4, 4) poses). Looking again from where the camera already looked adds little but noise."""
+    ((4, 4) poses). Looking again from where the camera already looked adds little but noise.
+    With a region `centre` (3,) and params.nms_centre_angle_deg > 0, also the views whose seed
+    lies within that angle of a taken view's direction from the centre, at any range."""
     excluded = np.zeros((cache.num_seeds, cache.num_bins), bool)
     if not poses or cache.num_views == 0:
         return excluded
     T = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     tree = cKDTree(cache.seeds)
+    by_direction = centre is not None and params.nms_centre_angle_deg > 0
+    if by_direction:
+        rays = cache.seeds - np.asarray(centre, np.float64)
+        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+        cos_centre = np.cos(np.radians(params.nms_centre_angle_deg))
     for pos, fwd in zip(T[:, :3, 3], T[:, :3, 2], strict=True):
         near = np.asarray(tree.query_ball_point(pos, params.nms_radius), dtype=np.int64)
+        if by_direction:
+            ray = pos - centre
+            ray = ray / max(float(np.linalg.norm(ray)), 1e-12)
+            near = np.union1d(near, np.flatnonzero(rays @ ray >= cos_centre))
         if near.size:
             cos_angle = np.clip(cache.forward[near] @ fwd, -1.0, 1.0)
             excluded[near] |= np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9

@@ -241,7 +241,8 @@ class GreedyFieldPolicy(Policy):
             raise InputError("uncertainty field", "NaN or inf voxels", "finite uncertainties")
         cache = context.cache(self.relevant)
         gain = context.range_gain(cache.seeds)
-        taken = taken_views(cache, context.camera_poses, context.greedy)
+        centre = context.region_centre() if context.visibility.level == "object" else None
+        taken = taken_views(cache, context.camera_poses, context.greedy, centre)
         if taken.all():  # every candidate was taken already: allow them again
             taken[:] = False
         return lazy_greedy(

@@ -97,6 +97,9 @@ class PlannerConfig:
     range_sigma: float = 0.0  # range prior around the working distance (0 = off)
     nms_radius: float = 0.1
     nms_angle_deg: float = 30.0
+    # object level: views taken also rule out candidates within this angle of the same direction
+    # from the region centre, at any range (0 = off)
+    nms_centre_angle_deg: float = 0.0
     carve_stride: int = 2
     policy: str = "area3d"
     mode: str = "batch"
@@ -253,6 +256,7 @@ class NextBestViewServer:
                 w_dist=c.w_dist,
                 nms_radius=c.nms_radius,
                 nms_angle_deg=c.nms_angle_deg,
+                nms_centre_angle_deg=c.nms_centre_angle_deg,
                 range_sigma=c.range_sigma,
                 decay=c.decay,
             ),

@@ -9,7 +9,12 @@ from area3d_planner.greedy import (
     range_gain,
     taken_views,
 )
-from area3d_planner.visibility import VisibilityCache, VisibilityParams, orientation_bins
+from area3d_planner.visibility import (
+    VisibilityCache,
+    VisibilityParams,
+    look_rotation,
+    orientation_bins,
+)
 
 SMALL = VisibilityParams(
     level="room", yaw_bins=6, pitch_bins=2, pitch_min_deg=-30, pitch_max_deg=15, face_res=32
@@ -135,3 +140,25 @@ def test_views_already_taken_are_the_ones_near_a_captured_pose():
         angle = np.degrees(np.arccos(np.clip(cache.forward[s2, b2] @ cache.forward[s, b], -1, 1)))
         assert angle <= 20.0 + 1e-9
     assert not taken_views(cache, [], params).any()
+
+
+def test_a_taken_view_rules_out_the_same_direction_from_the_centre_at_any_range():
+    # seeds on two shells around a centre, every one looking at it: a view taken on the inner
+    # shell also rules out the outer seed on the same ray, and only seeds within the angle
+    spec = GridSpec.from_bounds(np.full(3, -1.0), np.full(3, 1.0), 0.1)
+    occ = np.zeros(spec.num_voxels, np.int8)
+    centre = np.zeros(3)
+    azimuths = np.radians([0.0, 5.0, 30.0, 90.0])
+    dirs = np.stack([np.cos(azimuths), np.sin(azimuths), np.zeros(4)], axis=1)
+    seeds = np.concatenate([0.4 * dirs, 0.8 * dirs])
+    rotations = np.stack([look_rotation(-d) for d in np.concatenate([dirs, dirs])])[:, None]
+    cache = VisibilityCache.build(spec, occ, seeds, rotations, SMALL, threads=1)
+    taken = [cache.view_pose(0)]  # inner shell, azimuth 0
+    params = GreedyParams(nms_radius=0.02, nms_angle_deg=30.0, nms_centre_angle_deg=10.0)
+    by_direction = taken_views(cache, taken, params, centre)[:, 0]
+    np.testing.assert_array_equal(by_direction, [1, 1, 0, 0, 1, 1, 0, 0])
+    # without the centre (or with the angle 0) only the seed itself is ruled out
+    only_near = taken_views(cache, taken, params)[:, 0]
+    np.testing.assert_array_equal(only_near, [1, 0, 0, 0, 0, 0, 0, 0])
+    off = GreedyParams(nms_radius=0.02, nms_angle_deg=30.0)
+    np.testing.assert_array_equal(taken_views(cache, taken, off, centre)[:, 0], only_near)
