@@ -114,6 +114,8 @@ class FrameEstimator:
     window: views per feed-forward pass. confidence_normalization: see `normalize_confidence`.
     model_factory: builds the feed-forward model (defaults to the real backends; tests inject one).
     stereo: matcher settings of the stereo backend.
+    uniform_confidence: replace every backend's confidence by 1 on each valid pixel (the paper's
+    "w/o feed-forward" ablation, on the depth that backend estimates).
     """
 
     def __init__(
@@ -128,6 +130,7 @@ class FrameEstimator:
         confidence_normalization: str = "inverse",
         model_factory: Callable[[str, str], object] | None = None,
         stereo: StereoParams | None = None,
+        uniform_confidence: bool = False,
     ) -> None:
         if backend not in BACKENDS:
             raise InputError("backend", backend, f"one of {', '.join(BACKENDS)}")
@@ -135,6 +138,7 @@ class FrameEstimator:
             raise InputError("window", window, "an integer >= 1")
         normalize_confidence(np.ones((1, 1)), confidence_normalization)  # validates the name
         self.backend = backend
+        self.uniform_confidence = bool(uniform_confidence)
         self.sensor = sensor or RgbdSensorParams()
         self.noise = bool(noise)
         self.rng = np.random.default_rng(noise_seed)
@@ -168,6 +172,20 @@ class FrameEstimator:
         stereo). K: (3, 3). T_world_cam: (4, 4) optical-frame pose. right: (H, W, 3) uint8 right
         image of the rectified pair and baseline: metres, both for the stereo backend only.
         """
+        result = self._estimate(rgb, depth, K, T_world_cam, right, baseline)
+        if self.uniform_confidence:
+            result.confidence = np.isfinite(result.depth).astype(np.float32)
+        return result
+
+    def _estimate(
+        self,
+        rgb: np.ndarray | None,
+        depth: np.ndarray | None,
+        K: np.ndarray,
+        T_world_cam: np.ndarray,
+        right: np.ndarray | None,
+        baseline: float | None,
+    ) -> FrameResult:
         check_frame(rgb, depth, None)
         if self.matcher is not None:
             stereo = self.matcher.match(rgb, right, float(K[0, 0]), baseline)

@@ -49,6 +49,11 @@ PARAMS = (
         "how a feed-forward confidence >= 1 maps to [0, 1]",
         choices=("inverse", "percentile"),
     ),
+    Param(
+        "uniform_confidence",
+        False,
+        "confidence 1 on every valid pixel, on the backend's depth (the w/o feed-forward ablation)",
+    ),
     Param("use_depth", True, "pair frames with the camera's depth (False: colour-only backends)"),
     Param(
         "sync_max_age_s",
@@ -107,6 +112,7 @@ class PerceptionNode(Node):
             window=p["window"],
             confidence_normalization=p["confidence_normalization"],
             stereo=stereo,
+            uniform_confidence=p["uniform_confidence"],
         )
         keys = ("color", "depth", "pose") if self.use_depth else ("color", "pose")
         if self.stereo:

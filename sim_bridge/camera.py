@@ -14,6 +14,9 @@ from sim_bridge.validity import CLEARANCE, check_pose
 # (Nguyen, Izadi, Lovell 2012, Kinect); used only when depth_noise is on.
 NOISE_A, NOISE_B, NOISE_C = 0.0012, 0.0019, 0.4
 # optical frame in camera_link (x forward, y left, z up): REP 103 rpy (-pi/2, 0, -pi/2).
+# 6 cm: a compact robot stereo head (our choice; 5-12 cm is common). With fx = 320 px, depth
+# 0.3 m is 64 px of disparity and 5 m is 3.8 px.
+STEREO_BASELINE = 0.06
 R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 

@@ -20,7 +20,13 @@ from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import guarded
 from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
-from sim_bridge.camera import R_LINK_OPTICAL, SimCamera, link_from_optical, right_from_left
+from sim_bridge.camera import (
+    R_LINK_OPTICAL,
+    STEREO_BASELINE,
+    SimCamera,
+    link_from_optical,
+    right_from_left,
+)
 from sim_bridge.scenes import load_scene
 
 WORLD_FRAME = "world"
@@ -55,11 +61,9 @@ PARAMS = (
     ),
     Param("depth_noise", False, "add depth-sensor noise in the renderer"),
     Param("stereo", False, "also render and publish the right image of a rectified stereo pair"),
-    # 6 cm: a compact robot stereo head (our choice; 5-12 cm is common). With fx = 320 px, depth
-    # 0.3 m is 64 px of disparity and 5 m is 3.8 px.
     Param(
         "stereo_baseline",
-        0.06,
+        STEREO_BASELINE,
         "stereo baseline, metres (right = left + B along optical x)",
         range=(0.001, 10.0),
     ),
