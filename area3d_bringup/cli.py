@@ -211,6 +211,7 @@ def scenes() -> None:
 BENCHES = {
     "transport": "area3d_bringup.transport_bench",
     "render": "sim_bridge.bench",
+    "stereo": "area3d_bringup.stereo_bench",
     "perception": "area3d_perception.bench",
     "semantics": "area3d_semantics.bench",
     "planner": "area3d_bringup.planner_bench",

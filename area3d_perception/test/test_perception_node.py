@@ -190,8 +190,13 @@ def test_a_backend_outside_the_choices_is_refused_at_start_naming_it():
 
 
 # -- stereo backend ----------------------------------------------------------------------------
-STEREO = {"backend": "stereo", "stereo.num_disparities": 16, "stereo.speckle_window_size": 0}
-SHIFT_PX, BASELINE = 4, 0.1  # every pixel 4 px apart: depth fx B / d = 32 * 0.1 / 4 = 0.8 m
+STEREO = {
+    "backend": "stereo",
+    "stereo.num_disparities": 16,
+    "stereo.speckle_window_size": 0,
+    "stereo.downscale": 1,
+}
+SHIFT_PX, BASELINE = 8, 0.2  # every pixel 8 px apart: depth fx B / d = 32 * 0.2 / 8 = 0.8 m
 
 
 def stereo_pair(shift=SHIFT_PX):

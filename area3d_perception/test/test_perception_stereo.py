@@ -57,7 +57,7 @@ def _pair(surfaces: list[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def matcher():
-    m = StereoMatcher(StereoParams(num_disparities=32))
+    m = StereoMatcher(StereoParams(num_disparities=32, downscale=1))
     yield m
     m.close()
 
@@ -71,7 +71,7 @@ def test_textured_plane_is_confident_and_within_two_percent(matcher):
     left, right, truth = _pair([(1.0, -5, 5, _texture(0, True))])
     out = matcher.match(left, right, FX, BASELINE)
     conf, depth = _centre(out.confidence), _centre(out.depth)
-    assert np.median(conf) > 0.6
+    assert np.median(conf) > 0.8
     assert np.isfinite(depth).mean() > 0.95
     rel = np.abs(depth - 1.0)[np.isfinite(depth)] / 1.0
     # 1 m is 19.2 px of disparity; SGBM's sub-pixel fit pulls towards whole pixels (about 0.15 px
@@ -79,11 +79,24 @@ def test_textured_plane_is_confident_and_within_two_percent(matcher):
     assert np.median(rel) < 0.02
 
 
+def test_half_resolution_matching_keeps_the_textured_plane_within_five_percent():
+    left, right, _ = _pair([(1.0, -5, 5, _texture(0, True))])
+    half = StereoMatcher(StereoParams(num_disparities=16, downscale=2))
+    out = half.match(left, right, FX, BASELINE)
+    depth = _centre(out.depth)
+    assert out.depth.shape == (H, W) and np.isfinite(depth).mean() > 0.95
+    # 9.6 px of disparity at half size: pixel locking may move it by up to ~0.4 px (4 %), while a
+    # disparity left unscaled to full size would be off by 100 %
+    assert np.median(np.abs(depth[np.isfinite(depth)] - 1.0)) < 0.05
+    assert np.median(_centre(out.confidence)) > 0.5
+
+
 def test_textureless_plane_at_the_same_pose_is_not_trusted(matcher):
     left, right, _ = _pair([(1.0, -5, 5, _texture(0, False))])
     out = matcher.match(left, right, FX, BASELINE)
-    assert np.median(_centre(out.confidence)) < 0.05
-    assert _centre(out.confidence).max() < 0.2
+    conf = _centre(out.confidence)
+    assert np.mean(conf) < 0.02  # SGBM finds no unique match on most of it
+    assert np.percentile(conf, 99) < 0.2  # and the texture factor holds the rest down
 
 
 def test_occluded_band_beside_a_foreground_edge_gets_no_confidence(matcher):
@@ -149,7 +162,7 @@ def test_bad_parameters_are_refused():
 
 def test_estimator_stereo_backend_needs_the_right_image_and_ignores_sensor_depth():
     left, right, truth = _pair([(1.0, -5, 5, _texture(0, True))])
-    est = FrameEstimator(backend="stereo", stereo=StereoParams(num_disparities=32))
+    est = FrameEstimator(backend="stereo", stereo=StereoParams(num_disparities=32, downscale=1))
     with pytest.raises(InputError, match="right"):
         est.process(left, truth, K, np.eye(4))
     out = est.process(left, np.full_like(truth, 3.0), K, np.eye(4), right=right, baseline=BASELINE)
