@@ -198,3 +198,13 @@ def test_nodes_stop_quietly_on_sigint_even_when_the_launcher_ignores_it(tmp_path
         codes = launcher.stop(grace_s=20.0)
     assert codes == {"sim_bridge": 0}, lines[-10:]
     assert not any("Traceback" in line for line in lines)
+
+
+def test_the_stereo_backend_turns_the_simulated_stereo_pair_on_unless_told_otherwise():
+    def sim(overrides):
+        return next(s for s in build_graph(overrides=overrides) if s.name == "sim_bridge")
+
+    assert "stereo" not in sim({}).parameters  # mono by default: episodes cost what they did
+    assert sim({"perception": {"backend": "stereo"}}).parameters["stereo"] is True
+    off = {"perception": {"backend": "stereo"}, "sim_bridge": {"stereo": False}}
+    assert sim(off).parameters["stereo"] is False
