@@ -48,8 +48,10 @@ class StereoParams:
     uniqueness_ratio: int = 10  # percent; OpenCV suggests 5-15
     speckle_window_size: int = 100  # px; OpenCV suggests 50-200
     speckle_range: int = 2  # px of disparity; OpenCV suggests 1-2
-    lr_max_diff_px: float = 1.0  # our choice: a disagreement beyond one pixel is a mismatch
-    lr_sigma_px: float = 0.5  # our choice: half a pixel of disagreement gives exp(-1)
+    # at the matching resolution; our choice: a disagreement beyond one pixel is a mismatch, and
+    # half a pixel gives exp(-1)
+    lr_max_diff_px: float = 1.0
+    lr_sigma_px: float = 0.5
     texture_window_px: int = 7  # our choice: about the SGBM block plus a margin
     # grey levels / px: RMS horizontal gradient where texture gives 0.5 (our choice: 1 grey level of
     # camera noise alone gives 0.43, so a blank surface stays below 0.16; on the simulator's
@@ -230,7 +232,8 @@ class StereoMatcher:
     def _matched(
         self, left_grey: np.ndarray, right_grey: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(left disparity, left-right difference), both (H, W) float32 full-resolution pixels."""
+        """(left disparity in full-size px, left-right difference in px of the matching size),
+        both (H, W) float32: a one-pixel disagreement means the same at any `downscale`."""
         s = self.params.downscale
         if s == 1:
             disp_left, disp_right = self.disparities(left_grey, right_grey)
@@ -243,11 +246,11 @@ class StereoMatcher:
         disp_left, disp_right = self.disparities(*small)
         diff = lr_difference(disp_left, disp_right)
         # nearest, so no disparity is invented between two surfaces at an occlusion edge
-        up = [
-            cv2.resize(a * np.float32(s), (w, h), interpolation=cv2.INTER_NEAREST)
-            for a in (disp_left, diff)
-        ]
-        return up[0], up[1]
+        size = (w, h)
+        return (
+            cv2.resize(disp_left * np.float32(s), size, interpolation=cv2.INTER_NEAREST),
+            cv2.resize(diff, size, interpolation=cv2.INTER_NEAREST),
+        )
 
     def close(self) -> None:
         self._pool.shutdown(wait=False)
