@@ -370,6 +370,7 @@ def run_episode(
         saved = json.loads(episode_path.read_text())
         config.scene, config.policy, config.mode = saved["scene"], saved["policy"], saved["mode"]
         config.seed, budget = saved["seed"], saved["budget"]
+        config.depth_source = saved.get("depth_source", config.depth_source)
         scene = load_scene(config.scene)
         views = saved["views"]
         frames = [rundir.read_frame(rundir.frame_path(run_dir, v["index"])) for v in views]
