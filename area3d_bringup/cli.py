@@ -71,6 +71,10 @@ def run(
     nodes: str = typer.Option(
         "", help="comma list of the graph nodes to start here (default: all; others run elsewhere)"
     ),
+    depth_source: str = typer.Option(
+        "sensor",
+        help="what the TSDF reconstructs from: sensor (the camera's depth) | estimated (perception's)",
+    ),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
@@ -88,6 +92,7 @@ def run(
         domain_id=domain_id,
         namespace=namespace,
         nodes=tuple(n for n in nodes.split(",") if n) or None,
+        depth_source=depth_source,
     )
     columns = (
         TextColumn("{task.description}"),
@@ -206,6 +211,7 @@ def scenes() -> None:
 BENCHES = {
     "transport": "area3d_bringup.transport_bench",
     "render": "sim_bridge.bench",
+    "stereo": "area3d_bringup.stereo_bench",
     "perception": "area3d_perception.bench",
     "semantics": "area3d_semantics.bench",
     "planner": "area3d_bringup.planner_bench",
@@ -242,6 +248,11 @@ def bench_episode(
     in_process: bool = typer.Option(
         False, help="call the nodes' cores in one process (same views, no transport; faster)"
     ),
+    param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
+    depth_source: str = typer.Option(
+        "sensor",
+        help="what the TSDF reconstructs from: sensor (the camera's depth) | estimated (perception's)",
+    ),
 ) -> None:
     """Every policy on every scene with several seeds; prints the table."""
     from area3d_bringup.episode_bench import run_episode_bench
@@ -255,6 +266,8 @@ def bench_episode(
         console=console,
         in_process=in_process,
         holdout=holdout,
+        overrides=_overrides(param),
+        depth_source=depth_source,
     )
 
 

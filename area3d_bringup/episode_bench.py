@@ -18,6 +18,17 @@ SPEED_TARGET_S = (
 ROOM_SPEED_TARGET_S = 120.0  # a room-level episode (40 views)
 
 
+def _with_policy(overrides: dict[str, dict] | None, policy: str) -> dict[str, dict]:
+    """The bench's overrides for one policy: an ablation's own settings win over the command
+    line's (no_ff keeps its uniform confidence whatever the backend)."""
+    from area3d_bringup.runner import POLICIES
+
+    merged = {node: dict(values) for node, values in (overrides or {}).items()}
+    for node, values in POLICIES.get(policy, {}).items():
+        merged.setdefault(node, {}).update(values)
+    return merged
+
+
 def run_episode_bench(
     seeds: int,
     policies: list[str],
@@ -27,6 +38,8 @@ def run_episode_bench(
     console: Console,
     in_process: bool = False,
     holdout: bool = False,
+    overrides: dict[str, dict] | None = None,
+    depth_source: str = "sensor",
 ) -> dict:
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
     from area3d_eval import rundir
@@ -64,6 +77,8 @@ def run_episode_bench(
                         record=False,
                         run_name=f"{Path(scene).stem}_{policy}_s{seed}",
                         domain_id=domain_id,
+                        overrides=_with_policy(overrides, policy),
+                        depth_source=depth_source,
                     )
                     try:
                         if in_process:  # the same cores in one process: no transport, same views
@@ -71,7 +86,14 @@ def run_episode_bench(
 
                             t0 = time.monotonic()
                             run_dir = run_inprocess_episode(
-                                scene, policy, seed, out / stamp, budget, run_name=config.run_name
+                                scene,
+                                policy,
+                                seed,
+                                out / stamp,
+                                budget,
+                                overrides=config.overrides,
+                                run_name=config.run_name,
+                                depth_source=depth_source,
                             )
                             episode = json.loads((run_dir / rundir.EPISODE_FILE).read_text())
                             episode["timings_s"]["episode_total"] = time.monotonic() - t0

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from area3d_bringup.launch_description import load_parameters, planner_region
-from area3d_eval.rundir import write_episode, write_frame
+from area3d_eval.rundir import check_depth_source, write_episode, write_frame
 
 
 def _policy_parameters(policy: str) -> dict[str, dict]:
@@ -34,17 +34,22 @@ def run_inprocess_episode(
     budget: int | None = None,
     overrides: dict[str, dict] | None = None,
     run_name: str | None = None,
+    depth_source: str = "sensor",
 ) -> Path:
     """Run one closed-loop episode in this process; returns its run directory (frames and
-    episode.json, as `area3d run` writes them, with a timing per stage)."""
+    episode.json, as `area3d run` writes them, with a timing per stage). depth_source: what the
+    TSDF of the evaluation integrates (rundir.DEPTH_SOURCES); "estimated" keeps perception's depth
+    and confidence in every frame file."""
     from area3d_perception.estimator import FrameEstimator
+    from area3d_perception.stereo import StereoParams
     from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
     from area3d_semantics.analysis import analyze_views
     from area3d_semantics.backends import make_backend
     from area3d_semantics.weights import SemanticParams, semantic_uncertainty, weight_map
-    from sim_bridge.camera import SimCamera
+    from sim_bridge.camera import STEREO_BASELINE, SimCamera
     from sim_bridge.scenes import load_scene
 
+    check_depth_source(depth_source)
     scene = load_scene(scene_name)
     params = load_parameters()
     for node, values in _policy_parameters(policy).items():
@@ -52,6 +57,8 @@ def run_inprocess_episode(
     for node, values in (overrides or {}).items():
         params.setdefault(node, {}).update(values)
     perception = params.get("perception", {})
+    camera_params = params.get("sim_bridge", {})
+    stereo = perception.get("backend") == "stereo" or bool(camera_params.get("stereo", False))
     semantics = params.get("semantics", {})
     planner = dict(params.get("planner", {}))
     n_init = len(scene.initial_views)
@@ -63,11 +70,20 @@ def run_inprocess_episode(
         **{k: tuple(v) if isinstance(v, list) else v for k, v in planner.items() if k in fields}
     )
     server = NextBestViewServer(config)
-    camera = SimCamera(scene)
+    baseline = float(camera_params.get("stereo_baseline", STEREO_BASELINE)) if stereo else 0.0
+    camera = SimCamera(scene, stereo_baseline=baseline)
     estimator = FrameEstimator(
         backend=perception.get("backend", "rgbd"),
         noise=bool(perception.get("noise", True)),
         noise_seed=int(perception.get("noise_seed", 0)) + seed,
+        uniform_confidence=bool(perception.get("uniform_confidence", False)),
+        stereo=StereoParams(
+            **{
+                k.removeprefix("stereo."): v
+                for k, v in perception.items()
+                if k.startswith("stereo.")
+            }
+        ),
     )
     backend = make_backend(semantics.get("backend", "heuristic"))
     sem_params = SemanticParams()
@@ -89,12 +105,19 @@ def run_inprocess_episode(
             return False
         stamp = (len(views) + 1) * 1_000_000_000
         t = time.perf_counter()
-        result = estimator.process(cap.rgb, cap.depth, camera.K, cap.T_world_cam)
+        result = estimator.process(
+            cap.rgb, cap.depth, camera.K, cap.T_world_cam, right=cap.rgb_right, baseline=baseline
+        )
         add_time("perception", time.perf_counter() - t)
         t = time.perf_counter()
         server.add_frame(stamp, result.depth, result.confidence, camera.K, cap.T_world_cam)
         add_time("fusion", time.perf_counter() - t)
-        write_frame(run_dir, len(views), cap.rgb, cap.depth, camera.K, cap.T_world_cam, stamp)
+        estimates = {}
+        if depth_source == "estimated":
+            estimates = {"estimated_depth": result.depth, "confidence": result.confidence}
+        write_frame(
+            run_dir, len(views), cap.rgb, cap.depth, camera.K, cap.T_world_cam, stamp, **estimates
+        )
         views.append(
             {"index": len(views), "stamp_ns": stamp, "T_world_cam": cap.T_world_cam, "kind": kind}
         )
@@ -138,6 +161,7 @@ def run_inprocess_episode(
             "budget": total,
             "level": scene.level,
             "mode": "closed_loop",
+            "depth_source": depth_source,
             "views": views,
             "timings_s": timings,
             "config": {"planner": planner, "in_process": True, "initial_views": n_init},

@@ -99,6 +99,9 @@ def build_graph(
             merged[node] = {**values, **merged.get(node, {})}
         for node, values in (overrides or {}).items():
             merged[node].update(values)
+    # The stereo backend matches the camera's right image: a simulated camera renders one then.
+    if merged.get("perception", {}).get("backend") == "stereo" and "sim_bridge" in merged:
+        merged["sim_bridge"].setdefault("stereo", True)
     shared = merged.get("**", {})
     return [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
 

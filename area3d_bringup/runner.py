@@ -41,7 +41,9 @@ POLICIES: dict[str, dict[str, dict]] = {
         "planner": {"policy": "area3d", "semantic_weight": 0.0},
         "semantics": {"backend": "none"},
     },
-    "no_ff": {"planner": {"policy": "area3d"}, "perception": {"backend": "uniform"}},
+    # uniform confidence on whatever depth the perception backend estimates (with rgbd: the same
+    # output as the `uniform` backend)
+    "no_ff": {"planner": {"policy": "area3d"}, "perception": {"uniform_confidence": True}},
     "gamma0": {"planner": {"policy": "area3d", "gamma": 0.0}},
 }
 
@@ -56,13 +58,15 @@ GOAL_TOPIC = "area3d/camera/goal_pose"
 CAMERA_STATUS_TOPIC = "area3d/camera/status"
 GRID_TOPIC = "area3d/planner/uncertainty_grid"
 PLANNER_STATUS_TOPIC = "area3d/planner/status"
+PERCEPTION_DEPTH_TOPIC = "area3d/perception/depth"
+PERCEPTION_CONFIDENCE_TOPIC = "area3d/perception/confidence"
 NBV_SERVICE = "area3d/planner/next_best_view"
 TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
 #: what the bag holds besides the camera topics and the goals: {topic: (type, latched)}
 GRAPH_OUTPUTS = {
     CAMERA_STATUS_TOPIC: (msgs.String, False),
-    "area3d/perception/depth": (msgs.Image, False),
-    "area3d/perception/confidence": (msgs.Image, False),
+    PERCEPTION_DEPTH_TOPIC: (msgs.Image, False),
+    PERCEPTION_CONFIDENCE_TOPIC: (msgs.Image, False),
     "area3d/semantics/regions": (msgs.String, True),
     "area3d/semantics/weight": (msgs.Image, False),
     "area3d/semantics/uncertainty": (msgs.Image, False),
@@ -102,6 +106,9 @@ class EpisodeConfig:
     plan_timeout_s: float = 120.0
     fuse_timeout_s: float = 30.0
     startup_timeout_s: float = 90.0
+    # what the TSDF integrates (rundir.DEPTH_SOURCES): the camera's depth, or perception's estimate
+    # (then kept in every frame file)
+    depth_source: str = "sensor"
 
 
 def paper_budget(level: str) -> int:
@@ -120,9 +127,12 @@ class MissionManager(Node):
         self,
         recorder: BagRecorder | None,
         alive_check: Callable[[], None] = lambda: None,
+        keep_estimates: bool = False,
         **kwargs: Any,
     ):
         super().__init__("mission_manager", **kwargs)
+        # {stamp: {"depth" | "confidence": image}} of perception's outputs, when the run keeps them
+        self.estimates: dict[int, dict[str, np.ndarray]] | None = {} if keep_estimates else None
         self.recorder = recorder
         self.alive_check = alive_check  # raises when a node of the graph has died
         self._lock = threading.Condition()
@@ -188,6 +198,13 @@ class MissionManager(Node):
                 self.planner_status = json.loads(msg.data)
             elif topic == GRID_TOPIC:
                 self.latest_grid = cdr
+            elif self.estimates is not None and topic in (
+                PERCEPTION_DEPTH_TOPIC,
+                PERCEPTION_CONFIDENCE_TOPIC,
+            ):
+                key = "depth" if topic == PERCEPTION_DEPTH_TOPIC else "confidence"
+                stamp = codecs.stamp_to_ns(msg.header.stamp)
+                self.estimates.setdefault(stamp, {})[key] = codecs.msg_to_image(msg)
 
         return handle
 
@@ -272,6 +289,11 @@ class MissionManager(Node):
             )
         )
 
+    def estimates_received(self) -> dict[int, dict[str, np.ndarray]]:
+        """{stamp: {"depth", "confidence"}} of what perception has published so far."""
+        with self._lock:
+            return dict(self.estimates or {})
+
     def wait_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
         with self._lock:
@@ -348,6 +370,7 @@ def run_episode(
         saved = json.loads(episode_path.read_text())
         config.scene, config.policy, config.mode = saved["scene"], saved["policy"], saved["mode"]
         config.seed, budget = saved["seed"], saved["budget"]
+        config.depth_source = saved.get("depth_source", config.depth_source)
         scene = load_scene(config.scene)
         views = saved["views"]
         frames = [rundir.read_frame(rundir.frame_path(run_dir, v["index"])) for v in views]
@@ -360,6 +383,7 @@ def run_episode(
         run_dir = Path(config.out_dir) / name
         run_dir.mkdir(parents=True, exist_ok=False)
     n_init = len(scene.initial_views)
+    rundir.check_depth_source(config.depth_source)
 
     overrides: dict[str, dict] = {}
     for node, values in POLICIES[config.policy].items():
@@ -392,6 +416,7 @@ def run_episode(
                 "budget": budget,
                 "level": scene.level,
                 "mode": config.mode,
+                "depth_source": config.depth_source,
                 "views": views,
                 "timings_s": timings,
                 "config": {spec.name: spec.parameters for spec in specs},
@@ -423,7 +448,11 @@ def run_episode(
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain_id)
     manager = MissionManager(
-        recorder, alive_check=launcher.check, context=context, namespace=config.namespace or None
+        recorder,
+        alive_check=launcher.check,
+        keep_estimates=config.depth_source == "estimated",
+        context=context,
+        namespace=config.namespace or None,
     )
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(manager)
@@ -553,8 +582,10 @@ def run_episode(
                 )
         manager.wait_fused(len(frames), 10.0)
         # Let the bag catch up with what the planner and perception published for the last frame.
-        perception_depth = manager.resolve_topic_name("area3d/perception/depth")
+        perception_depth = manager.resolve_topic_name(PERCEPTION_DEPTH_TOPIC)
         manager.wait_until(lambda: manager.received.get(perception_depth, 0) >= len(frames), 10.0)
+        if manager.estimates is not None:
+            _attach_estimates(run_dir, frames, manager, log_sink)
         if manager.latest_grid is not None:
             rundir.write_grid(run_dir / rundir.GRID_FINAL_FILE, _grid(manager.latest_grid))
         add_time("episode_total", time.monotonic() - t0)
@@ -581,6 +612,28 @@ def run_episode(
         lease.release()
         log_file.close()
     return run_dir
+
+
+def _attach_estimates(
+    run_dir: Path, frames: list[Frame], manager: MissionManager, log_sink: Callable[[str], None]
+) -> None:
+    """Rewrite each frame file with the depth and confidence perception published for it."""
+    estimates = manager.estimates_received()
+    for index, frame in enumerate(frames):
+        got = estimates.get(frame.stamp_ns, {})
+        if frame.estimated_depth is not None and "depth" not in got:
+            continue  # kept from before a resume
+        if "depth" not in got:
+            log_sink(f"[mission_manager] no perception depth for view {index}; TSDF will refuse it")
+            continue
+        rundir.write_frame(
+            run_dir,
+            index,
+            *frame,
+            stamp_ns=frame.stamp_ns,
+            estimated_depth=got["depth"],
+            confidence=got.get("confidence"),
+        )
 
 
 def _spin(executor: SingleThreadedExecutor) -> None:

@@ -34,9 +34,11 @@ from area3d_eval.render import MeshRenderer
 from area3d_eval.rundir import (
     EVAL_DIR,
     METRICS_FILE,
+    check_depth_source,
     frame_files,
     read_episode,
     read_frame,
+    reconstruction_depth,
     to_jsonable,
 )
 from area3d_msgs_py.errors import InputError
@@ -145,6 +147,7 @@ def evaluate_run(
     num_surface_points: int = NUM_SURFACE_POINTS,
     renderer_factory: RendererFactory | None = None,
     write: bool = True,
+    depth_source: str | None = None,
 ) -> dict[str, Any]:
     """Metrics of the run after each number of views in `checkpoints`, written to RUN_DIR/metrics.json.
 
@@ -153,12 +156,15 @@ def evaluate_run(
     checkpoints: numbers of views (reconstruction from the first n frames); default |O_0|, 4, 8, ...
     and all frames. renderer_factory(scene, width, height, hfov_deg) -> object with .K,
     .render(T) -> (rgb, depth), .close(); default sim_bridge.render.RgbdRenderer.
+    depth_source: "sensor" (the camera's depth) or "estimated" (perception's depth stored in the
+    frames) for the TSDF; None = what the episode was run with (episode.json "depth_source").
     Returns the dict written: {"final": {...}, "curve": [{"num_views": n, ...}], ...}.
     """
     o3d = import_open3d()
     run_dir = Path(run_dir)
     episode = read_episode(run_dir)
     scene = _load_scene(scene, episode.scene)
+    depth_source = check_depth_source(depth_source or episode.depth_source)
     files = frame_files(run_dir)
     if not files:
         raise InputError("run_dir", str(run_dir), "a run directory with frames/NNNN.npz files")
@@ -189,7 +195,8 @@ def evaluate_run(
         t = time.perf_counter()
         for path in files[fusion.num_frames : n]:
             frame = read_frame(path)
-            fusion.integrate(frame.rgb, frame.depth, frame.K, frame.T_world_cam)
+            depth = reconstruction_depth(frame, depth_source)
+            fusion.integrate(frame.rgb, depth, frame.K, frame.T_world_cam)
         timings["tsdf"] += time.perf_counter() - t
         t = time.perf_counter()
         mesh = fusion.extract_mesh()
@@ -209,6 +216,7 @@ def evaluate_run(
         "seed": episode.seed,
         "level": episode.level,
         "mode": episode.mode,
+        "depth_source": depth_source,
         "tau": tau,
         "num_views": len(files),
         "num_initial": episode.num_initial,

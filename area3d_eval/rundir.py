@@ -2,12 +2,14 @@
 
 Layout (all paths relative to RUN_DIR):
 
-- `episode.json`: {"scene", "policy", "seed", "budget", "level", "mode",
+- `episode.json`: {"scene", "policy", "seed", "budget", "level", "mode", "depth_source",
   "views": [{"index", "stamp_ns", "T_world_cam" (4x4 list), "kind": "initial" | "planned",
   "stage_times_s": {...}}], "timings_s": {stage: seconds}, "config": {...},
   "ros": {"domain_id", "namespace"}, "recorded": {topic: message count in the bag}}
 - `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
-  K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index.
+  K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index. Optional:
+  estimated_depth (H, W) float32 metres NaN = missing and confidence (H, W) float32 in [0, 1],
+  what perception made of the frame (the depth the TSDF uses with depth_source "estimated").
 - `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays
   x, y, z, uncertainty, geometric, semantic, occupancy (one entry per voxel).
 - `bag/`: rosbag2 MCAP of everything the graph published (`bag_N/` for resumed parts); the
@@ -33,6 +35,9 @@ import numpy as np
 from area3d_msgs_py.errors import InputError
 
 EPISODE_FILE = "episode.json"
+# What the TSDF integrates: the camera's depth, or the depth perception estimated from the images
+# (stored in each frame as estimated_depth; views that fix bad estimates then show in the metrics).
+DEPTH_SOURCES = ("sensor", "estimated")
 METRICS_FILE = "metrics.json"
 FRAMES_DIR = "frames"
 EVAL_DIR = "eval"
@@ -46,7 +51,8 @@ GRID_FIELDS = ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy
 @dataclass(frozen=True)
 class Frame:
     """One captured view. rgb (H, W, 3) uint8; depth (H, W) float32 metres, NaN = no return;
-    K (3, 3); T_world_cam (4, 4) optical frame in `world`; stamp_ns capture time."""
+    K (3, 3); T_world_cam (4, 4) optical frame in `world`; stamp_ns capture time;
+    estimated_depth / confidence: perception's output for the view (None when not recorded)."""
 
     rgb: np.ndarray
     depth: np.ndarray
@@ -54,6 +60,8 @@ class Frame:
     T_world_cam: np.ndarray
     stamp_ns: int = 0
     index: int = 0
+    estimated_depth: np.ndarray | None = None
+    confidence: np.ndarray | None = None
 
     def __iter__(self):
         """Unpacks as (rgb, depth, K, T_world_cam), the tuple `tsdf_reconstruct` takes."""
@@ -73,6 +81,7 @@ class Episode:
     views: list[dict[str, Any]]
     timings_s: dict[str, float] = field(default_factory=dict)
     config: dict[str, Any] = field(default_factory=dict)
+    depth_source: str = "sensor"
 
     @property
     def num_initial(self) -> int:
@@ -108,6 +117,7 @@ def read_episode(run_dir: Path) -> Episode:
         views=views,
         timings_s={str(k): float(v) for k, v in data.get("timings_s", {}).items()},
         config=dict(data.get("config", {})),
+        depth_source=str(data.get("depth_source", "sensor")),
     )
 
 
@@ -119,6 +129,26 @@ def write_episode(run_dir: Path, episode: dict[str, Any]) -> Path:
     tmp.write_text(json.dumps(to_jsonable(episode), indent=1))
     os.replace(tmp, path)
     return path
+
+
+def check_depth_source(depth_source: str) -> str:
+    """The name itself, or InputError naming the field when it is not one of DEPTH_SOURCES."""
+    if depth_source not in DEPTH_SOURCES:
+        raise InputError("depth_source", depth_source, f"one of {', '.join(DEPTH_SOURCES)}")
+    return depth_source
+
+
+def reconstruction_depth(frame: Frame, depth_source: str) -> np.ndarray:
+    """The (H, W) float32 depth the TSDF integrates for `frame` under `depth_source`."""
+    if check_depth_source(depth_source) == "sensor":
+        return frame.depth
+    if frame.estimated_depth is None:
+        raise InputError(
+            f"frames/{frame.index:04d}.npz estimated_depth",
+            None,
+            "perception's depth in every frame (run the episode with depth_source estimated)",
+        )
+    return frame.estimated_depth
 
 
 def frame_path(run_dir: Path, index: int) -> Path:
@@ -133,6 +163,8 @@ def write_frame(
     K: np.ndarray,
     T_world_cam: np.ndarray,
     stamp_ns: int = 0,
+    estimated_depth: np.ndarray | None = None,
+    confidence: np.ndarray | None = None,
 ) -> Path:
     """Write RUN_DIR/frames/NNNN.npz in the layout above (uncompressed: it is read back often).
 
@@ -143,6 +175,12 @@ def write_frame(
         raise InputError("rgb", f"{rgb.dtype} {rgb.shape}", "(H, W, 3) uint8")
     if depth.shape != rgb.shape[:2]:
         raise InputError("depth", f"shape {depth.shape}", f"(H, W) = {rgb.shape[:2]} like rgb")
+    estimates = {}
+    for name, image in (("estimated_depth", estimated_depth), ("confidence", confidence)):
+        if image is not None:
+            if np.shape(image) != rgb.shape[:2]:
+                raise InputError(name, f"shape {np.shape(image)}", f"(H, W) = {rgb.shape[:2]}")
+            estimates[name] = np.asarray(image, dtype=np.float32)
     path = frame_path(run_dir, index)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
@@ -153,6 +191,7 @@ def write_frame(
         K=np.asarray(K, dtype=np.float64),
         T_world_cam=np.asarray(T_world_cam, dtype=np.float64),
         stamp_ns=np.int64(stamp_ns),
+        **estimates,
     )
     os.replace(tmp, path)
     return path
@@ -167,6 +206,8 @@ def read_frame(path: Path) -> Frame:
             T_world_cam=data["T_world_cam"].astype(np.float64),
             stamp_ns=int(data["stamp_ns"]) if "stamp_ns" in data else 0,
             index=int(Path(path).stem),
+            estimated_depth=data["estimated_depth"] if "estimated_depth" in data else None,
+            confidence=data["confidence"] if "confidence" in data else None,
         )
 
 

@@ -387,13 +387,16 @@ def transform_to_matrix(transform: Any) -> np.ndarray:
 
 # camera info ---------------------------------------------------------------------------------
 def intrinsics_to_camera_info(
-    K: np.ndarray, width: int, height: int, stamp_ns: int, frame_id: str
+    K: np.ndarray, width: int, height: int, stamp_ns: int, frame_id: str, baseline: float = 0.0
 ) -> Any:
     """sensor_msgs/CameraInfo of an undistorted pinhole camera (plumb_bob, zero distortion).
 
     K: (3, 3) intrinsics in pixels; R = identity and P = [K | 0] as ROS fills them for a
-    monocular camera.
+    monocular camera (or the left camera of a rectified pair). baseline: metres; > 0 makes this the
+    right camera of a rectified pair, whose P[0, 3] = Tx = -fx * baseline (ROS CameraInfo).
     """
+    if not (np.isfinite(baseline) and baseline >= 0):
+        raise InputError("baseline", baseline, "metres >= 0 (0 = monocular or left camera)")
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.isfinite(K).all():
         raise InputError(
@@ -406,6 +409,7 @@ def intrinsics_to_camera_info(
             raise InputError(name, value, "a positive int of pixels")
     P = np.zeros((3, 4))
     P[:, :3] = K
+    P[0, 3] = -K[0, 0] * baseline
     return msgs.CameraInfo(
         header=header(stamp_ns, frame_id),
         height=int(height),
@@ -429,3 +433,17 @@ def camera_info_to_intrinsics(msg: Any) -> tuple[np.ndarray, int, int]:
     if msg.width <= 0 or msg.height <= 0:
         raise InputError("width/height", (msg.width, msg.height), "positive image size")
     return K, int(msg.width), int(msg.height)
+
+
+def camera_info_to_baseline(msg: Any) -> float:
+    """Baseline in metres of the right camera of a rectified stereo pair: B = -Tx / fx, with
+    Tx = P[0, 3] and fx = P[0, 0] of its sensor_msgs/CameraInfo (ROS convention)."""
+    P = np.asarray(msg.p, dtype=np.float64).reshape(3, 4)
+    if not (np.isfinite(P).all() and P[0, 0] > 0):
+        raise InputError("p", P.reshape(-1).tolist(), "a rectified projection with fx = P[0] > 0")
+    baseline = -P[0, 3] / P[0, 0]
+    if baseline <= 0:
+        raise InputError(
+            "p[3]", float(P[0, 3]), "Tx = -fx * baseline < 0: the right camera of a stereo pair"
+        )
+    return float(baseline)

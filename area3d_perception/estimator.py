@@ -3,6 +3,7 @@
 Backends:
     rgbd              sensor depth (optionally with simulated noise) + `rgbd_confidence`
     uniform           sensor depth, confidence 1 on every valid pixel (the "w/o feed-forward" ablation)
+    stereo            depth matched from a rectified pair (left = the colour image) + stereo confidence
     vggt              VGGT depth + confidence over a sliding window of recent views, scaled to metres
     depth_anything_3  the same with Depth Anything 3
 
@@ -11,6 +12,7 @@ This is the pure core of the perception node: no transport, arrays in and out.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,8 +29,9 @@ from area3d_perception.feedforward import (
     normalize_confidence,
 )
 from area3d_perception.sensor_model import RgbdSensorParams, add_depth_noise, rgbd_confidence
+from area3d_perception.stereo import StereoMatcher, StereoParams
 
-BACKENDS = ("rgbd", "vggt", "depth_anything_3", "uniform")
+BACKENDS = ("rgbd", "vggt", "depth_anything_3", "uniform", "stereo")
 FEEDFORWARD_BACKENDS = ("vggt", "depth_anything_3")
 # Views per feed-forward pass: the new frame plus up to 7 recent ones (our choice; VGGT is
 # multi-view and its depth improves with context, while memory and time grow with the window).
@@ -110,6 +113,9 @@ class FrameEstimator:
     checkpoint/device: feed-forward weights (file for vggt, directory for depth_anything_3).
     window: views per feed-forward pass. confidence_normalization: see `normalize_confidence`.
     model_factory: builds the feed-forward model (defaults to the real backends; tests inject one).
+    stereo: matcher settings of the stereo backend.
+    uniform_confidence: replace every backend's confidence by 1 on each valid pixel (the paper's
+    "w/o feed-forward" ablation, on the depth that backend estimates).
     """
 
     def __init__(
@@ -123,6 +129,8 @@ class FrameEstimator:
         window: int = FEEDFORWARD_WINDOW,
         confidence_normalization: str = "inverse",
         model_factory: Callable[[str, str], object] | None = None,
+        stereo: StereoParams | None = None,
+        uniform_confidence: bool = False,
     ) -> None:
         if backend not in BACKENDS:
             raise InputError("backend", backend, f"one of {', '.join(BACKENDS)}")
@@ -130,6 +138,7 @@ class FrameEstimator:
             raise InputError("window", window, "an integer >= 1")
         normalize_confidence(np.ones((1, 1)), confidence_normalization)  # validates the name
         self.backend = backend
+        self.uniform_confidence = bool(uniform_confidence)
         self.sensor = sensor or RgbdSensorParams()
         self.noise = bool(noise)
         self.rng = np.random.default_rng(noise_seed)
@@ -137,6 +146,11 @@ class FrameEstimator:
         self.confidence_normalization = confidence_normalization
         self.model = None
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.window - 1)
+        self.matcher = None
+        if backend == "stereo":
+            self.matcher = StereoMatcher(
+                dataclasses.replace(stereo or StereoParams(), max_range=self.sensor.max_range)
+            )
         if backend in FEEDFORWARD_BACKENDS:
             factory = model_factory or _default_model_factory(backend)
             self.model = factory(checkpoint, device)
@@ -147,14 +161,35 @@ class FrameEstimator:
         depth: np.ndarray | None,
         K: np.ndarray,
         T_world_cam: np.ndarray,
+        right: np.ndarray | None = None,
+        baseline: float | None = None,
     ) -> FrameResult:
         """Depth and confidence of one frame.
 
-        rgb: (H, W, 3) uint8 (needed by feed-forward backends). depth: (H, W) float32 metres from the
-        sensor, NaN = no return (needed by rgbd/uniform; optional for feed-forward, which then scales
-        by the poses). K: (3, 3). T_world_cam: (4, 4) optical-frame pose.
+        rgb: (H, W, 3) uint8 (needed by feed-forward and stereo backends; the left image of a
+        stereo pair). depth: (H, W) float32 metres from the sensor, NaN = no return (needed by
+        rgbd/uniform; optional for feed-forward, which then scales by the poses; not used by
+        stereo). K: (3, 3). T_world_cam: (4, 4) optical-frame pose. right: (H, W, 3) uint8 right
+        image of the rectified pair and baseline: metres, both for the stereo backend only.
         """
+        result = self._estimate(rgb, depth, K, T_world_cam, right, baseline)
+        if self.uniform_confidence:
+            result.confidence = np.isfinite(result.depth).astype(np.float32)
+        return result
+
+    def _estimate(
+        self,
+        rgb: np.ndarray | None,
+        depth: np.ndarray | None,
+        K: np.ndarray,
+        T_world_cam: np.ndarray,
+        right: np.ndarray | None,
+        baseline: float | None,
+    ) -> FrameResult:
         check_frame(rgb, depth, None)
+        if self.matcher is not None:
+            stereo = self.matcher.match(rgb, right, float(K[0, 0]), baseline)
+            return FrameResult(stereo.depth, stereo.confidence, [])
         notes: list[str] = []
         metric = None
         if depth is not None:

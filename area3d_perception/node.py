@@ -1,6 +1,7 @@
 """The perception node: captured frames in, metric depth + confidence in [0, 1] out.
 
-Subscribes the camera's color, depth, camera info and optical-frame pose, pairs them by stamp
+Subscribes the camera's color, depth, camera info and optical-frame pose (with the `stereo`
+backend also the right image and right camera info of a rectified pair), pairs them by stamp
 (`StampSync`), runs `FrameEstimator` and publishes depth and confidence with the source frame's
 stamp and frame_id. Topic names are relative: `__ns` moves them all.
 """
@@ -22,11 +23,14 @@ from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
 from area3d_perception.frame_sync import MAX_AGE_NS, StampSync
 from area3d_perception.sensor_model import RgbdSensorParams
+from area3d_perception.stereo import StereoParams
 
 COLOR_TOPIC = "area3d/camera/color/image_raw"
 DEPTH_TOPIC = "area3d/camera/depth/image_raw"
 INFO_TOPIC = "area3d/camera/camera_info"
 POSE_TOPIC = "area3d/camera/pose"
+RIGHT_TOPIC = "area3d/camera/right/image_rect"
+RIGHT_INFO_TOPIC = "area3d/camera/right/camera_info"
 OUT_DEPTH_TOPIC = "area3d/perception/depth"
 OUT_CONFIDENCE_TOPIC = "area3d/perception/confidence"
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
@@ -45,6 +49,11 @@ PARAMS = (
         "how a feed-forward confidence >= 1 maps to [0, 1]",
         choices=("inverse", "percentile"),
     ),
+    Param(
+        "uniform_confidence",
+        False,
+        "confidence 1 on every valid pixel, on the backend's depth (the w/o feed-forward ablation)",
+    ),
     Param("use_depth", True, "pair frames with the camera's depth (False: colour-only backends)"),
     Param(
         "sync_max_age_s",
@@ -61,6 +70,16 @@ PARAMS = (
         )
         for f in dataclasses.fields(RgbdSensorParams)
     ),
+    *(
+        Param(
+            f"stereo.{f.name}",
+            f.default,
+            f"StereoParams.{f.name} (stereo backend: SGBM and its confidence)",
+            range=(0, 1e6),
+        )
+        for f in dataclasses.fields(StereoParams)
+        if f.name != "max_range"  # the camera's range is sensor.max_range
+    ),
 )
 
 
@@ -75,6 +94,14 @@ class PerceptionNode(Node):
             **{f.name: p[f"sensor.{f.name}"] for f in dataclasses.fields(RgbdSensorParams)}
         )
         self.use_depth = p["use_depth"]
+        self.stereo = p["backend"] == "stereo"
+        stereo = StereoParams(
+            **{
+                f.name: p[f"stereo.{f.name}"]
+                for f in dataclasses.fields(StereoParams)
+                if f.name != "max_range"
+            }
+        )
         self.estimator = FrameEstimator(
             backend=p["backend"],
             sensor=sensor,
@@ -84,10 +111,15 @@ class PerceptionNode(Node):
             device=p["device"],
             window=p["window"],
             confidence_normalization=p["confidence_normalization"],
+            stereo=stereo,
+            uniform_confidence=p["uniform_confidence"],
         )
         keys = ("color", "depth", "pose") if self.use_depth else ("color", "pose")
+        if self.stereo:
+            keys += ("right",)
         self.sync = StampSync(keys, max_age_ns=int(p["sync_max_age_s"] * 1e9))
         self.camera: tuple[Any, int, int] | None = None
+        self.right_camera: tuple[float, int, int] | None = None  # (baseline m, width, height)
         self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
         self.frames_published = 0
 
@@ -109,6 +141,16 @@ class PerceptionNode(Node):
         self.create_subscription(
             msgs.PoseStamped, POSE_TOPIC, guarded(self, self.on_pose, POSE_TOPIC), qos.frames()
         )
+        if self.stereo:
+            self.create_subscription(
+                msgs.Image, RIGHT_TOPIC, guarded(self, self.on_right, RIGHT_TOPIC), qos.frames()
+            )
+            self.create_subscription(
+                msgs.CameraInfo,
+                RIGHT_INFO_TOPIC,
+                guarded(self, self.on_right_camera_info, RIGHT_INFO_TOPIC),
+                qos.frames(),
+            )
         self.get_logger().info(
             f"backend={p['backend']} noise={p['noise']} use_depth={self.use_depth}"
         )
@@ -123,13 +165,31 @@ class PerceptionNode(Node):
     def on_pose(self, msg: Any) -> None:
         self._add("pose", msg, lambda m: codecs.pose_to_matrix(m.pose))
 
+    def on_right(self, msg: msgs.Image) -> None:
+        self._add("right", msg, codecs.msg_to_image)
+
     def on_camera_info(self, msg: Any) -> None:
         try:
             self.camera = codecs.camera_info_to_intrinsics(msg)
         except InputError as exc:
             self.get_logger().warning(f"camera_info rejected: {exc}")
             return
-        while self.waiting:
+        self._release_waiting()
+
+    def on_right_camera_info(self, msg: Any) -> None:
+        try:
+            _, width, height = codecs.camera_info_to_intrinsics(msg)
+            self.right_camera = (codecs.camera_info_to_baseline(msg), width, height)
+        except InputError as exc:
+            self.get_logger().warning(f"right camera_info rejected: {exc}")
+            return
+        self._release_waiting()
+
+    def _ready(self) -> bool:
+        return self.camera is not None and (not self.stereo or self.right_camera is not None)
+
+    def _release_waiting(self) -> None:
+        while self.waiting and self._ready():
             stamp, parts = self.waiting.popleft()
             self._process(stamp, parts)
 
@@ -147,10 +207,11 @@ class PerceptionNode(Node):
             )
         if parts is None:
             return
-        if self.camera is None:
+        if not self._ready():
             if not self.waiting:
+                missing = INFO_TOPIC if self.camera is None else RIGHT_INFO_TOPIC
                 self.get_logger().warning(
-                    f"no camera_info on {INFO_TOPIC} yet; holding frames until it arrives"
+                    f"no camera_info on {missing} yet; holding frames until it arrives"
                 )
             self.waiting.append((stamp, parts))
             return
@@ -162,10 +223,22 @@ class PerceptionNode(Node):
         rgb, color_frame = parts["color"]
         depth, depth_frame = parts["depth"] if "depth" in parts else (None, None)
         T_world_cam, _ = parts["pose"]
+        right, _ = parts["right"] if "right" in parts else (None, None)
+        baseline = None
         frame_id = depth_frame or color_frame
         try:
             check_frame(rgb, depth, (width, height))
-            result = self.estimator.process(rgb, depth, K, T_world_cam)
+            if self.stereo:
+                baseline, right_width, right_height = self.right_camera
+                if (right_width, right_height) != (width, height):
+                    raise InputError(
+                        "right camera_info",
+                        f"size {right_width}x{right_height}",
+                        f"the left camera's size {width}x{height}",
+                    )
+            result = self.estimator.process(
+                rgb, depth, K, T_world_cam, right=right, baseline=baseline
+            )
         except InputError as exc:
             self.get_logger().warning(f"frame at stamp {stamp} rejected: {exc}")
             return
@@ -178,7 +251,12 @@ class PerceptionNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Process entry point: `python -m area3d_perception.node [--ros-args ...]`."""
-    return run_node(PerceptionNode, "perception", args, startup_errors=(InputError, FileNotFoundError, ImportError, RuntimeError))
+    return run_node(
+        PerceptionNode,
+        "perception",
+        args,
+        startup_errors=(InputError, FileNotFoundError, ImportError, RuntimeError),
+    )
 
 
 if __name__ == "__main__":

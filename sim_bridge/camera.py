@@ -14,18 +14,31 @@ from sim_bridge.validity import CLEARANCE, check_pose
 # (Nguyen, Izadi, Lovell 2012, Kinect); used only when depth_noise is on.
 NOISE_A, NOISE_B, NOISE_C = 0.0012, 0.0019, 0.4
 # optical frame in camera_link (x forward, y left, z up): REP 103 rpy (-pi/2, 0, -pi/2).
+# 6 cm: a compact robot stereo head (our choice; 5-12 cm is common). With fx = 320 px, depth
+# 0.3 m is 64 px of disparity and 5 m is 3.8 px.
+STEREO_BASELINE = 0.06
 R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 @dataclass
 class Capture:
-    """One handled goal. rgb (H, W, 3) uint8, depth (H, W) float32 metres; None when not ok."""
+    """One handled goal. rgb (H, W, 3) uint8, depth (H, W) float32 metres; None when not ok.
+    rgb_right (H, W, 3) uint8: the right image of the rectified stereo pair (None without stereo)."""
 
     ok: bool
     reason: str
     T_world_cam: np.ndarray
     rgb: np.ndarray | None = None
     depth: np.ndarray | None = None
+    rgb_right: np.ndarray | None = None
+
+
+def right_from_left(T_world_cam: np.ndarray, baseline: float) -> np.ndarray:
+    """(4, 4) pose of the right camera of a rectified pair: the left optical frame moved
+    `baseline` metres along its own x axis (to the right in the image)."""
+    T_left_right = np.eye(4)
+    T_left_right[0, 3] = baseline
+    return np.asarray(T_world_cam, dtype=np.float64) @ T_left_right
 
 
 def link_from_optical(T_world_cam: np.ndarray) -> np.ndarray:
@@ -45,7 +58,9 @@ class SimCamera:
     """Validates goal poses against the scene and renders the valid ones.
 
     The renderer is created on the first capture, so its OpenGL context belongs to the thread that
-    captures (the node's spin thread).
+    captures (the node's spin thread). stereo_baseline > 0 (metres) renders a second, right image
+    from the left pose shifted along the optical x axis: a rectified pair with the same K; 0 = mono.
+    Only the left pose is checked for clearance (the right camera is part of the same body).
     """
 
     def __init__(
@@ -58,7 +73,13 @@ class SimCamera:
         clearance: float = CLEARANCE,
         depth_noise: bool = False,
         seed: int = 0,
+        stereo_baseline: float = 0.0,
     ) -> None:
+        if not (np.isfinite(stereo_baseline) and stereo_baseline >= 0):
+            raise ValueError(
+                f"stereo_baseline: got {stereo_baseline!r}, expected metres >= 0 (0 = no stereo)"
+            )
+        self.stereo_baseline = float(stereo_baseline)
         self.scene = scene
         self.width, self.height, self.hfov_deg, self.max_range = width, height, hfov_deg, max_range
         self.clearance = clearance
@@ -87,7 +108,10 @@ class SimCamera:
         rgb, depth = self.renderer.render(T)
         if self.depth_noise:
             depth = add_depth_noise(depth, self._rng)
-        return Capture(True, "ok", T, rgb, depth)
+        rgb_right = None
+        if self.stereo_baseline > 0:
+            rgb_right, _ = self.renderer.render(right_from_left(T, self.stereo_baseline))
+        return Capture(True, "ok", T, rgb, depth, rgb_right)
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -20,18 +20,29 @@ from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import guarded
 from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
-from sim_bridge.camera import R_LINK_OPTICAL, SimCamera, link_from_optical
+from sim_bridge.camera import (
+    R_LINK_OPTICAL,
+    STEREO_BASELINE,
+    SimCamera,
+    link_from_optical,
+    right_from_left,
+)
 from sim_bridge.scenes import load_scene
 
 WORLD_FRAME = "world"
 LINK_FRAME = "camera_link"
 OPTICAL_FRAME = "camera_optical_frame"
+RIGHT_OPTICAL_FRAME = "camera_right_optical_frame"
 
 GOAL_TOPIC = "area3d/camera/goal_pose"
 COLOR_TOPIC = "area3d/camera/color/image_raw"
 DEPTH_TOPIC = "area3d/camera/depth/image_raw"
 INFO_TOPIC = "area3d/camera/camera_info"
 POSE_TOPIC = "area3d/camera/pose"
+# The right camera of a stereo pair, named as a ROS stereo camera names it (stereo_image_proc:
+# right/image_rect, right/camera_info); the left image is the colour image and its camera_info.
+RIGHT_TOPIC = "area3d/camera/right/image_rect"
+RIGHT_INFO_TOPIC = "area3d/camera/right/camera_info"
 STATUS_TOPIC = "area3d/camera/status"
 TF_TOPIC = "/tf"
 TF_STATIC_TOPIC = "/tf_static"
@@ -49,6 +60,13 @@ PARAMS = (
         range=(0.0, 10.0),
     ),
     Param("depth_noise", False, "add depth-sensor noise in the renderer"),
+    Param("stereo", False, "also render and publish the right image of a rectified stereo pair"),
+    Param(
+        "stereo_baseline",
+        STEREO_BASELINE,
+        "stereo baseline, metres (right = left + B along optical x)",
+        range=(0.001, 10.0),
+    ),
     # Volatile topics drop what is published before a reader has matched, and this node's writers
     # may match a new reader later than other nodes do: the first capture waits until the nodes
     # that read each frame topic are matched (by name, so that other readers do not count).
@@ -59,6 +77,8 @@ PARAMS = (
             ("depth", DEPTH_TOPIC, ("perception", "semantics")),
             ("camera_info", INFO_TOPIC, ("perception", "planner")),
             ("pose", POSE_TOPIC, ("perception", "planner")),
+            ("right", RIGHT_TOPIC, ("perception",)),
+            ("right_camera_info", RIGHT_INFO_TOPIC, ("perception",)),
         )
     ),
     Param("readers.all", ("",), "nodes that must read every frame topic as well ('' = none)"),
@@ -88,12 +108,19 @@ class SimBridgeNode(Node):
             p["max_range"],
             p["clearance"],
             p["depth_noise"],
+            stereo_baseline=p["stereo_baseline"] if p["stereo"] else 0.0,
         )
         self.pub_color = self.create_publisher(msgs.Image, COLOR_TOPIC, qos.frames())
         self.pub_depth = self.create_publisher(msgs.Image, DEPTH_TOPIC, qos.frames())
         self.pub_info = self.create_publisher(msgs.CameraInfo, INFO_TOPIC, qos.frames())
         self.pub_pose = self.create_publisher(msgs.PoseStamped, POSE_TOPIC, qos.frames())
         self.pub_status = self.create_publisher(msgs.String, STATUS_TOPIC, qos.frames())
+        self.pub_right = self.pub_right_info = None
+        if p["stereo"]:
+            self.pub_right = self.create_publisher(msgs.Image, RIGHT_TOPIC, qos.frames())
+            self.pub_right_info = self.create_publisher(
+                msgs.CameraInfo, RIGHT_INFO_TOPIC, qos.frames()
+            )
         self.pub_tf = self.pub_tf_static = None
         if msgs.TFMessage is not None:
             self.pub_tf = self.create_publisher(msgs.TFMessage, TF_TOPIC, qos.reliable(100))
@@ -102,11 +129,13 @@ class SimBridgeNode(Node):
             )
             T_link_opt = np.eye(4)
             T_link_opt[:3, :3] = R_LINK_OPTICAL
-            self.pub_tf_static.publish(
-                msgs.TFMessage(
-                    transforms=[_transform(T_link_opt, self._now_ns(), LINK_FRAME, OPTICAL_FRAME)]
+            static = [_transform(T_link_opt, self._now_ns(), LINK_FRAME, OPTICAL_FRAME)]
+            if p["stereo"]:
+                T_right = right_from_left(np.eye(4), p["stereo_baseline"])
+                static.append(
+                    _transform(T_right, self._now_ns(), OPTICAL_FRAME, RIGHT_OPTICAL_FRAME)
                 )
-            )
+            self.pub_tf_static.publish(msgs.TFMessage(transforms=static))
         else:
             self.get_logger().info(
                 "tf2_msgs does not import (it is not on PyPI; source a ROS 2 install for it): "
@@ -119,6 +148,11 @@ class SimBridgeNode(Node):
             self.pub_info: set(p["readers.camera_info"]) | everyone,
             self.pub_pose: set(p["readers.pose"]) | everyone,
         }
+        if p["stereo"]:
+            self.required_readers[self.pub_right] = set(p["readers.right"]) | everyone
+            self.required_readers[self.pub_right_info] = (
+                set(p["readers.right_camera_info"]) | everyone
+            )
         self.readers_matched = False
         self.create_subscription(
             msgs.PoseStamped, GOAL_TOPIC, guarded(self, self.on_goal, GOAL_TOPIC), qos.frames()
@@ -150,6 +184,20 @@ class SimBridgeNode(Node):
                 self.camera.K, self.camera.width, self.camera.height, stamp_ns, OPTICAL_FRAME
             )
         )
+        if self.pub_right is not None:
+            self.pub_right.publish(
+                codecs.image_to_msg(capture.rgb_right, "rgb8", stamp_ns, RIGHT_OPTICAL_FRAME)
+            )
+            self.pub_right_info.publish(
+                codecs.intrinsics_to_camera_info(
+                    self.camera.K,
+                    self.camera.width,
+                    self.camera.height,
+                    stamp_ns,
+                    RIGHT_OPTICAL_FRAME,
+                    baseline=self.camera.stereo_baseline,
+                )
+            )
         self.pub_pose.publish(
             msgs.PoseStamped(
                 header=codecs.header(stamp_ns, WORLD_FRAME), pose=codecs.matrix_to_pose(T)

@@ -32,3 +32,23 @@ def test_an_in_process_episode_refuses_an_unknown_policy(tmp_path):
 
     with pytest.raises(ValueError, match="policy"):
         run_inprocess_episode("single_object", "best", 0, tmp_path, budget=5)
+
+
+def test_a_stereo_episode_keeps_the_estimated_depth_for_the_tsdf(tmp_path):
+    run_dir = run_inprocess_episode(
+        "single_object",
+        "area3d",
+        0,
+        tmp_path,
+        budget=4,
+        overrides={"perception": {"backend": "stereo"}},
+        depth_source="estimated",
+    )
+    assert read_episode(run_dir).depth_source == "estimated"
+    for path in frame_files(run_dir):
+        frame = read_frame(path)
+        both = np.isfinite(frame.estimated_depth) & np.isfinite(frame.depth)
+        assert both.mean() > 0.3  # the simulator's right image was matched
+        rel = np.abs(frame.estimated_depth[both] - frame.depth[both]) / frame.depth[both]
+        assert np.median(rel) < 0.05  # metric: right baseline, right focal length, right sign
+        assert 0.0 < np.median(frame.confidence[both]) <= 1.0

@@ -154,3 +154,25 @@ def test_held_out_references_are_lit_by_the_scene_lights_not_a_headlight():
     roi_pixels = np.concatenate([img[m] for img, m in zip(images, masks, strict=True)])
     assert len(roi_pixels) > 1000 and roi_pixels.mean() > 40  # lit, not black
     assert (roi_pixels.max(axis=1) < 10).mean() < 0.05
+
+
+def test_an_estimated_depth_run_is_reconstructed_from_perceptions_depth(tmp_path, scene):
+    from area3d_eval.rundir import (
+        EPISODE_FILE,
+        frame_files,
+        read_frame,
+        write_frame,
+    )
+
+    run = make_run(
+        tmp_path / "run", scene, policy="area3d", seed=0, budget=4, width=160, height=120
+    )
+    for path in frame_files(run):  # perception "estimated" every surface 3 cm too far
+        f = read_frame(path)
+        write_frame(run, f.index, f.rgb, f.depth, f.K, f.T_world_cam, f.stamp_ns, f.depth + 0.03)
+    sensor = evaluate_run(run, scene, write=False, **SMALL)
+    episode = json.loads((run / EPISODE_FILE).read_text())
+    (run / EPISODE_FILE).write_text(json.dumps({**episode, "depth_source": "estimated"}))
+    estimated = evaluate_run(run, scene, write=False, **SMALL)  # the episode's choice
+    assert sensor["depth_source"] == "sensor" and estimated["depth_source"] == "estimated"
+    assert estimated["final"]["accuracy"] > sensor["final"]["accuracy"] + 0.01, (sensor, estimated)

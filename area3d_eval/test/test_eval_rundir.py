@@ -6,7 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from area3d_eval.rundir import iter_frames, read_episode, to_jsonable, write_episode, write_frame
+from area3d_eval.rundir import (
+    iter_frames,
+    read_episode,
+    reconstruction_depth,
+    to_jsonable,
+    write_episode,
+    write_frame,
+)
 from area3d_msgs_py.errors import InputError
 
 
@@ -49,3 +56,23 @@ def test_missing_episode_and_bad_frames_are_rejected(tmp_path):
         write_frame(
             tmp_path, 0, np.zeros((4, 4, 3), np.uint8), np.zeros((4, 5)), np.eye(3), np.eye(4)
         )
+
+
+def test_perception_estimates_round_trip_and_feed_the_tsdf_only_when_asked(tmp_path):
+    rgb = np.zeros((6, 8, 3), np.uint8)
+    depth = np.full((6, 8), 1.5, np.float32)
+    estimate, confidence = depth + 0.1, np.full((6, 8), 0.25, np.float32)
+    write_frame(tmp_path, 0, rgb, depth, np.eye(3), np.eye(4), 1, estimate, confidence)
+    write_frame(tmp_path, 1, rgb, depth, np.eye(3), np.eye(4), 2)
+    with_estimate, without = iter_frames(tmp_path)
+    np.testing.assert_array_equal(with_estimate.estimated_depth, estimate)
+    np.testing.assert_array_equal(with_estimate.confidence, confidence)
+    assert without.estimated_depth is None and without.confidence is None
+    np.testing.assert_array_equal(reconstruction_depth(with_estimate, "estimated"), estimate)
+    np.testing.assert_array_equal(reconstruction_depth(without, "sensor"), depth)
+    with pytest.raises(InputError, match="frames/0001.npz estimated_depth"):
+        reconstruction_depth(without, "estimated")
+    with pytest.raises(InputError, match="depth_source: got 'lidar'"):
+        reconstruction_depth(with_estimate, "lidar")
+    with pytest.raises(InputError, match="estimated_depth"):
+        write_frame(tmp_path, 2, rgb, depth, np.eye(3), np.eye(4), 3, estimate[:5])

@@ -208,6 +208,17 @@ def test_camera_info_round_trips_and_is_filled_like_ros(f, cx, cy, w, h, stamp):
     assert codecs.stamp_to_ns(msg.header.stamp) == stamp
 
 
+def test_right_camera_info_carries_the_baseline_in_tx_like_ros():
+    K = np.array([[320.0, 0, 320], [0, 320.0, 240], [0, 0, 1.0]])
+    msg = wire(codecs.intrinsics_to_camera_info(K, 640, 480, 1, "right", baseline=0.06))
+    assert np.asarray(msg.p)[3] == pytest.approx(-320.0 * 0.06)  # Tx = -fx B
+    assert codecs.camera_info_to_baseline(msg) == pytest.approx(0.06)
+    left = wire(codecs.intrinsics_to_camera_info(K, 640, 480, 1, "left"))
+    with pytest.raises(InputError) as err:
+        codecs.camera_info_to_baseline(left)
+    assert err.value.field == "p[3]"
+
+
 @given(ns=stamps)
 def test_stamp_round_trips(ns):
     stamp = codecs.ns_to_stamp(ns)

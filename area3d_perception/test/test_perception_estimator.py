@@ -68,7 +68,7 @@ def test_mismatched_sizes_are_rejected():
 
 def test_unknown_backend_and_missing_weights_are_start_errors():
     with pytest.raises(InputError, match="^backend: "):
-        FrameEstimator("stereo")
+        FrameEstimator("lidar")
     with pytest.raises(BackendUnavailableError, match="nowhere/model.pt"):
         FrameEstimator("vggt", checkpoint="/nowhere/model.pt")
 

@@ -14,6 +14,8 @@ from area3d_perception.node import (
     OUT_CONFIDENCE_TOPIC,
     OUT_DEPTH_TOPIC,
     POSE_TOPIC,
+    RIGHT_INFO_TOPIC,
+    RIGHT_TOPIC,
     PerceptionNode,
 )
 
@@ -74,6 +76,8 @@ class FakeNode:
             DEPTH_TOPIC: guarded(self.node, self.node.on_depth, DEPTH_TOPIC),
             INFO_TOPIC: guarded(self.node, self.node.on_camera_info, INFO_TOPIC),
             POSE_TOPIC: guarded(self.node, self.node.on_pose, POSE_TOPIC),
+            RIGHT_TOPIC: guarded(self.node, self.node.on_right, RIGHT_TOPIC),
+            RIGHT_INFO_TOPIC: guarded(self.node, self.node.on_right_camera_info, RIGHT_INFO_TOPIC),
         }
 
 
@@ -183,3 +187,88 @@ def test_a_missing_vggt_checkpoint_fails_at_start_naming_it():
 def test_a_backend_outside_the_choices_is_refused_at_start_naming_it():
     with pytest.raises(ValueError, match="backend: got 'nope', expected one of rgbd"):
         FakeNode({"backend": "nope"})
+
+
+# -- stereo backend ----------------------------------------------------------------------------
+STEREO = {
+    "backend": "stereo",
+    "stereo.num_disparities": 16,
+    "stereo.speckle_window_size": 0,
+    "stereo.downscale": 1,
+}
+SHIFT_PX, BASELINE = 8, 0.2  # every pixel 8 px apart: depth fx B / d = 32 * 0.2 / 8 = 0.8 m
+
+
+def stereo_pair(shift=SHIFT_PX):
+    grey = np.random.default_rng(0).integers(0, 256, (H, W)).astype(np.uint8)
+    left = np.repeat(grey[..., None], 3, axis=2)
+    return left, np.roll(left, -shift, axis=1)
+
+
+def send_right(node, stamp, right, info=True, baseline=BASELINE, size=(W, H), encoding="rgb8"):
+    if info:
+        node.subs[RIGHT_INFO_TOPIC](
+            codecs.intrinsics_to_camera_info(K, *size, stamp, FRAME, baseline=baseline)
+        )
+    node.subs[RIGHT_TOPIC](codecs.image_to_msg(right, encoding, stamp, FRAME))
+
+
+def test_stereo_backend_matches_the_right_image_paired_by_stamp():
+    node = FakeNode(STEREO)
+    left, right = stereo_pair()
+    send_right(node, 2 * S, right)
+    send_frame(node, 1 * S, rgb=left)  # no right image with this stamp: waits
+    assert node.pubs[OUT_DEPTH_TOPIC].sent == []
+    send_frame(node, 2 * S, rgb=left, depth=np.full((H, W), 5.0, np.float32))
+    (depth_msg,) = node.pubs[OUT_DEPTH_TOPIC].sent
+    assert codecs.stamp_to_ns(depth_msg.header.stamp) == 2 * S
+    depth = codecs.msg_to_image(depth_msg)[4:-4, 24:-4]  # the sensor's 5 m is not used
+    conf = codecs.msg_to_image(node.pubs[OUT_CONFIDENCE_TOPIC].sent[0])[4:-4, 24:-4]
+    assert np.nanmedian(np.abs(depth - 0.8)) < 0.01 and np.median(conf) > 0.5
+
+
+def test_stereo_frames_wait_for_the_right_camera_info():
+    node = FakeNode(STEREO)
+    left, right = stereo_pair()
+    send_right(node, 1 * S, right, info=False)
+    send_frame(node, 1 * S, rgb=left)
+    assert node.pubs[OUT_DEPTH_TOPIC].sent == []
+    assert any(RIGHT_INFO_TOPIC in w for w in node.log.warnings())
+    node.subs[RIGHT_INFO_TOPIC](
+        codecs.intrinsics_to_camera_info(K, W, H, 1 * S, FRAME, baseline=BASELINE)
+    )
+    assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
+
+
+def test_a_frame_whose_right_image_never_comes_is_dropped_naming_it():
+    node = FakeNode({**STEREO, "sync_max_age_s": 2.0})
+    left, right = stereo_pair()
+    send_frame(node, 1 * S, rgb=left)
+    send_right(node, 5 * S, right)
+    send_frame(node, 5 * S, rgb=left)
+    assert any("at stamp 1000000000 dropped: no matching right" in w for w in node.log.warnings())
+    assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
+
+
+@pytest.mark.parametrize(
+    ("right_kwargs", "expected"),
+    [
+        ({"right": np.zeros((H, W + 8, 3), np.uint8)}, "right: got 'size 72x48'"),
+        ({"right": np.zeros((H, W), np.float32), "encoding": "32FC1"}, "right: got 'float32"),
+        ({"size": (W + 8, H)}, "right camera_info: got 'size 72x48'"),
+        ({"baseline": 0.0}, "right camera_info rejected: p[3]"),
+    ],
+    ids=["image size", "encoding", "camera_info size", "no Tx"],
+)
+def test_bad_stereo_input_is_refused_with_a_reason_and_the_node_goes_on(right_kwargs, expected):
+    node = FakeNode(STEREO)
+    left, right = stereo_pair()
+    kwargs = {"right": right, **right_kwargs}
+    send_right(node, 1 * S, kwargs.pop("right"), **kwargs)
+    send_frame(node, 1 * S, rgb=left)
+    assert node.pubs[OUT_DEPTH_TOPIC].sent == []
+    assert any(expected in w for w in node.log.warnings()), node.log.warnings()
+    send_right(node, 2 * S, right)
+    send_frame(node, 2 * S, rgb=left)  # a good pair afterwards is processed
+    stamps = [codecs.stamp_to_ns(m.header.stamp) for m in node.pubs[OUT_DEPTH_TOPIC].sent]
+    assert 2 * S in stamps

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_bridge.camera import SimCamera, add_depth_noise, link_from_optical
+from sim_bridge.camera import SimCamera, add_depth_noise, link_from_optical, right_from_left
 from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import load_scene
 
@@ -30,6 +30,25 @@ def test_capture_renders_valid_goals_and_refuses_bad_ones():
         assert not refused.ok and refused.rgb is None and "workspace" in refused.reason
     finally:
         camera.close()
+
+
+def test_stereo_capture_adds_the_right_image_of_a_rectified_pair():
+    scene = load_scene("single_object")
+    T = scene.initial_views[0]
+    right_pose = right_from_left(T, 0.06)
+    assert np.allclose(right_pose[:3, 3], T[:3, 3] + 0.06 * T[:3, 0])  # along optical x
+    assert np.allclose(right_pose[:3, :3], T[:3, :3])  # same orientation: rectified
+    mono = SimCamera(scene, width=160, height=120)
+    stereo = SimCamera(scene, width=160, height=120, stereo_baseline=0.06)
+    try:
+        assert mono.capture(T).rgb_right is None
+        cap = stereo.capture(T)
+        expected, _ = stereo.renderer.render(right_pose)
+        np.testing.assert_array_equal(cap.rgb_right, expected)
+        assert np.mean(np.abs(cap.rgb_right.astype(int) - cap.rgb.astype(int))) > 1.0
+    finally:
+        mono.close()
+        stereo.close()
 
 
 def test_camera_link_is_x_forward_z_up_of_the_optical_frame():

@@ -1,0 +1,263 @@
+"""The `stereo` backend: depth estimated from a rectified image pair, with what stereo knows about it.
+
+Semi-global matching (Hirschmueller 2008, OpenCV's `StereoSGBM`) gives the left image's disparity d
+in pixels; depth is z = fx * B / d. Confidence in [0, 1] is the product of three factors and 0
+where the match is invalid:
+
+    consistency  exp(-(|d_L(x) - d_R(x - d_L(x))| / lr_sigma_px)^2), 0 beyond lr_max_diff_px:
+                 the right image's own disparity (a second SGBM on the mirrored pair, since the
+                 `ximgproc` right matcher is only in opencv-contrib) must point back to the pixel;
+                 occluded pixels (seen by the left camera only) and mismatches fail it
+    texture      g^2 / (g^2 + texture_ref^2), g = RMS horizontal image gradient in a window: along
+                 the epipolar line a blank (or horizontally striped) surface gives the matcher
+                 nothing to lock on, and its match is decided by the smoothness term
+
+Invalid means: SGBM found no unique minimum (`uniquenessRatio`), the speckle filter removed the
+region, the pixel is in the left band where the full disparity range leaves the right image, or the
+depth is beyond `max_range`.
+
+Arrays in, arrays out; no ROS here.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from area3d_msgs_py.errors import InputError
+
+# OpenCV's StereoSGBM returns fixed-point disparities with 4 fractional bits.
+SGBM_DISPARITY_SCALE = 16.0
+
+
+@dataclass(frozen=True)
+class StereoParams:
+    """Tunables of the stereo backend (every one is a `stereo.*` node parameter)."""
+
+    # Disparities searched at the matching resolution: 64 at half of 640 px covers 128 full-size px,
+    # depths from fx B / 128 = 0.15 m at fx = 320 px (90 deg over 640 px), B = 6 cm; the object
+    # scenes' views see the table from 0.2 m.
+    num_disparities: int = 64
+    block_size: int = 5  # px; OpenCV's documented range is 3-11
+    # Smoothness penalties P1 = 8 * bs^2, P2 = 32 * bs^2 per channel (OpenCV's sample values).
+    p1_per_px: int = 8
+    p2_per_px: int = 32
+    uniqueness_ratio: int = 10  # percent; OpenCV suggests 5-15
+    speckle_window_size: int = 100  # px; OpenCV suggests 50-200
+    speckle_range: int = 2  # px of disparity; OpenCV suggests 1-2
+    # at the matching resolution; our choice: a disagreement beyond one pixel is a mismatch, and
+    # half a pixel gives exp(-1)
+    lr_max_diff_px: float = 1.0
+    lr_sigma_px: float = 0.5
+    texture_window_px: int = 7  # our choice: about the SGBM block plus a margin
+    # grey levels / px: RMS horizontal gradient where texture gives 0.5 (our choice: 1 grey level of
+    # camera noise alone gives 0.43, so a blank surface stays below 0.16; on the simulator's
+    # noise-free images larger values rank error worse, see the README)
+    texture_ref: float = 1.0
+    # SGBM's sub-pixel error on textured surfaces (pixel locking) at the matching resolution, px;
+    # measured on generated planes
+    disparity_sigma_px: float = 0.25
+    precision_rel_ref: float = 0.05  # our choice: 5 % relative depth error halves confidence
+    # Match at 1 / downscale of the resolution (2: four times fewer pixels, and the disparities
+    # cover twice the range, for half the disparity precision); depth and confidence come back at
+    # full size. 2 is what keeps 640x480 within 60 ms on 2 cores (README: measured figures).
+    downscale: int = 2
+    max_range: float = 5.0  # metres; the paper's camera
+
+    def validate(self) -> None:
+        """Raise InputError naming the first parameter outside its domain."""
+        checks = (
+            ("num_disparities", self.num_disparities > 0 and self.num_disparities % 16 == 0,
+             "a positive multiple of 16 (pixels)"),
+            ("block_size", self.block_size >= 1 and self.block_size % 2 == 1,
+             "an odd number of pixels >= 1"),
+            ("p1_per_px", 0 <= self.p1_per_px < self.p2_per_px, "0 <= p1_per_px < p2_per_px"),
+            ("uniqueness_ratio", 0 <= self.uniqueness_ratio <= 100, "a percentage in [0, 100]"),
+            ("speckle_window_size", self.speckle_window_size >= 0, "pixels >= 0"),
+            ("speckle_range", self.speckle_range >= 0, "pixels of disparity >= 0"),
+            ("lr_max_diff_px", self.lr_max_diff_px > 0, "pixels > 0"),
+            ("lr_sigma_px", self.lr_sigma_px > 0, "pixels > 0"),
+            ("texture_window_px", self.texture_window_px >= 1, "pixels >= 1"),
+            ("texture_ref", self.texture_ref > 0, "grey levels per pixel > 0"),
+            ("disparity_sigma_px", self.disparity_sigma_px > 0, "pixels > 0"),
+            ("precision_rel_ref", self.precision_rel_ref > 0, "a relative error > 0"),
+            ("downscale", self.downscale in (1, 2, 4), "1, 2 or 4"),
+            ("max_range", self.max_range > 0, "metres > 0"),
+        )  # fmt: skip
+        for name, ok, expected in checks:
+            if not ok:
+                raise InputError(f"stereo.{name}", getattr(self, name), expected)
+
+
+@dataclass
+class StereoResult:
+    """depth (H, W) float32 metres, NaN = no valid match; confidence (H, W) float32 in [0, 1], 0
+    where depth is NaN; disparity (H, W) float32 full-resolution px of the left image, NaN = invalid."""
+
+    depth: np.ndarray
+    confidence: np.ndarray
+    disparity: np.ndarray
+
+
+def check_stereo_pair(
+    left: np.ndarray | None, right: np.ndarray | None, baseline: float | None
+) -> None:
+    """Reject a pair that cannot be matched (raises InputError naming the field).
+
+    left, right: (H, W, 3) uint8 rgb or (H, W) uint8 grey of the same size; baseline: metres > 0.
+    """
+    if right is None:
+        raise InputError("right", None, "the right image of the stereo pair")
+    if left is None:
+        raise InputError("color", None, "the left (colour) image of the stereo pair")
+    for name, image in (("color", left), ("right", right)):
+        image = np.asarray(image)
+        if image.dtype != np.uint8 or not (
+            image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)
+        ):
+            raise InputError(
+                name, f"{image.dtype} {image.shape}", "an (H, W, 3) or (H, W) uint8 image"
+            )
+    if np.asarray(left).shape[:2] != np.asarray(right).shape[:2]:
+        h, w = np.asarray(left).shape[:2]
+        rh, rw = np.asarray(right).shape[:2]
+        raise InputError("right", f"size {rw}x{rh}", f"the left image's size {w}x{h}")
+    if baseline is None or not (np.isfinite(baseline) and baseline > 0):
+        raise InputError(
+            "baseline", baseline, "metres > 0 (from the right camera_info, P[3] = -fx B)"
+        )
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+
+def texture_factor(grey: np.ndarray, window_px: int, texture_ref: float) -> np.ndarray:
+    """(H, W) float32 in [0, 1): g^2 / (g^2 + ref^2), g = RMS horizontal Sobel gradient over a
+    window (grey levels per pixel). A uniform patch gives 0, strong texture approaches 1."""
+    g = grey.astype(np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0  # Sobel's gain is 8: back to levels/px
+    energy = cv2.boxFilter(gx * gx, -1, (window_px, window_px))
+    return (energy / (energy + np.float32(texture_ref) ** 2)).astype(np.float32)
+
+
+def lr_difference(disp_left: np.ndarray, disp_right: np.ndarray) -> np.ndarray:
+    """|d_L(x) - d_R(x - d_L(x))| per left pixel, px; NaN where either side is invalid.
+
+    disp_left: (H, W) left disparity (x_right = x - d), disp_right: (H, W) right disparity
+    (x_left = x + d), both NaN = invalid.
+    """
+    h, w = disp_left.shape
+    cols = np.arange(w, dtype=np.float32)[None, :]
+    target = np.rint(cols - np.nan_to_num(disp_left, nan=-1.0)).astype(np.int64)
+    inside = np.isfinite(disp_left) & (target >= 0) & (target < w)
+    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    back = np.full((h, w), np.nan, dtype=np.float32)
+    back[inside] = disp_right[rows[inside], target[inside]]
+    return np.abs(disp_left - back)
+
+
+class StereoMatcher:
+    """SGBM on a rectified pair -> depth + confidence. Holds the two OpenCV matchers (left and the
+    mirrored right one) and runs them side by side on two threads (OpenCV releases the GIL)."""
+
+    def __init__(self, params: StereoParams | None = None) -> None:
+        self.params = params or StereoParams()
+        self.params.validate()
+        self._left = self._sgbm()
+        self._right = self._sgbm()
+        self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="sgbm")
+
+    def _sgbm(self) -> cv2.StereoSGBM:
+        p = self.params
+        area = p.block_size * p.block_size
+        return cv2.StereoSGBM_create(
+            minDisparity=0,
+            numDisparities=p.num_disparities,
+            blockSize=p.block_size,
+            P1=p.p1_per_px * area,
+            P2=p.p2_per_px * area,
+            disp12MaxDiff=-1,  # the consistency check is ours, with a graded result
+            uniquenessRatio=p.uniqueness_ratio,
+            speckleWindowSize=p.speckle_window_size,
+            speckleRange=p.speckle_range,
+            mode=cv2.STEREO_SGBM_MODE_SGBM,
+        )
+
+    def disparities(
+        self, left_grey: np.ndarray, right_grey: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(left, right) disparity (H, W) float32 px, NaN = invalid. The right one comes from
+        matching the mirrored pair, in which the right image plays the left image's part."""
+        mirrored = (
+            np.ascontiguousarray(right_grey[:, ::-1]),
+            np.ascontiguousarray(left_grey[:, ::-1]),
+        )
+        job_left = self._pool.submit(self._left.compute, left_grey, right_grey)
+        job_right = self._pool.submit(self._right.compute, *mirrored)
+        return _to_px(job_left.result()), _to_px(job_right.result()[:, ::-1])
+
+    def match(
+        self, left: np.ndarray, right: np.ndarray, fx: float, baseline: float
+    ) -> StereoResult:
+        """Depth and confidence of the left image.
+
+        left, right: (H, W, 3) uint8 rgb or (H, W) uint8 grey, rectified (rows are epipolar lines,
+        the right camera B metres along the left's optical x axis). fx: pixels. baseline: metres.
+        """
+        check_stereo_pair(left, right, baseline)
+        if not (np.isfinite(fx) and fx > 0):
+            raise InputError("fx", fx, "a focal length in pixels > 0")
+        p = self.params
+        left_grey, right_grey = _grey(left), _grey(right)
+        disp_left, diff = self._matched(left_grey, right_grey)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = np.float32(fx * baseline) / disp_left
+            depth[~(depth <= p.max_range)] = np.nan  # also drops d = 0 (inf) and NaN
+            consistency = np.exp(-((diff / np.float32(p.lr_sigma_px)) ** 2))
+            consistency[~(diff <= p.lr_max_diff_px)] = 0.0
+            sigma_px = p.disparity_sigma_px * p.downscale  # in full-size pixels
+            relative_sigma = np.float32(sigma_px / p.precision_rel_ref) / disp_left
+            precision = 1.0 / (1.0 + relative_sigma**2)
+        confidence = (
+            consistency * precision * texture_factor(left_grey, p.texture_window_px, p.texture_ref)
+        )
+        confidence[~np.isfinite(depth)] = 0.0
+        return StereoResult(depth.astype(np.float32), confidence.astype(np.float32), disp_left)
+
+    def _matched(
+        self, left_grey: np.ndarray, right_grey: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(left disparity in full-size px, left-right difference in px of the matching size),
+        both (H, W) float32: a one-pixel disagreement means the same at any `downscale`."""
+        s = self.params.downscale
+        if s == 1:
+            disp_left, disp_right = self.disparities(left_grey, right_grey)
+            return disp_left, lr_difference(disp_left, disp_right)
+        h, w = left_grey.shape
+        small = [
+            cv2.resize(g, (w // s, h // s), interpolation=cv2.INTER_AREA)
+            for g in (left_grey, right_grey)
+        ]
+        disp_left, disp_right = self.disparities(*small)
+        diff = lr_difference(disp_left, disp_right)
+        # nearest, so no disparity is invented between two surfaces at an occlusion edge
+        size = (w, h)
+        return (
+            cv2.resize(disp_left * np.float32(s), size, interpolation=cv2.INTER_NEAREST),
+            cv2.resize(diff, size, interpolation=cv2.INTER_NEAREST),
+        )
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False)
+
+
+def _to_px(raw: np.ndarray) -> np.ndarray:
+    # SGBM marks invalid pixels with (minDisparity - 1) * 16 = -16; d = 0 is "at infinity".
+    disp = raw.astype(np.float32) / np.float32(SGBM_DISPARITY_SCALE)
+    disp[raw < 0] = np.nan
+    return disp

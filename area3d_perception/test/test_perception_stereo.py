@@ -1,0 +1,169 @@
+"""The stereo backend on generated rectified pairs whose true depth is known."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from area3d_msgs_py.errors import InputError
+from area3d_perception.estimator import FrameEstimator
+from area3d_perception.stereo import StereoMatcher, StereoParams, lr_difference
+
+W, H = 640, 480
+FX = (W / 2) / np.tan(np.deg2rad(90.0) / 2)  # 90 degree FOV, as the simulated camera
+K = np.array([[FX, 0.0, W / 2], [0.0, FX, H / 2], [0.0, 0.0, 1.0]])
+BASELINE = 0.06
+TEXEL_M = 0.002  # texture cell on the surface, metres (1.6 texels per pixel at 1 m)
+
+
+def _texture(seed: int, textured: bool) -> np.ndarray:
+    """A 2 x 2 m surface pattern: blurred noise (textured) or one flat grey (textureless)."""
+    n = int(2.0 / TEXEL_M)
+    if not textured:
+        return np.full((n, n), 128.0, np.float32)
+    noise = np.random.default_rng(seed).uniform(0, 255, (n, n)).astype(np.float32)
+    return cv2.GaussianBlur(noise, (0, 0), 1.0)
+
+
+def _view(cam_x: float, surfaces: list[tuple], seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb (H, W, 3) uint8, depth (H, W) float32) of a camera at (cam_x, 0, 0) looking along +z.
+
+    surfaces: (z, x_min, x_max, texture) fronto-parallel rectangles, nearest wins; the texture is
+    fixed to the surface (world x, y), so both cameras see the same pattern.
+    """
+    u = (np.arange(W) + 0.5 - K[0, 2]) / FX
+    v = (np.arange(H) + 0.5 - K[1, 2]) / FX
+    uu, vv = np.meshgrid(u, v)
+    depth = np.full((H, W), np.inf, np.float32)
+    image = np.zeros((H, W), np.float32)
+    for z, x_min, x_max, tex in sorted(surfaces, key=lambda s: -s[0]):
+        X, Y = cam_x + uu * z, vv * z
+        hit = (X >= x_min) & (X <= x_max) & (z < depth)
+        map_x = ((X + 1.0) / TEXEL_M).astype(np.float32)
+        map_y = ((Y + 1.0) / TEXEL_M).astype(np.float32)
+        sample = cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        image[hit], depth[hit] = sample[hit], z
+    image += np.random.default_rng(seed).normal(0.0, 1.0, image.shape)  # sensor noise, 1 grey level
+    grey = np.clip(np.rint(image), 0, 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2), depth
+
+
+def _pair(surfaces: list[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    left, depth = _view(0.0, surfaces, seed=1)
+    right, _ = _view(BASELINE, surfaces, seed=2)
+    return left, right, depth
+
+
+@pytest.fixture(scope="module")
+def matcher():
+    m = StereoMatcher(StereoParams(num_disparities=32, downscale=1))
+    yield m
+    m.close()
+
+
+def _centre(a: np.ndarray) -> np.ndarray:
+    # the band x < num_disparities has no full disparity range; the borders lack a full block
+    return a[20:-20, 52:-20]
+
+
+def test_textured_plane_is_confident_and_within_two_percent(matcher):
+    left, right, truth = _pair([(1.0, -5, 5, _texture(0, True))])
+    out = matcher.match(left, right, FX, BASELINE)
+    conf, depth = _centre(out.confidence), _centre(out.depth)
+    assert np.median(conf) > 0.8
+    assert np.isfinite(depth).mean() > 0.95
+    rel = np.abs(depth - 1.0)[np.isfinite(depth)] / 1.0
+    # 1 m is 19.2 px of disparity; SGBM's sub-pixel fit pulls towards whole pixels (about 0.15 px
+    # here, 0.8 %), so 2 % leaves room without hiding a wrong focal length or baseline.
+    assert np.median(rel) < 0.02
+
+
+def test_half_resolution_matching_keeps_the_textured_plane_within_five_percent():
+    left, right, _ = _pair([(1.0, -5, 5, _texture(0, True))])
+    half = StereoMatcher(StereoParams(num_disparities=16, downscale=2))
+    out = half.match(left, right, FX, BASELINE)
+    depth = _centre(out.depth)
+    assert out.depth.shape == (H, W) and np.isfinite(depth).mean() > 0.95
+    # 9.6 px of disparity at half size: pixel locking may move it by up to ~0.4 px (4 %), while a
+    # disparity left unscaled to full size would be off by 100 %
+    assert np.median(np.abs(depth[np.isfinite(depth)] - 1.0)) < 0.05
+    assert np.median(_centre(out.confidence)) > 0.5
+
+
+def test_textureless_plane_at_the_same_pose_is_not_trusted(matcher):
+    left, right, _ = _pair([(1.0, -5, 5, _texture(0, False))])
+    out = matcher.match(left, right, FX, BASELINE)
+    conf = _centre(out.confidence)
+    assert np.mean(conf) < 0.02  # SGBM finds no unique match on most of it
+    assert np.percentile(conf, 99) < 0.2  # and the texture factor holds the rest down
+
+
+def test_occluded_band_beside_a_foreground_edge_gets_no_confidence(matcher):
+    # A board at 0.8 m covering x >= 0 in front of a wall at 1.6 m: the wall between x = -B and 0
+    # is seen by the left camera only (the right one, B to the right, sees the board there). In
+    # the left image that is the band of fx B / 1.6 = 12 px just left of the board's edge.
+    wall, board = _texture(3, True), _texture(4, True)
+    left, right, _ = _pair([(1.6, -5, 5, wall), (0.8, 0.0, 5, board)])
+    out = matcher.match(left, right, FX, BASELINE)
+    rows = slice(20, H - 20)
+    edge = int(K[0, 2])  # first board column (x = 0 at u = cx)
+    width = int(FX * BASELINE / 1.6)
+    occluded = out.confidence[rows, edge - width + 1 : edge - 1]
+    open_wall = out.confidence[rows, 60 : edge - width - 8]
+    board_seen = out.confidence[rows, edge + 8 : W - 20]
+    assert np.mean(occluded) < 0.15
+    assert np.median(open_wall) > 0.6 and np.median(board_seen) > 0.6
+
+
+def test_left_right_difference_of_consistent_disparities_is_zero():
+    d_left = np.full((4, 10), 2.0, np.float32)
+    d_right = np.full((4, 10), 2.0, np.float32)
+    d_right[:, 3] = 5.0  # the right pixel that left pixel 5 points to disagrees
+    diff = lr_difference(d_left, d_right)
+    assert np.isnan(diff[:, :2]).all()  # x - d leaves the right image
+    assert diff[0, 5] == 3.0 and diff[0, 6] == 0.0
+
+
+def test_pixels_whose_right_match_points_elsewhere_get_no_confidence(matcher, monkeypatch):
+    left, right, _ = _pair([(1.0, -5, 5, _texture(0, True))])
+    d_left = np.full((H, W), 19.2, np.float32)
+    d_right = d_left.copy()
+    d_right[:, 300:320] = 22.0  # right pixels 300-319 disagree: left pixels 319-338 fail the check
+    d_right[:, 400:420] = 19.6  # 0.4 px off: consistent, a little less confident
+    monkeypatch.setattr(matcher, "disparities", lambda _l, _r: (d_left, d_right))
+    conf = matcher.match(left, right, FX, BASELINE).confidence
+    texture = conf[:, 200:280]
+    assert (conf[:, 320:338] == 0).all()
+    assert np.median(texture) > 0.5
+    assert 0.2 * np.median(texture) < np.median(conf[:, 420:438]) < 0.9 * np.median(texture)
+
+
+@pytest.mark.parametrize(
+    ("left", "right", "baseline", "field"),
+    [
+        (np.zeros((48, 64, 3), np.uint8), None, 0.06, "right"),
+        (np.zeros((48, 64, 3), np.uint8), np.zeros((48, 60, 3), np.uint8), 0.06, "right"),
+        (np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64, 3), np.float32), 0.06, "right"),
+        (np.zeros((48, 64, 4), np.uint8), np.zeros((48, 64, 3), np.uint8), 0.06, "color"),
+        (np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64, 3), np.uint8), 0.0, "baseline"),
+    ],
+)
+def test_bad_pairs_are_refused_naming_the_field(matcher, left, right, baseline, field):
+    with pytest.raises(InputError) as err:
+        matcher.match(left, right, FX, baseline)
+    assert err.value.field == field
+
+
+def test_bad_parameters_are_refused():
+    with pytest.raises(InputError, match="stereo.num_disparities"):
+        StereoMatcher(StereoParams(num_disparities=40))
+
+
+def test_estimator_stereo_backend_needs_the_right_image_and_ignores_sensor_depth():
+    left, right, truth = _pair([(1.0, -5, 5, _texture(0, True))])
+    est = FrameEstimator(backend="stereo", stereo=StereoParams(num_disparities=32, downscale=1))
+    with pytest.raises(InputError, match="right"):
+        est.process(left, truth, K, np.eye(4))
+    out = est.process(left, np.full_like(truth, 3.0), K, np.eye(4), right=right, baseline=BASELINE)
+    assert abs(float(np.nanmedian(_centre(out.depth))) - 1.0) < 0.02
