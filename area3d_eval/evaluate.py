@@ -12,7 +12,6 @@ background, which every reconstruction matches).
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -37,7 +36,7 @@ from area3d_eval.rundir import (
     frame_files,
     read_episode,
     read_frame,
-    to_jsonable,
+    write_json,
 )
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import depth_to_world
@@ -235,5 +234,5 @@ def evaluate_run(
                 np.float32
             ),
         )
-        (run_dir / METRICS_FILE).write_text(json.dumps(to_jsonable(result), indent=2))
+        write_json(run_dir / METRICS_FILE, result, indent=2)
     return result
