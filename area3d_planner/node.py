@@ -48,6 +48,9 @@ MAX_FRAMES_WITHOUT_INFO = 64
 # names to be fused, which needs the frame callbacks to keep running.
 EXECUTOR_THREADS = 3
 STATUS_AFTER_REQUEST_S = 0.05  # the status follows a request's answer this much later, seconds
+# On shutdown a mask rebuild in flight gets this long to finish; the node exits regardless, so
+# Ctrl-C stops it within ROS 2's usual couple of seconds (issue 13: within 2 s).
+CLOSE_WAIT_S = 1.0
 
 
 def _xyz(value: Any) -> str | None:
@@ -171,7 +174,7 @@ class PlannerNode(Node):
         )
 
     def destroy_node(self) -> None:
-        self.server.close()
+        self.server.close(CLOSE_WAIT_S)
         super().destroy_node()
 
     def _on_refresh(self) -> None:

@@ -281,13 +281,14 @@ class NextBestViewServer:
             )
             self._worker.start()
 
-    def close(self) -> None:
-        """Stop the background worker (a rebuild in flight finishes first)."""
+    def close(self, timeout_s: float | None = None) -> None:
+        """Stop the background worker: a rebuild in flight finishes first, or is left to die with
+        the process after `timeout_s` (the worker is a daemon thread)."""
         with self._lock:
             self._closed = True
             self._refreshed.notify_all()
         if self._worker is not None and self._worker is not threading.current_thread():
-            self._worker.join()
+            self._worker.join(timeout_s)
 
     # ------------------------------------------------------------------ fusion
     def add_frame(
