@@ -215,8 +215,10 @@ class PlannerNode(Node):
         self._fuse(stamp, frame, K)
 
     def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
-        self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"])
-        self._publish_state(stamp)
+        if self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"]):
+            self._publish_state(stamp)
+        else:
+            self.get_logger().info(f"frame {stamp} is fused already; the repeat changes nothing")
 
     def _on_semantic(self, msg) -> None:
         stamp = codecs.stamp_to_ns(msg.header.stamp)
