@@ -38,7 +38,7 @@ def test_orphans_older_than_the_age_limit_are_dropped_and_reported():
     sync.add("depth", 7 * S, "D")
     assert sync.pop_dropped() == []  # a newer part alone is no reason to give up on older ones
     sync.add("color", 7 * S, "C7")
-    assert sync.add("pose", 7 * S, "P7") is not None  # the pose is 6 s behind a complete frame
+    assert sync.add("pose", 7 * S, "P7") is not None  # the pose is 6 s behind a completed frame
     dropped = sync.pop_dropped()
     assert [(d.key, d.stamp_ns) for d in dropped] == [("pose", 1 * S)]
     assert "color/depth" in dropped[0].reason
@@ -85,4 +85,16 @@ def test_a_part_stamped_far_in_the_future_does_not_push_out_the_frames_in_flight
     sync.add("color", 10 * S, "c")
     sync.add("depth", 10**9 * S, "from the future")
     assert sync.add("depth", 10 * S, "d") == {"color": "c", "depth": "d"}
+    assert sync.pop_dropped() == []
+
+
+def test_an_old_frame_replayed_after_newer_ones_completed_still_pairs():
+    """A restarted node's peers are brought up to date by replaying saved frames, oldest first."""
+    hour = 3600 * S
+    sync = StampSync(("color", "depth", "pose"), max_age_ns=5 * S)
+    for key in ("color", "depth", "pose"):
+        sync.add(key, 5 * hour, key)
+    for key in ("color", "depth"):
+        assert sync.add(key, 1 * hour, key) is None
+    assert sync.add("pose", 1 * hour, "p") == {"color": "color", "depth": "depth", "pose": "p"}
     assert sync.pop_dropped() == []
