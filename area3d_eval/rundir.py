@@ -5,7 +5,8 @@ Layout (all paths relative to RUN_DIR):
 - `episode.json`: {"scene", "policy", "seed", "budget", "level", "mode",
   "views": [{"index", "stamp_ns", "T_world_cam" (4x4 list), "kind": "initial" | "planned",
   "stage_times_s": {...}}], "timings_s": {stage: seconds}, "config": {...},
-  "ros": {"domain_id", "namespace"}, "recorded": {topic: message count in the bag}}
+  "ros": {"domain_id", "namespace"}, "recorded": {topic: message count in the bag},
+  "respawns": {node: restarts during the run}, "planner_status": the planner's last status}
 - `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
   K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index.
 - `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays

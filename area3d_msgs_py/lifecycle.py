@@ -23,11 +23,14 @@ def run_node(
     args: Sequence[str] | None = None,
     startup_errors: tuple[type[Exception], ...] = STARTUP_ERRORS,
     executor: Callable[[], Executor] = SingleThreadedExecutor,
+    on_stop: Callable[[Node], None] | None = None,
 ) -> int:
     """Run one node process: 0 after a clean stop (SIGINT, shutdown), 1 when it could not start.
 
     Ctrl-C is a clean stop wherever it lands: while the node is being built, between building
-    and spinning, or while spinning."""
+    and spinning, or while spinning. `on_stop(node)` runs first when the node stops, before the
+    executor waits for the callbacks in flight: it lets a callback that waits on the node's own
+    work (a request waiting for a rebuild) return at once."""
     middleware.configure()
     rclpy.init(args=args)
     node: Node | None = None
@@ -44,6 +47,8 @@ def run_node(
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if on_stop is not None and node is not None:
+            on_stop(node)
         if spinner is not None:
             spinner.shutdown()
         if node is not None:

@@ -273,7 +273,15 @@ class PlannerNode(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return run_node(PlannerNode, "planner", args, executor=lambda: MultiThreadedExecutor(num_threads=EXECUTOR_THREADS))
+    return run_node(
+        PlannerNode,
+        "planner",
+        args,
+        executor=lambda: MultiThreadedExecutor(num_threads=EXECUTOR_THREADS),
+        # a request waiting for a mask rebuild returns at once instead of holding the executor's
+        # shutdown until the rebuild is done
+        on_stop=lambda node: node.server.close(0.0),
+    )
 
 
 if __name__ == "__main__":
