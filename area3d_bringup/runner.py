@@ -178,6 +178,7 @@ class MissionManager(Node):
             key: self.create_publisher(msg_type, topic, qos.frames())
             for key, (topic, msg_type) in CAMERA_TOPICS.items()
         }
+        self.runner_pubs = {"goal": self.goal_pub, **self.replay_pubs}  # what graph nodes read
         for key, (topic, msg_type) in CAMERA_TOPICS.items():
             self._listen(topic, msg_type, qos.frames(), self._on_part(key, msg_type))
         for topic, (msg_type, latched) in GRAPH_OUTPUTS.items():
@@ -283,7 +284,7 @@ class MissionManager(Node):
 
     def _readers(self, name: str) -> set[tuple]:
         """(topic, reader id) of every reader `name` has on the runner's topics."""
-        pubs = {"goal": self.goal_pub, **self.replay_pubs}
+        pubs = self.runner_pubs
         return {
             (key, tuple(info.endpoint_gid))
             for key in READS[name]
@@ -298,7 +299,7 @@ class MissionManager(Node):
 
     def _up(self, name: str) -> bool:
         """A new process of `name` reads every topic it reads from the runner, all matched."""
-        pubs = {"goal": self.goal_pub, **self.replay_pubs}
+        pubs = self.runner_pubs
         new_on = {key for key, _ in self._readers(name) - self.known_readers}
         return new_on == set(READS[name]) and all(
             pubs[key].get_subscription_count()
@@ -322,7 +323,7 @@ class MissionManager(Node):
     # -- episode steps (main thread) --------------------------------------------------------
     def wait_for_readers(self, timeout_s: float) -> list[str]:
         """Wait until the camera topics have their graph readers; the topics still short of them."""
-        pubs = {"goal": self.goal_pub, **self.replay_pubs}
+        pubs = self.runner_pubs
         deadline = time.monotonic() + timeout_s
         while True:
             short = [
@@ -333,9 +334,17 @@ class MissionManager(Node):
             self.alive_check()
             time.sleep(0.05)
 
-    def capture(self, T_world_cam: np.ndarray, timeout_s: float) -> Frame | str:
-        """Send the camera to `T_world_cam`; the frame, or the camera's reason for refusing."""
-        stamp = self.clock()
+    def capture(
+        self, T_world_cam: np.ndarray, timeout_s: float, stamp: int | None = None
+    ) -> Frame | str:
+        """Send the camera to `T_world_cam`; the frame, or the camera's reason for refusing.
+
+        `stamp` (default: now) is the capture stamp; a capture repeated after the camera restarted
+        keeps it, so if the dead camera had published the frame after all, the graph sees the same
+        frame twice (and fuses it once) rather than one view as two. Once the camera has been
+        restarted, an unanswered goal is sent again halfway through the timeout: a new camera
+        process's reader can be listed a moment before the runner's writer has matched it."""
+        stamp = self.clock() if stamp is None else stamp
         goal = msgs.PoseStamped(
             header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T_world_cam)
         )
@@ -345,6 +354,7 @@ class MissionManager(Node):
         )  # fmt: skip
         self.goal_pub.publish(goal)
         deadline = time.monotonic() + timeout_s
+        resend_at = deadline - timeout_s / 2 if self.respawns().get("sim_bridge") else None
         with self._lock:
             while True:
                 status = self._status.get(stamp)
@@ -361,6 +371,9 @@ class MissionManager(Node):
                     )
                 self._lock.wait(min(remaining, 0.1))
                 self.check("sim_bridge")  # a restarted camera never got the goal: ask again
+                if resend_at is not None and time.monotonic() > resend_at and not parts:
+                    resend_at = None
+                    self.goal_pub.publish(goal)
         K, _, _ = codecs.camera_info_to_intrinsics(parts["info"])
         return Frame(
             rgb=codecs.msg_to_image(parts["color"]),
@@ -409,36 +422,55 @@ class MissionManager(Node):
 
         One frame at a time, each waited for until perception has answered it: parts of a later
         frame never overtake an earlier one, however far apart the saved stamps are. Then wait
-        until the planner has fused every one (it fuses each stamp once, so frames it already had
-        change nothing). Any restart meanwhile raises `NodeRespawned`: the caller starts over."""
-        for i, frame in enumerate(frames):
-            deadline = time.monotonic() + timeout_s
-            while True:
-                seen = self.perceived.get(frame.stamp_ns, 0)
-                self.replay(frame)
-                answered = self.wait_until(
-                    lambda s=frame.stamp_ns, n=seen: self.perceived.get(s, 0) > n,
-                    min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
-                    interrupted_by=tuple(READS),
+        until the planner has fused every one; if it has not within `REPLAY_RESEND_S`, replay
+        them all again (a restarted planner's reader can be listed by discovery a moment before
+        the runner's writer has matched it; the planner fuses each stamp once, so frames it
+        already has change nothing). Any restart meanwhile raises `NodeRespawned`: the caller
+        starts over."""
+        deadline = None
+        while True:
+            for i, frame in enumerate(frames):
+                self._replay_one(i, frame, timeout_s, log)
+            deadline = deadline or time.monotonic() + timeout_s
+            if self.wait_until(
+                lambda: int(self.planner_status.get("frames_fused", 0)) >= len(frames),
+                min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
+                interrupted_by=tuple(READS),
+            ):
+                return
+            fused = self.planner_status.get("frames_fused", 0)
+            if time.monotonic() >= deadline:
+                log(
+                    f"[mission_manager] the planner has fused {fused} of {len(frames)} replayed "
+                    f"frames after {timeout_s:.0f} s; going on"
                 )
-                if answered:
-                    break
-                if time.monotonic() >= deadline:
-                    log(
-                        f"[mission_manager] replayed frame {i} (stamp {frame.stamp_ns}) not "
-                        f"processed by perception after {timeout_s:.0f} s; going on"
-                    )
-                    break
-        if not self.wait_until(
-            lambda: int(self.planner_status.get("frames_fused", 0)) >= len(frames),
-            timeout_s,
-            interrupted_by=tuple(READS),
-        ):
+                return
             log(
-                f"[mission_manager] the planner has fused "
-                f"{self.planner_status.get('frames_fused', 0)} of {len(frames)} replayed frames "
-                f"after {timeout_s:.0f} s; going on"
+                f"[mission_manager] the planner has fused {fused} of {len(frames)} replayed "
+                "frames; replaying them again"
             )
+
+    def _replay_one(
+        self, index: int, frame: Frame, timeout_s: float, log: Callable[[str], None]
+    ) -> None:
+        """Replay one frame and wait until perception has answered it (publishing it again every
+        `REPLAY_RESEND_S`: its first copy may have gone out before a new reader matched)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            seen = self.perceived.get(frame.stamp_ns, 0)
+            self.replay(frame)
+            if self.wait_until(
+                lambda n=seen: self.perceived.get(frame.stamp_ns, 0) > n,
+                min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
+                interrupted_by=tuple(READS),
+            ):
+                return
+            if time.monotonic() >= deadline:
+                log(
+                    f"[mission_manager] replayed frame {index} (stamp {frame.stamp_ns}) not "
+                    f"processed by perception after {timeout_s:.0f} s; going on"
+                )
+                return
 
     def wait_fused(self, count: int, timeout_s: float, key: str = "frames_fused") -> bool:
         """Wait until the planner reports at least `count` fused frames (or semantic maps, by `key`)."""
@@ -705,7 +737,8 @@ def run_episode(
 
         for T in scene.initial_views[len(frames) : n_init] if len(frames) < n_init else []:
             t = time.monotonic()
-            result = step(lambda T=T: manager.capture(T, config.capture_timeout_s))
+            stamp = manager.clock()  # kept if the capture is repeated
+            result = step(lambda T=T, s=stamp: manager.capture(T, config.capture_timeout_s, s))
             launcher.check()
             if isinstance(result, str):
                 raise EpisodeError(f"the camera refused initial view {len(frames)}: {result}")
@@ -745,7 +778,8 @@ def run_episode(
                 break
             for T in poses[: to_plan - planned]:
                 t = time.monotonic()
-                result = step(lambda T=T: manager.capture(T, config.capture_timeout_s))
+                stamp = manager.clock()  # kept if the capture is repeated
+                result = step(lambda T=T, s=stamp: manager.capture(T, config.capture_timeout_s, s))
                 add_time("capture", time.monotonic() - t)
                 if isinstance(result, str):
                     refused += 1

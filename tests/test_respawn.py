@@ -56,8 +56,8 @@ def test_each_node_killed_once_is_respawned_and_the_episode_completes(tmp_path):
         deadline = time.monotonic() + 300
         for name, views in KILLS:
             while runner.poll() is None and time.monotonic() < deadline:
-                run_dirs = list(tmp_path.iterdir())
-                log = (run_dirs[0] / "nodes.log").read_text() if run_dirs else ""
+                logs = list(tmp_path.glob("*/nodes.log"))
+                log = logs[0].read_text() if logs else ""
                 frames = len(list(tmp_path.glob("*/frames/*.npz")))
                 previous_back = not killed or f"{killed[-1]} respawned" in log
                 pid = _node_pid(runner.pid, name)
