@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
@@ -167,15 +168,24 @@ class MissionManager(Node):
         self.clock = clock or (lambda: self.get_clock().now().nanoseconds)
         self.perceived: dict[int, int] = {}  # stamp -> perception outputs seen for it
         self.known_readers: set[tuple] = set()
+        # Per runner topic: every reader id discovery has listed, and how many readers the
+        # writer has matched in all (a dead process's readers stay in both counts).
+        self.listed: dict[str, set[tuple]] = {}
+        self.matched_total: dict[str, int] = {}
+        self.unlisted_matches: dict[str, int] = {}  # matched before the runner first looked
         self._lock = threading.Condition()
         self._parts: dict[int, dict[str, Any]] = {}
         self._status: dict[int, dict] = {}
         self.planner_status: dict = {}
         self.latest_grid: bytes | None = None
         self.received: dict[str, int] = {}
-        self.goal_pub = self.create_publisher(msgs.PoseStamped, GOAL_TOPIC, qos.frames())
+        self.goal_pub = self.create_publisher(
+            msgs.PoseStamped, GOAL_TOPIC, qos.frames(), event_callbacks=self._on_match("goal")
+        )
         self.replay_pubs = {
-            key: self.create_publisher(msg_type, topic, qos.frames())
+            key: self.create_publisher(
+                msg_type, topic, qos.frames(), event_callbacks=self._on_match(key)
+            )
             for key, (topic, msg_type) in CAMERA_TOPICS.items()
         }
         self.runner_pubs = {"goal": self.goal_pub, **self.replay_pubs}  # what graph nodes read
@@ -192,6 +202,13 @@ class MissionManager(Node):
         self.client = self.create_client(msgs.GetPlan, NBV_SERVICE)
 
     # -- callbacks (executor thread) ---------------------------------------------------------
+    def _on_match(self, key: str) -> PublisherEventCallbacks:
+        def matched(status) -> None:
+            with self._lock:
+                self.matched_total[key] = status.total_count
+
+        return PublisherEventCallbacks(matched=matched)
+
     def _listen(self, topic: str, msg_type: type, profile, handle) -> None:
         type_name = _type_name(msg_type)
         resolved = self.resolve_topic_name(topic)
@@ -282,30 +299,44 @@ class MissionManager(Node):
             if "planner" in names:
                 self.planner_status = {}  # the new planner starts from nothing
 
+    def _list(self, key: str) -> list:
+        """The readers discovery lists on the runner's topic `key` (all remembered in `listed`)."""
+        infos = self.get_subscriptions_info_by_topic(self.runner_pubs[key].topic_name)
+        self.listed.setdefault(key, set()).update(tuple(i.endpoint_gid) for i in infos)
+        return infos
+
     def _readers(self, name: str) -> set[tuple]:
         """(topic, reader id) of every reader `name` has on the runner's topics."""
-        pubs = self.runner_pubs
         return {
             (key, tuple(info.endpoint_gid))
             for key in READS[name]
-            for info in self.get_subscriptions_info_by_topic(pubs[key].topic_name)
+            for info in self._list(key)
             if info.node_name == name
         }
+
+    def _all_matched(self, key: str) -> bool:
+        """The writer has matched every reader ever listed on `key`. Exact where a live count
+        is not: discovery can list a new reader before the writer has matched it, and drop a
+        dead process's reader before (or after) the writer unmatches it."""
+        with self._lock:
+            matched = self.matched_total.get(key, 0) - self.unlisted_matches.get(key, 0)
+        return matched >= len(self.listed.get(key, ()))
 
     def note_readers(self, names: list[str]) -> None:
         """Remember the readers the graph's nodes have now (a later new one is a new process)."""
         for name in names:
             self.known_readers |= self._readers(name)
+        for key in self.runner_pubs:
+            self._list(key)
+            listed = len(self.listed[key])
+            with self._lock:
+                if key not in self.unlisted_matches:
+                    self.unlisted_matches[key] = max(0, self.matched_total.get(key, 0) - listed)
 
     def _up(self, name: str) -> bool:
         """A new process of `name` reads every topic it reads from the runner, all matched."""
-        pubs = self.runner_pubs
         new_on = {key for key, _ in self._readers(name) - self.known_readers}
-        return new_on == set(READS[name]) and all(
-            pubs[key].get_subscription_count()
-            >= len(self.get_subscriptions_info_by_topic(pubs[key].topic_name))
-            for key in READS[name]
-        )
+        return new_on == set(READS[name]) and all(self._all_matched(k) for k in READS[name])
 
     def wait_new_readers(self, names: list[str], timeout_s: float) -> None:
         """Wait until each restarted node reads the runner's topics from its new process."""
@@ -661,6 +692,8 @@ def run_episode(
             )
         manager.note_readers(list(READS))
         add_time("launch", time.monotonic() - t0)
+        semantics = next(spec for spec in specs if spec.name == "semantics").parameters
+        with_semantics = semantics.get("backend", "heuristic") != "none"
         if progress is not None:
             task = progress.add_task(f"{scene.name} / {config.policy}", total=budget)
             progress.update(task, completed=len(frames))
@@ -715,10 +748,28 @@ def run_episode(
                         catching_up.discard(name)
                     if replay_due and frames:
                         manager.replay_all(frames, config.fuse_timeout_s, log_sink)
+                        if with_semantics and len(frames) >= n_init:
+                            semantic_maps_back()
                     replay_due = False
                 except NodeRespawned:
                     continue
                 add_time("recover", time.monotonic() - t)
+
+        def semantic_maps_back() -> None:
+            """The planner holds the semantic maps of O_0 again (a restarted semantics queries
+            the initial views once it has them; replay them again until it has)."""
+            deadline = time.monotonic() + config.plan_timeout_s
+            while not manager.wait_fused(n_init, REPLAY_RESEND_S, key="semantic_frames_fused"):
+                if time.monotonic() > deadline:
+                    log_sink(
+                        f"[mission_manager] no semantic maps of the initial views after "
+                        f"{config.plan_timeout_s:.0f} s; going on without them"
+                    )
+                    return
+                log_sink(
+                    "[mission_manager] no semantic maps of the initial views yet; replaying them"
+                )
+                manager.replay_all(frames[:n_init], config.fuse_timeout_s, log_sink)
 
         def step(action: Callable[[], Any]) -> Any:
             """Run one episode step; a restart it depends on is caught up with and it runs again."""
@@ -744,8 +795,7 @@ def run_episode(
                 raise EpisodeError(f"the camera refused initial view {len(frames)}: {result}")
             add_time("capture", time.monotonic() - t)
             keep(result, "initial", {"capture": time.monotonic() - t})
-        semantics = next(spec for spec in specs if spec.name == "semantics").parameters
-        if semantics.get("backend", "heuristic") != "none" and not step(
+        if with_semantics and not step(
             lambda: manager.wait_fused(n_init, config.plan_timeout_s, key="semantic_frames_fused")
         ):
             log_sink(

@@ -36,12 +36,12 @@ def run_node(
     node: Node | None = None
     spinner: Executor | None = None
     try:
+        spinner = executor()  # first: a Ctrl-C while the node is built finds it whole
         try:
             node = make_node()
         except startup_errors as exc:
             rclpy.logging.get_logger(name).fatal(f"cannot start: {exc}")
             return 1
-        spinner = executor()
         spinner.add_node(node)
         spinner.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
