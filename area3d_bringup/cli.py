@@ -75,6 +75,14 @@ def run(
         "sensor",
         help="what the TSDF reconstructs from: sensor (the camera's depth) | estimated (perception's)",
     ),
+    respawn: bool = typer.Option(
+        False, help="restart a node that dies and go on with the episode (instead of stopping)"
+    ),
+    respawn_delay: float = typer.Option(1.0, help="seconds before a dead node is restarted"),
+    respawn_retries: int = typer.Option(3, help="restarts allowed per node"),
+    min_free_mb: float = typer.Option(
+        None, help="refuse to start with less free space in --out, MiB (default: 1024)"
+    ),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
     from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
@@ -93,6 +101,10 @@ def run(
         namespace=namespace,
         nodes=tuple(n for n in nodes.split(",") if n) or None,
         depth_source=depth_source,
+        respawn=respawn,
+        respawn_delay_s=respawn_delay,
+        respawn_max_retries=respawn_retries,
+        **({} if min_free_mb is None else {"min_free_mb": min_free_mb}),
     )
     columns = (
         TextColumn("{task.description}"),
@@ -149,6 +161,9 @@ def launch(
     domain_id: int = typer.Option(None, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)"),
     namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
     nodes: str = typer.Option("", help="comma list of the graph nodes to start (default: all)"),
+    respawn: bool = typer.Option(False, help="restart a node that dies instead of stopping all"),
+    respawn_delay: float = typer.Option(1.0, help="seconds before a dead node is restarted"),
+    respawn_retries: int = typer.Option(3, help="restarts allowed per node"),
 ) -> None:
     """Start the node graph and keep it running (Ctrl-C stops every node)."""
     import tempfile
@@ -165,7 +180,15 @@ def launch(
         _fail(f"nodes: got {unknown}, expected names from {[spec.name for spec in specs]}")
     specs = [spec for spec in specs if not names or spec.name in names]
     with tempfile.TemporaryDirectory(prefix="area3d-launch-") as workdir:
-        launcher = Launcher(specs, Path(workdir), env=env, namespace=namespace)
+        launcher = Launcher(
+            specs,
+            Path(workdir),
+            env=env,
+            namespace=namespace,
+            respawn=respawn,
+            respawn_delay_s=respawn_delay,
+            respawn_max_retries=respawn_retries,
+        )
         launcher.start()
         console.print(f"started {', '.join(s.name for s in specs)}; Ctrl-C stops them")
         code = 0

@@ -4,6 +4,11 @@ Each node runs `python -m MODULE --ros-args --params-file FILE -r __node:=NAME [
 same arguments `ros2 run` and `ros2 launch` give a node. Output lines are prefixed with `[name]` and forwarded. Ctrl-C, SIGTERM or
 the death of any node stops all of them: SIGINT first, then SIGTERM, then SIGKILL, and every child
 also gets SIGKILL from the kernel if the launcher itself dies (PR_SET_PDEATHSIG), so no orphans remain.
+
+With `respawn=True` a node that exits is started again after `respawn_delay_s`, at most
+`respawn_max_retries` times per node (ROS 2 launch's `respawn`, `respawn_delay` and
+`respawn_max_retries`); only a node that has used up its retries counts as dead. `respawns` counts
+the restarts per node, so a caller can bring a restarted node up to date.
 """
 
 from __future__ import annotations
@@ -46,6 +51,8 @@ class Launcher:
     env: extra environment for the children (e.g. ROS_DOMAIN_ID, `middleware.graph_env()`).
     namespace: ROS namespace of every node (`-r __ns:=NAMESPACE`), e.g. "/robot1".
     ros_args: more `--ros-args` arguments for every node, e.g. ["-r", "from:=to"].
+    respawn, respawn_delay_s, respawn_max_retries: start a node that exited again, after this many
+    seconds, at most this many times per node.
     """
 
     def __init__(
@@ -56,7 +63,14 @@ class Launcher:
         log_sink: Callable[[str], None] | None = None,
         namespace: str = "",
         ros_args: list[str] | None = None,
+        respawn: bool = False,
+        respawn_delay_s: float = 1.0,
+        respawn_max_retries: int = 3,
     ):
+        if respawn_delay_s < 0:
+            raise ValueError(f"respawn_delay_s: got {respawn_delay_s}, expected seconds >= 0")
+        if respawn_max_retries < 0:
+            raise ValueError(f"respawn_max_retries: got {respawn_max_retries}, expected >= 0")
         self.specs = specs
         self.namespace = namespace
         self.ros_args = list(ros_args or [])
@@ -67,37 +81,75 @@ class Launcher:
         self.output: dict[str, list[str]] = {}
         self._threads: list[threading.Thread] = []
         self._stopping = False
+        self.respawn = respawn
+        self.respawn_delay_s = float(respawn_delay_s)
+        self.respawn_max_retries = int(respawn_max_retries)
+        self.respawns: dict[str, int] = {spec.name: 0 for spec in specs}
+        self._spawn_lock = threading.Lock()  # a respawn never races stop()
+        self._stop_event = threading.Event()
+        self._params_file: Path | None = None
 
     def start(self) -> None:
-        params_file = write_params_file(self.specs, self.workdir / "params.yaml")
+        self._params_file = write_params_file(self.specs, self.workdir / "params.yaml")
         for spec in self.specs:
-            cmd = [
-                sys.executable,
-                "-m",
-                spec.module,
-                "--ros-args",
-                "--params-file",
-                str(params_file),
-                "-r",
-                f"__node:={spec.name}",
-                *(["-r", f"__ns:={self.namespace}"] if self.namespace else []),
-                *self.ros_args,
-            ]
-            proc = subprocess.Popen(
-                cmd,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=self.env,
-                text=True,
-                bufsize=1,
-                preexec_fn=_die_with_parent,
-            )
-            self.processes[spec.name] = proc
             self.output[spec.name] = []
-            thread = threading.Thread(target=self._forward, args=(spec.name, proc), daemon=True)
-            thread.start()
-            self._threads.append(thread)
+            self._spawn(spec)
+        if self.respawn:
+            monitor = threading.Thread(target=self._monitor, name="launcher-respawn", daemon=True)
+            monitor.start()
+            self._threads.append(monitor)
+
+    def _spawn(self, spec: NodeSpec) -> None:
+        cmd = [
+            sys.executable,
+            "-m",
+            spec.module,
+            "--ros-args",
+            "--params-file",
+            str(self._params_file),
+            "-r",
+            f"__node:={spec.name}",
+            *(["-r", f"__ns:={self.namespace}"] if self.namespace else []),
+            *self.ros_args,
+        ]
+        proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=self.env,
+            text=True,
+            bufsize=1,
+            preexec_fn=_die_with_parent,
+        )
+        self.processes[spec.name] = proc
+        thread = threading.Thread(target=self._forward, args=(spec.name, proc), daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def _can_respawn(self, name: str) -> bool:
+        return self.respawn and self.respawns[name] < self.respawn_max_retries
+
+    def _monitor(self, poll_s: float = 0.1) -> None:
+        """Start nodes that exited again, each after the delay, while retries are left."""
+        while not self._stop_event.wait(poll_s):
+            for spec in self.specs:
+                code = self.processes[spec.name].poll()
+                if code is None or not self._can_respawn(spec.name):
+                    continue
+                attempt = self.respawns[spec.name] + 1
+                self.log_sink(
+                    f"[launcher] {spec.name} exited with code {code}; respawning in "
+                    f"{self.respawn_delay_s:g} s ({attempt}/{self.respawn_max_retries})"
+                )
+                if self._stop_event.wait(self.respawn_delay_s):
+                    return
+                with self._spawn_lock:
+                    if self._stopping:
+                        return
+                    self._spawn(spec)
+                    self.respawns[spec.name] = attempt
+                self.log_sink(f"[launcher] {spec.name} respawned")
 
     def _forward(self, name: str, proc: subprocess.Popen) -> None:
         lines = self.output[name]
@@ -109,12 +161,12 @@ class Launcher:
             self.log_sink(f"[{name}] {line}")
 
     def check(self) -> None:
-        """Raise `NodeDied` if any node has exited."""
+        """Raise `NodeDied` if a node has exited for good (with respawn: no retries left)."""
         if self._stopping:
             return
-        for name, proc in self.processes.items():
+        for name, proc in list(self.processes.items()):
             code = proc.poll()
-            if code is not None:
+            if code is not None and not self._can_respawn(name):
                 raise NodeDied(name, code, self.output.get(name, []))
 
     def wait(self, poll_s: float = 0.2) -> None:
@@ -132,7 +184,9 @@ class Launcher:
 
     def stop(self, grace_s: float = 5.0) -> dict[str, int]:
         """Stop every node (SIGINT, then SIGTERM, then SIGKILL); returns their exit codes."""
-        self._stopping = True
+        with self._spawn_lock:
+            self._stopping = True
+            self._stop_event.set()
         for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
             alive = [p for p in self.processes.values() if p.poll() is None]
             if not alive:

@@ -5,6 +5,12 @@ next-best-view service for views and drives the camera there until the view budg
 Every captured frame is saved in the run directory as it arrives (and `episode.json` rewritten), so a
 crash loses nothing and `--resume RUN_DIR` continues where the episode stopped: the saved frames are
 replayed onto the camera topics for the new graph, then planning goes on with the remaining budget.
+
+With `respawn` on, a node that dies is started again by the launcher and the episode goes on: the
+step it interrupted (a capture for the camera, a plan or a wait for the planner) is retried once
+the new process is up, and the graph is brought up to date from the same saved frames that
+`--resume` replays, so the restarted planner fuses again everything it had fused (perception and
+semantics recompute their outputs from the frames; the planner fuses each stamp once).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
@@ -79,10 +86,33 @@ GRAPH_OUTPUTS = {
 EXPECTED_READERS = {"goal": 1, "color": 3, "depth": 3, "info": 3, "pose": 3}
 # The grid is published after every fusion; the runner's reader keeps a backlog of them.
 GRID_READER_DEPTH = 100
+# The runner's topics each graph node reads: once a new process of a restarted node reads them
+# all, and the runner's writers have matched every reader discovery lists, it is up (a dead
+# process's readers linger in discovery for a while, and a reader discovery lists a moment
+# before the writer has matched it would miss what is published in between).
+READS = {
+    "sim_bridge": ("goal",),
+    "perception": ("color", "depth", "info", "pose"),
+    "semantics": ("color", "depth"),
+    "planner": ("info", "pose"),
+}
+# The nodes whose restart loses fused evidence until the saved frames are replayed.
+FUSION_NODES = ("perception", "semantics", "planner")
+# A replayed frame that perception has not answered within this long is published again (its
+# first copy may have gone out before a restarted node's readers had matched).
+REPLAY_RESEND_S = 10.0
 
 
 class EpisodeError(RuntimeError):
     """The episode could not go on; the message says why and what was kept."""
+
+
+class NodeRespawned(RuntimeError):
+    """A graph node was restarted while a step that depends on it was under way."""
+
+    def __init__(self, name: str):
+        self.name = name
+        super().__init__(f"node {name!r} was restarted")
 
 
 @dataclass
@@ -109,6 +139,13 @@ class EpisodeConfig:
     # what the TSDF integrates (rundir.DEPTH_SOURCES): the camera's depth, or perception's estimate
     # (then kept in every frame file)
     depth_source: str = "sensor"
+    # a node that dies is restarted (bounded) and the episode goes on, instead of stopping it
+    respawn: bool = False
+    respawn_delay_s: float = 1.0
+    respawn_max_retries: int = 3  # per node
+    min_free_mb: float = rundir.MIN_FREE_MB  # the output directory must have this much free
+    # capture stamps in ns (None: the runner's ROS clock); tests inject time instead of sleeping
+    clock: Callable[[], int] | None = None
 
 
 def paper_budget(level: str) -> int:
@@ -126,7 +163,8 @@ class MissionManager(Node):
     def __init__(
         self,
         recorder: BagRecorder | None,
-        alive_check: Callable[[], None] = lambda: None,
+        launcher: Launcher | None = None,
+        clock: Callable[[], int] | None = None,
         keep_estimates: bool = False,
         **kwargs: Any,
     ):
@@ -134,18 +172,32 @@ class MissionManager(Node):
         # {stamp: {"depth" | "confidence": image}} of perception's outputs, when the run keeps them
         self.estimates: dict[int, dict[str, np.ndarray]] | None = {} if keep_estimates else None
         self.recorder = recorder
-        self.alive_check = alive_check  # raises when a node of the graph has died
+        self.launcher = launcher  # the graph's processes: who died, who was restarted when
+        self.acknowledged: dict[str, int] = self.respawns()  # restarts already caught up with
+        self.clock = clock or (lambda: self.get_clock().now().nanoseconds)
+        self.perceived: dict[int, int] = {}  # stamp -> perception outputs seen for it
+        self.known_readers: set[tuple] = set()
+        # Per runner topic: every reader id discovery has listed, and how many readers the
+        # writer has matched in all (a dead process's readers stay in both counts).
+        self.listed: dict[str, set[tuple]] = {}
+        self.matched_total: dict[str, int] = {}
+        self.unlisted_matches: dict[str, int] = {}  # matched before the runner first looked
         self._lock = threading.Condition()
         self._parts: dict[int, dict[str, Any]] = {}
         self._status: dict[int, dict] = {}
         self.planner_status: dict = {}
         self.latest_grid: bytes | None = None
         self.received: dict[str, int] = {}
-        self.goal_pub = self.create_publisher(msgs.PoseStamped, GOAL_TOPIC, qos.frames())
+        self.goal_pub = self.create_publisher(
+            msgs.PoseStamped, GOAL_TOPIC, qos.frames(), event_callbacks=self._on_match("goal")
+        )
         self.replay_pubs = {
-            key: self.create_publisher(msg_type, topic, qos.frames())
+            key: self.create_publisher(
+                msg_type, topic, qos.frames(), event_callbacks=self._on_match(key)
+            )
             for key, (topic, msg_type) in CAMERA_TOPICS.items()
         }
+        self.runner_pubs = {"goal": self.goal_pub, **self.replay_pubs}  # what graph nodes read
         for key, (topic, msg_type) in CAMERA_TOPICS.items():
             self._listen(topic, msg_type, qos.frames(), self._on_part(key, msg_type))
         for topic, (msg_type, latched) in GRAPH_OUTPUTS.items():
@@ -159,6 +211,13 @@ class MissionManager(Node):
         self.client = self.create_client(msgs.GetPlan, NBV_SERVICE)
 
     # -- callbacks (executor thread) ---------------------------------------------------------
+    def _on_match(self, key: str) -> PublisherEventCallbacks:
+        def matched(status) -> None:
+            with self._lock:
+                self.matched_total[key] = status.total_count
+
+        return PublisherEventCallbacks(matched=matched)
+
     def _listen(self, topic: str, msg_type: type, profile, handle) -> None:
         type_name = _type_name(msg_type)
         resolved = self.resolve_topic_name(topic)
@@ -191,7 +250,10 @@ class MissionManager(Node):
 
     def _on_output(self, topic: str) -> Callable[[Any, bytes], None]:
         def handle(msg: Any, cdr: bytes) -> None:
-            if topic == CAMERA_STATUS_TOPIC:
+            if topic == PERCEPTION_DEPTH_TOPIC:
+                stamp = codecs.stamp_to_ns(msg.header.stamp)
+                self.perceived[stamp] = self.perceived.get(stamp, 0) + 1
+            elif topic == CAMERA_STATUS_TOPIC:
                 status = json.loads(msg.data)
                 self._status[int(status.get("stamp_ns", 0))] = status
             elif topic == PLANNER_STATUS_TOPIC:
@@ -222,10 +284,93 @@ class MissionManager(Node):
             TF_TOPIC, "tf2_msgs/msg/TFMessage", stamp_ns, tf_cdr(stamp_ns, T_world_opt)
         )
 
+    # -- restarts -----------------------------------------------------------------------------
+    def respawns(self) -> dict[str, int]:
+        return {} if self.launcher is None else dict(self.launcher.respawns)
+
+    def alive_check(self) -> None:
+        """Raise `NodeDied` if a node of the graph has died for good."""
+        if self.launcher is not None:
+            self.launcher.check()
+
+    def check(self, *nodes: str) -> None:
+        """Raise `NodeDied` for a node dead for good, `NodeRespawned` if one of `nodes` was
+        restarted since the runner last caught up with it."""
+        self.alive_check()
+        counts = self.respawns()
+        for name in nodes:
+            if counts.get(name, 0) != self.acknowledged.get(name, 0):
+                raise NodeRespawned(name)
+
+    def restarted(self) -> list[str]:
+        """Nodes restarted since the runner last caught up with them."""
+        counts = self.respawns()
+        return [n for n, c in counts.items() if c != self.acknowledged.get(n, 0)]
+
+    def acknowledge(self, names: list[str]) -> None:
+        counts = self.respawns()
+        with self._lock:
+            for name in names:
+                self.acknowledged[name] = counts.get(name, 0)
+            if "planner" in names:
+                self.planner_status = {}  # the new planner starts from nothing
+
+    def _list(self, key: str) -> list:
+        """The readers discovery lists on the runner's topic `key` (all remembered in `listed`)."""
+        infos = self.get_subscriptions_info_by_topic(self.runner_pubs[key].topic_name)
+        self.listed.setdefault(key, set()).update(tuple(i.endpoint_gid) for i in infos)
+        return infos
+
+    def _readers(self, name: str) -> set[tuple]:
+        """(topic, reader id) of every reader `name` has on the runner's topics."""
+        return {
+            (key, tuple(info.endpoint_gid))
+            for key in READS[name]
+            for info in self._list(key)
+            if info.node_name == name
+        }
+
+    def _all_matched(self, key: str) -> bool:
+        """The writer has matched every reader ever listed on `key`. Exact where a live count
+        is not: discovery can list a new reader before the writer has matched it, and drop a
+        dead process's reader before (or after) the writer unmatches it."""
+        with self._lock:
+            matched = self.matched_total.get(key, 0) - self.unlisted_matches.get(key, 0)
+        return matched >= len(self.listed.get(key, ()))
+
+    def note_readers(self, names: list[str]) -> None:
+        """Remember the readers the graph's nodes have now (a later new one is a new process)."""
+        for name in names:
+            self.known_readers |= self._readers(name)
+        for key in self.runner_pubs:
+            self._list(key)
+            listed = len(self.listed[key])
+            with self._lock:
+                if key not in self.unlisted_matches:
+                    self.unlisted_matches[key] = max(0, self.matched_total.get(key, 0) - listed)
+
+    def _up(self, name: str) -> bool:
+        """A new process of `name` reads every topic it reads from the runner, all matched."""
+        new_on = {key for key, _ in self._readers(name) - self.known_readers}
+        return new_on == set(READS[name]) and all(self._all_matched(k) for k in READS[name])
+
+    def wait_new_readers(self, names: list[str], timeout_s: float) -> None:
+        """Wait until each restarted node reads the runner's topics from its new process."""
+        deadline = time.monotonic() + timeout_s
+        for name in names:
+            while not self._up(name):
+                if time.monotonic() > deadline:
+                    raise TimeoutError(
+                        f"restarted node {name!r} did not come up within {timeout_s:.0f} s"
+                    )
+                self.check(*READS)
+                time.sleep(0.05)
+        self.note_readers(names)
+
     # -- episode steps (main thread) --------------------------------------------------------
     def wait_for_readers(self, timeout_s: float) -> list[str]:
         """Wait until the camera topics have their graph readers; the topics still short of them."""
-        pubs = {"goal": self.goal_pub, **self.replay_pubs}
+        pubs = self.runner_pubs
         deadline = time.monotonic() + timeout_s
         while True:
             short = [
@@ -236,9 +381,17 @@ class MissionManager(Node):
             self.alive_check()
             time.sleep(0.05)
 
-    def capture(self, T_world_cam: np.ndarray, timeout_s: float) -> Frame | str:
-        """Send the camera to `T_world_cam`; the frame, or the camera's reason for refusing."""
-        stamp = self.get_clock().now().nanoseconds
+    def capture(
+        self, T_world_cam: np.ndarray, timeout_s: float, stamp: int | None = None
+    ) -> Frame | str:
+        """Send the camera to `T_world_cam`; the frame, or the camera's reason for refusing.
+
+        `stamp` (default: now) is the capture stamp; a capture repeated after the camera restarted
+        keeps it, so if the dead camera had published the frame after all, the graph sees the same
+        frame twice (and fuses it once) rather than one view as two. Once the camera has been
+        restarted, an unanswered goal is sent again halfway through the timeout: a new camera
+        process's reader can be listed a moment before the runner's writer has matched it."""
+        stamp = self.clock() if stamp is None else stamp
         goal = msgs.PoseStamped(
             header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T_world_cam)
         )
@@ -248,6 +401,7 @@ class MissionManager(Node):
         )  # fmt: skip
         self.goal_pub.publish(goal)
         deadline = time.monotonic() + timeout_s
+        resend_at = deadline - timeout_s / 2 if self.respawns().get("sim_bridge") else None
         with self._lock:
             while True:
                 status = self._status.get(stamp)
@@ -263,7 +417,10 @@ class MissionManager(Node):
                         f"no frame from sim_bridge within {timeout_s:.0f} s for the goal stamped {stamp}"
                     )
                 self._lock.wait(min(remaining, 0.1))
-                self.alive_check()
+                self.check("sim_bridge")  # a restarted camera never got the goal: ask again
+                if resend_at is not None and time.monotonic() > resend_at and not parts:
+                    resend_at = None
+                    self.goal_pub.publish(goal)
         K, _, _ = codecs.camera_info_to_intrinsics(parts["info"])
         return Frame(
             rgb=codecs.msg_to_image(parts["color"]),
@@ -294,7 +451,14 @@ class MissionManager(Node):
         with self._lock:
             return dict(self.estimates or {})
 
-    def wait_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+    def wait_until(
+        self,
+        predicate: Callable[[], bool],
+        timeout_s: float,
+        interrupted_by: tuple = FUSION_NODES,
+    ) -> bool:
+        """Wait for `predicate` (lock held while it runs); a restart of `interrupted_by` raises:
+        what the wait counts on may never come without the replay that follows a restart."""
         deadline = time.monotonic() + timeout_s
         with self._lock:
             while not predicate():
@@ -302,8 +466,63 @@ class MissionManager(Node):
                 if remaining <= 0:
                     return False
                 self._lock.wait(min(remaining, 0.1))
-                self.alive_check()
+                self.check(*interrupted_by)
         return True
+
+    def replay_all(self, frames: list[Frame], timeout_s: float, log: Callable[[str], None]) -> None:
+        """Replay saved frames so the graph knows them (after `--resume` or a restart).
+
+        One frame at a time, each waited for until perception has answered it: parts of a later
+        frame never overtake an earlier one, however far apart the saved stamps are. Then wait
+        until the planner has fused every one; if it has not within `REPLAY_RESEND_S`, replay
+        them all again (a restarted planner's reader can be listed by discovery a moment before
+        the runner's writer has matched it; the planner fuses each stamp once, so frames it
+        already has change nothing). Any restart meanwhile raises `NodeRespawned`: the caller
+        starts over."""
+        deadline = None
+        while True:
+            for i, frame in enumerate(frames):
+                self._replay_one(i, frame, timeout_s, log)
+            deadline = deadline or time.monotonic() + timeout_s
+            if self.wait_until(
+                lambda: int(self.planner_status.get("frames_fused", 0)) >= len(frames),
+                min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
+                interrupted_by=tuple(READS),
+            ):
+                return
+            fused = self.planner_status.get("frames_fused", 0)
+            if time.monotonic() >= deadline:
+                log(
+                    f"[mission_manager] the planner has fused {fused} of {len(frames)} replayed "
+                    f"frames after {timeout_s:.0f} s; going on"
+                )
+                return
+            log(
+                f"[mission_manager] the planner has fused {fused} of {len(frames)} replayed "
+                "frames; replaying them again"
+            )
+
+    def _replay_one(
+        self, index: int, frame: Frame, timeout_s: float, log: Callable[[str], None]
+    ) -> None:
+        """Replay one frame and wait until perception has answered it (publishing it again every
+        `REPLAY_RESEND_S`: its first copy may have gone out before a new reader matched)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            seen = self.perceived.get(frame.stamp_ns, 0)
+            self.replay(frame)
+            if self.wait_until(
+                lambda n=seen: self.perceived.get(frame.stamp_ns, 0) > n,
+                min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
+                interrupted_by=tuple(READS),
+            ):
+                return
+            if time.monotonic() >= deadline:
+                log(
+                    f"[mission_manager] replayed frame {index} (stamp {frame.stamp_ns}) not "
+                    f"processed by perception after {timeout_s:.0f} s; going on"
+                )
+                return
 
     def wait_fused(self, count: int, timeout_s: float, key: str = "frames_fused") -> bool:
         """Wait until the planner reports at least `count` fused frames (or semantic maps, by `key`)."""
@@ -329,7 +548,11 @@ class MissionManager(Node):
         deadline = time.monotonic() + timeout_s
         # Poll so that a planner dying mid-call is noticed at once.
         while not done.wait(0.1):
-            self.alive_check()
+            try:
+                self.check("planner")  # a restarted planner will never answer this call
+            except (NodeRespawned, NodeDied):
+                self.client.remove_pending_request(future)
+                raise
             if time.monotonic() > deadline:
                 self.client.remove_pending_request(future)
                 raise TimeoutError(f"no answer from {NBV_SERVICE} within {timeout_s:.0f} s")
@@ -367,6 +590,7 @@ def run_episode(
             raise FileNotFoundError(
                 f"resume: got {str(run_dir)!r}, expected a run directory with episode.json"
             )
+        rundir.check_output_dir(run_dir, config.min_free_mb)
         saved = json.loads(episode_path.read_text())
         config.scene, config.policy, config.mode = saved["scene"], saved["policy"], saved["mode"]
         config.seed, budget = saved["seed"], saved["budget"]
@@ -380,6 +604,7 @@ def run_episode(
             config.run_name
             or f"{scene.name}_{config.policy}_s{config.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         )
+        rundir.check_output_dir(config.out_dir, config.min_free_mb)
         run_dir = Path(config.out_dir) / name
         run_dir.mkdir(parents=True, exist_ok=False)
     n_init = len(scene.initial_views)
@@ -422,6 +647,8 @@ def run_episode(
                 "config": {spec.name: spec.parameters for spec in specs},
                 "ros": {"domain_id": domain_id, "namespace": config.namespace},
                 "recorded": counts,
+                "respawns": dict(launcher.respawns),
+                "planner_status": manager.planner_status,
             },
         )
 
@@ -444,12 +671,22 @@ def run_episode(
     recorder = BagRecorder(rundir.bag_path(run_dir)) if config.record else None
     t0 = time.monotonic()
     local = [spec for spec in specs if config.nodes is None or spec.name in config.nodes]
-    launcher = Launcher(local, run_dir, env=env, log_sink=log_sink, namespace=config.namespace)
+    launcher = Launcher(
+        local,
+        run_dir,
+        env=env,
+        log_sink=log_sink,
+        namespace=config.namespace,
+        respawn=config.respawn,
+        respawn_delay_s=config.respawn_delay_s,
+        respawn_max_retries=config.respawn_max_retries,
+    )
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain_id)
     manager = MissionManager(
         recorder,
-        alive_check=launcher.check,
+        launcher=launcher,
+        clock=config.clock,
         keep_estimates=config.depth_source == "estimated",
         context=context,
         namespace=config.namespace or None,
@@ -478,7 +715,10 @@ def run_episode(
             log_sink(
                 f"[mission_manager] topics {short} have fewer readers than the graph should give them"
             )
+        manager.note_readers(list(READS))
         add_time("launch", time.monotonic() - t0)
+        semantics = next(spec for spec in specs if spec.name == "semantics").parameters
+        with_semantics = semantics.get("backend", "heuristic") != "none"
         if progress is not None:
             task = progress.add_task(f"{scene.name} / {config.policy}", total=budget)
             progress.update(task, completed=len(frames))
@@ -507,38 +747,87 @@ def run_episode(
                     description=f"{scene.name} / {config.policy}: view {len(frames)}/{budget} ({kind}){extra}",
                 )
 
+        catching_up: set[str] = set()  # restarted nodes whose new process is not up yet
+        replay_due = False  # a restart lost fused evidence that the saved frames give back
+
+        def recover() -> None:
+            """Bring restarted nodes up to date: wait for their new process, then replay every
+            saved frame (not after the camera alone: it keeps no state). A restart meanwhile
+            starts this over, with nothing of the earlier one forgotten."""
+            nonlocal replay_due
+            while True:
+                changed = manager.restarted()
+                if changed:
+                    log_sink(
+                        f"[mission_manager] {', '.join(changed)} restarted; bringing the graph up to date"
+                    )
+                    manager.acknowledge(changed)
+                    catching_up.update(changed)
+                    replay_due = replay_due or bool(set(changed) - {"sim_bridge"})
+                if not catching_up and not replay_due:
+                    return
+                t = time.monotonic()
+                try:
+                    for name in sorted(catching_up):
+                        manager.wait_new_readers([name], config.startup_timeout_s)
+                        catching_up.discard(name)
+                    if replay_due and frames:
+                        manager.replay_all(frames, config.fuse_timeout_s, log_sink)
+                        if with_semantics and len(frames) >= n_init:
+                            semantic_maps_back()
+                    replay_due = False
+                except NodeRespawned:
+                    continue
+                add_time("recover", time.monotonic() - t)
+
+        def semantic_maps_back() -> None:
+            """The planner holds the semantic maps of O_0 again (a restarted semantics queries
+            the initial views once it has them; replay them again until it has)."""
+            deadline = time.monotonic() + config.plan_timeout_s
+            while not manager.wait_fused(n_init, REPLAY_RESEND_S, key="semantic_frames_fused"):
+                if time.monotonic() > deadline:
+                    log_sink(
+                        f"[mission_manager] no semantic maps of the initial views after "
+                        f"{config.plan_timeout_s:.0f} s; going on without them"
+                    )
+                    return
+                log_sink(
+                    "[mission_manager] no semantic maps of the initial views yet; replaying them"
+                )
+                manager.replay_all(frames[:n_init], config.fuse_timeout_s, log_sink)
+
+        def step(action: Callable[[], Any]) -> Any:
+            """Run one episode step; a restart it depends on is caught up with and it runs again."""
+            while True:
+                recover()
+                try:
+                    return action()
+                except NodeRespawned as err:
+                    log_sink(f"[mission_manager] {err} during a step; repeating the step")
+
         # Replay what an interrupted episode had already captured, so the new graph knows it.
-        # One frame at a time, each waited for until fused: saved stamps may lie further apart than
-        # any pairing horizon in the graph, and parts of a later frame must never overtake an
-        # earlier one, or perception and the planner would drop it as too old.
         if frames:
             t = time.monotonic()
-            for i, frame in enumerate(frames):
-                manager.replay(frame)
-                if not manager.wait_fused(i + 1, config.fuse_timeout_s):
-                    log_sink(
-                        f"[mission_manager] replayed frame {i} (stamp {frame.stamp_ns}) not fused "
-                        f"after {config.fuse_timeout_s:.0f} s; going on"
-                    )
+            step(lambda: manager.replay_all(frames, config.fuse_timeout_s, log_sink))
             add_time("replay", time.monotonic() - t)
 
         for T in scene.initial_views[len(frames) : n_init] if len(frames) < n_init else []:
             t = time.monotonic()
-            result = manager.capture(T, config.capture_timeout_s)
+            stamp = manager.clock()  # kept if the capture is repeated
+            result = step(lambda T=T, s=stamp: manager.capture(T, config.capture_timeout_s, s))
             launcher.check()
             if isinstance(result, str):
                 raise EpisodeError(f"the camera refused initial view {len(frames)}: {result}")
             add_time("capture", time.monotonic() - t)
             keep(result, "initial", {"capture": time.monotonic() - t})
-        semantics = next(spec for spec in specs if spec.name == "semantics").parameters
-        if semantics.get("backend", "heuristic") != "none" and not manager.wait_fused(
-            n_init, config.plan_timeout_s, key="semantic_frames_fused"
+        if with_semantics and not step(
+            lambda: manager.wait_fused(n_init, config.plan_timeout_s, key="semantic_frames_fused")
         ):
             log_sink(
                 f"[mission_manager] no semantic maps for the initial views after "
                 f"{config.plan_timeout_s:.0f} s; planning without them"
             )
-        if not manager.wait_fused(n_init, config.fuse_timeout_s):
+        if not step(lambda: manager.wait_fused(n_init, config.fuse_timeout_s)):
             log_sink(
                 f"[mission_manager] the planner has not fused all {n_init} initial views after "
                 f"{config.fuse_timeout_s:.0f} s; planning with what it has"
@@ -553,7 +842,7 @@ def run_episode(
         while planned < to_plan:
             t = time.monotonic()
             count = 1 if config.mode == "closed_loop" else to_plan - planned
-            poses = manager.plan(frames[-1], count, config.plan_timeout_s)
+            poses = step(lambda c=count: manager.plan(frames[-1], c, config.plan_timeout_s))
             plan_s = time.monotonic() - t
             add_time("plan", plan_s)
             launcher.check()
@@ -564,7 +853,8 @@ def run_episode(
                 break
             for T in poses[: to_plan - planned]:
                 t = time.monotonic()
-                result = manager.capture(T, config.capture_timeout_s)
+                stamp = manager.clock()  # kept if the capture is repeated
+                result = step(lambda T=T, s=stamp: manager.capture(T, config.capture_timeout_s, s))
                 add_time("capture", time.monotonic() - t)
                 if isinstance(result, str):
                     refused += 1
@@ -580,10 +870,14 @@ def run_episode(
                     "planned",
                     {"plan": plan_s / len(poses), "capture": time.monotonic() - t},
                 )
-        manager.wait_fused(len(frames), 10.0)
+        step(lambda: manager.wait_fused(len(frames), config.fuse_timeout_s))
         # Let the bag catch up with what the planner and perception published for the last frame.
         perception_depth = manager.resolve_topic_name(PERCEPTION_DEPTH_TOPIC)
-        manager.wait_until(lambda: manager.received.get(perception_depth, 0) >= len(frames), 10.0)
+        step(
+            lambda: manager.wait_until(
+                lambda: manager.received.get(perception_depth, 0) >= len(frames), 10.0
+            )
+        )
         if manager.estimates is not None:
             _attach_estimates(run_dir, frames, manager, log_sink)
         if manager.latest_grid is not None:
@@ -600,15 +894,23 @@ def run_episode(
         raise EpisodeError(
             f"{err}\nkept {len(frames)} captured views in {run_dir}; continue with --resume {run_dir}"
         ) from err
+    except OSError as err:  # the disk filled up or went away mid-run
+        raise EpisodeError(
+            f"writing the run directory failed: {err}\nkept {len(frames)} captured views in "
+            f"{run_dir}; free space, then continue with --resume {run_dir}"
+        ) from err
     finally:
         launcher.stop()
         executor.shutdown()
         spinner.join(timeout=2.0)
         manager.destroy_node()
         context.try_shutdown()
-        if recorder is not None:
-            recorder.close()
-        save_episode()
+        try:
+            if recorder is not None:
+                recorder.close()
+            save_episode()
+        except OSError as err:  # a full disk: what was written before stays readable
+            log_sink(f"[mission_manager] could not write the run directory at the end: {err}")
         lease.release()
         log_file.close()
     return run_dir

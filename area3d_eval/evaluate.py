@@ -12,7 +12,6 @@ background, which every reconstruction matches).
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -40,6 +39,7 @@ from area3d_eval.rundir import (
     read_frame,
     reconstruction_depth,
     to_jsonable,
+    write_json,
 )
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import depth_to_world
@@ -243,5 +243,5 @@ def evaluate_run(
                 np.float32
             ),
         )
-        (run_dir / METRICS_FILE).write_text(json.dumps(to_jsonable(result), indent=2))
+        write_json(run_dir / METRICS_FILE, result, indent=2)
     return result

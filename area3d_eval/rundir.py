@@ -5,7 +5,8 @@ Layout (all paths relative to RUN_DIR):
 - `episode.json`: {"scene", "policy", "seed", "budget", "level", "mode", "depth_source",
   "views": [{"index", "stamp_ns", "T_world_cam" (4x4 list), "kind": "initial" | "planned",
   "stage_times_s": {...}}], "timings_s": {stage: seconds}, "config": {...},
-  "ros": {"domain_id", "namespace"}, "recorded": {topic: message count in the bag}}
+  "ros": {"domain_id", "namespace"}, "recorded": {topic: message count in the bag},
+  "respawns": {node: restarts during the run}, "planner_status": the planner's last status}
 - `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
   K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index. Optional:
   estimated_depth (H, W) float32 metres NaN = missing and confidence (H, W) float32 in [0, 1],
@@ -16,6 +17,10 @@ Layout (all paths relative to RUN_DIR):
   message count of each topic is in episode.json under "recorded".
 - `nodes.log`, `params.yaml`: every node's log and the parameters it was started with.
 - `metrics.json` (written by `area3d_eval.evaluate.evaluate_run`).
+
+Every file is written to a temporary name in the same directory and renamed over its final name
+(`os.replace`, atomic on POSIX), so a run killed mid-write leaves the previous complete version of
+each file, never half of one; leftover `*.tmp*` files are ignored by the readers.
 - `eval/` (written by evaluation): `reconstruction.ply` (final TSDF mesh cropped to the ROI) and
   `gt_sample.npy` (a few thousand ground-truth surface points for plots).
 """
@@ -25,7 +30,9 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Iterator
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,6 +53,9 @@ GRID_FINAL_FILE = "grid_final.npz"
 LOG_FILE = "nodes.log"
 BAG_DIR = "bag"
 GRID_FIELDS = ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy")
+# Free space a new episode asks for before it starts: a 40-view room episode at 640x480 writes
+# about 90 MB of frames, and its bag holds every image and grid the graph published.
+MIN_FREE_MB = 1024.0
 
 
 @dataclass(frozen=True)
@@ -121,14 +131,57 @@ def read_episode(run_dir: Path) -> Episode:
     )
 
 
+def check_output_dir(directory: Path, min_free_mb: float = MIN_FREE_MB) -> None:
+    """Refuse, before anything is written, a directory that cannot hold a run: one that cannot be
+    created or written to, or whose file system has less than `min_free_mb` MiB free."""
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=directory, prefix=".area3d-write-check-"):
+            pass  # permissions alone do not tell (root, read-only mounts): try a real write
+    except OSError as exc:
+        raise InputError(
+            "output directory",
+            str(directory),
+            f"a directory this process can write to ({exc.strerror or exc})",
+        ) from exc
+    free_mb = shutil.disk_usage(directory).free / 2**20
+    if free_mb < min_free_mb:
+        raise InputError(
+            "output directory",
+            str(directory),
+            f"at least {min_free_mb:.0f} MiB free (has {free_mb:.0f} MiB); free space or lower min_free_mb",
+        )
+
+
+def write_atomic(path: Path, write: Callable[[Path], None], sync: bool = False) -> Path:
+    """Call `write(tmp)` on a temporary file next to `path`, then rename it over `path`: a reader
+    (or a run resumed after a crash) sees the old complete file or the new one, never a torn one.
+    `sync` flushes the data to the disk first, so it also survives a power cut."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.stem}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        if sync:
+            with tmp.open("rb") as stream:
+                os.fsync(stream.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_json(path: Path, data: Any, indent: int = 1) -> Path:
+    """JSON (numpy values made plain), written atomically and synced: the run's small index files."""
+    text = json.dumps(to_jsonable(data), indent=indent)
+    return write_atomic(path, lambda tmp: tmp.write_text(text), sync=True)
+
+
 def write_episode(run_dir: Path, episode: dict[str, Any]) -> Path:
     """Write episode.json (numpy arrays in it become lists)."""
-    path = Path(run_dir) / EPISODE_FILE
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(to_jsonable(episode), indent=1))
-    os.replace(tmp, path)
-    return path
+    return write_json(Path(run_dir) / EPISODE_FILE, episode)
 
 
 def check_depth_source(depth_source: str) -> str:
@@ -181,20 +234,15 @@ def write_frame(
             if np.shape(image) != rgb.shape[:2]:
                 raise InputError(name, f"shape {np.shape(image)}", f"(H, W) = {rgb.shape[:2]}")
             estimates[name] = np.asarray(image, dtype=np.float32)
-    path = frame_path(run_dir, index)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(
-        tmp,
-        rgb=rgb,
-        depth=depth.astype(np.float32),
-        K=np.asarray(K, dtype=np.float64),
-        T_world_cam=np.asarray(T_world_cam, dtype=np.float64),
-        stamp_ns=np.int64(stamp_ns),
+    arrays = {
+        "rgb": rgb,
+        "depth": depth.astype(np.float32),
+        "K": np.asarray(K, dtype=np.float64),
+        "T_world_cam": np.asarray(T_world_cam, dtype=np.float64),
+        "stamp_ns": np.int64(stamp_ns),
         **estimates,
-    )
-    os.replace(tmp, path)
-    return path
+    }
+    return write_atomic(frame_path(run_dir, index), lambda tmp: np.savez(tmp, **arrays))
 
 
 def read_frame(path: Path) -> Frame:
@@ -226,8 +274,8 @@ def iter_frames(run_dir: Path, limit: int | None = None) -> Iterator[Frame]:
 
 def write_grid(path: Path, cloud: np.ndarray) -> Path:
     """Write a grid_*.npz from the planner's cloud (structured array with GRID_FIELDS)."""
-    np.savez_compressed(path, **{name: np.asarray(cloud[name]) for name in cloud.dtype.names})
-    return Path(path)
+    arrays = {name: np.asarray(cloud[name]) for name in cloud.dtype.names}
+    return write_atomic(path, lambda tmp: np.savez_compressed(tmp, **arrays))
 
 
 def bag_path(run_dir: Path) -> Path:

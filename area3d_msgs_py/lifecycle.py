@@ -23,24 +23,35 @@ def run_node(
     args: Sequence[str] | None = None,
     startup_errors: tuple[type[Exception], ...] = STARTUP_ERRORS,
     executor: Callable[[], Executor] = SingleThreadedExecutor,
+    on_stop: Callable[[Node], None] | None = None,
 ) -> int:
-    """Run one node process: 0 after a clean stop (SIGINT, shutdown), 1 when it could not start."""
+    """Run one node process: 0 after a clean stop (SIGINT, shutdown), 1 when it could not start.
+
+    Ctrl-C is a clean stop wherever it lands: while the node is being built, between building
+    and spinning, or while spinning. `on_stop(node)` runs first when the node stops, before the
+    executor waits for the callbacks in flight: it lets a callback that waits on the node's own
+    work (a request waiting for a rebuild) return at once."""
     middleware.configure()
     rclpy.init(args=args)
+    node: Node | None = None
+    spinner: Executor | None = None
     try:
-        node = make_node()
-    except startup_errors as exc:
-        rclpy.logging.get_logger(name).fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 1
-    spinner = executor()
-    spinner.add_node(node)
-    try:
+        spinner = executor()  # first: a Ctrl-C while the node is built finds it whole
+        try:
+            node = make_node()
+        except startup_errors as exc:
+            rclpy.logging.get_logger(name).fatal(f"cannot start: {exc}")
+            return 1
+        spinner.add_node(node)
         spinner.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        spinner.shutdown()
-        node.destroy_node()
+        if on_stop is not None and node is not None:
+            on_stop(node)
+        if spinner is not None:
+            spinner.shutdown()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
     return 0

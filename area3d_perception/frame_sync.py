@@ -2,9 +2,19 @@
 
 Every message of a frame carries the capture stamp of its source frame, so a frame is complete when
 each stream has delivered a message with the same `stamp_ns`. Entries wait in one small dict per
-stream; anything older than `max_age_ns` behind the newest stamp seen is dropped and reported, so a
-pose whose images never arrive (or the reverse) cannot pile up. Age is measured on the stamps, not
-on the wall clock, so recorded episodes replay the same way at any speed.
+stream; when a frame completes, the parts still waiting with stamps more than `max_age_ns` before
+it are dropped and reported, so a pose whose images never arrive (or the reverse) cannot pile up.
+Age is measured on the stamps, not on the wall clock, so recorded episodes replay the same way at
+any speed.
+
+Why against the frame that completes, and not the newest stamp seen: each stream delivers its
+parts in order, so once a frame is complete every stream has delivered what was published before
+it, and a part waiting that far behind it will never find its partners. The newest stamp *seen*
+says no such thing: one part of a later frame overtaking the rest of an earlier frame (frames
+replayed faster than captured, saved stamps minutes apart, the history a restarted node gets from
+transient-local topics all at once) or one stamp from the future would push every waiting part
+out. And an old frame replayed after newer ones completed (a node brought up to date after a
+restart) pairs like any other: only frames completing after its parts arrived can expire them.
 """
 
 from __future__ import annotations
@@ -52,7 +62,6 @@ class StampSync:
         self.max_age_ns = int(max_age_ns)
         self.max_pending = int(max_pending)
         self._pending: dict[str, dict[int, Any]] = {k: {} for k in self.keys}
-        self._newest_ns: int | None = None
         self._dropped: list[Dropped] = []
 
     def add(self, key: str, stamp_ns: int, value: Any) -> dict[str, Any] | None:
@@ -64,24 +73,25 @@ class StampSync:
             raise InputError("key", key, f"one of {list(self.keys)}")
         stamp_ns = int(stamp_ns)
         self._pending[key][stamp_ns] = value
-        if self._newest_ns is None or stamp_ns > self._newest_ns:
-            self._newest_ns = stamp_ns
         complete = None
         if all(stamp_ns in parts for parts in self._pending.values()):
             complete = {k: self._pending[k].pop(stamp_ns) for k in self.keys}
-        self._expire()
+            self._expire(stamp_ns - self.max_age_ns)
+        self._cap()
         return complete
 
-    def _expire(self) -> None:
-        horizon = self._newest_ns - self.max_age_ns
+    def _expire(self, horizon_ns: int) -> None:
         for key, parts in self._pending.items():
-            for stamp in [s for s in parts if s < horizon]:
+            for stamp in [s for s in parts if s < horizon_ns]:
                 del parts[stamp]
                 self._dropped.append(
                     Dropped(
                         key, stamp, f"no matching {self._missing(stamp, key)} within the age limit"
                     )
                 )
+
+    def _cap(self) -> None:
+        for key, parts in self._pending.items():
             while len(parts) > self.max_pending:
                 stamp = min(parts)
                 del parts[stamp]

@@ -48,6 +48,9 @@ MAX_FRAMES_WITHOUT_INFO = 64
 # names to be fused, which needs the frame callbacks to keep running.
 EXECUTOR_THREADS = 3
 STATUS_AFTER_REQUEST_S = 0.05  # the status follows a request's answer this much later, seconds
+# On shutdown a mask rebuild in flight gets this long to finish; the node exits regardless, so
+# Ctrl-C stops it within ROS 2's usual couple of seconds (issue 13: within 2 s).
+CLOSE_WAIT_S = 1.0
 
 
 def _xyz(value: Any) -> str | None:
@@ -171,7 +174,7 @@ class PlannerNode(Node):
         )
 
     def destroy_node(self) -> None:
-        self.server.close()
+        self.server.close(CLOSE_WAIT_S)
         super().destroy_node()
 
     def _on_refresh(self) -> None:
@@ -212,8 +215,10 @@ class PlannerNode(Node):
         self._fuse(stamp, frame, K)
 
     def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
-        self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"])
-        self._publish_state(stamp)
+        if self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"]):
+            self._publish_state(stamp)
+        else:
+            self.get_logger().info(f"frame {stamp} is fused already; the repeat changes nothing")
 
     def _on_semantic(self, msg) -> None:
         stamp = codecs.stamp_to_ns(msg.header.stamp)
@@ -268,7 +273,15 @@ class PlannerNode(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return run_node(PlannerNode, "planner", args, executor=lambda: MultiThreadedExecutor(num_threads=EXECUTOR_THREADS))
+    return run_node(
+        PlannerNode,
+        "planner",
+        args,
+        executor=lambda: MultiThreadedExecutor(num_threads=EXECUTOR_THREADS),
+        # a request waiting for a mask rebuild returns at once instead of holding the executor's
+        # shutdown until the rebuild is done
+        on_stop=lambda node: node.server.close(0.0),
+    )
 
 
 if __name__ == "__main__":

@@ -285,20 +285,26 @@ class NextBestViewServer:
             )
             self._worker.start()
 
-    def close(self) -> None:
-        """Stop the background worker (a rebuild in flight finishes first)."""
+    def close(self, timeout_s: float | None = None) -> None:
+        """Stop the background worker: a rebuild in flight finishes first, or is left to die with
+        the process after `timeout_s` (the worker is a daemon thread)."""
         with self._lock:
             self._closed = True
             self._refreshed.notify_all()
         if self._worker is not None and self._worker is not threading.current_thread():
-            self._worker.join()
+            self._worker.join(timeout_s)
 
     # ------------------------------------------------------------------ fusion
     def add_frame(
         self, stamp_ns: int, depth: np.ndarray, conf: np.ndarray, K: np.ndarray, T: np.ndarray
-    ) -> None:
-        """Fuse one frame and remember its depth/pose for a semantic map of the same stamp."""
+    ) -> bool:
+        """Fuse one frame and remember its depth/pose for a semantic map of the same stamp.
+
+        A frame is fused once: the same stamp again (a replay after a restart, a resent frame)
+        changes nothing and returns False, so replaying every saved frame never doubles evidence."""
         with self._lock:
+            if int(stamp_ns) in self._fused_stamps:
+                return False
             self.grid.integrate_depth(
                 depth,
                 conf,
@@ -329,6 +335,7 @@ class NextBestViewServer:
                 self._fuse_semantic(int(stamp_ns), pending, self._frames[int(stamp_ns)])
             self._fused.notify_all()
             self._refreshed.notify_all()
+            return True
 
     def add_semantic(self, stamp_ns: int, u_sem: np.ndarray) -> bool:
         """Fuse U_sem (H, W) with the depth and pose of the same stamp; held back (bounded) until
@@ -369,7 +376,7 @@ class NextBestViewServer:
                 return False
             if self.background:
                 return self._cache_version == self._map_version
-            return self.context._seeds is not None
+            return self.context._candidates is not None
 
     def wait_cache(self, stamp_ns: int = 0, timeout_s: float | None = None) -> bool:
         """Background mode: block until the masks cover the frame `stamp_ns` (0 or a stamp not

@@ -116,6 +116,44 @@ def test_death_of_a_node_is_reported_by_name(tmp_path, fake_env):
         launcher.stop()
 
 
+def test_a_dying_node_is_respawned_after_the_delay_until_its_retries_are_spent(tmp_path, fake_env):
+    lines: list[str] = []
+    specs = [
+        NodeSpec("fine", "fake_node", {}),
+        NodeSpec("fragile", "fake_node", {"die_after_s": 0.2}),
+    ]
+    launcher = Launcher(
+        specs,
+        tmp_path,
+        env=fake_env,
+        log_sink=lines.append,
+        respawn=True,
+        respawn_delay_s=0.5,
+        respawn_max_retries=2,
+    )
+    t0 = time.monotonic()
+    launcher.start()
+    try:
+        with pytest.raises(NodeDied) as info:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                launcher.check()  # quiet while a retry is left
+                time.sleep(0.05)
+        elapsed = time.monotonic() - t0
+        assert info.value.name == "fragile" and info.value.returncode == 3
+        assert launcher.respawns == {"fine": 0, "fragile": 2}
+        fragile_pids = {
+            line.split("pid=")[1].split()[0] for line in lines if "[fragile] pid=" in line
+        }
+        assert len(fragile_pids) == 3  # the first start and two respawns, each a new process
+        assert elapsed >= 2 * 0.5  # each respawn waited for the delay
+        assert sum("respawning in 0.5 s" in line for line in lines) == 2
+        assert launcher.processes["fine"].poll() is None  # the others were never touched
+    finally:
+        codes = launcher.stop()
+    assert codes["fine"] == 0
+
+
 def test_children_die_with_a_killed_launcher(tmp_path, fake_env):
     script = tmp_path / "launch_and_hang.py"
     script.write_text(

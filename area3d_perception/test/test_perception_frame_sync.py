@@ -35,8 +35,10 @@ def test_orphans_older_than_the_age_limit_are_dropped_and_reported():
     sync = StampSync(("color", "depth", "pose"), max_age_ns=5 * S)
     sync.add("pose", 1 * S, "P")
     sync.add("color", 4 * S, "C")
-    assert sync.pop_dropped() == []
-    sync.add("depth", 7 * S, "D")  # the pose is now 6 s behind the newest stamp
+    sync.add("depth", 7 * S, "D")
+    assert sync.pop_dropped() == []  # a newer part alone is no reason to give up on older ones
+    sync.add("color", 7 * S, "C7")
+    assert sync.add("pose", 7 * S, "P7") is not None  # the pose is 6 s behind a completed frame
     dropped = sync.pop_dropped()
     assert [(d.key, d.stamp_ns) for d in dropped] == [("pose", 1 * S)]
     assert "color/depth" in dropped[0].reason
@@ -62,3 +64,37 @@ def test_bad_arguments_are_rejected():
         StampSync(("a", "b")).add("c", 0, None)
     with pytest.raises(InputError, match="^max_age_ns: "):
         StampSync(("a",), max_age_ns=-1)
+
+
+def test_parts_of_a_later_frame_overtaking_an_earlier_one_lose_nothing_whatever_the_stamp_gap():
+    """Saved frames replayed faster than captured, hours apart: a later frame's parts arrive
+    before the last part of an earlier one, and each frame still completes."""
+    hour = 3600 * S
+    sync = StampSync(("color", "depth", "pose"), max_age_ns=5 * S)
+    assert sync.add("color", 0, "c0") is None
+    assert sync.add("pose", 0, "p0") is None
+    assert sync.add("color", 3 * hour, "c1") is None
+    assert sync.add("pose", 3 * hour, "p1") is None
+    assert sync.add("depth", 0, "d0") == {"color": "c0", "depth": "d0", "pose": "p0"}
+    assert sync.add("depth", 3 * hour, "d1") == {"color": "c1", "depth": "d1", "pose": "p1"}
+    assert sync.pop_dropped() == []
+
+
+def test_a_part_stamped_far_in_the_future_does_not_push_out_the_frames_in_flight():
+    sync = StampSync(("color", "depth"), max_age_ns=5 * S)
+    sync.add("color", 10 * S, "c")
+    sync.add("depth", 10**9 * S, "from the future")
+    assert sync.add("depth", 10 * S, "d") == {"color": "c", "depth": "d"}
+    assert sync.pop_dropped() == []
+
+
+def test_an_old_frame_replayed_after_newer_ones_completed_still_pairs():
+    """A restarted node's peers are brought up to date by replaying saved frames, oldest first."""
+    hour = 3600 * S
+    sync = StampSync(("color", "depth", "pose"), max_age_ns=5 * S)
+    for key in ("color", "depth", "pose"):
+        sync.add(key, 5 * hour, key)
+    for key in ("color", "depth"):
+        assert sync.add(key, 1 * hour, key) is None
+    assert sync.add("pose", 1 * hour, "p") == {"color": "color", "depth": "depth", "pose": "p"}
+    assert sync.pop_dropped() == []

@@ -344,3 +344,15 @@ def test_a_newer_semantic_map_of_a_frame_replaces_the_older_one():
     s = srv.grid.semantic()
     assert srv.grid.semantic_frames == 2
     np.testing.assert_allclose(s[s > 0], 0.4, rtol=1e-5)
+
+
+def test_a_frame_replayed_with_the_same_stamp_is_fused_once():
+    """After a restart every saved frame is replayed; the ones the planner has must not count twice."""
+    server = NextBestViewServer(config())
+    assert server.add_frame(5, *frame()) is True
+    grid_after_one = (server.grid.conf_sum.copy(), server.grid.frames)
+    assert server.add_frame(5, *frame()) is False
+    np.testing.assert_array_equal(server.grid.conf_sum, grid_after_one[0])
+    assert server.grid.frames == grid_after_one[1] == 1
+    assert server.status()["frames_fused"] == 1
+    assert server.add_frame(6, *frame()) is True and server.grid.frames == 2
