@@ -38,7 +38,6 @@ from area3d_eval.rundir import (
     read_episode,
     read_frame,
     reconstruction_depth,
-    to_jsonable,
     write_json,
 )
 from area3d_msgs_py.errors import InputError
