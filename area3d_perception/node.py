@@ -16,9 +16,19 @@ from rclpy.node import Node
 
 from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.guard import Rejections, guarded, reject
+from area3d_msgs_py.inputs import (
+    COLOR_ENCODINGS,
+    DEPTH_ENCODINGS,
+    MAX_STAMP_AHEAD_S,
+    check_frame_id,
+    check_stamp,
+    decode_camera_info,
+    decode_image,
+)
 from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.status import StatusPublisher, status_topic
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
 from area3d_perception.frame_sync import MAX_AGE_NS, StampSync
 from area3d_perception.sensor_model import RgbdSensorParams
@@ -29,6 +39,8 @@ INFO_TOPIC = "area3d/camera/camera_info"
 POSE_TOPIC = "area3d/camera/pose"
 OUT_DEPTH_TOPIC = "area3d/perception/depth"
 OUT_CONFIDENCE_TOPIC = "area3d/perception/confidence"
+STATUS_TOPIC = status_topic("perception")
+FRAME = "frame"  # rejections of a complete frame whose parts do not fit together
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
 MAX_FRAMES_WITHOUT_INFO = 8
 
@@ -51,6 +63,13 @@ PARAMS = (
         MAX_AGE_NS / 1e9,
         "parts of a frame wait this long for their partners, seconds",
         range=(0.0, 3600.0),
+    ),
+    Param("world_frame", "world", "frame_id every camera pose must be expressed in"),
+    Param(
+        "max_stamp_ahead_s",
+        MAX_STAMP_AHEAD_S,
+        "inputs stamped further ahead of this node's clock are refused, seconds",
+        range=(0.0, 1e6),
     ),
     *(
         Param(
@@ -90,58 +109,79 @@ class PerceptionNode(Node):
         self.camera: tuple[Any, int, int] | None = None
         self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
         self.frames_published = 0
+        self.world_frame = p["world_frame"]
+        self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
+        self.rejections = Rejections()
+        self.dropped = 0
+        self.status = StatusPublisher(self, STATUS_TOPIC, self._status)
 
         self.pub_depth = self.create_publisher(msgs.Image, OUT_DEPTH_TOPIC, qos.graph_frames())
         self.pub_conf = self.create_publisher(msgs.Image, OUT_CONFIDENCE_TOPIC, qos.graph_frames())
-        self.create_subscription(
-            msgs.Image, COLOR_TOPIC, guarded(self, self.on_color, COLOR_TOPIC), qos.frames()
-        )
+        inputs = [
+            (msgs.Image, COLOR_TOPIC, self.on_color),
+            (msgs.CameraInfo, INFO_TOPIC, self.on_camera_info),
+            (msgs.PoseStamped, POSE_TOPIC, self.on_pose),
+        ]
         if self.use_depth:
-            self.create_subscription(
-                msgs.Image, DEPTH_TOPIC, guarded(self, self.on_depth, DEPTH_TOPIC), qos.frames()
-            )
-        self.create_subscription(
-            msgs.CameraInfo,
-            INFO_TOPIC,
-            guarded(self, self.on_camera_info, INFO_TOPIC),
-            qos.frames(),
-        )
-        self.create_subscription(
-            msgs.PoseStamped, POSE_TOPIC, guarded(self, self.on_pose, POSE_TOPIC), qos.frames()
-        )
+            inputs.append((msgs.Image, DEPTH_TOPIC, self.on_depth))
+        for msg_type, topic, callback in inputs:
+            self.create_subscription(msg_type, topic, self._guarded(callback, topic), qos.frames())
         self.get_logger().info(
             f"backend={p['backend']} noise={p['noise']} use_depth={self.use_depth}"
         )
 
+    def _guarded(self, callback, topic: str):
+        """The callback, its rejections logged, counted and announced on the status topic."""
+        inner = guarded(self, callback, topic, self.rejections)
+
+        def call(msg: Any) -> None:
+            before = self.rejections.total
+            inner(msg)
+            if self.rejections.total != before:
+                self.status.changed()
+
+        return call
+
+    def _status(self) -> dict:
+        return {
+            "node": "perception",
+            "frames_published": self.frames_published,
+            "frames_waiting_for_camera_info": len(self.waiting),
+            "parts_dropped_unpaired": self.dropped,
+            "rejected": self.rejections.snapshot(),
+        }
+
     # inputs ---------------------------------------------------------------------------------
+    def _camera_size(self) -> tuple[int, int] | None:
+        return None if self.camera is None else (self.camera[1], self.camera[2])
+
     def on_color(self, msg: msgs.Image) -> None:
-        self._add("color", msg, codecs.msg_to_image)
+        self._add("color", msg, lambda m: decode_image(m, COLOR_ENCODINGS, self._camera_size()))
 
     def on_depth(self, msg: Any) -> None:
-        self._add("depth", msg, codecs.msg_to_image)
+        self._add("depth", msg, lambda m: decode_image(m, DEPTH_ENCODINGS, self._camera_size()))
 
     def on_pose(self, msg: Any) -> None:
+        check_frame_id(msg, self.world_frame)
         self._add("pose", msg, lambda m: codecs.pose_to_matrix(m.pose))
 
     def on_camera_info(self, msg: Any) -> None:
-        try:
-            self.camera = codecs.camera_info_to_intrinsics(msg)
-        except InputError as exc:
-            self.get_logger().warning(f"camera_info rejected: {exc}")
-            return
+        check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
+        K, width, height = decode_camera_info(msg)
+        self.camera = (K, width, height)
         while self.waiting:
             stamp, parts = self.waiting.popleft()
             self._process(stamp, parts)
 
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
     def _add(self, key: str, msg: Any, decode) -> None:
-        stamp = codecs.stamp_to_ns(msg.header.stamp)
-        try:
-            value = (decode(msg), msg.header.frame_id)
-        except InputError as exc:
-            self.get_logger().warning(f"{key} at stamp {stamp} rejected: {exc}")
-            return
+        stamp = check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
+        value = (decode(msg), check_frame_id(msg))
         parts = self.sync.add(key, stamp, value)
         for dropped in self.sync.pop_dropped():
+            self.dropped += 1
             self.get_logger().warning(
                 f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}"
             )
@@ -164,21 +204,34 @@ class PerceptionNode(Node):
         T_world_cam, _ = parts["pose"]
         frame_id = depth_frame or color_frame
         try:
+            if depth_frame is not None and depth_frame != color_frame:
+                raise InputError(
+                    "depth header.frame_id",
+                    depth_frame,
+                    f"the color image's {color_frame!r} (depth registered to color)",
+                )
             check_frame(rgb, depth, (width, height))
             result = self.estimator.process(rgb, depth, K, T_world_cam)
         except InputError as exc:
-            self.get_logger().warning(f"frame at stamp {stamp} rejected: {exc}")
+            reject(self, self.rejections, f"{FRAME} at stamp {stamp}", exc, topic=FRAME)
+            self.status.changed()
             return
         for note in result.notes:
             self.get_logger().warning(f"frame at stamp {stamp}: {note}")
         self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
         self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
         self.frames_published += 1
+        self.status.changed()
 
 
 def main(args: Sequence[str] | None = None) -> int:
     """Process entry point: `python -m area3d_perception.node [--ros-args ...]`."""
-    return run_node(PerceptionNode, "perception", args, startup_errors=(InputError, FileNotFoundError, ImportError, RuntimeError))
+    return run_node(
+        PerceptionNode,
+        "perception",
+        args,
+        startup_errors=(InputError, FileNotFoundError, ImportError, RuntimeError),
+    )
 
 
 if __name__ == "__main__":
