@@ -111,6 +111,12 @@ PARAMS = (
         range=(0.0, 600.0),
     ),
     Param("eager_cache", True, "rebuild seeds and visibility masks right after each fused frame"),
+    Param(
+        "refresh_interval_s",
+        0.5,
+        "eager rebuilds start at most this often unless a request waits for one, seconds",
+        range=(0.0, 60.0),
+    ),
     # Perception's output for a frame can trail the camera's pose by seconds (first frames, a
     # feed-forward model on CPU), so parts wait this long for their partners.
     Param(
@@ -140,7 +146,10 @@ class PlannerNode(Node):
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
         self.server = NextBestViewServer(
-            config, background=p["eager_cache"], on_refresh=self._on_refresh
+            config,
+            background=p["eager_cache"],
+            on_refresh=self._on_refresh,
+            refresh_interval_s=p["refresh_interval_s"],
         )
         self.sync = StampSync(
             ("depth", "confidence", "pose"), max_age_ns=int(p["sync_max_age_s"] * 1e9)
