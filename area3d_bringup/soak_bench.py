@@ -189,11 +189,7 @@ def run_bench(
             streaming.clear()
             asker.join(timeout=120)
             caught_up = wait(
-                lambda: (
-                    last(planner_status).get("last_fused_stamp_ns") == sent[-1]
-                    and last(planner_status).get("frames_fused") == len(sent)
-                ),
-                120,
+                lambda: last(planner_status).get("last_fused_stamp_ns") == sent[-1], 180
             )
             drain_s = time.perf_counter() - t0 - stream_s
             rss_end = {name: rss_mb(pid) for name, pid in pids.items()}

@@ -53,6 +53,7 @@ STATUS_TOPIC = status_topic("planner")
 VIEWS_TOPIC = "area3d/planner/next_views"
 NBV_SERVICE = "area3d/planner/next_best_view"
 CAMERA_INFO_CACHE = 64
+POSES_PENDING = 2048
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
 MAX_FRAMES_WITHOUT_INFO = 64
 # Service requests and frame callbacks run on separate threads: a request waits for the frame it
@@ -152,7 +153,11 @@ class PlannerNode(Node):
             refresh_interval_s=p["refresh_interval_s"],
         )
         self.sync = StampSync(
-            ("depth", "confidence", "pose"), max_age_ns=int(p["sync_max_age_s"] * 1e9)
+            ("depth", "confidence", "pose"),
+            max_age_ns=int(p["sync_max_age_s"] * 1e9),
+            # the camera's poses arrive ahead of perception's images, which trail by the
+            # perception backlog: a minute of poses at 30 Hz may wait (they are small)
+            pending_caps={"pose": POSES_PENDING},
         )
         self.camera_info: OrderedDict[int, np.ndarray] = OrderedDict()
         self.latest_K: np.ndarray | None = None
