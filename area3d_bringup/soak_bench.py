@@ -220,6 +220,7 @@ def run_bench(
         "target_plan_p95_s": TARGET_PLAN_P95_S,
         "perception_rejected": last(perception_status).get("rejected"),
         "planner_parts_dropped": last(planner_status).get("parts_dropped_unpaired"),
+        "drop_lines": [line for line in lines if " dropped: " in line][:5],
     }
     if print_table:
         _print_table(figures)
@@ -260,6 +261,8 @@ def _print_table(f: dict) -> None:
     )
     table.add_row("requests without a plan", str(len(f["plan_failures"])), "0")
     Console().print(table)
+    for line in f["drop_lines"]:
+        print(line)
 
 
 if __name__ == "__main__":

@@ -181,8 +181,15 @@ class PlannerNode(Node):
                 lambda m: self._part("confidence", m),
                 qos.graph_frames(),
             ),
-            (msgs.PoseStamped, POSE_TOPIC, lambda m: self._part("pose", m), qos.frames()),
-            (msgs.CameraInfo, INFO_TOPIC, self._on_camera_info, qos.frames()),
+            # the camera's small per-frame messages queue deep: they run ahead of perception's
+            # images, and a reader queue that overflows loses the frame for good
+            (
+                msgs.PoseStamped,
+                POSE_TOPIC,
+                lambda m: self._part("pose", m),
+                qos.reliable(POSES_PENDING),
+            ),
+            (msgs.CameraInfo, INFO_TOPIC, self._on_camera_info, qos.reliable(POSES_PENDING)),
             (msgs.Image, SEMANTIC_TOPIC, self._on_semantic, qos.graph_frames()),
         ):
             self.create_subscription(
