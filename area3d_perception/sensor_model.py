@@ -382,8 +382,9 @@ def add_depth_noise(
     h, w = depth.shape
     valid = valid_depth_mask(depth)
     clean = np.where(valid, depth, np.float32(np.nan))
-    # Perfect depth needs no smoothing before its normals (that is for sensor noise).
-    cos, edges = surface_terms(clean, K, params.edge_jump_rel, np.inf, 0, params.normal_step_px)
+    cos, edges = surface_terms(
+        clean, K, params.edge_jump_rel, np.inf, params.normal_smoothing_px, params.normal_step_px
+    )
     theta = np.arccos(cos)
     dist = edge_distance(edges)
 
