@@ -26,15 +26,18 @@ class Rejections:
     1
     """
 
-    def __init__(self) -> None:
+    def __init__(self, on_count: Callable[[], None] | None = None) -> None:
         self._lock = threading.Lock()
         self._by_topic: Counter[str] = Counter()
         self._by_field: Counter[str] = Counter()
+        self._on_count = on_count  # e.g. publish the status soon
 
     def count(self, topic: str, field: str) -> None:
         with self._lock:
             self._by_topic[topic] += 1
             self._by_field[field] += 1
+        if self._on_count is not None:
+            self._on_count()
 
     @property
     def total(self) -> int:

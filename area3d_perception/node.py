@@ -111,9 +111,9 @@ class PerceptionNode(Node):
         self.frames_published = 0
         self.world_frame = p["world_frame"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        self.rejections = Rejections()
-        self.dropped = 0
         self.status = StatusPublisher(self, STATUS_TOPIC, self._status)
+        self.rejections = Rejections(on_count=self.status.changed)
+        self.dropped = 0
 
         self.pub_depth = self.create_publisher(msgs.Image, OUT_DEPTH_TOPIC, qos.graph_frames())
         self.pub_conf = self.create_publisher(msgs.Image, OUT_CONFIDENCE_TOPIC, qos.graph_frames())
@@ -125,22 +125,12 @@ class PerceptionNode(Node):
         if self.use_depth:
             inputs.append((msgs.Image, DEPTH_TOPIC, self.on_depth))
         for msg_type, topic, callback in inputs:
-            self.create_subscription(msg_type, topic, self._guarded(callback, topic), qos.frames())
+            self.create_subscription(
+                msg_type, topic, guarded(self, callback, topic, self.rejections), qos.frames()
+            )
         self.get_logger().info(
             f"backend={p['backend']} noise={p['noise']} use_depth={self.use_depth}"
         )
-
-    def _guarded(self, callback, topic: str):
-        """The callback, its rejections logged, counted and announced on the status topic."""
-        inner = guarded(self, callback, topic, self.rejections)
-
-        def call(msg: Any) -> None:
-            before = self.rejections.total
-            inner(msg)
-            if self.rejections.total != before:
-                self.status.changed()
-
-        return call
 
     def _status(self) -> dict:
         return {
@@ -214,7 +204,6 @@ class PerceptionNode(Node):
             result = self.estimator.process(rgb, depth, K, T_world_cam)
         except InputError as exc:
             reject(self, self.rejections, f"{FRAME} at stamp {stamp}", exc, topic=FRAME)
-            self.status.changed()
             return
         for note in result.notes:
             self.get_logger().warning(f"frame at stamp {stamp}: {note}")

@@ -164,7 +164,8 @@ class PlannerNode(Node):
         self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
         self.world_frame = p["world_frame"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        self.rejections = Rejections()
+        # a rejection is announced by the status that follows requests (created below)
+        self.rejections = Rejections(on_count=lambda: self._status_after_request.reset())
         self.dropped = 0
 
         self.grid_pub = self.create_publisher(msgs.PointCloud2, GRID_TOPIC, qos.latched())
@@ -193,7 +194,11 @@ class PlannerNode(Node):
             (msgs.Image, SEMANTIC_TOPIC, self._on_semantic, qos.graph_frames()),
         ):
             self.create_subscription(
-                msg_type, topic, self._guarded(callback, topic), profile, callback_group=frames
+                msg_type,
+                topic,
+                guarded(self, callback, topic, self.rejections),
+                profile,
+                callback_group=frames,
             )
         self.create_service(
             msgs.GetPlan,
@@ -216,18 +221,6 @@ class PlannerNode(Node):
     def destroy_node(self) -> None:
         self.server.close()
         super().destroy_node()
-
-    def _guarded(self, callback, topic: str):
-        """The callback, its rejections logged, counted and announced on the status topic."""
-        inner = guarded(self, callback, topic, self.rejections)
-
-        def call(msg: Any) -> None:
-            before = self.rejections.total
-            inner(msg)
-            if self.rejections.total != before:
-                self._status_after_request.reset()
-
-        return call
 
     def _status(self) -> msgs.String:
         status = {

@@ -137,7 +137,7 @@ class SemanticsNode(Node):
         self.require_depth = p["require_depth"]
         self.sigma_source = p["sigma_source"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        self.rejections = Rejections()
+        self.rejections = Rejections(on_count=lambda: self.status.changed())
         try:
             self.backend = make_backend(self.backend_name, **options)
         except (VLMError, ValueError) as exc:
@@ -171,7 +171,9 @@ class SemanticsNode(Node):
             (msgs.Image, CONFIDENCE_TOPIC, self.on_confidence, qos.graph_frames(IMAGE_QUEUE_DEPTH)),
             (msgs.String, REQUEST_TOPIC, self.on_request, qos.reliable()),
         ):
-            self.create_subscription(msg_type, topic, self._guarded(callback, topic), profile)
+            self.create_subscription(
+                msg_type, topic, guarded(self, callback, topic, self.rejections), profile
+            )
         log.info(
             f"backend={self.backend.name} fallback={self.fallback} "
             f"num_initial_views={self.num_initial_views} lambda={self.params.lam}"
@@ -184,18 +186,6 @@ class SemanticsNode(Node):
     @property
     def requery_scope(self) -> str:
         return self.get_parameter("requery_scope").value
-
-    def _guarded(self, callback, topic: str):
-        """The callback, its rejections logged, counted and announced on the status topic."""
-        inner = guarded(self, callback, topic, self.rejections)
-
-        def call(msg: Any) -> None:
-            before = self.rejections.total
-            inner(msg)
-            if self.rejections.total != before:
-                self.status.changed()
-
-        return call
 
     def _status(self) -> dict:
         with self._lock:
