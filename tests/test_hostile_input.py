@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from area3d_msgs_py import codecs, msgs
+from area3d_msgs_py import codecs, msgs, qos
 from tests.test_faults import H, W, _camera_publishers, _frame, _publish_frame, graph_factory  # noqa: F401
 
 CLIENT = Path(__file__).parent / "clients" / "hostile_client.py"
@@ -69,12 +69,18 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
             "planner": {"width": W, "height": H, "sync_timeout_s": 30.0},
         },
     )
-    status = {node: graph.listen(msgs.String, topic) for node, topic in STATUS.items()}
+    status: dict[str, list] = {node: [] for node in STATUS}
+    status_readers = [
+        graph.node.create_subscription(msgs.String, topic, status[node].append, qos.frames())
+        for node, topic in STATUS.items()
+    ]
     depth_out = graph.listen(msgs.Image, "area3d/perception/depth")
     weights = graph.listen(msgs.Image, "area3d/semantics/weight")
     request = graph.probe.publisher(msgs.String, "area3d/semantics/request")
     pubs = _camera_publishers(graph)
     graph.start()
+    # sim_bridge's status comes once per goal: every status must reach us before the barrage
+    assert graph.wait_for(lambda: all(r.get_publisher_count() >= 1 for r in status_readers), 60)
     readers = Counter(topic for topics in SUBSCRIBED.values() for topic in topics)
     client = subprocess.run(
         [sys.executable, str(CLIENT), json.dumps({"width": W, "height": H, "readers": readers})],
@@ -144,3 +150,7 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
                     for m in status["sim_bridge"]),
         60,
     ), graph.lines[-30:]  # fmt: skip
+    # ... through perception into the planner (and nothing is in flight when the graph stops)
+    assert graph.wait_for(
+        lambda: _last_status(status["planner"]).get("last_fused_stamp_ns") == stamp + 1, 60
+    ), (_last_status(status["planner"]), graph.lines[-30:])
