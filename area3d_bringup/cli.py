@@ -254,6 +254,21 @@ for _name, _module in BENCHES.items():
     _bench_command(_name, _module)
 
 
+@bench_app.command("soak")
+def bench_soak(
+    frames: int = typer.Option(
+        6000, help="frames to stream (the run ends at --frames or --duration)"
+    ),
+    duration: float = typer.Option(600.0, help="longest stream, seconds"),
+    rate: float = typer.Option(10.0, help="camera rate, Hz"),
+    scene: str = typer.Option("single_object"),
+) -> None:
+    """Benchmark: 640x480 RGB-D at 10 Hz through perception and the planner (see area3d_bringup.soak_bench)."""
+    from area3d_bringup.soak_bench import run_bench
+
+    run_bench(frames=frames, duration_s=duration, rate_hz=rate, scene_name=scene)
+
+
 @bench_app.command("episode")
 def bench_episode(
     seeds: int = typer.Option(3),

@@ -1,28 +1,93 @@
-"""Callbacks that log bad input instead of ending the node.
+"""Callbacks that log bad input instead of ending the node, and count what they rejected.
 
 rclpy lets an exception raised in a callback end ``spin()``, and with it the node; a malformed
-message from another process must not do that. ``guarded(node, callback, what)`` logs the error
-(an ``InputError`` as one line naming field, value and expectation; anything else with its
-traceback) and returns None.
+message from another process must not do that. ``guarded(node, callback, what, rejections)`` logs
+the error (an ``InputError`` as one line naming field, value and expectation; anything else with
+its traceback) and returns None. With a ``Rejections`` it also counts the rejection under the topic
+and the field, so the node's status topic can say what it refused (a hostile or broken publisher
+shows up there, not only in a log nobody reads).
 """
 
 from __future__ import annotations
 
+import threading
 import traceback
+from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
 from area3d_msgs_py.errors import InputError
 
 
-def guarded(node: Any, callback: Callable, what: str) -> Callable:
+class Rejections:
+    """Thread-safe counts of rejected inputs per topic and per field (the InputError's field).
+
+    >>> r = Rejections(); r.count("area3d/camera/pose", "orientation"); r.snapshot()["total"]
+    1
+    """
+
+    def __init__(self, on_count: Callable[[], None] | None = None) -> None:
+        self._lock = threading.Lock()
+        self._by_topic: Counter[str] = Counter()
+        self._by_field: Counter[str] = Counter()
+        self._on_count = on_count  # e.g. publish the status soon
+
+    def count(self, topic: str, field: str) -> None:
+        with self._lock:
+            self._by_topic[topic] += 1
+            self._by_field[field] += 1
+        if self._on_count is not None:
+            self._on_count()
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self._by_topic.values())
+
+    def snapshot(self) -> dict:
+        """{"total": n, "by_topic": {topic: n}, "by_field": {field: n}} (JSON-ready)."""
+        with self._lock:
+            return {
+                "total": sum(self._by_topic.values()),
+                "by_topic": dict(self._by_topic),
+                "by_field": dict(self._by_field),
+            }
+
+
+def reject(
+    node: Any,
+    rejections: Rejections | None,
+    what: str,
+    exc: InputError,
+    topic: str | None = None,
+) -> None:
+    """Log one rejected input as a single warning line and count it under `topic` (or `what`)."""
+    node.get_logger().warning(f"{what}: rejected: {exc}")
+    if rejections is not None:
+        rejections.count(topic or what, exc.field)
+
+
+def _stamp_of(args: tuple) -> str:
+    """The " at stamp N" of a stamped message, so the log line says which frame was refused."""
+    try:
+        stamp = args[0].header.stamp
+        return f" at stamp {int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)}"
+    except (AttributeError, IndexError, TypeError, ValueError):
+        return ""
+
+
+def guarded(
+    node: Any, callback: Callable, what: str, rejections: Rejections | None = None
+) -> Callable:
     def call(*args: Any) -> Any:
         try:
             return callback(*args)
         except InputError as exc:
-            node.get_logger().warning(f"{what}: rejected: {exc}")
+            reject(node, rejections, what + _stamp_of(args), exc, topic=what)
         except Exception:
             node.get_logger().error(f"{what}: exception, input dropped:\n{traceback.format_exc()}")
+            if rejections is not None:
+                rejections.count(what, "exception")
         return None
 
     call.__name__ = getattr(callback, "__name__", "callback")

@@ -44,6 +44,8 @@ class StampSync:
     """Pairs messages of several streams by identical stamp.
 
     keys: the stream names that make a complete frame, e.g. ("color", "depth", "pose").
+    max_pending: the cap on waiting parts per stream; `pending_caps` overrides it per stream (a
+    pose is 128 bytes and may wait in thousands for images that trail it).
     """
 
     def __init__(
@@ -51,6 +53,7 @@ class StampSync:
         keys: Sequence[str],
         max_age_ns: int = MAX_AGE_NS,
         max_pending: int = MAX_PENDING,
+        pending_caps: dict[str, int] | None = None,
     ) -> None:
         if len(keys) == 0 or len(set(keys)) != len(keys):
             raise InputError("keys", list(keys), "one or more distinct stream names")
@@ -61,6 +64,9 @@ class StampSync:
         self.keys = tuple(keys)
         self.max_age_ns = int(max_age_ns)
         self.max_pending = int(max_pending)
+        self._caps = {k: int((pending_caps or {}).get(k, max_pending)) for k in self.keys}
+        if min(self._caps.values()) < 1:
+            raise InputError("pending_caps", pending_caps, "integers >= 1")
         self._pending: dict[str, dict[int, Any]] = {k: {} for k in self.keys}
         self._dropped: list[Dropped] = []
 
@@ -92,11 +98,11 @@ class StampSync:
 
     def _cap(self) -> None:
         for key, parts in self._pending.items():
-            while len(parts) > self.max_pending:
+            while len(parts) > self._caps[key]:
                 stamp = min(parts)
                 del parts[stamp]
                 self._dropped.append(
-                    Dropped(key, stamp, f"more than {self.max_pending} {key} parts waiting")
+                    Dropped(key, stamp, f"more than {self._caps[key]} {key} parts waiting")
                 )
 
     def _missing(self, stamp_ns: int, key: str) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,35 @@ class GridSpec:
         return np.clip(ijk, 0, np.asarray(self.shape) - 1), inside
 
     def flat_index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flat (C order) voxel index of `points` (N, 3) and the inside mask."""
-        ijk, inside = self.voxel_index(points)
-        return np.ravel_multi_index(ijk.T, self.shape), inside
+        """Flat (C order) voxel index of `points` (N, 3) and the inside mask (as `voxel_index`:
+        outside points get the index of the clipped voxel). One pass per frame's 300k points
+        instead of the half dozen (N, 3) temporaries of `voxel_index`."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        return _flat_index(points, self.lower, float(self.voxel_size), np.asarray(self.shape))
+
+
+@njit(cache=True)
+def _flat_index(points, lower, voxel_size, shape):  # pragma: no cover - compiled
+    n = points.shape[0]
+    flat = np.empty(n, dtype=np.int64)
+    inside = np.empty(n, dtype=np.bool_)
+    for p in range(n):
+        index = 0
+        ok = True
+        for axis in range(3):
+            x = np.floor((points[p, axis] - lower[axis]) / voxel_size)
+            if not np.isfinite(x):  # as numpy's cast of NaN: outside, clipped to 0
+                i = 0
+                ok = False
+            else:
+                i = int(x)
+                if i < 0:
+                    i = 0
+                    ok = False
+                elif i >= shape[axis]:
+                    i = shape[axis] - 1
+                    ok = False
+            index = index * shape[axis] + i
+        flat[p] = index
+        inside[p] = ok
+    return flat, inside

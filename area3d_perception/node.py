@@ -17,9 +17,19 @@ from rclpy.node import Node
 
 from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.guard import Rejections, guarded, reject
+from area3d_msgs_py.inputs import (
+    COLOR_ENCODINGS,
+    DEPTH_ENCODINGS,
+    MAX_STAMP_AHEAD_S,
+    check_frame_id,
+    check_stamp,
+    decode_camera_info,
+    decode_image,
+)
 from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.status import StatusPublisher, status_topic
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
 from area3d_perception.frame_sync import MAX_AGE_NS, StampSync
 from area3d_perception.sensor_model import RgbdSensorParams
@@ -33,6 +43,8 @@ RIGHT_TOPIC = "area3d/camera/right/image_rect"
 RIGHT_INFO_TOPIC = "area3d/camera/right/camera_info"
 OUT_DEPTH_TOPIC = "area3d/perception/depth"
 OUT_CONFIDENCE_TOPIC = "area3d/perception/confidence"
+STATUS_TOPIC = status_topic("perception")
+FRAME = "frame"  # rejections of a complete frame whose parts do not fit together
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
 MAX_FRAMES_WITHOUT_INFO = 8
 
@@ -60,6 +72,13 @@ PARAMS = (
         MAX_AGE_NS / 1e9,
         "parts of a frame wait this long for their partners, seconds",
         range=(0.0, 3600.0),
+    ),
+    Param("world_frame", "world", "frame_id every camera pose must be expressed in"),
+    Param(
+        "max_stamp_ahead_s",
+        MAX_STAMP_AHEAD_S,
+        "inputs stamped further ahead of this node's clock are refused, seconds",
+        range=(0.0, 1e6),
     ),
     *(
         Param(
@@ -122,67 +141,73 @@ class PerceptionNode(Node):
         self.right_camera: tuple[float, int, int] | None = None  # (baseline m, width, height)
         self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
         self.frames_published = 0
+        self.world_frame = p["world_frame"]
+        self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
+        self.status = StatusPublisher(self, STATUS_TOPIC, self._status)
+        self.rejections = Rejections(on_count=self.status.changed)
+        self.dropped = 0
 
         self.pub_depth = self.create_publisher(msgs.Image, OUT_DEPTH_TOPIC, qos.graph_frames())
         self.pub_conf = self.create_publisher(msgs.Image, OUT_CONFIDENCE_TOPIC, qos.graph_frames())
-        self.create_subscription(
-            msgs.Image, COLOR_TOPIC, guarded(self, self.on_color, COLOR_TOPIC), qos.frames()
-        )
+        inputs = [
+            (msgs.Image, COLOR_TOPIC, self.on_color),
+            (msgs.CameraInfo, INFO_TOPIC, self.on_camera_info),
+            (msgs.PoseStamped, POSE_TOPIC, self.on_pose),
+        ]
         if self.use_depth:
+            inputs.append((msgs.Image, DEPTH_TOPIC, self.on_depth))
+        for msg_type, topic, callback in inputs:
             self.create_subscription(
-                msgs.Image, DEPTH_TOPIC, guarded(self, self.on_depth, DEPTH_TOPIC), qos.frames()
+                msg_type, topic, guarded(self, callback, topic, self.rejections), qos.frames()
             )
-        self.create_subscription(
-            msgs.CameraInfo,
-            INFO_TOPIC,
-            guarded(self, self.on_camera_info, INFO_TOPIC),
-            qos.frames(),
-        )
-        self.create_subscription(
-            msgs.PoseStamped, POSE_TOPIC, guarded(self, self.on_pose, POSE_TOPIC), qos.frames()
-        )
         if self.stereo:
-            self.create_subscription(
-                msgs.Image, RIGHT_TOPIC, guarded(self, self.on_right, RIGHT_TOPIC), qos.frames()
-            )
-            self.create_subscription(
-                msgs.CameraInfo,
-                RIGHT_INFO_TOPIC,
-                guarded(self, self.on_right_camera_info, RIGHT_INFO_TOPIC),
-                qos.frames(),
-            )
+            for msg_type, topic, callback in (
+                (msgs.Image, RIGHT_TOPIC, self.on_right),
+                (msgs.CameraInfo, RIGHT_INFO_TOPIC, self.on_right_camera_info),
+            ):
+                self.create_subscription(
+                    msg_type, topic, guarded(self, callback, topic, self.rejections), qos.frames()
+                )
         self.get_logger().info(
             f"backend={p['backend']} noise={p['noise']} use_depth={self.use_depth}"
         )
 
+    def _status(self) -> dict:
+        return {
+            "node": "perception",
+            "frames_published": self.frames_published,
+            "frames_waiting_for_camera_info": len(self.waiting),
+            "parts_dropped_unpaired": self.dropped,
+            "rejected": self.rejections.snapshot(),
+        }
+
     # inputs ---------------------------------------------------------------------------------
+    def _camera_size(self) -> tuple[int, int] | None:
+        return None if self.camera is None else (self.camera[1], self.camera[2])
+
     def on_color(self, msg: msgs.Image) -> None:
-        self._add("color", msg, codecs.msg_to_image)
+        self._add("color", msg, lambda m: decode_image(m, COLOR_ENCODINGS, self._camera_size()))
 
     def on_depth(self, msg: Any) -> None:
-        self._add("depth", msg, codecs.msg_to_image)
+        self._add("depth", msg, lambda m: decode_image(m, DEPTH_ENCODINGS, self._camera_size()))
 
     def on_pose(self, msg: Any) -> None:
+        check_frame_id(msg, self.world_frame)
         self._add("pose", msg, lambda m: codecs.pose_to_matrix(m.pose))
 
     def on_right(self, msg: msgs.Image) -> None:
         self._add("right", msg, codecs.msg_to_image)
 
     def on_camera_info(self, msg: Any) -> None:
-        try:
-            self.camera = codecs.camera_info_to_intrinsics(msg)
-        except InputError as exc:
-            self.get_logger().warning(f"camera_info rejected: {exc}")
-            return
+        check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
+        K, width, height = decode_camera_info(msg)
+        self.camera = (K, width, height)
         self._release_waiting()
 
     def on_right_camera_info(self, msg: Any) -> None:
-        try:
-            _, width, height = codecs.camera_info_to_intrinsics(msg)
-            self.right_camera = (codecs.camera_info_to_baseline(msg), width, height)
-        except InputError as exc:
-            self.get_logger().warning(f"right camera_info rejected: {exc}")
-            return
+        check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
+        _, width, height = decode_camera_info(msg)
+        self.right_camera = (codecs.camera_info_to_baseline(msg), width, height)
         self._release_waiting()
 
     def _ready(self) -> bool:
@@ -193,15 +218,15 @@ class PerceptionNode(Node):
             stamp, parts = self.waiting.popleft()
             self._process(stamp, parts)
 
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
     def _add(self, key: str, msg: Any, decode) -> None:
-        stamp = codecs.stamp_to_ns(msg.header.stamp)
-        try:
-            value = (decode(msg), msg.header.frame_id)
-        except InputError as exc:
-            self.get_logger().warning(f"{key} at stamp {stamp} rejected: {exc}")
-            return
+        stamp = check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
+        value = (decode(msg), check_frame_id(msg))
         parts = self.sync.add(key, stamp, value)
         for dropped in self.sync.pop_dropped():
+            self.dropped += 1
             self.get_logger().warning(
                 f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}"
             )
@@ -227,6 +252,12 @@ class PerceptionNode(Node):
         baseline = None
         frame_id = depth_frame or color_frame
         try:
+            if depth_frame is not None and depth_frame != color_frame:
+                raise InputError(
+                    "depth header.frame_id",
+                    depth_frame,
+                    f"the color image's {color_frame!r} (depth registered to color)",
+                )
             check_frame(rgb, depth, (width, height))
             if self.stereo:
                 baseline, right_width, right_height = self.right_camera
@@ -240,13 +271,14 @@ class PerceptionNode(Node):
                 rgb, depth, K, T_world_cam, right=right, baseline=baseline
             )
         except InputError as exc:
-            self.get_logger().warning(f"frame at stamp {stamp} rejected: {exc}")
+            reject(self, self.rejections, f"{FRAME} at stamp {stamp}", exc, topic=FRAME)
             return
         for note in result.notes:
             self.get_logger().warning(f"frame at stamp {stamp}: {note}")
         self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
         self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
         self.frames_published += 1
+        self.status.changed()
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from area3d_msgs_py.errors import InputError
 
@@ -168,14 +168,17 @@ def axial_sigma(z: np.ndarray, theta: np.ndarray | float, params: RgbdSensorPara
     return sigma.reshape(z.shape)
 
 
-@njit(cache=True, parallel=True)
+# The kernels below run on one thread: the graph already runs its nodes as processes on a few
+# cores, and numba's thread pool on a busy 2-core machine waits on descheduled workers (measured:
+# noise + confidence per 640x480 frame 41-44 ms on one thread, 81-106 ms on two, same load).
+@njit(cache=True)
 def _smooth_depth(depth, radius, jump_rel, max_range):  # pragma: no cover - compiled
     """Edge-preserving box mean: each valid pixel averages the valid pixels of its
     (2 radius + 1)^2 window that lie within `jump_rel` of its own depth (same surface). NaN where
     the pixel itself is missing."""
     h, w = depth.shape
     out = np.full((h, w), np.nan, dtype=np.float32)
-    for v in prange(h):
+    for v in range(h):
         for u in range(w):
             d = depth[v, u]
             if not (d > 0 and d <= max_range):
@@ -192,7 +195,7 @@ def _smooth_depth(depth, radius, jump_rel, max_range):  # pragma: no cover - com
     return out
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _surface_terms(depth, smooth, fx, fy, cx, cy, jump_rel, max_range, step):  # pragma: no cover
     """Per pixel |cos| of the incidence angle and a depth-discontinuity flag.
 
@@ -205,7 +208,7 @@ def _surface_terms(depth, smooth, fx, fy, cx, cy, jump_rel, max_range, step):  #
     h, w = depth.shape
     cos = np.zeros((h, w), dtype=np.float32)
     edge = np.zeros((h, w), dtype=np.uint8)
-    for v in prange(h):
+    for v in range(h):
         for u in range(w):
             d = depth[v, u]
             if not (d > 0 and d <= max_range):

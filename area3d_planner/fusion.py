@@ -6,6 +6,8 @@ demand, so the planner can copy `fused()` and decay the copy while it selects vi
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -57,6 +59,17 @@ def _no_return_carving(depth: np.ndarray, rule: str) -> bool | np.ndarray:
     size = 2 * NO_RETURN_REGION_PX + 1
     near_return = cv2.dilate(returns, np.ones((size, size), np.uint8)) > 0
     return ~near_return
+
+
+@dataclass(frozen=True)
+class DepthObservation:
+    """One frame's evidence: hit voxel ids (ascending) with the frame's mean confidence and
+    log(1 - capped confidence) in each, and the ids of voxels its rays crossed as free."""
+
+    hit: np.ndarray  # (M,) int64
+    confidence: np.ndarray  # (M,) float32
+    log_residual: np.ndarray  # (M,) float32
+    free: np.ndarray  # (F,) int64
 
 
 class FusedGrid:
@@ -132,7 +145,24 @@ class FusedGrid:
         stride: int = 2,  # carve every 2nd pixel row/column; surface hits use every pixel
         no_return: str = "regions",
     ) -> None:
-        """Fuse one frame: surface evidence into hit voxels, free space along every ray.
+        """Fuse one frame: `apply_depth(observe_depth(...))` (see `observe_depth`)."""
+        self.apply_depth(
+            self.observe_depth(depth, conf, K, T_world_cam, max_range, stride, no_return)
+        )
+
+    def observe_depth(
+        self,
+        depth: np.ndarray,
+        conf: np.ndarray,
+        K: np.ndarray,
+        T_world_cam: np.ndarray,
+        max_range: float = 5.0,  # paper, supplement: max depth 5 m
+        stride: int = 2,  # carve every 2nd pixel row/column; surface hits use every pixel
+        no_return: str = "regions",
+    ) -> DepthObservation:
+        """What one frame tells the grid: surface evidence of hit voxels, free space along every
+        ray. Reads only the grid's layout, never its evidence, so it runs while the grid is in
+        use elsewhere (a plan); `apply_depth` then adds it in a few milliseconds.
 
         depth: (H, W) float32 metres along optical z, NaN = no return. conf: (H, W) float32 in
         [0, 1] (NaN = no confidence, pixel skipped). Each voxel counts at most one hit and one
@@ -183,11 +213,21 @@ class FusedGrid:
             carve_no_return=_no_return_carving(depth, no_return),
         ).reshape(-1)
         free = (crossed > 0) & ~hit
-        self.conf_sum[hit] += frame_conf.astype(np.float32)
         capped = np.minimum(frame_conf, self.max_confidence)
-        self.log_residual[hit] += np.log1p(-capped).astype(np.float32)
+        return DepthObservation(
+            hit=np.flatnonzero(hit),
+            confidence=frame_conf.astype(np.float32),
+            log_residual=np.log1p(-capped).astype(np.float32),
+            free=np.flatnonzero(free),
+        )
+
+    def apply_depth(self, observation: DepthObservation) -> None:
+        """Add one frame's observation (from `observe_depth` on this grid) to the evidence."""
+        hit = observation.hit
+        self.conf_sum[hit] += observation.confidence
+        self.log_residual[hit] += observation.log_residual
         self.hit_count[hit] += 1.0
-        self.free_count[free] += 1.0
+        self.free_count[observation.free] += 1.0
         self.frames += 1
 
     def integrate_semantic(

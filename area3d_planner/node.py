@@ -22,9 +22,20 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
 from area3d_msgs_py import codecs, msgs, qos
-from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.guard import Rejections, guarded
+from area3d_msgs_py.inputs import (
+    FLOAT_ENCODINGS,
+    MAX_STAMP_AHEAD_S,
+    check_depth_values,
+    check_frame_id,
+    check_stamp,
+    check_unit_range,
+    decode_camera_info,
+    decode_image,
+)
 from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.status import status_topic
 from area3d_perception.frame_sync import StampSync
 from area3d_planner.cloud import grid_to_msg
 from area3d_planner.fusion import GEOMETRIC_RULES, NO_RETURN_RULES
@@ -38,10 +49,11 @@ POSE_TOPIC = "area3d/camera/pose"
 INFO_TOPIC = "area3d/camera/camera_info"
 SEMANTIC_TOPIC = "area3d/semantics/uncertainty"
 GRID_TOPIC = "area3d/planner/uncertainty_grid"
-STATUS_TOPIC = "area3d/planner/status"
+STATUS_TOPIC = status_topic("planner")
 VIEWS_TOPIC = "area3d/planner/next_views"
 NBV_SERVICE = "area3d/planner/next_best_view"
 CAMERA_INFO_CACHE = 64
+POSES_PENDING = 2048
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
 MAX_FRAMES_WITHOUT_INFO = 64
 # Service requests and frame callbacks run on separate threads: a request waits for the frame it
@@ -103,6 +115,12 @@ PARAMS = (
         range=(0.0, 600.0),
     ),
     Param("eager_cache", True, "rebuild seeds and visibility masks right after each fused frame"),
+    Param(
+        "refresh_interval_s",
+        0.5,
+        "eager rebuilds start at most this often unless a request waits for one, seconds",
+        range=(0.0, 60.0),
+    ),
     # Perception's output for a frame can trail the camera's pose by seconds (first frames, a
     # feed-forward model on CPU), so parts wait this long for their partners.
     Param(
@@ -110,6 +128,13 @@ PARAMS = (
         60.0,
         "parts of a frame wait this long for their partners, seconds",
         range=(0.0, 3600.0),
+    ),
+    Param("world_frame", "world", "frame_id every camera pose must be expressed in"),
+    Param(
+        "max_stamp_ahead_s",
+        MAX_STAMP_AHEAD_S,
+        "inputs stamped further ahead of this node's clock are refused, seconds",
+        range=(0.0, 1e6),
     ),
 )
 
@@ -125,14 +150,26 @@ class PlannerNode(Node):
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
         self.server = NextBestViewServer(
-            config, background=p["eager_cache"], on_refresh=self._on_refresh
+            config,
+            background=p["eager_cache"],
+            on_refresh=self._on_refresh,
+            refresh_interval_s=p["refresh_interval_s"],
         )
         self.sync = StampSync(
-            ("depth", "confidence", "pose"), max_age_ns=int(p["sync_max_age_s"] * 1e9)
+            ("depth", "confidence", "pose"),
+            max_age_ns=int(p["sync_max_age_s"] * 1e9),
+            # the camera's poses arrive ahead of perception's images, which trail by the
+            # perception backlog: a minute of poses at 30 Hz may wait (they are small)
+            pending_caps={"pose": POSES_PENDING},
         )
         self.camera_info: OrderedDict[int, np.ndarray] = OrderedDict()
         self.latest_K: np.ndarray | None = None
         self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
+        self.world_frame = p["world_frame"]
+        self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
+        # a rejection is announced by the status that follows requests (created below)
+        self.rejections = Rejections(on_count=lambda: self._status_after_request.reset())
+        self.dropped = 0
 
         self.grid_pub = self.create_publisher(msgs.PointCloud2, GRID_TOPIC, qos.latched())
         self.status_pub = self.create_publisher(msgs.String, STATUS_TOPIC, qos.reliable(50))
@@ -148,12 +185,23 @@ class PlannerNode(Node):
                 lambda m: self._part("confidence", m),
                 qos.graph_frames(),
             ),
-            (msgs.PoseStamped, POSE_TOPIC, lambda m: self._part("pose", m), qos.frames()),
-            (msgs.CameraInfo, INFO_TOPIC, self._on_camera_info, qos.frames()),
+            # the camera's small per-frame messages queue deep: they run ahead of perception's
+            # images, and a reader queue that overflows loses the frame for good
+            (
+                msgs.PoseStamped,
+                POSE_TOPIC,
+                lambda m: self._part("pose", m),
+                qos.reliable(POSES_PENDING),
+            ),
+            (msgs.CameraInfo, INFO_TOPIC, self._on_camera_info, qos.reliable(POSES_PENDING)),
             (msgs.Image, SEMANTIC_TOPIC, self._on_semantic, qos.graph_frames()),
         ):
             self.create_subscription(
-                msg_type, topic, guarded(self, callback, topic), profile, callback_group=frames
+                msg_type,
+                topic,
+                guarded(self, callback, topic, self.rejections),
+                profile,
+                callback_group=frames,
             )
         self.create_service(
             msgs.GetPlan,
@@ -177,28 +225,50 @@ class PlannerNode(Node):
         self.server.close(CLOSE_WAIT_S)
         super().destroy_node()
 
+    def _status(self) -> msgs.String:
+        status = {
+            **self.server.status(),
+            "parts_dropped_unpaired": self.dropped,
+            "rejected": self.rejections.snapshot(),
+        }
+        return msgs.String(data=json.dumps(status))
+
+    def _stamp(self, msg) -> int:
+        return check_stamp(msg, self.get_clock().now().nanoseconds, self.max_stamp_ahead_s)
+
     def _on_refresh(self) -> None:
-        self.status_pub.publish(msgs.String(data=json.dumps(self.server.status())))
+        self.status_pub.publish(self._status())
 
     def _publish_status_after_request(self) -> None:
         self._status_after_request.cancel()
         self._on_refresh()
 
     def _on_camera_info(self, msg) -> None:
-        K, _, _ = codecs.camera_info_to_intrinsics(msg)
+        stamp = self._stamp(msg)
+        K, _, _ = decode_camera_info(msg)
         self.latest_K = K
-        self.camera_info[codecs.stamp_to_ns(msg.header.stamp)] = K
+        self.camera_info[stamp] = K
         while len(self.camera_info) > CAMERA_INFO_CACHE:
             self.camera_info.popitem(last=False)
         while self.waiting:
             stamp, frame = self.waiting.popleft()
             self._fuse(stamp, frame, self.camera_info.get(stamp, K))
 
+    def _decode(self, key: str, msg) -> np.ndarray:
+        if key == "pose":
+            check_frame_id(msg, self.world_frame)
+            return codecs.pose_to_matrix(msg.pose)
+        check_frame_id(msg)
+        image = decode_image(msg, FLOAT_ENCODINGS)
+        if key == "depth":
+            return check_depth_values(image)
+        return check_unit_range(image, key)
+
     def _part(self, key: str, msg) -> None:
-        stamp = codecs.stamp_to_ns(msg.header.stamp)
-        value = codecs.pose_to_matrix(msg.pose) if key == "pose" else codecs.msg_to_image(msg)
-        frame = self.sync.add(key, stamp, value)
+        stamp = self._stamp(msg)
+        frame = self.sync.add(key, stamp, self._decode(key, msg))
         for dropped in self.sync.pop_dropped():
+            self.dropped += 1
             self.get_logger().warning(
                 f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}"
             )
@@ -221,13 +291,15 @@ class PlannerNode(Node):
             self.get_logger().info(f"frame {stamp} is fused already; the repeat changes nothing")
 
     def _on_semantic(self, msg) -> None:
-        stamp = codecs.stamp_to_ns(msg.header.stamp)
-        if self.server.add_semantic(stamp, codecs.msg_to_image(msg)):
+        stamp = self._stamp(msg)
+        check_frame_id(msg)
+        u_sem = check_unit_range(decode_image(msg, FLOAT_ENCODINGS), "semantic uncertainty")
+        if self.server.add_semantic(stamp, u_sem):
             self._publish_state(stamp)
 
     def _publish_state(self, stamp_ns: int) -> None:
         self.grid_pub.publish(grid_to_msg(self.server.grid, stamp_ns, "world"))
-        self.status_pub.publish(msgs.String(data=json.dumps(self.server.status())))
+        self.status_pub.publish(self._status())
 
     def _on_request(self, request: msgs.GetPlan_Request, response: msgs.GetPlan_Response):
         try:

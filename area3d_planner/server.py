@@ -8,6 +8,7 @@ plan requests with `(poses, reason)`: an empty pose list always comes with the r
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 
@@ -88,7 +89,9 @@ class PlannerConfig:
     )
     pixels_per_voxel: float = 0.0  # fully observed from this many pixels; 0 = 32 object, 64 room
     unknown_occludes: bool = True  # a view counts the first non-free layer it sees
-    incidence: bool = False  # a surface seen at a grazing angle counts by its cosine (off: no gain measured)
+    incidence: bool = (
+        False  # a surface seen at a grazing angle counts by its cosine (off: no gain measured)
+    )
     hfov_deg: float = 90.0  # paper: FOV 90 degrees
     max_range: float = 5.0  # paper: max depth 5 m
     width: int = 640
@@ -202,11 +205,15 @@ class NextBestViewServer:
     end), and a request waits for the rebuild that covers its stamp, then plans from the cached
     masks only. Without it, they are rebuilt at the first request after the map changed.
     `on_refresh` (optional) is called from the worker after each rebuild. Call `close()` to stop it.
+    With `refresh_interval_s` > 0 the worker starts a rebuild at most that often while no request
+    waits for one: a camera streaming at 10 Hz would otherwise keep a core busy rebuilding masks
+    that no request reads; a waiting request still starts its rebuild at once.
     """
 
     config: PlannerConfig
     background: bool = False
     on_refresh: object | None = None  # Callable[[], None]
+    refresh_interval_s: float = 0.0
     grid: FusedGrid = field(init=False)
     committed: int = field(init=False, default=0)
     initial_frames: int | None = field(init=False, default=None)
@@ -276,6 +283,8 @@ class NextBestViewServer:
         self._stamp_version: dict[int, int] = {}  # map version that holds each stamp
         self._cache_version = 0  # map version of the installed seeds and masks
         self._refreshing = False
+        self._cache_waiters = 0  # requests waiting in wait_cache
+        self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
         self.refresh_count = 0  # background rebuilds run so far
         self._worker: threading.Thread | None = None
@@ -301,19 +310,26 @@ class NextBestViewServer:
         """Fuse one frame and remember its depth/pose for a semantic map of the same stamp.
 
         A frame is fused once: the same stamp again (a replay after a restart, a resent frame)
-        changes nothing and returns False, so replaying every saved frame never doubles evidence."""
+        changes nothing and returns False, so replaying every saved frame never doubles evidence.
+        The frame's evidence is computed without the lock (back-projection and carving are most of
+        the cost) and added under it in a few milliseconds, so a plan in progress and a frame
+        arriving do not wait for each other."""
         with self._lock:
             if int(stamp_ns) in self._fused_stamps:
                 return False
-            self.grid.integrate_depth(
-                depth,
-                conf,
-                K,
-                T,
-                self.config.max_range,
-                self.config.carve_stride,
-                self.config.no_return,
-            )
+        observation = self.grid.observe_depth(
+            depth,
+            conf,
+            K,
+            T,
+            self.config.max_range,
+            self.config.carve_stride,
+            self.config.no_return,
+        )
+        with self._lock:
+            if int(stamp_ns) in self._fused_stamps:  # the same stamp, fused meanwhile
+                return False
+            self.grid.apply_depth(observation)
             self._frames[int(stamp_ns)] = _Frame(
                 np.asarray(depth, np.float32), np.asarray(K, float), np.asarray(T, float)
             )
@@ -385,19 +401,28 @@ class NextBestViewServer:
             return True
         with self._refreshed:
             target = self._stamp_version.get(int(stamp_ns), self._map_version)
-            return self._refreshed.wait_for(
-                lambda: self._cache_version >= target or self._closed, timeout_s
-            )
+            self._cache_waiters += 1
+            self._refreshed.notify_all()  # the worker may be holding back: a request waits
+            try:
+                return self._refreshed.wait_for(
+                    lambda: self._cache_version >= target or self._closed, timeout_s
+                )
+            finally:
+                self._cache_waiters -= 1
 
     def _refresh_loop(self) -> None:
         kinds = () if self.policy.relevant is None else (self.policy.relevant,)
         while True:
             with self._refreshed:
-                self._refreshed.wait_for(
-                    lambda: self._closed or self._map_version > self._cache_version
-                )
+                while not self._closed:
+                    stale = self._map_version > self._cache_version
+                    wait_s = self._last_refresh + self.refresh_interval_s - time.monotonic()
+                    if stale and (wait_s <= 0 or self._cache_waiters > 0):
+                        break
+                    self._refreshed.wait(wait_s if stale else None)
                 if self._closed:
                     return
+                self._last_refresh = time.monotonic()
                 version = self._map_version
                 occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
                 self._refreshing = True

@@ -19,9 +19,20 @@ import numpy as np
 from rclpy.node import Node
 
 from area3d_msgs_py import codecs, msgs, qos
-from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.guard import Rejections, guarded
+from area3d_msgs_py.inputs import (
+    COLOR_ENCODINGS,
+    DEPTH_ENCODINGS,
+    FLOAT_ENCODINGS,
+    MAX_STAMP_AHEAD_S,
+    check_frame_id,
+    check_stamp,
+    check_unit_range,
+    decode_image,
+)
 from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.status import StatusPublisher, status_topic
 from area3d_semantics.analysis import FALLBACKS, Analysis, analyze_views
 from area3d_semantics.backends import (
     BACKEND_NAMES,
@@ -45,6 +56,7 @@ REQUEST_TOPIC = "area3d/semantics/request"
 REGIONS_TOPIC = "area3d/semantics/regions"
 WEIGHT_TOPIC = "area3d/semantics/weight"
 UNCERTAINTY_TOPIC = "area3d/semantics/uncertainty"
+STATUS_TOPIC = status_topic("semantics")
 IMAGE_QUEUE_DEPTH = 64  # the initial views (15 at room level) can arrive in one burst
 
 PARAMS = (
@@ -77,6 +89,12 @@ PARAMS = (
         choices=("all", "latest"),
     ),
     Param("require_depth", True, "a view needs its depth before it is analysed"),
+    Param(
+        "max_stamp_ahead_s",
+        MAX_STAMP_AHEAD_S,
+        "inputs stamped further ahead of this node's clock are refused, seconds",
+        range=(0.0, 1e6),
+    ),
     # sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's weights
     # alone, independent of the depth backbone, so the no-feed-forward and no-VLM ablations each
     # remove one thing) or "confidence" (1 - perception confidence, the paper's backbone sigma).
@@ -118,6 +136,8 @@ class SemanticsNode(Node):
         self.params = SemanticParams.from_flat({k: p[k] for k in SemanticParams().to_flat()})
         self.require_depth = p["require_depth"]
         self.sigma_source = p["sigma_source"]
+        self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
+        self.rejections = Rejections(on_count=lambda: self.status.changed())
         try:
             self.backend = make_backend(self.backend_name, **options)
         except (VLMError, ValueError) as exc:
@@ -143,25 +163,17 @@ class SemanticsNode(Node):
         self.pub_usem = self.create_publisher(
             msgs.Image, UNCERTAINTY_TOPIC, qos.graph_frames(IMAGE_QUEUE_DEPTH)
         )
+        self.status = StatusPublisher(self, STATUS_TOPIC, self._status)
         frames = qos.reliable(IMAGE_QUEUE_DEPTH)
-        self.create_subscription(
-            msgs.Image, COLOR_TOPIC, guarded(self, self.on_color, COLOR_TOPIC), frames
-        )
-        self.create_subscription(
-            msgs.Image, DEPTH_TOPIC, guarded(self, self.on_depth, DEPTH_TOPIC), frames
-        )
-        self.create_subscription(
-            msgs.Image,
-            CONFIDENCE_TOPIC,
-            guarded(self, self.on_confidence, CONFIDENCE_TOPIC),
-            qos.graph_frames(IMAGE_QUEUE_DEPTH),
-        )
-        self.create_subscription(
-            msgs.String,
-            REQUEST_TOPIC,
-            guarded(self, self.on_request, REQUEST_TOPIC),
-            qos.reliable(),
-        )
+        for msg_type, topic, callback, profile in (
+            (msgs.Image, COLOR_TOPIC, self.on_color, frames),
+            (msgs.Image, DEPTH_TOPIC, self.on_depth, frames),
+            (msgs.Image, CONFIDENCE_TOPIC, self.on_confidence, qos.graph_frames(IMAGE_QUEUE_DEPTH)),
+            (msgs.String, REQUEST_TOPIC, self.on_request, qos.reliable()),
+        ):
+            self.create_subscription(
+                msg_type, topic, guarded(self, callback, topic, self.rejections), profile
+            )
         log.info(
             f"backend={self.backend.name} fallback={self.fallback} "
             f"num_initial_views={self.num_initial_views} lambda={self.params.lam}"
@@ -175,23 +187,41 @@ class SemanticsNode(Node):
     def requery_scope(self) -> str:
         return self.get_parameter("requery_scope").value
 
+    def _status(self) -> dict:
+        with self._lock:
+            return {
+                "node": "semantics",
+                "backend": self.backend.name,
+                "views_complete": len(self.views.complete),
+                "analyses": self.analyses,
+                "usem_published": len(self.published_usem),
+                "rejected": self.rejections.snapshot(),
+            }
+
+    def _stamp(self, msg) -> int:
+        return check_stamp(msg, self.get_clock().now().nanoseconds, self.max_stamp_ahead_s)
+
     # callbacks -----------------------------------------------------------------------------
     def on_color(self, msg) -> None:
-        stamp = codecs.stamp_to_ns(msg.header.stamp)
+        stamp = self._stamp(msg)
+        frame_id = check_frame_id(msg)
+        rgb = decode_image(msg, COLOR_ENCODINGS)
         with self._lock:
-            self.views.add_color(stamp, codecs.msg_to_image(msg), msg.header.frame_id)
+            self.views.add_color(stamp, rgb, frame_id)
         self._maybe_start_initial()
 
     def on_depth(self, msg) -> None:
-        stamp = codecs.stamp_to_ns(msg.header.stamp)
+        stamp = self._stamp(msg)
+        depth = decode_image(msg, DEPTH_ENCODINGS)
         with self._lock:
-            self.views.add_depth(stamp, codecs.msg_to_image(msg))
+            self.views.add_depth(stamp, depth)
         self._maybe_start_initial()
 
     def on_confidence(self, msg) -> None:
-        stamp = codecs.stamp_to_ns(msg.header.stamp)
+        stamp = self._stamp(msg)
+        confidence = check_unit_range(decode_image(msg, FLOAT_ENCODINGS), "confidence")
         with self._lock:
-            self.views.add_confidence(stamp, codecs.msg_to_image(msg))
+            self.views.add_confidence(stamp, confidence)
             self._publish_usem(stamp)
 
     def _requery_stamps(self) -> list[int]:
@@ -278,6 +308,7 @@ class SemanticsNode(Node):
                     codecs.image_to_msg(weight, "32FC1", view.stamp_ns, view.frame_id)
                 )
                 self._publish_usem(view.stamp_ns)
+        self.status.changed()
         self.get_logger().info(
             f"published {len(analysis.regions)} regions over {len(views)} frames "
             f"(backend={analysis.backend}, fallback={analysis.fallback_used})"

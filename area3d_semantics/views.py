@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from area3d_msgs_py.errors import InputError
+
 
 @dataclass
 class View:
@@ -44,13 +46,29 @@ class ViewCollector:
         if ready and view.stamp_ns not in self._complete:
             self._complete.append(view.stamp_ns)
 
+    @staticmethod
+    def _check_size(
+        field: str, image: np.ndarray, other: np.ndarray | None, other_name: str
+    ) -> None:
+        """Color and depth of one frame are registered: same width and height."""
+        if other is not None and image.shape[:2] != other.shape[:2]:
+            raise InputError(
+                field,
+                f"{image.shape[1]}x{image.shape[0]}",
+                f"the {other_name} size {other.shape[1]}x{other.shape[0]} of the same stamp",
+            )
+
     def add_color(self, stamp_ns: int, rgb: np.ndarray, frame_id: str = "") -> View:
+        existing = self._views.get(stamp_ns)
+        self._check_size("color", rgb, existing and existing.depth, "depth")
         view = self._view(stamp_ns)
         view.rgb, view.frame_id = rgb, frame_id or view.frame_id
         self._update(view)
         return view
 
     def add_depth(self, stamp_ns: int, depth: np.ndarray) -> View:
+        existing = self._views.get(stamp_ns)
+        self._check_size("depth", depth, existing and existing.rgb, "color")
         view = self._view(stamp_ns)
         view.depth = depth
         self._update(view)

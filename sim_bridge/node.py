@@ -17,7 +17,8 @@ from rclpy.node import Node
 
 from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.guard import guarded
+from area3d_msgs_py.guard import Rejections, guarded
+from area3d_msgs_py.inputs import MAX_STAMP_AHEAD_S, check_frame_id, check_stamp
 from area3d_msgs_py.lifecycle import run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from sim_bridge.camera import (
@@ -89,6 +90,12 @@ PARAMS = (
         read_only=False,
         range=(0.0, 600.0),
     ),
+    Param(
+        "max_stamp_ahead_s",
+        MAX_STAMP_AHEAD_S,
+        "goals stamped further ahead of this node's clock are refused, seconds",
+        range=(0.0, 1e6),
+    ),
 )
 
 
@@ -154,8 +161,13 @@ class SimBridgeNode(Node):
                 set(p["readers.right_camera_info"]) | everyone
             )
         self.readers_matched = False
+        self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
+        self.rejections = Rejections()  # malformed goals, reported in every status line
         self.create_subscription(
-            msgs.PoseStamped, GOAL_TOPIC, guarded(self, self.on_goal, GOAL_TOPIC), qos.frames()
+            msgs.PoseStamped,
+            GOAL_TOPIC,
+            guarded(self, self.on_goal, GOAL_TOPIC, self.rejections),
+            qos.frames(),
         )
         self.get_logger().info(
             f"scene {self.scene.name!r} ({self.scene.level}), {p['width']}x{p['height']}, "
@@ -168,9 +180,13 @@ class SimBridgeNode(Node):
     def on_goal(self, msg: msgs.PoseStamped) -> None:
         stamp_ns = codecs.stamp_to_ns(msg.header.stamp) or self._now_ns()
         try:
+            if msg.header.stamp.sec or msg.header.stamp.nanosec:  # 0 = capture now
+                check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
+            check_frame_id(msg, WORLD_FRAME)
             T = codecs.pose_to_matrix(msg.pose)
         except InputError as exc:
-            self._refuse(stamp_ns, f"goal pose {exc}")
+            self.rejections.count(GOAL_TOPIC, exc.field)
+            self._refuse(stamp_ns, f"{GOAL_TOPIC}: {exc}")
             return
         capture = self.camera.capture(T)
         if not capture.ok:
@@ -244,7 +260,16 @@ class SimBridgeNode(Node):
 
     def _status(self, stamp_ns: int, ok: bool, reason: str) -> None:
         self.pub_status.publish(
-            msgs.String(data=json.dumps({"stamp_ns": stamp_ns, "ok": ok, "reason": reason}))
+            msgs.String(
+                data=json.dumps(
+                    {
+                        "stamp_ns": stamp_ns,
+                        "ok": ok,
+                        "reason": reason,
+                        "rejected": self.rejections.snapshot(),
+                    }
+                )
+            )
         )
 
 

@@ -1,0 +1,45 @@
+"""A node's status line: JSON in std_msgs/String on area3d/<node>/status, as the planner's.
+
+Published a moment after something changed (a frame processed, an input rejected), so a barrage of
+bad messages yields one status line after it rather than one per message, and once a period as a
+heartbeat, so `ros2 topic echo` shows the counters of a quiet node too.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import Any
+
+from area3d_msgs_py import msgs, qos
+
+CHANGE_DELAY_S = 0.05  # a burst of changes within this time yields one status line
+HEARTBEAT_S = 1.0
+
+
+def status_topic(node_name: str) -> str:
+    """The relative status topic of a node: area3d/<node>/status."""
+    return f"area3d/{node_name}/status"
+
+
+class StatusPublisher:
+    """Publishes `state()` as JSON on the node's status topic after `changed()` and every HEARTBEAT_S."""
+
+    def __init__(self, node: Any, topic: str, state: Callable[[], dict]) -> None:
+        self._node = node
+        self._state = state
+        self._pub = node.create_publisher(msgs.String, topic, qos.reliable(50))
+        self._soon = node.create_timer(CHANGE_DELAY_S, self._publish_soon)
+        self._soon.cancel()
+        node.create_timer(HEARTBEAT_S, self.publish)
+
+    def changed(self) -> None:
+        """Something in the state changed: publish it shortly (repeated calls coalesce)."""
+        self._soon.reset()
+
+    def _publish_soon(self) -> None:
+        self._soon.cancel()
+        self.publish()
+
+    def publish(self) -> None:
+        self._pub.publish(msgs.String(data=json.dumps(self._state())))

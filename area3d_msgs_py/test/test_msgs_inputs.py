@@ -1,0 +1,83 @@
+"""Boundary checks on incoming messages: each refusal names the field, the value and what was expected."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from area3d_msgs_py import codecs, inputs, msgs
+from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.guard import Rejections, guarded
+
+NOW = 1_800_000_000 * 1_000_000_000
+
+
+def _image(width: int = 4, height: int = 3, encoding: str = "32FC1") -> msgs.Image:
+    array = (
+        np.ones((height, width, 3), np.uint8)
+        if encoding == "rgb8"
+        else np.ones((height, width), np.float32)
+    )
+    return codecs.image_to_msg(array, encoding, NOW, "cam")
+
+
+def test_an_image_is_refused_from_its_header_before_its_bytes_are_read():
+    huge = _image()
+    huge.width, huge.height = 8192, 8192  # data does not match either: the header is enough
+    with pytest.raises(InputError, match=r"width x height: got '8192x8192', expected at most"):
+        inputs.decode_image(huge, inputs.DEPTH_ENCODINGS)
+    with pytest.raises(InputError, match=r"encoding: got 'rgb8', expected one of 32FC1, 16UC1"):
+        inputs.decode_image(_image(encoding="rgb8"), inputs.DEPTH_ENCODINGS)
+    empty = _image()
+    empty.width = empty.height = empty.step = 0
+    empty.data = b""
+    with pytest.raises(InputError, match="non-empty"):
+        inputs.decode_image(empty, inputs.DEPTH_ENCODINGS)
+    with pytest.raises(InputError, match="the camera's 640x480"):
+        inputs.decode_image(_image(), inputs.DEPTH_ENCODINGS, size=(640, 480))
+    assert inputs.decode_image(_image(), inputs.DEPTH_ENCODINGS, size=(4, 3)).shape == (3, 4)
+
+
+def test_stamps_must_be_positive_and_not_ahead_of_the_clock_frame_ids_as_expected():
+    msg = msgs.PoseStamped(header=codecs.header(NOW + 6 * 10**9, "map"))
+    with pytest.raises(InputError, match="header.stamp: got .* at most 5 s ahead"):
+        inputs.check_stamp(msg, NOW)
+    assert inputs.check_stamp(msg, NOW, max_ahead_s=10.0) == NOW + 6 * 10**9
+    msg.header.stamp.sec = -1
+    with pytest.raises(InputError, match="> 0 ns"):
+        inputs.check_stamp(msg, NOW)
+    with pytest.raises(InputError, match="header.frame_id: got 'map', expected 'world'"):
+        inputs.check_frame_id(msg, "world")
+
+
+def test_maps_in_unit_range_allow_nan_but_not_inf_or_values_outside():
+    ok = np.array([[0.0, 1.0, np.nan]], np.float32)
+    assert inputs.check_unit_range(ok, "confidence") is ok
+    for bad in (np.inf, -np.inf, 1.5, -0.1):
+        with pytest.raises(InputError, match="confidence: got '1 pixels outside"):
+            inputs.check_unit_range(np.array([[0.5, bad]], np.float32), "confidence")
+    for bad in (np.inf, 0.0, -1.0):
+        with pytest.raises(InputError, match="depth: got '1 pixels infinite or <= 0'"):
+            inputs.check_depth_values(np.array([[0.5, bad, np.nan]], np.float32))
+
+
+def test_guarded_counts_rejections_by_topic_and_field_and_logs_one_line():
+    lines = []
+
+    class Node:
+        def get_logger(self):
+            class Log:
+                warning = error = staticmethod(lines.append)
+
+            return Log()
+
+    rejections = Rejections()
+    callback = guarded(Node(), lambda m: inputs.check_frame_id(m, "world"), "pose", rejections)
+    callback(msgs.PoseStamped(header=codecs.header(7, "map")))
+    callback(msgs.PoseStamped(header=codecs.header(8, "world")))
+    assert rejections.snapshot() == {
+        "total": 1,
+        "by_topic": {"pose": 1},
+        "by_field": {"header.frame_id": 1},
+    }
+    assert lines == ["pose at stamp 7: rejected: header.frame_id: got 'map', expected 'world'"]

@@ -1,0 +1,183 @@
+"""A hostile (or merely broken) ROS 2 publisher: a plain rclpy node that feeds every topic the
+AREA3D nodes subscribe to with malformed messages. It imports nothing from the project and knows
+only the documented topic names and types (README, "The graph").
+
+    python hostile_client.py '{"width": 160, "height": 120, "readers": {"/area3d/camera/pose": 2}}'
+
+It waits until each topic has the given number of readers, publishes every case once, waits for
+the last one to be acknowledged and prints one JSON line: the cases it sent, each with its topic,
+its name and the field a node should name when it rejects it.
+"""
+
+import json
+import sys
+import time
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+TIMEOUT_S = 60.0
+VOLATILE = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+# perception's and semantics' outputs are read transient local: a writer must offer it to match
+TRANSIENT = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+COLOR = "/area3d/camera/color/image_raw"
+DEPTH = "/area3d/camera/depth/image_raw"
+INFO = "/area3d/camera/camera_info"
+POSE = "/area3d/camera/pose"
+GOAL = "/area3d/camera/goal_pose"
+P_DEPTH = "/area3d/perception/depth"
+P_CONF = "/area3d/perception/confidence"
+S_USEM = "/area3d/semantics/uncertainty"
+S_REQUEST = "/area3d/semantics/request"
+TOPICS = {
+    COLOR: (Image, VOLATILE),
+    DEPTH: (Image, VOLATILE),
+    INFO: (CameraInfo, VOLATILE),
+    POSE: (PoseStamped, VOLATILE),
+    GOAL: (PoseStamped, VOLATILE),
+    P_DEPTH: (Image, TRANSIENT),
+    P_CONF: (Image, TRANSIENT),
+    S_USEM: (Image, TRANSIENT),
+    S_REQUEST: (String, VOLATILE),
+}
+YEAR_NS = 365 * 24 * 3600 * 1_000_000_000
+HUGE = 8192  # an 8k x 8k rgb8 image: 201 MB
+
+
+def set_stamp(header, ns, frame_id):
+    header.stamp.sec, header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
+    header.frame_id = frame_id
+
+
+def image(ns, array, encoding, frame_id="camera_optical_frame"):
+    msg = Image()
+    set_stamp(msg.header, ns, frame_id)
+    msg.height, msg.width = array.shape[:2]
+    msg.encoding = encoding
+    msg.step = array.shape[1] * array.itemsize * (array.shape[2] if array.ndim == 3 else 1)
+    msg.data = np.ascontiguousarray(array).tobytes()
+    return msg
+
+
+def pose(ns, q=(0.0, 0.0, 0.0, 1.0), p=(0.0, -0.7, 0.4), frame_id="world"):
+    msg = PoseStamped()
+    set_stamp(msg.header, ns, frame_id)
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, p)
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = map(float, q)
+    return msg
+
+
+def camera_info(ns, width, height, fx=80.0):
+    msg = CameraInfo()
+    set_stamp(msg.header, ns, "camera_optical_frame")
+    msg.width, msg.height = width, height
+    msg.k = [fx, 0.0, width / 2, 0.0, fx, height / 2, 0.0, 0.0, 1.0]
+    return msg
+
+
+def cases(now, w, h):
+    """(topic, case, message, field a node names when it rejects it) for every malformed input."""
+    rgb = np.full((h, w, 3), 128, np.uint8)
+    depth = np.full((h, w), 0.6, np.float32)
+    conf = np.full((h, w), 0.5, np.float32)
+    future, before_epoch = now + YEAR_NS, -YEAR_NS
+
+    def broken_step(msg):
+        msg.step = 3
+        return msg
+
+    def short_data(msg):
+        msg.data = bytes(msg.data)[: len(msg.data) // 2]
+        return msg
+
+    def with_value(array, value):
+        bad = array.copy()
+        bad[: h // 4] = value
+        return bad
+
+    yield from (
+        (COLOR, "wrong encoding (yuv422)", image(now, rgb[..., :2].copy(), "yuv422"), "encoding"),
+        (COLOR, "depth image on the color topic", image(now, depth, "32FC1"), "encoding"),
+        (COLOR, "step smaller than a row", broken_step(image(now, rgb, "rgb8")), "step"),
+        (COLOR, "data shorter than height x step", short_data(image(now, rgb, "rgb8")), "data"),
+        (COLOR, "zero-size image", image(now, rgb[:0, :0], "rgb8"), "width x height"),
+        (COLOR, "8k x 8k image", image(now, np.zeros((HUGE, HUGE, 3), np.uint8), "rgb8"), "width x height"),
+        (COLOR, "stamp a year ahead", image(future, rgb, "rgb8"), "header.stamp"),
+        (COLOR, "stamp before 1970", image(before_epoch, rgb, "rgb8"), "header.stamp"),
+        (COLOR, "empty frame_id", image(now, rgb, "rgb8", frame_id=""), "header.frame_id"),
+        (DEPTH, "color image on the depth topic", image(now, rgb, "rgb8"), "encoding"),
+        (DEPTH, "step smaller than a row", broken_step(image(now, depth, "32FC1")), "step"),
+        (DEPTH, "zero-size image", image(now, depth[:0, :0], "32FC1"), "width x height"),
+        (DEPTH, "stamp a year ahead", image(future, depth, "32FC1"), "header.stamp"),
+        (INFO, "fx = 0 (uncalibrated)", camera_info(now, w, h, fx=0.0), "k"),
+        (INFO, "NaN in K", camera_info(now, w, h, fx=float("nan")), "k"),
+        (INFO, "zero-size camera", camera_info(now, 0, 0), "width/height"),
+        (INFO, "100k x 100k camera", camera_info(now, 100_000, 100_000), "width x height"),
+        (INFO, "stamp a year ahead", camera_info(future, w, h), "header.stamp"),
+        (POSE, "non-unit quaternion (norm 2)", pose(now, q=(0.0, 0.0, 0.0, 2.0)), "orientation"),
+        (POSE, "zero quaternion", pose(now, q=(0.0, 0.0, 0.0, 0.0)), "orientation"),
+        (POSE, "NaN position", pose(now, p=(float("nan"), 0.0, 0.0)), "position"),
+        (POSE, "inf in quaternion", pose(now, q=(float("inf"), 0.0, 0.0, 1.0)), "orientation"),
+        (POSE, "frame_id 'map' instead of 'world'", pose(now, frame_id="map"), "header.frame_id"),
+        (POSE, "stamp a year ahead", pose(future), "header.stamp"),
+        (GOAL, "non-unit quaternion (norm 2)", pose(now, q=(0.0, 0.0, 0.0, 2.0)), "orientation"),
+        (GOAL, "NaN position", pose(now, p=(float("nan"), 0.0, 0.0)), "position"),
+        (GOAL, "frame_id 'map' instead of 'world'", pose(now, frame_id="map"), "header.frame_id"),
+        (P_DEPTH, "color image on a depth topic", image(now, rgb, "rgb8"), "encoding"),
+        (P_DEPTH, "+inf depth", image(now, with_value(depth, np.inf), "32FC1"), "depth"),
+        (P_DEPTH, "negative depth", image(now, with_value(depth, -1.0), "32FC1"), "depth"),
+        (P_DEPTH, "data shorter than height x step", short_data(image(now, depth, "32FC1")), "data"),
+        (P_DEPTH, "stamp a year ahead", image(future, depth, "32FC1"), "header.stamp"),
+        (P_CONF, "confidence 5", image(now, with_value(conf, 5.0), "32FC1"), "confidence"),
+        (P_CONF, "-inf confidence", image(now, with_value(conf, -np.inf), "32FC1"), "confidence"),
+        (P_CONF, "mono8 confidence", image(now, np.zeros((h, w), np.uint8), "mono8"), "encoding"),
+        (P_CONF, "zero-size image", image(now, conf[:0, :0], "32FC1"), "width x height"),
+        (S_USEM, "U_sem -1", image(now, with_value(conf, -1.0), "32FC1"), "semantic uncertainty"),
+        (S_USEM, "+inf U_sem", image(now, with_value(conf, np.inf), "32FC1"), "semantic uncertainty"),
+        (S_USEM, "empty frame_id", image(now, conf, "32FC1", frame_id=""), "header.frame_id"),
+    )  # fmt: skip
+
+
+def main(config):
+    rclpy.init()
+    node = rclpy.create_node("hostile_client")
+    pubs = {t: node.create_publisher(m, t, q) for t, (m, q) in TOPICS.items()}
+    deadline = time.monotonic() + TIMEOUT_S
+    for topic, count in config.get("readers", {}).items():
+        while pubs[topic].get_subscription_count() < count:
+            if time.monotonic() > deadline:
+                raise SystemExit(f"timed out waiting for {count} readers on {topic}")
+            time.sleep(0.02)
+    now = time.time_ns()
+    sent = []
+    for topic, case, msg, field in cases(now, config["width"], config["height"]):
+        if topic in config.get("readers", {}):
+            pubs[topic].publish(msg)
+            sent.append({"topic": topic, "case": case, "field": field})
+    # a 1 MB re-query request is well formed (any text re-queries): sent, not counted as rejected
+    if S_REQUEST in config.get("readers", {}):
+        pubs[S_REQUEST].publish(String(data="x" * 1_000_000))
+    for pub in pubs.values():  # every reader has every sample before this process goes
+        pub.wait_for_all_acked(rclpy.duration.Duration(seconds=TIMEOUT_S))
+    print(json.dumps({"sent": sent}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main(json.loads(sys.argv[1]))
