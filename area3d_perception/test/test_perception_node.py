@@ -256,7 +256,7 @@ def test_a_frame_whose_right_image_never_comes_is_dropped_naming_it():
         ({"right": np.zeros((H, W + 8, 3), np.uint8)}, "right: got 'size 72x48'"),
         ({"right": np.zeros((H, W), np.float32), "encoding": "32FC1"}, "right: got 'float32"),
         ({"size": (W + 8, H)}, "right camera_info: got 'size 72x48'"),
-        ({"baseline": 0.0}, "right camera_info rejected: p[3]"),
+        ({"baseline": 0.0}, "right/camera_info at stamp 1000000000: rejected: p[3]"),
     ],
     ids=["image size", "encoding", "camera_info size", "no Tx"],
 )
