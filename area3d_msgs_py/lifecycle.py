@@ -3,6 +3,7 @@ or shutdown, and tear everything down quietly; the one `main` body every AREA3D 
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 
 import rclpy
@@ -15,6 +16,30 @@ from area3d_msgs_py.errors import InputError
 # What a node's constructor raises for a configuration it cannot start with (bad parameters, a
 # missing file, model or library): logged as fatal, exit code 1.
 STARTUP_ERRORS: tuple[type[Exception], ...] = (InputError, FileNotFoundError)
+
+
+class PublishGate:
+    """Lets a node's own worker threads publish until the node stops.
+
+    A publish (or a timer reset) from a thread other than the executor's, on a node being destroyed,
+    can crash the process in the middleware. Such a thread publishes inside `with gate as open_:`
+    and only while `open_` is true; `close()` (from `run_node`'s `on_stop`) waits for a publish in
+    progress to end and refuses every later one."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._open = True
+
+    def __enter__(self) -> bool:
+        self._lock.acquire()
+        return self._open
+
+    def __exit__(self, *exc: object) -> None:
+        self._lock.release()
+
+    def close(self) -> None:
+        with self._lock:
+            self._open = False
 
 
 def run_node(

@@ -33,7 +33,7 @@ from area3d_msgs_py.inputs import (
     decode_camera_info,
     decode_image,
 )
-from area3d_msgs_py.lifecycle import run_node
+from area3d_msgs_py.lifecycle import PublishGate, run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from area3d_msgs_py.status import status_topic
 from area3d_perception.frame_sync import StampSync
@@ -147,6 +147,7 @@ class PlannerNode(Node):
         p = declare_parameters(self, PARAMS)
         report_unknown_parameters(self)
         config = PlannerConfig(**{f.name: p[f.name] for f in fields(PlannerConfig)})
+        self.gate = PublishGate()  # the rebuild worker publishes only while the node runs
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
         self.server = NextBestViewServer(
@@ -237,7 +238,15 @@ class PlannerNode(Node):
         return check_stamp(msg, self.get_clock().now().nanoseconds, self.max_stamp_ahead_s)
 
     def _on_refresh(self) -> None:
-        self.status_pub.publish(self._status())
+        with self.gate as running:  # called by the rebuild worker too
+            if running:
+                self.status_pub.publish(self._status())
+
+    def stop(self) -> None:
+        """Before the executor stops: no more publishing from the rebuild worker, and a request
+        waiting for a mask rebuild returns at once instead of holding the executor's shutdown."""
+        self.gate.close()
+        self.server.close(0.0)
 
     def _publish_status_after_request(self) -> None:
         self._status_after_request.cancel()
@@ -350,9 +359,7 @@ def main(args: Sequence[str] | None = None) -> int:
         "planner",
         args,
         executor=lambda: MultiThreadedExecutor(num_threads=EXECUTOR_THREADS),
-        # a request waiting for a mask rebuild returns at once instead of holding the executor's
-        # shutdown until the rebuild is done
-        on_stop=lambda node: node.server.close(0.0),
+        on_stop=lambda node: node.stop(),
     )
 
 

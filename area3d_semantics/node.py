@@ -30,7 +30,7 @@ from area3d_msgs_py.inputs import (
     check_unit_range,
     decode_image,
 )
-from area3d_msgs_py.lifecycle import run_node
+from area3d_msgs_py.lifecycle import PublishGate, run_node
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
 from area3d_msgs_py.status import StatusPublisher, status_topic
 from area3d_semantics.analysis import FALLBACKS, Analysis, analyze_views
@@ -154,6 +154,7 @@ class SemanticsNode(Node):
         self.analyses = 0
         self._lock = threading.Lock()
         self._worker: threading.Thread | None = None
+        self.gate = PublishGate()  # the VLM worker publishes only while the node runs
         self._pending_request = False
 
         self.pub_regions = self.create_publisher(msgs.String, REGIONS_TOPIC, qos.latched())
@@ -295,6 +296,11 @@ class SemanticsNode(Node):
         self._publish(analysis, views)
 
     def _publish(self, analysis: Analysis, views: list) -> None:
+        with self.gate as running:
+            if running:  # a query that ends after the node stopped publishes nothing
+                self._publish_analysis(analysis, views)
+
+    def _publish_analysis(self, analysis: Analysis, views: list) -> None:
         payload = analysis.to_json([v.stamp_ns for v in views])
         self.pub_regions.publish(msgs.String(data=json.dumps(payload)))
         with self._lock:
@@ -341,7 +347,7 @@ class SemanticsNode(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return run_node(SemanticsNode, "semantics", args)
+    return run_node(SemanticsNode, "semantics", args, on_stop=lambda node: node.gate.close())
 
 
 if __name__ == "__main__":
