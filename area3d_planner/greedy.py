@@ -140,21 +140,29 @@ def taken_views(
     if not poses or cache.num_views == 0:
         return excluded
     T = np.asarray(poses, np.float64).reshape(-1, 4, 4)
-    tree = cKDTree(cache.seeds)
-    by_direction = centre is not None and params.nms_centre_angle_deg > 0
-    if by_direction:
+    positions, forwards = T[:, :3, 3], T[:, :3, 2]
+    # (seed, pose) pairs within nms_radius, all at once: a plan's cost must not grow with a
+    # Python loop over every frame fused (a long stream fuses thousands)
+    near = cKDTree(positions).query_ball_point(cache.seeds, params.nms_radius)
+    counts = np.fromiter((len(n) for n in near), np.int64, len(near))
+    seed_idx = np.repeat(np.arange(cache.num_seeds), counts)
+    pose_idx = np.fromiter((p for n in near for p in n), np.int64, int(counts.sum()))
+    if centre is not None and params.nms_centre_angle_deg > 0:
         rays = cache.seeds - np.asarray(centre, np.float64)
         rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
-        cos_centre = np.cos(np.radians(params.nms_centre_angle_deg))
-    for pos, fwd in zip(T[:, :3, 3], T[:, :3, 2], strict=True):
-        near = np.asarray(tree.query_ball_point(pos, params.nms_radius), dtype=np.int64)
-        if by_direction:
-            ray = pos - centre
-            ray = ray / max(float(np.linalg.norm(ray)), 1e-12)
-            near = np.union1d(near, np.flatnonzero(rays @ ray >= cos_centre))
-        if near.size:
-            cos_angle = np.clip(cache.forward[near] @ fwd, -1.0, 1.0)
-            excluded[near] |= np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9
+        taken = positions - np.asarray(centre, np.float64)
+        taken /= np.maximum(np.linalg.norm(taken, axis=1, keepdims=True), 1e-12)
+        s_dir, p_dir = np.nonzero(rays @ taken.T >= np.cos(np.radians(params.nms_centre_angle_deg)))
+        pairs = np.unique(
+            np.stack([np.append(seed_idx, s_dir), np.append(pose_idx, p_dir)]), axis=1
+        )
+        seed_idx, pose_idx = pairs
+    if seed_idx.size:
+        cos_angle = np.clip(
+            np.einsum("pbk,pk->pb", cache.forward[seed_idx], forwards[pose_idx]), -1, 1
+        )
+        close = np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9
+        np.logical_or.at(excluded, seed_idx, close)
     return excluded
 
 
