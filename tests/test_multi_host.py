@@ -103,7 +103,7 @@ def test_camera_and_perception_on_one_host_the_rest_on_another_complete_an_episo
     finally:
         camera_host.send_signal(signal.SIGINT)
         try:
-            camera_log, _ = camera_host.communicate(timeout=30)
+            camera_log, _ = camera_host.communicate(timeout=120)  # generous: a loaded machine
         except subprocess.TimeoutExpired:
             camera_host.kill()
             camera_log, _ = camera_host.communicate()
