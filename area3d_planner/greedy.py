@@ -11,13 +11,13 @@ reaches the top of the queue and still returns exactly the plain greedy choices.
 
 from __future__ import annotations
 
-import heapq
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
+from area3d_planner.lazy import lazy_select
 from area3d_planner.masks import decay_view
 from area3d_planner.visibility import VisibilityCache
 
@@ -250,7 +250,8 @@ def lazy_greedy(
     score is fresh and still beats the next key (ties: lower seed, then lower bin, as plain
     greedy), otherwise reinsert the seed keyed by its best bound. Same result as `plain_greedy`, with
     far fewer single-view evaluations than re-scoring whole seeds (a frustum decay touches most
-    seeds of a room, but only a few of each seed's orientations).
+    seeds of a room, but only a few of each seed's orientations). The loop runs compiled
+    (`lazy.lazy_select`).
     """
     params = params or GreedyParams()
     U = _check(cache, U, budget, params)
@@ -263,36 +264,31 @@ def lazy_greedy(
     bound = cache.score(U).reshape(cache.num_seeds, nb) * gain[:, None] + prior[:, None]
     bound[excluded] = -np.inf
     out.evaluations += cache.num_views
-    fresh = np.ones((cache.num_seeds, nb), bool)  # bound == current utility (since last commit)
-    heap = list(zip((-bound.max(axis=1)).tolist(), range(cache.num_seeds), strict=True))
-    heapq.heapify(heap)
-    while heap and len(out.views) < int(budget):
-        _, s = heapq.heappop(heap)
-        row = bound[s]
-        row[excluded[s]] = -np.inf
-        if not np.isfinite(row.max()):
-            continue  # every view of the seed is suppressed
-        # re-score, in one pass, the stale views that could still win now: those whose bound
-        # reaches the next seed's key (the others lose to that seed either way)
-        next_key = -heap[0][0] if heap else -np.inf
-        stale = np.flatnonzero(~fresh[s] & (row >= next_key) & (row > -np.inf))
-        if stale.size:
-            row[stale] = cache.score_views(U, s * nb + stale) * gain[s] + prior[s]
-            fresh[s, stale] = True
-            out.evaluations += int(stale.size)
-        best = float(row.max())
-        if not fresh[s][row == best].all():  # a stale bound is still on top: look again later
-            heapq.heappush(heap, (-best, s))
-            continue
-        if heap and (-best, s) > heap[0]:
-            heapq.heappush(heap, (-best, s))
-            continue
-        b = int(np.flatnonzero(fresh[s] & (row == best))[0])
-        v = s * nb + b
-        out.views.append(v)
-        out.utilities.append(float(best))
-        decay_committed(cache, U, v, params.eta, params.decay)
-        _nms_suppress(cache, excluded, v, params)
-        fresh[:] = False
-        heapq.heappush(heap, (-best, s))
+    p = cache.params
+    views, utilities, evaluations = lazy_select(
+        cache.indptr,
+        cache.voxel_ids,
+        cache.weights,
+        U,
+        bound,
+        excluded,
+        gain,
+        prior,
+        int(budget),
+        cache.seeds,
+        np.ascontiguousarray(cache.rotations, np.float64),
+        cache.record_centres,
+        cache.record_ids,
+        p.near,
+        p.max_range,
+        p.tan_x,
+        p.tan_y,
+        1.0 - params.eta,
+        params.decay == "frustum",
+        params.nms_radius,
+        params.nms_angle_deg,
+    )
+    out.views = [int(v) for v in views]
+    out.utilities = [float(u) for u in utilities]
+    out.evaluations += int(evaluations)
     return out
