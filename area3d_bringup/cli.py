@@ -166,7 +166,12 @@ def launch(
     respawn_retries: int = typer.Option(3, help="restarts allowed per node"),
 ) -> None:
     """Start the node graph and keep it running (Ctrl-C stops every node)."""
+    import faulthandler
+    import signal
     import tempfile
+
+    # `kill -USR1` prints where every thread of the launcher is (a stop that hangs can be read)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     from area3d_bringup.launch_description import build_graph, load_parameters
     from area3d_bringup.launcher import Launcher, NodeDied

@@ -3,6 +3,8 @@ or shutdown, and tear everything down quietly; the one `main` body every AREA3D 
 
 from __future__ import annotations
 
+import faulthandler
+import signal
 import threading
 from collections.abc import Callable, Sequence
 
@@ -56,6 +58,8 @@ def run_node(
     and spinning, or while spinning. `on_stop(node)` runs first when the node stops, before the
     executor waits for the callbacks in flight: it lets a callback that waits on the node's own
     work (a request waiting for a rebuild) return at once."""
+    # `kill -USR1 <pid>` prints where every thread of the node is (a node that hangs can be read)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     middleware.configure()
     rclpy.init(args=args)
     node: Node | None = None

@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 CLIENT = Path(__file__).parent / "clients" / "independent_client.py"
@@ -58,6 +59,8 @@ def test_an_independent_rclpy_client_sees_every_output_and_plans_closed_loop_and
         try:
             graph_log, _ = graph.communicate(timeout=120)  # generous: a loaded machine
         except subprocess.TimeoutExpired:
+            graph.send_signal(signal.SIGUSR1)  # where the launcher hangs, into its log
+            time.sleep(2)
             graph.kill()
             graph_log, _ = graph.communicate()
     assert client.returncode == 0, client.stdout[-3000:] + client.stderr[-3000:] + graph_log[-3000:]
