@@ -173,6 +173,9 @@ class Launcher:
         """Block until Ctrl-C / SIGTERM or until a node dies (then raise `NodeDied`)."""
         stop = threading.Event()
         previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        # Ctrl-C always stops the graph, even where this process was started with SIGINT ignored
+        # (a parent that ignores it passes that on, and Python then installs no handler)
+        previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         try:
             while not stop.is_set():
                 self.check()
@@ -181,6 +184,7 @@ class Launcher:
             pass
         finally:
             signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGINT, previous_int)
 
     def stop(self, grace_s: float = 5.0) -> dict[str, int]:
         """Stop every node (SIGINT, then SIGTERM, then SIGKILL); returns their exit codes."""

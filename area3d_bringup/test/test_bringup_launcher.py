@@ -270,3 +270,37 @@ def test_perceptions_estimates_are_attached_to_the_frames_they_belong_to(tmp_pat
     assert first.estimated_depth is None and "view 0" in lines[0]
     np.testing.assert_array_equal(second.estimated_depth, estimate)
     np.testing.assert_array_equal(second.depth, depth)  # the sensor's depth is kept beside it
+
+
+def test_ctrl_c_stops_a_launcher_started_with_sigint_ignored(tmp_path, fake_env):
+    # A parent that ignores SIGINT passes that on to its children, and Python then installs no
+    # KeyboardInterrupt handler: the launcher must still stop the graph on Ctrl-C.
+    script = tmp_path / "launch_and_wait.py"
+    script.write_text(
+        textwrap.dedent(
+            f"""
+        from pathlib import Path
+        from area3d_bringup.launcher import Launcher
+        from area3d_bringup.launch_description import NodeSpec
+        launcher = Launcher([NodeSpec("node", "fake_node", {{}})], Path({str(tmp_path)!r}), env={fake_env!r},
+                            log_sink=lambda l: print(l, flush=True))
+        launcher.start()
+        try:
+            launcher.wait()
+        finally:
+            codes = launcher.stop()
+        print(f"stopped {{codes}}", flush=True)
+        """
+        )
+    )
+    parent = subprocess.Popen(
+        [sys.executable, str(script)],
+        stdout=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    assert "pid=" in parent.stdout.readline()  # the node is up, the launcher waits
+    parent.send_signal(signal.SIGINT)
+    out, _ = parent.communicate(timeout=120)
+    assert parent.returncode == 0, out
+    assert "stopped {'node': 0}" in out
