@@ -169,6 +169,19 @@ class Launcher:
             if code is not None and not self._can_respawn(name):
                 raise NodeDied(name, code, self.output.get(name, []))
 
+    def wait_for(
+        self, predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.05
+    ) -> bool:
+        """Poll `predicate` until it holds (True) or timeout (False); a node that dies for good
+        meanwhile raises `NodeDied` instead of letting the caller wait it out."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self.check()
+            if predicate():
+                return True
+            time.sleep(poll_s)
+        return False
+
     def wait(self, poll_s: float = 0.2) -> None:
         """Block until Ctrl-C / SIGTERM or until a node dies (then raise `NodeDied`)."""
         stop = threading.Event()

@@ -322,20 +322,13 @@ def bench_transport(requests: int = 50) -> dict:
         }
         client = probe.node.create_client(msgs.GetPlan, "area3d/planner/next_best_view")
 
-        def wait(predicate, timeout_s: float) -> bool:
-            deadline = time.monotonic() + timeout_s
-            while time.monotonic() < deadline:
-                launcher.check()
-                if predicate():
-                    return True
-                time.sleep(0.01)
-            return False
-
         launcher.start()
         try:
-            if not wait(lambda: client.wait_for_service(timeout_sec=0.1), 120):
+            if not launcher.wait_for(lambda: client.wait_for_service(timeout_sec=0.1), 120):
                 raise RuntimeError("planner service did not come up:\n" + "\n".join(lines[-20:]))
-            wait(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 60)
+            launcher.wait_for(
+                lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 60
+            )
             t0 = time.perf_counter()
             for i, (depth, conf, K, T) in enumerate(frames):
                 stamp = (i + 1) * 1_000_000
@@ -360,7 +353,7 @@ def bench_transport(requests: int = 50) -> dict:
                 states = [json.loads(m.data) for m in list(statuses)]
                 return any(s.get("frames_fused") == n and s.get("cache_ready") for s in states)
 
-            is_ready = wait(ready, 180)
+            is_ready = launcher.wait_for(ready, 180)
             t_ready = time.perf_counter() - t0
             if not is_ready:
                 raise RuntimeError("planner never reported cache_ready:\n" + "\n".join(lines[-20:]))

@@ -103,23 +103,16 @@ def run_bench(
         }
         client = probe.node.create_client(msgs.GetPlan, "area3d/planner/next_best_view")
 
-        def wait(predicate, timeout_s: float) -> bool:
-            deadline = time.monotonic() + timeout_s
-            while time.monotonic() < deadline:
-                launcher.check()
-                if predicate():
-                    return True
-                time.sleep(0.05)
-            return False
-
         def last(statuses: list) -> dict:
             return json.loads(statuses[-1].data) if statuses else {}
 
         launcher.start()
         try:
-            if not wait(lambda: client.wait_for_service(timeout_sec=0.1), 120):
+            if not launcher.wait_for(lambda: client.wait_for_service(timeout_sec=0.1), 120):
                 raise RuntimeError("planner service did not come up:\n" + "\n".join(lines[-20:]))
-            if not wait(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 60):
+            if not launcher.wait_for(
+                lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 60
+            ):
                 raise RuntimeError("nodes did not subscribe:\n" + "\n".join(lines[-20:]))
             pids = {name: proc.pid for name, proc in launcher.processes.items()}
             rss_idle = {name: rss_mb(pid) for name, pid in pids.items()}
@@ -188,12 +181,14 @@ def run_bench(
             stream_s = time.perf_counter() - t0
             streaming.clear()
             asker.join(timeout=120)
-            caught_up = wait(
+            caught_up = launcher.wait_for(
                 lambda: last(planner_status).get("last_fused_stamp_ns") == sent[-1], 180
             )
             drain_s = time.perf_counter() - t0 - stream_s
             rss_end = {name: rss_mb(pid) for name, pid in pids.items()}
-            wait(lambda: last(perception_status).get("frames_published") == len(sent), 5)
+            launcher.wait_for(
+                lambda: last(perception_status).get("frames_published") == len(sent), 5
+            )
         finally:
             launcher.stop()
     lat = np.asarray(latencies) if latencies else np.full(1, np.nan)
