@@ -29,6 +29,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.inputs import MAX_STAMP_AHEAD_S
 
 #: declared by rclpy itself on every node
 BUILTIN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
@@ -77,6 +78,16 @@ class Param:
             return self.check(value)
         return None
 
+
+
+# Parameters every node that checks its inputs declares alike (`area3d_msgs_py.inputs`).
+MAX_STAMP_AHEAD_PARAM = Param(
+    "max_stamp_ahead_s",
+    MAX_STAMP_AHEAD_S,
+    "inputs stamped further ahead of this node's clock are refused, seconds",
+    range=(0.0, 1e6),
+)
+WORLD_FRAME_PARAM = Param("world_frame", "world", "frame_id every camera pose must be expressed in")
 
 def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     """Declare ``params`` on ``node``; returns {name: value at start}.

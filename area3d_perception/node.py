@@ -21,14 +21,19 @@ from area3d_msgs_py.guard import Rejections, guarded, reject
 from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
     DEPTH_ENCODINGS,
-    MAX_STAMP_AHEAD_S,
     check_frame_id,
     check_stamp,
     decode_camera_info,
     decode_image,
 )
 from area3d_msgs_py.lifecycle import run_node
-from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.parameters import (
+    MAX_STAMP_AHEAD_PARAM,
+    WORLD_FRAME_PARAM,
+    Param,
+    declare_parameters,
+    report_unknown_parameters,
+)
 from area3d_msgs_py.status import StatusPublisher, status_topic
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
 from area3d_perception.frame_sync import MAX_AGE_NS, StampSync
@@ -73,13 +78,8 @@ PARAMS = (
         "parts of a frame wait this long for their partners, seconds",
         range=(0.0, 3600.0),
     ),
-    Param("world_frame", "world", "frame_id every camera pose must be expressed in"),
-    Param(
-        "max_stamp_ahead_s",
-        MAX_STAMP_AHEAD_S,
-        "inputs stamped further ahead of this node's clock are refused, seconds",
-        range=(0.0, 1e6),
-    ),
+    WORLD_FRAME_PARAM,
+    MAX_STAMP_AHEAD_PARAM,
     *(
         Param(
             f"sensor.{f.name}",

@@ -25,7 +25,6 @@ from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.guard import Rejections, guarded
 from area3d_msgs_py.inputs import (
     FLOAT_ENCODINGS,
-    MAX_STAMP_AHEAD_S,
     check_depth_values,
     check_frame_id,
     check_stamp,
@@ -34,7 +33,13 @@ from area3d_msgs_py.inputs import (
     decode_image,
 )
 from area3d_msgs_py.lifecycle import PublishGate, run_node
-from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.parameters import (
+    MAX_STAMP_AHEAD_PARAM,
+    WORLD_FRAME_PARAM,
+    Param,
+    declare_parameters,
+    report_unknown_parameters,
+)
 from area3d_msgs_py.status import status_topic
 from area3d_perception.frame_sync import StampSync
 from area3d_planner.cloud import grid_to_msg
@@ -129,13 +134,8 @@ PARAMS = (
         "parts of a frame wait this long for their partners, seconds",
         range=(0.0, 3600.0),
     ),
-    Param("world_frame", "world", "frame_id every camera pose must be expressed in"),
-    Param(
-        "max_stamp_ahead_s",
-        MAX_STAMP_AHEAD_S,
-        "inputs stamped further ahead of this node's clock are refused, seconds",
-        range=(0.0, 1e6),
-    ),
+    WORLD_FRAME_PARAM,
+    MAX_STAMP_AHEAD_PARAM,
 )
 
 

@@ -24,14 +24,18 @@ from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
     DEPTH_ENCODINGS,
     FLOAT_ENCODINGS,
-    MAX_STAMP_AHEAD_S,
     check_frame_id,
     check_stamp,
     check_unit_range,
     decode_image,
 )
 from area3d_msgs_py.lifecycle import PublishGate, run_node
-from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.parameters import (
+    MAX_STAMP_AHEAD_PARAM,
+    Param,
+    declare_parameters,
+    report_unknown_parameters,
+)
 from area3d_msgs_py.status import StatusPublisher, status_topic
 from area3d_semantics.analysis import FALLBACKS, Analysis, analyze_views
 from area3d_semantics.backends import (
@@ -89,12 +93,7 @@ PARAMS = (
         choices=("all", "latest"),
     ),
     Param("require_depth", True, "a view needs its depth before it is analysed"),
-    Param(
-        "max_stamp_ahead_s",
-        MAX_STAMP_AHEAD_S,
-        "inputs stamped further ahead of this node's clock are refused, seconds",
-        range=(0.0, 1e6),
-    ),
+    MAX_STAMP_AHEAD_PARAM,
     # sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's weights
     # alone, independent of the depth backbone, so the no-feed-forward and no-VLM ablations each
     # remove one thing) or "confidence" (1 - perception confidence, the paper's backbone sigma).

@@ -18,9 +18,14 @@ from rclpy.node import Node
 from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded
-from area3d_msgs_py.inputs import MAX_STAMP_AHEAD_S, check_frame_id, check_stamp
+from area3d_msgs_py.inputs import check_frame_id, check_stamp
 from area3d_msgs_py.lifecycle import run_node
-from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.parameters import (
+    MAX_STAMP_AHEAD_PARAM,
+    Param,
+    declare_parameters,
+    report_unknown_parameters,
+)
 from sim_bridge.camera import (
     R_LINK_OPTICAL,
     STEREO_BASELINE,
@@ -90,12 +95,7 @@ PARAMS = (
         read_only=False,
         range=(0.0, 600.0),
     ),
-    Param(
-        "max_stamp_ahead_s",
-        MAX_STAMP_AHEAD_S,
-        "goals stamped further ahead of this node's clock are refused, seconds",
-        range=(0.0, 1e6),
-    ),
+    MAX_STAMP_AHEAD_PARAM,
 )
 
 
