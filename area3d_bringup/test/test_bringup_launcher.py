@@ -29,12 +29,12 @@ FAKE_NODE = textwrap.dedent(
     params_file = args[args.index("--params-file") + 1]
     name = args[args.index("-r") + 1].split(":=")[1]
     params = yaml.safe_load(open(params_file))["/**/" + name]["ros__parameters"]
-    print(f"pid={os.getpid()} params={params}", flush=True)
-    if params.get("die_after_s") is not None:
-        time.sleep(params["die_after_s"]); sys.exit(3)
     signal.signal(signal.SIGINT, lambda *a: (print("clean stop", flush=True), sys.exit(0)))
     if params.get("ignore_sigint"):
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+    print(f"pid={os.getpid()} params={params}", flush=True)  # up, its SIGINT handling set
+    if params.get("die_after_s") is not None:
+        time.sleep(params["die_after_s"]); sys.exit(3)
     while True:
         time.sleep(0.05)
     """
