@@ -7,6 +7,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from area3d_planner.masks import score_view
+from area3d_planner.zbuffer import in_frustum
+
 
 @njit(cache=True, inline="always")
 def _before(key_a, seed_a, key_b, seed_b):
@@ -48,14 +51,6 @@ def _pop(keys, seeds, size):
         seeds[i], seeds[top] = seeds[top], seeds[i]
         i = top
     return key, seed, size
-
-
-@njit(cache=True)
-def _score(indptr, ids, weights, field, view):
-    acc = 0.0
-    for k in range(indptr[view], indptr[view + 1]):
-        acc += weights[k] * field[ids[k]]
-    return acc
 
 
 @njit(cache=True)
@@ -113,7 +108,7 @@ def lazy_select(
         stale_on_top = False
         for b in range(n_bins):
             if not fresh[s, b] and bound[s, b] >= next_key and bound[s, b] > -np.inf:
-                bound[s, b] = _score(indptr, ids, weights, field, s * n_bins + b) * gain[s]
+                bound[s, b] = score_view(indptr, ids, weights, field, s * n_bins + b) * gain[s]
                 bound[s, b] += prior[s]
                 fresh[s, b] = True
                 evaluations += 1
@@ -136,17 +131,12 @@ def lazy_select(
         count += 1
         # decay u <- (1 - eta) u on the committed view's frustum (the paper) or its mask
         if decay_frustum:
-            R = rotations[s, b_best]
+            T = np.eye(4)
+            T[:3, :3] = rotations[s, b_best]
+            T[:3, 3] = seeds[s]
+            inside = in_frustum(record_centres, T, near, max_range, tan_x, tan_y)
             for k in range(record_centres.shape[0]):
-                dx = record_centres[k, 0] - seeds[s, 0]
-                dy = record_centres[k, 1] - seeds[s, 1]
-                dz = record_centres[k, 2] - seeds[s, 2]
-                z = R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz
-                if z < near or z > max_range:
-                    continue
-                x = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
-                y = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
-                if abs(x) <= tan_x * z and abs(y) <= tan_y * z:
+                if inside[k]:
                     field[record_ids[k]] *= keep
         else:
             for k in range(indptr[v], indptr[v + 1]):
