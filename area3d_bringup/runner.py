@@ -749,12 +749,17 @@ def run_episode(
 
         catching_up: set[str] = set()  # restarted nodes whose new process is not up yet
         replay_due = False  # a restart lost fused evidence that the saved frames give back
+        # After a restart, the camera's own writers may match the new process's readers only
+        # after its next frame went out (discovery between two other processes is not something
+        # the runner can wait on): the first frame captured after a restart is checked as fused,
+        # and replayed through the runner's writers (matched, waited for) if it is not.
+        check_next_capture = False
 
         def recover() -> None:
             """Bring restarted nodes up to date: wait for their new process, then replay every
             saved frame (not after the camera alone: it keeps no state). A restart meanwhile
             starts this over, with nothing of the earlier one forgotten."""
-            nonlocal replay_due
+            nonlocal replay_due, check_next_capture
             while True:
                 changed = manager.restarted()
                 if changed:
@@ -764,6 +769,7 @@ def run_episode(
                     manager.acknowledge(changed)
                     catching_up.update(changed)
                     replay_due = replay_due or bool(set(changed) - {"sim_bridge"})
+                    check_next_capture = True
                 if not catching_up and not replay_due:
                     return
                 t = time.monotonic()
@@ -779,6 +785,25 @@ def run_episode(
                 except NodeRespawned:
                     continue
                 add_time("recover", time.monotonic() - t)
+
+        def all_fused(wait_s: float) -> bool:
+            """The planner has fused every captured frame; where it has not within `wait_s`,
+            replay them (it fuses each stamp once) and wait up to the fusion timeout."""
+            if manager.wait_fused(len(frames), wait_s):
+                return True
+            log_sink(
+                f"[mission_manager] the planner has fused {manager.planner_status.get('frames_fused', 0)} "
+                f"of {len(frames)} captured frames; replaying them"
+            )
+            manager.replay_all(frames, config.fuse_timeout_s, log_sink)
+            return manager.wait_fused(len(frames), 0.0)
+
+        def captured() -> None:
+            """After the first capture following a restart, make sure the graph has it."""
+            nonlocal check_next_capture
+            if check_next_capture:
+                step(lambda: all_fused(REPLAY_RESEND_S))
+                check_next_capture = False
 
         def semantic_maps_back() -> None:
             """The planner holds the semantic maps of O_0 again (a restarted semantics queries
@@ -820,6 +845,7 @@ def run_episode(
                 raise EpisodeError(f"the camera refused initial view {len(frames)}: {result}")
             add_time("capture", time.monotonic() - t)
             keep(result, "initial", {"capture": time.monotonic() - t})
+            captured()
         if with_semantics and not step(
             lambda: manager.wait_fused(n_init, config.plan_timeout_s, key="semantic_frames_fused")
         ):
@@ -870,7 +896,12 @@ def run_episode(
                     "planned",
                     {"plan": plan_s / len(poses), "capture": time.monotonic() - t},
                 )
-        step(lambda: manager.wait_fused(len(frames), config.fuse_timeout_s))
+                captured()
+        if not step(lambda: all_fused(config.fuse_timeout_s)):
+            log_sink(
+                f"[mission_manager] the planner has fused "
+                f"{manager.planner_status.get('frames_fused', 0)} of {len(frames)} frames at the end"
+            )
         # Let the bag catch up with what the planner and perception published for the last frame.
         perception_depth = manager.resolve_topic_name(PERCEPTION_DEPTH_TOPIC)
         step(
