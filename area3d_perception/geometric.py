@@ -15,7 +15,7 @@ uncertainty).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import backproject
@@ -141,86 +141,107 @@ def geometric_uncertainty(
     return u
 
 
-@njit(cache=True)
-def _carve_rays(origin, ends, shape, free):  # pragma: no cover - compiled
-    """Amanatides-Woo traversal in voxel units; marks every voxel before each ray's end voxel.
+@njit(cache=True, inline="always")
+def _walk_ray(o0, o1, o2, e0, e1, e2, nx, ny, nz, free, count):  # pragma: no cover - compiled
+    """Amanatides-Woo traversal of one ray in voxel units; marks every voxel before its end voxel.
 
-    origin: (3,) and ends: (N, 3) in voxel coordinates ((p - lower) / voxel_size).
-    free: flat counter of length nx*ny*nz, incremented once per carved voxel per ray.
+    free: flat array of length nx*ny*nz; `count`: add 1 per carved voxel, else set it to 1.
     The walk from the first voxel to the end voxel takes exactly their Manhattan distance in
     steps, so the loop runs that many steps (marking, then stepping) and needs no end test.
     """
-    nx, ny, nz = shape[0], shape[1], shape[2]
     inf = np.inf
-    o0, o1, o2 = origin[0], origin[1], origin[2]
-    for r in range(ends.shape[0]):
-        e0, e1, e2 = ends[r, 0], ends[r, 1], ends[r, 2]
-        d0, d1, d2 = e0 - o0, e1 - o1, e2 - o2
-        # Clip the segment [0, 1] to the grid box [0, n] on every axis (slab method).
-        t0 = 0.0
-        t1 = 1.0
-        if d0 != 0.0:
-            ta, tb = -o0 / d0, (nx - o0) / d0
-            t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-        elif o0 < 0.0 or o0 >= nx:
-            continue
-        if d1 != 0.0:
-            ta, tb = -o1 / d1, (ny - o1) / d1
-            t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-        elif o1 < 0.0 or o1 >= ny:
-            continue
-        if d2 != 0.0:
-            ta, tb = -o2 / d2, (nz - o2) / d2
-            t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-        elif o2 < 0.0 or o2 >= nz:
-            continue
-        if t0 >= t1:
-            continue
-        ts = t0 + 1e-9
-        i = min(max(int(np.floor(o0 + ts * d0)), 0), nx - 1)
-        j = min(max(int(np.floor(o1 + ts * d1)), 0), ny - 1)
-        k = min(max(int(np.floor(o2 + ts * d2)), 0), nz - 1)
-        steps = abs(int(np.floor(e0)) - i) + abs(int(np.floor(e1)) - j) + abs(int(np.floor(e2)) - k)
-        if d0 > 0:
-            si, tmi, tdi = 1, (i + 1 - o0) / d0, 1.0 / d0
-        elif d0 < 0:
-            si, tmi, tdi = -1, (i - o0) / d0, -1.0 / d0
-        else:
-            si, tmi, tdi = 0, inf, inf
-        if d1 > 0:
-            sj, tmj, tdj = 1, (j + 1 - o1) / d1, 1.0 / d1
-        elif d1 < 0:
-            sj, tmj, tdj = -1, (j - o1) / d1, -1.0 / d1
-        else:
-            sj, tmj, tdj = 0, inf, inf
-        if d2 > 0:
-            sk, tmk, tdk = 1, (k + 1 - o2) / d2, 1.0 / d2
-        elif d2 < 0:
-            sk, tmk, tdk = -1, (k - o2) / d2, -1.0 / d2
-        else:
-            sk, tmk, tdk = 0, inf, inf
-        flat = (i * ny + j) * nz + k
-        fi, fj = si * ny * nz, sj * nz
-        for _ in range(steps):
+    d0, d1, d2 = e0 - o0, e1 - o1, e2 - o2
+    # Clip the segment [0, 1] to the grid box [0, n] on every axis (slab method).
+    t0 = 0.0
+    t1 = 1.0
+    if d0 != 0.0:
+        ta, tb = -o0 / d0, (nx - o0) / d0
+        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+    elif o0 < 0.0 or o0 >= nx:
+        return
+    if d1 != 0.0:
+        ta, tb = -o1 / d1, (ny - o1) / d1
+        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+    elif o1 < 0.0 or o1 >= ny:
+        return
+    if d2 != 0.0:
+        ta, tb = -o2 / d2, (nz - o2) / d2
+        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+    elif o2 < 0.0 or o2 >= nz:
+        return
+    if t0 >= t1:
+        return
+    ts = t0 + 1e-9
+    i = min(max(int(np.floor(o0 + ts * d0)), 0), nx - 1)
+    j = min(max(int(np.floor(o1 + ts * d1)), 0), ny - 1)
+    k = min(max(int(np.floor(o2 + ts * d2)), 0), nz - 1)
+    steps = abs(int(np.floor(e0)) - i) + abs(int(np.floor(e1)) - j) + abs(int(np.floor(e2)) - k)
+    if d0 > 0:
+        si, tmi, tdi = 1, (i + 1 - o0) / d0, 1.0 / d0
+    elif d0 < 0:
+        si, tmi, tdi = -1, (i - o0) / d0, -1.0 / d0
+    else:
+        si, tmi, tdi = 0, inf, inf
+    if d1 > 0:
+        sj, tmj, tdj = 1, (j + 1 - o1) / d1, 1.0 / d1
+    elif d1 < 0:
+        sj, tmj, tdj = -1, (j - o1) / d1, -1.0 / d1
+    else:
+        sj, tmj, tdj = 0, inf, inf
+    if d2 > 0:
+        sk, tmk, tdk = 1, (k + 1 - o2) / d2, 1.0 / d2
+    elif d2 < 0:
+        sk, tmk, tdk = -1, (k - o2) / d2, -1.0 / d2
+    else:
+        sk, tmk, tdk = 0, inf, inf
+    flat = (i * ny + j) * nz + k
+    fi, fj = si * ny * nz, sj * nz
+    for _ in range(steps):
+        if count:
             free[flat] += 1
-            if tmi <= tmj and tmi <= tmk:
-                i += si
-                if i < 0 or i >= nx:
-                    break
-                tmi += tdi
-                flat += fi
-            elif tmj <= tmk:
-                j += sj
-                if j < 0 or j >= ny:
-                    break
-                tmj += tdj
-                flat += fj
-            else:
-                k += sk
-                if k < 0 or k >= nz:
-                    break
-                tmk += tdk
-                flat += sk
+        else:
+            free[flat] = 1
+        if tmi <= tmj and tmi <= tmk:
+            i += si
+            if i < 0 or i >= nx:
+                break
+            tmi += tdi
+            flat += fi
+        elif tmj <= tmk:
+            j += sj
+            if j < 0 or j >= ny:
+                break
+            tmj += tdj
+            flat += fj
+        else:
+            k += sk
+            if k < 0 or k >= nz:
+                break
+            tmk += tdk
+            flat += sk
+
+
+@njit(cache=True)
+def _carve_rays(origin, ends, shape, free):  # pragma: no cover - compiled
+    """Count, per voxel of the flat `free`, the rays from `origin` (3,) to `ends` (N, 3) (voxel
+    coordinates, (p - lower) / voxel_size) that crossed it before their end voxel."""
+    for r in range(ends.shape[0]):
+        _walk_ray(
+            origin[0], origin[1], origin[2], ends[r, 0], ends[r, 1], ends[r, 2],
+            shape[0], shape[1], shape[2], free, True,
+        )  # fmt: skip
+
+
+@njit(cache=True, parallel=True)
+def _mark_rays(origin, ends, shape, crossed):  # pragma: no cover - compiled
+    """Set to 1 every voxel of the flat uint8 `crossed` that a ray crossed before its end voxel.
+    Rays run in parallel: concurrent writes to a voxel all write the same 1, so the result is the
+    set `_carve_rays` counts > 0 in, whatever the order."""
+    for r in prange(ends.shape[0]):
+        _walk_ray(
+            origin[0], origin[1], origin[2], ends[r, 0], ends[r, 1], ends[r, 2],
+            shape[0], shape[1], shape[2], crossed, False,
+        )  # fmt: skip
 
 
 def carve_free_space(
@@ -230,6 +251,7 @@ def carve_free_space(
     free_count: np.ndarray,
     hit_mask: np.ndarray | None = None,
     surface_margin: float = 0.0,
+    count: bool = True,
 ) -> np.ndarray:
     """Count, per voxel, the camera rays that crossed it before ending (observed free space).
 
@@ -239,6 +261,8 @@ def carve_free_space(
     ray (no return, passed as its point at max range) carves to its end. No ray ever marks the voxel
     that holds its end, and a voxel is carved only if the ray leaves it before the end.
     surface_margin: metres; hit rays stop this far short of the hit (depth noise band, default 0).
+    count=False: only mark, in a uint8 `free_count`, the voxels any ray crossed (set to 1); the
+    rays then run in parallel.
     Returns free_count.
     """
     origin = np.asarray(origin, dtype=np.float64).reshape(-1)
@@ -267,7 +291,13 @@ def carve_free_space(
     scale = 1.0 / spec.voxel_size
     origin_v = (origin - spec.lower) * scale
     ends_v = (points - spec.lower) * scale
-    _carve_rays(origin_v, ends_v, np.asarray(spec.shape, dtype=np.int64), free_count.reshape(-1))
+    shape = np.asarray(spec.shape, dtype=np.int64)
+    if count:
+        _carve_rays(origin_v, ends_v, shape, free_count.reshape(-1))
+    elif free_count.dtype != np.uint8:
+        raise InputError("free_count", free_count.dtype, "a uint8 array to mark (count=False)")
+    else:
+        _mark_rays(origin_v, ends_v, shape, free_count.reshape(-1))
     return free_count
 
 
@@ -334,12 +364,14 @@ def carve_depth_frame(
     max_range: float = MAX_RANGE,
     surface_margin: float = 0.0,
     carve_no_return: bool | np.ndarray = True,
+    count: bool = True,
 ) -> np.ndarray:
     """Carve the free space seen by one depth frame into `free_count` (see `carve_free_space`).
 
     carve_no_return: also carve along pixels with no return, up to `max_range`: True for all of
     them, False for none (a dropout of a dark or specular surface looks like empty space), or an
-    (H, W) bool mask of the no-return pixels that may carve.
+    (H, W) bool mask of the no-return pixels that may carve. count=False: mark (see
+    `carve_free_space`).
     """
     points, hit = frame_rays(depth, K, T_world_cam, stride, max_range)
     if isinstance(carve_no_return, np.ndarray):
@@ -350,7 +382,9 @@ def carve_depth_frame(
         points, hit = points[keep], hit[keep]
     elif not carve_no_return:
         points, hit = points[hit], hit[hit]
-    return carve_free_space(spec, T_world_cam[:3, 3], points, free_count, hit, surface_margin)
+    return carve_free_space(
+        spec, T_world_cam[:3, 3], points, free_count, hit, surface_margin, count
+    )
 
 
 def splat_depth_frame(

@@ -207,10 +207,11 @@ class FusedGrid:
             depth,
             K,
             T,
-            np.zeros(self.spec.shape, np.uint16),
+            np.zeros(self.spec.shape, np.uint8),
             stride,
             max_range,
             carve_no_return=_no_return_carving(depth, no_return),
+            count=False,  # crossed or not: the rays run in parallel
         ).reshape(-1)
         free = (crossed > 0) & ~hit
         capped = np.minimum(frame_conf, self.max_confidence)

@@ -224,3 +224,19 @@ def test_frame_helpers_reject_bad_images():
             e,
             e.copy(),
         )
+
+
+def test_marking_in_parallel_finds_exactly_the_voxels_counting_finds():
+    """count=False (parallel rays, uint8 marks) carves the set that counting finds > 0."""
+    rng = np.random.default_rng(3)
+    spec = GridSpec.from_bounds(np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.5]), 0.05)
+    origin = np.array([0.02, -0.9, 0.13])  # outside the grid: rays enter it
+    ends = rng.uniform(-0.7, 0.7, size=(5000, 3))
+    hit = rng.random(5000) < 0.7
+    counted = carve_free_space(spec, origin, ends, np.zeros(spec.shape, np.int32), hit)
+    marked = carve_free_space(spec, origin, ends, np.zeros(spec.shape, np.uint8), hit, count=False)
+    assert counted.max() > 1  # rays overlap: counting and marking differ in value
+    assert marked.max() == 1
+    np.testing.assert_array_equal(marked > 0, counted > 0)
+    with pytest.raises(InputError, match="free_count"):
+        carve_free_space(spec, origin, ends, np.zeros(spec.shape, np.int32), count=False)
