@@ -4,9 +4,12 @@ or shutdown, and tear everything down quietly; the one `main` body every AREA3D 
 from __future__ import annotations
 
 import faulthandler
+import os
 import signal
+import sys
 import threading
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
@@ -84,3 +87,18 @@ def run_node(
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def exit_process(code: int) -> NoReturn:
+    """End a node process that `run_node` has stopped: flush its output and exit at once.
+
+    By then rclpy is shut down and its log is flushed; what is left is the interpreter's own
+    teardown (unloading numba, OpenMP pools, MuJoCo, Open3D), which took 1-2 s of a node's exit
+    after Ctrl-C on a busy 2-core machine. Only for a node's own process (`python -m ...node`),
+    never for code that shares the process with others."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing left to say
+            pass
+    os._exit(code)

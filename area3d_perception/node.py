@@ -26,7 +26,7 @@ from area3d_msgs_py.inputs import (
     decode_camera_info,
     decode_image,
 )
-from area3d_msgs_py.lifecycle import run_node
+from area3d_msgs_py.lifecycle import exit_process, run_node
 from area3d_msgs_py.parameters import (
     MAX_STAMP_AHEAD_PARAM,
     WORLD_FRAME_PARAM,
@@ -292,4 +292,4 @@ def main(args: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    exit_process(main())

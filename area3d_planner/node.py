@@ -32,7 +32,7 @@ from area3d_msgs_py.inputs import (
     decode_camera_info,
     decode_image,
 )
-from area3d_msgs_py.lifecycle import PublishGate, run_node
+from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     MAX_STAMP_AHEAD_PARAM,
     WORLD_FRAME_PARAM,
@@ -364,4 +364,4 @@ def main(args: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    exit_process(main())

@@ -29,7 +29,7 @@ from area3d_msgs_py.inputs import (
     check_unit_range,
     decode_image,
 )
-from area3d_msgs_py.lifecycle import PublishGate, run_node
+from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     MAX_STAMP_AHEAD_PARAM,
     Param,
@@ -350,4 +350,4 @@ def main(args: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    exit_process(main())

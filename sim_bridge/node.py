@@ -19,7 +19,7 @@ from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded
 from area3d_msgs_py.inputs import check_frame_id, check_stamp
-from area3d_msgs_py.lifecycle import run_node
+from area3d_msgs_py.lifecycle import exit_process, run_node
 from area3d_msgs_py.parameters import (
     MAX_STAMP_AHEAD_PARAM,
     Param,
@@ -286,4 +286,4 @@ def main(args: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    exit_process(main())
