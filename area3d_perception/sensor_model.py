@@ -19,6 +19,7 @@ and 0 where depth is missing.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -134,13 +135,18 @@ def valid_depth_mask(depth: np.ndarray, max_range: float = np.inf) -> np.ndarray
         return np.isfinite(depth) & (depth > 0) & (depth <= max_range)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _axial_sigma_at(z, theta, a, b, z0, c, max_theta):  # pragma: no cover - compiled
+    t = min(abs(theta), max_theta)
+    r = t / (np.pi / 2 - t)
+    return a + b * (z - z0) ** 2 + c / np.sqrt(max(z, 1e-6)) * r * r
+
+
+@njit(cache=True, error_model="numpy")
 def _axial_sigma(z, theta, a, b, z0, c, max_theta):  # pragma: no cover - compiled
     out = np.empty(z.shape, dtype=np.float32)
     for n in range(z.size):
-        t = min(abs(theta[n]), max_theta)
-        r = t / (np.pi / 2 - t)
-        out[n] = a + b * (z[n] - z0) ** 2 + c / np.sqrt(max(z[n], 1e-6)) * r * r
+        out[n] = _axial_sigma_at(z[n], theta[n], a, b, z0, c, max_theta)
     return out
 
 
@@ -171,28 +177,133 @@ def axial_sigma(z: np.ndarray, theta: np.ndarray | float, params: RgbdSensorPara
 # The kernels below run on one thread: the graph already runs its nodes as processes on a few
 # cores, and numba's thread pool on a busy 2-core machine waits on descheduled workers (measured:
 # noise + confidence per 640x480 frame 41-44 ms on one thread, 81-106 ms on two, same load).
-@njit(cache=True)
+# They walk the image a row at a time with branch-free inner loops over the columns, which LLVM
+# turns into SIMD code; error_model="numpy" lets it (a float division by zero gives inf or NaN,
+# never a Python exception, so the division needs no branch). The per-pixel arithmetic is that
+# of the straightforward per-pixel loops (test_perception_sensor_model checks them against one).
+@njit(cache=True, error_model="numpy")
+def _accumulate_same_surface(row, near, total, count, jump_rel, max_range):  # pragma: no cover
+    for u in range(row.size):
+        d = row[u]
+        dn = near[u]
+        same = (dn > 0) & (dn <= max_range) & (abs(dn - d) <= jump_rel * d)
+        total[u] += dn if same else 0.0
+        count[u] += 1.0 if same else 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def _smooth_depth(depth, radius, jump_rel, max_range):  # pragma: no cover - compiled
     """Edge-preserving box mean: each valid pixel averages the valid pixels of its
-    (2 radius + 1)^2 window that lie within `jump_rel` of its own depth (same surface). NaN where
-    the pixel itself is missing."""
+    (2 radius + 1)^2 window that lie within `jump_rel` of its own depth (same surface), summed in
+    row-major window order. NaN where the pixel itself is missing."""
     h, w = depth.shape
-    out = np.full((h, w), np.nan, dtype=np.float32)
+    out = np.empty((h, w), dtype=np.float32)
+    total = np.empty(w, dtype=np.float64)
+    count = np.empty(w, dtype=np.float64)
     for v in range(h):
+        row = depth[v]
+        total[:] = 0.0
+        count[:] = 0.0
+        for vv in range(max(v - radius, 0), min(v + radius + 1, h)):
+            for du in range(-radius, radius + 1):
+                lo = max(-du, 0)
+                hi = min(w - du, w)
+                _accumulate_same_surface(
+                    row[lo:hi],
+                    depth[vv, lo + du : hi + du],
+                    total[lo:hi],
+                    count[lo:hi],
+                    jump_rel,
+                    max_range,
+                )
         for u in range(w):
-            d = depth[v, u]
-            if not (d > 0 and d <= max_range):
-                continue
-            total = 0.0
-            count = 0
-            for vv in range(max(v - radius, 0), min(v + radius + 1, h)):
-                for uu in range(max(u - radius, 0), min(u + radius + 1, w)):
-                    dn = depth[vv, uu]
-                    if dn > 0 and dn <= max_range and abs(dn - d) <= jump_rel * d:
-                        total += dn
-                        count += 1
-            out[v, u] = total / count
+            d = row[u]
+            out[v, u] = total[u] / count[u] if (d > 0) & (d <= max_range) else np.nan
     return out
+
+
+@njit(cache=True, inline="always")
+def _is_jump(d, dn, jump_rel, max_range):  # pragma: no cover - compiled
+    """A neighbour depth `dn` that is missing or off the surface of `d` (see `_surface_terms`)."""
+    present = (dn > 0) & (dn <= max_range)
+    return (not present) | (abs(dn - d) > jump_rel * min(d, dn))
+
+
+@njit(cache=True, inline="always")
+def _pick_tangent(back, fwd, ds):  # pragma: no cover - compiled
+    """(forward, any): the tangent of a pixel at smoothed depth `ds` comes from the backward
+    neighbour unless the forward one has a strictly smaller depth step; a neighbour that is NaN,
+    <= 0 or infinitely far is never picked (a missing or out-of-image one is NaN here)."""
+    use_back = (back > 0) & (abs(back - ds) < np.inf)
+    best = abs(back - ds) if use_back else np.inf
+    use_fwd = (fwd > 0) & (abs(fwd - ds) < best)
+    return use_fwd, use_back | use_fwd
+
+
+@njit(cache=True, error_model="numpy")
+def _surface_row(
+    d_row,
+    d_left,
+    d_right,
+    d_up,
+    d_down,
+    s_row,
+    s_back,
+    s_fwd,
+    s_up,
+    s_down,
+    xs,
+    xs_back,
+    xs_fwd,
+    y,
+    y_up,
+    y_down,
+    jump_rel,
+    max_range,
+    cos,
+    edge,
+):  # pragma: no cover - compiled
+    """One image row of `_surface_terms`: d_* the depth row and its 4-neighbour rows (an
+    out-of-image neighbour is the pixel itself), s_* the smoothed row and its neighbours `step`
+    pixels away (NaN out of the image), xs/xs_* and y/y_* their normalised image coordinates."""
+    for u in range(d_row.size):
+        d = d_row[u]
+        valid = (d > 0) & (d <= max_range)
+        jump = (
+            _is_jump(d, d_left[u], jump_rel, max_range)
+            | _is_jump(d, d_right[u], jump_rel, max_range)
+            | _is_jump(d, d_up[u], jump_rel, max_range)
+            | _is_jump(d, d_down[u], jump_rel, max_range)
+        )
+        edge[u] = valid & jump
+        ds = np.float64(s_row[u])
+        x = xs[u]
+        back = np.float64(s_back[u])
+        fwd = np.float64(s_fwd[u])
+        fwd_u, any_u = _pick_tangent(back, fwd, ds)
+        dn = fwd if fwd_u else back
+        xn = xs_fwd[u] if fwd_u else xs_back[u]
+        sign = 1.0 if fwd_u else -1.0
+        tux = sign * (xn * dn - x * ds)
+        tuy = sign * (y * dn - y * ds)
+        tuz = sign * (dn - ds)
+        back = np.float64(s_up[u])
+        fwd = np.float64(s_down[u])
+        fwd_v, any_v = _pick_tangent(back, fwd, ds)
+        dn = fwd if fwd_v else back
+        yn = y_down if fwd_v else y_up
+        sign = 1.0 if fwd_v else -1.0
+        tvx = sign * (x * dn - x * ds)
+        tvy = sign * (yn * dn - y * ds)
+        tvz = sign * (dn - ds)
+        nx = tuy * tvz - tuz * tvy
+        ny = tuz * tvx - tux * tvz
+        nz = tux * tvy - tuy * tvx
+        px = x * ds
+        py = y * ds
+        nn = np.sqrt((nx * nx + ny * ny + nz * nz) * (px * px + py * py + ds * ds))
+        c = min(abs(nx * px + ny * py + nz * ds) / nn, 1.0)
+        cos[u] = c if valid & any_u & any_v & (nn > 0) else 0.0
 
 
 @njit(cache=True)
@@ -206,69 +317,41 @@ def _surface_terms(depth, smooth, fx, fy, cx, cy, jump_rel, max_range, step):  #
     x the nearer depth is a discontinuity.
     """
     h, w = depth.shape
-    cos = np.zeros((h, w), dtype=np.float32)
-    edge = np.zeros((h, w), dtype=np.uint8)
+    cos = np.empty((h, w), dtype=np.float32)
+    edge = np.empty((h, w), dtype=np.bool_)
+    xs = np.empty(w + 2 * step)  # columns -step .. w + step - 1
+    for i in range(w + 2 * step):
+        xs[i] = (i - step + 0.5 - cx) / fx
+    depth_padded = np.empty(w + 2, dtype=np.float32)  # the row with its end pixels repeated
+    smooth_padded = np.full(w + 2 * step, np.nan, dtype=np.float32)
+    missing = np.full(w, np.nan, dtype=np.float32)
     for v in range(h):
-        for u in range(w):
-            d = depth[v, u]
-            if not (d > 0 and d <= max_range):
-                continue
-            for dv, du in ((0, -1), (0, 1), (-1, 0), (1, 0)):
-                vv = v + dv
-                uu = u + du
-                if vv < 0 or vv >= h or uu < 0 or uu >= w:
-                    continue
-                dn = depth[vv, uu]
-                if not (dn > 0 and dn <= max_range) or abs(dn - d) > jump_rel * min(d, dn):
-                    edge[v, u] = 1
-                    break
-            ds = np.float64(smooth[v, u])
-            x = (u + 0.5 - cx) / fx
-            y = (v + 0.5 - cy) / fy
-            best_u = np.inf
-            tux = 0.0
-            tuy = 0.0
-            tuz = 0.0
-            for s in (-step, step):
-                uu = u + s
-                if uu < 0 or uu >= w:
-                    continue
-                dn = np.float64(smooth[v, uu])
-                if not (dn > 0) or abs(dn - ds) >= best_u:  # NaN fails both tests
-                    continue
-                best_u = abs(dn - ds)
-                xn = (uu + 0.5 - cx) / fx
-                sign = 1.0 if s > 0 else -1.0
-                tux = sign * (xn * dn - x * ds)
-                tuy = sign * (y * dn - y * ds)
-                tuz = sign * (dn - ds)
-            best_v = np.inf
-            tvx = 0.0
-            tvy = 0.0
-            tvz = 0.0
-            for s in (-step, step):
-                vv = v + s
-                if vv < 0 or vv >= h:
-                    continue
-                dn = np.float64(smooth[vv, u])
-                if not (dn > 0) or abs(dn - ds) >= best_v:
-                    continue
-                best_v = abs(dn - ds)
-                yn = (vv + 0.5 - cy) / fy
-                sign = 1.0 if s > 0 else -1.0
-                tvx = sign * (x * dn - x * ds)
-                tvy = sign * (yn * dn - y * ds)
-                tvz = sign * (dn - ds)
-            if best_u == np.inf or best_v == np.inf:
-                continue
-            nx = tuy * tvz - tuz * tvy
-            ny = tuz * tvx - tux * tvz
-            nz = tux * tvy - tuy * tvx
-            px = x * ds
-            py = y * ds
-            nn = np.sqrt((nx * nx + ny * ny + nz * nz) * (px * px + py * py + ds * ds))
-            if nn > 0:
-                cos[v, u] = min(abs(nx * px + ny * py + nz * ds) / nn, 1.0)
+        depth_padded[1 : w + 1] = depth[v]
+        depth_padded[0] = depth[v, 0]
+        depth_padded[w + 1] = depth[v, w - 1]
+        smooth_padded[step : step + w] = smooth[v]
+        _surface_row(
+            depth[v],
+            depth_padded[0:w],
+            depth_padded[2 : w + 2],
+            depth[v - 1] if v > 0 else depth[v],
+            depth[v + 1] if v < h - 1 else depth[v],
+            smooth[v],
+            smooth_padded[0:w],
+            smooth_padded[2 * step : 2 * step + w],
+            smooth[v - step] if v >= step else missing,
+            smooth[v + step] if v + step < h else missing,
+            xs[step : step + w],
+            xs[0:w],
+            xs[2 * step : 2 * step + w],
+            (v + 0.5 - cy) / fy,
+            (v - step + 0.5 - cy) / fy,
+            (v + step + 0.5 - cy) / fy,
+            jump_rel,
+            max_range,
+            cos[v],
+            edge[v],
+        )
     return cos, edge
 
 
@@ -307,7 +390,7 @@ def surface_terms(
         max_range,
         int(normal_step_px),
     )
-    return cos, edge.view(bool)
+    return cos, edge
 
 
 def incidence_cosine(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -320,11 +403,116 @@ def discontinuity_mask(depth: np.ndarray, jump_rel: float) -> np.ndarray:
     return surface_terms(depth, K=_UNIT_K, jump_rel=jump_rel)[1]
 
 
-def edge_distance(edges: np.ndarray) -> np.ndarray:
-    """(H, W) float32 Euclidean pixel distance to the nearest True pixel of `edges` (0 on it)."""
+# A bounded distance scans the edge mask once per window offset; beyond this many offsets
+# (max_px 4.5 and up) one full OpenCV pass is cheaper on a frame full of edges (measured on
+# 640x480 frames: 29 offsets, max_px 3, 0.4 ms sparse to 1.1 ms dense; OpenCV 2.0-2.6 ms).
+_MAX_WINDOW_OFFSETS = 64
+
+
+def _chamfer(edges: np.ndarray) -> np.ndarray:
+    return cv2.distanceTransform((~edges).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+
+
+@lru_cache(maxsize=8)
+def _chamfer_window(max_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(dy, dx, distance) of every pixel offset whose chamfer distance is at most `max_px`.
+
+    The distances are read off OpenCV's own transform of a single edge pixel, so that a minimum
+    over them reproduces its values exactly (a chamfer distance is a shortest path of mask steps,
+    and the 5x5 mask's steps never make it shorter than the Chebyshev distance)."""
+    n = int(np.floor(max_px))
+    c = 2 * n + 2
+    single = np.zeros((2 * c + 1, 2 * c + 1), dtype=bool)
+    single[c, c] = True
+    window = _chamfer(single)[c - n : c + n + 1, c - n : c + n + 1]
+    dy, dx = np.nonzero(window <= max_px)
+    return dy - n, dx - n, window[dy, dx]
+
+
+@njit(cache=True)
+def _min_where(out, edge, value):  # pragma: no cover - compiled
+    for i in range(out.size):
+        out[i] = value if edge[i] & (value < out[i]) else out[i]
+
+
+@njit(cache=True)
+def _edge_distance_within(edges, dy, dx, values):  # pragma: no cover - compiled
+    """min over offsets k of values[k] where edges[v + dy[k], u + dx[k]], inf where none."""
+    h, w = edges.shape
+    out = np.full((h, w), np.inf, dtype=np.float32)
+    row_has_edge = np.empty(h, dtype=np.bool_)
+    for v in range(h):
+        row_has_edge[v] = edges[v].any()
+    for k in range(dy.size):
+        oy, ox = dy[k], dx[k]
+        lo, hi = max(-ox, 0), min(w - ox, w)
+        for v in range(max(-oy, 0), min(h - oy, h)):
+            if row_has_edge[v + oy]:
+                _min_where(out[v, lo:hi], edges[v + oy, lo + ox : hi + ox], values[k])
+    return out
+
+
+def edge_distance(edges: np.ndarray, max_px: float = np.inf) -> np.ndarray:
+    """(H, W) float32 pixel distance to the nearest True pixel of `edges` (0 on it); inf where no
+    True pixel lies within `max_px`.
+
+    The distance is OpenCV's 5x5 chamfer approximation of the Euclidean one (steps 1, 1.4 and
+    2.1969 px). A finite `max_px` is what the sensor model needs (its ramps end there) and is
+    computed in a window of that radius instead of over the whole image.
+    """
+    edges = np.asarray(edges, dtype=bool)
     if not edges.any():
         return np.full(edges.shape, np.inf, dtype=np.float32)
-    return cv2.distanceTransform((~edges).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    if np.isfinite(max_px):
+        dy, dx, values = _chamfer_window(float(max_px))
+        if dy.size <= _MAX_WINDOW_OFFSETS:
+            return _edge_distance_within(np.ascontiguousarray(edges), dy, dx, values)
+    dist = _chamfer(edges)
+    if np.isfinite(max_px):
+        dist[dist > max_px] = np.inf
+    return dist
+
+
+@njit(cache=True, error_model="numpy")
+def _range_exponent(depth, max_range, a, b, z0, sigma_ref):  # pragma: no cover - compiled
+    """-(sigma_z(z, 0) / sigma_ref)^2 per pixel in float32 (z = 0 where depth is missing), the
+    exponent of the range factor."""
+    out = np.empty(depth.shape, dtype=np.float32)
+    for v in range(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            d = depth[v, u]
+            z = d if (d > 0) & (d <= max_range) else np.float32(0.0)
+            sigma = a + b * ((z - z0) * (z - z0))
+            r = sigma / sigma_ref
+            out[v, u] = -(r * r)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _apply_incidence_and_edges(
+    conf, depth, incidence, dist, max_range, ramp_px, edge_conf, edge_rest
+):  # pragma: no cover - compiled
+    """conf *= incidence factor x edge ramp, in float32 and in place; 0 where depth is missing,
+    clipped to [0, 1]."""
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for v in range(conf.shape[0]):
+        for u in range(conf.shape[1]):
+            d = depth[v, u]
+            c = conf[v, u] * incidence[v, u]
+            c *= edge_conf + edge_rest * min(max(dist[v, u] / ramp_px, zero), one)
+            valid = (d > 0) & (d <= max_range)
+            conf[v, u] = min(max(c, zero), one) if valid else zero
+
+
+@njit(cache=True, error_model="numpy")
+def _add_axial_noise(depth, theta, noise, a, b, z0, c, max_theta):  # pragma: no cover - compiled
+    """depth += sigma_z(depth, theta) x noise in place (float32; NaN stays NaN)."""
+    for n in range(depth.size):
+        d = depth[n]
+        z = d if np.isfinite(d) else np.float32(1.0)
+        sigma = np.float32(_axial_sigma_at(z, theta[n], a, b, z0, c, max_theta))
+        depth[n] += sigma * noise[n]
 
 
 def rgbd_confidence(
@@ -346,18 +534,33 @@ def rgbd_confidence(
         params.normal_smoothing_px,
         params.normal_step_px,
     )
-    valid = valid_depth_mask(depth, params.max_range)
-    z = np.where(valid, depth, np.float32(0.0))
-    sigma = axial_sigma(z, 0.0, params)
-    conf = np.exp(-((sigma / np.float32(params.sigma_ref)) ** 2))
+    f32 = np.float32
+    conf = _range_exponent(
+        depth,
+        params.max_range,
+        f32(params.sigma_a),
+        f32(params.sigma_b),
+        f32(params.sigma_z0),
+        f32(params.sigma_ref),
+    )
+    np.exp(conf, out=conf)
     if params.incidence_power != 1.0:
-        cos = cos ** np.float32(params.incidence_power)
-    conf *= cos
+        cos = cos ** f32(params.incidence_power)
     if params.edge_confidence < 1.0:
-        ramp = np.clip(edge_distance(edges) / np.float32(params.edge_radius_px + 1), 0.0, 1.0)
-        conf *= np.float32(params.edge_confidence) + np.float32(1.0 - params.edge_confidence) * ramp
-    conf[~valid] = 0.0
-    return np.clip(conf, 0.0, 1.0, out=conf)
+        dist = edge_distance(edges, params.edge_radius_px + 1)
+    else:  # no edge factor: as if every pixel were far from any edge
+        dist = np.full(depth.shape, np.inf, dtype=np.float32)
+    _apply_incidence_and_edges(
+        conf,
+        depth,
+        cos,
+        dist,
+        params.max_range,
+        f32(params.edge_radius_px + 1),
+        f32(params.edge_confidence),
+        f32(1.0 - params.edge_confidence),
+    )
+    return conf
 
 
 def add_depth_noise(
@@ -386,7 +589,7 @@ def add_depth_noise(
         clean, K, params.edge_jump_rel, np.inf, params.normal_smoothing_px, params.normal_step_px
     )
     theta = np.arccos(cos)
-    dist = edge_distance(edges)
+    dist = edge_distance(edges, params.edge_radius_px)
 
     out = clean.copy()
     band = np.flatnonzero(dist.ravel() <= params.edge_radius_px)
@@ -399,8 +602,16 @@ def add_depth_noise(
         out.ravel()[band] = clean[rows, cols]
         theta.ravel()[band] = theta[rows, cols]
 
-    sigma = axial_sigma(np.where(np.isfinite(out), out, np.float32(1.0)), theta, params)
-    out += sigma * rng.standard_normal((h, w), dtype=np.float32)
+    _add_axial_noise(
+        out.reshape(-1),
+        theta.reshape(-1),
+        rng.standard_normal(h * w, dtype=np.float32),
+        params.sigma_a,
+        params.sigma_b,
+        params.sigma_z0,
+        params.sigma_angle,
+        _MAX_THETA,
+    )
 
     drop = np.zeros(h * w, dtype=bool)
     on_edge = np.flatnonzero(edges.ravel())

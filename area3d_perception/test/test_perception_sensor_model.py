@@ -1,5 +1,6 @@
 """The rgbd sensor model: confidence falls with range, incidence and near edges; noise grows as d^2."""
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -11,8 +12,10 @@ from area3d_perception.sensor_model import (
     RgbdSensorParams,
     add_depth_noise,
     discontinuity_mask,
+    edge_distance,
     incidence_cosine,
     rgbd_confidence,
+    surface_terms,
 )
 
 H, W = 120, 160
@@ -217,3 +220,173 @@ def test_sensor_noise_does_not_tilt_the_normals_of_a_frontal_plane():
     # The range factor is unchanged by 2 mm of noise; a tilted normal would lower cos theta.
     assert float(np.median(conf_noisy)) == pytest.approx(float(np.median(conf_clean)), rel=0.03)
     assert np.percentile(conf_noisy, 10) > 0.9 * float(np.median(conf_clean))
+
+
+# Straightforward per-pixel references of the compiled kernels (the module docstring's model as
+# it reads), for the tests below that check the fast paths against them.
+def reference_surface_terms(depth, k, jump_rel, max_range, smoothing_px, step):
+    """(cos, edges) of `surface_terms`, one pixel at a time in float64."""
+    h, w = depth.shape
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+
+    def present(d):
+        return bool(np.isfinite(d) and 0 < d <= max_range)
+
+    smooth = depth.astype(np.float32).copy()
+    if smoothing_px > 0:
+        for v in range(h):
+            for u in range(w):
+                d = depth[v, u]
+                window = depth[
+                    max(v - smoothing_px, 0) : v + smoothing_px + 1,
+                    max(u - smoothing_px, 0) : u + smoothing_px + 1,
+                ].ravel()
+                same = [float(x) for x in window if present(x) and abs(x - d) <= jump_rel * d]
+                smooth[v, u] = np.float32(np.mean(same)) if present(d) else np.nan
+
+    def point(v, u):
+        s = float(smooth[v, u])
+        return np.array([(u + 0.5 - cx) / fx * s, (v + 0.5 - cy) / fy * s, s])
+
+    def tangent(v, u, dv, du):
+        s = float(smooth[v, u])
+        best = None
+        for sign in (-1, 1):
+            vv, uu = v + sign * dv, u + sign * du
+            if not (0 <= vv < h and 0 <= uu < w):
+                continue
+            sn = float(smooth[vv, uu])
+            if np.isfinite(sn) and sn > 0 and (best is None or abs(sn - s) < best[0]):
+                best = (abs(sn - s), sign * (point(vv, uu) - point(v, u)))
+        return None if best is None else best[1]
+
+    cos = np.zeros((h, w), np.float32)
+    edges = np.zeros((h, w), bool)
+    for v in range(h):
+        for u in range(w):
+            d = depth[v, u]
+            if not present(d):
+                continue
+            for vv, uu in ((v, u - 1), (v, u + 1), (v - 1, u), (v + 1, u)):
+                if 0 <= vv < h and 0 <= uu < w:
+                    dn = depth[vv, uu]
+                    edges[v, u] |= not present(dn) or abs(dn - d) > jump_rel * min(d, dn)
+            tu, tv = tangent(v, u, 0, step), tangent(v, u, step, 0)
+            if tu is None or tv is None:
+                continue
+            n, p = np.cross(tu, tv), point(v, u)
+            if np.linalg.norm(n) > 0:
+                cos[v, u] = min(abs(n @ p) / (np.linalg.norm(n) * np.linalg.norm(p)), 1.0)
+    return cos, edges
+
+
+def reference_confidence(depth, k, params):
+    """`rgbd_confidence` as the module docstring writes it, in numpy."""
+    depth = depth.astype(np.float32)
+    cos, edges = reference_surface_terms(
+        depth,
+        k,
+        params.edge_jump_rel,
+        params.max_range,
+        params.normal_smoothing_px,
+        params.normal_step_px,
+    )
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth) & (depth > 0) & (depth <= params.max_range)
+    z = np.where(valid, depth, 1.0).astype(np.float64)
+    sigma = params.sigma_a + params.sigma_b * (z - params.sigma_z0) ** 2
+    conf = np.exp(-((sigma / params.sigma_ref) ** 2)) * np.maximum(cos, 0) ** params.incidence_power
+    if edges.any():
+        dist = cv2.distanceTransform((~edges).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+        ramp = np.clip(dist / (params.edge_radius_px + 1), 0.0, 1.0)
+        conf *= params.edge_confidence + (1 - params.edge_confidence) * ramp
+    return np.where(valid, np.clip(conf, 0.0, 1.0), 0.0)
+
+
+# Depths that exercise every branch: one surface with small steps, a second one a jump away,
+# missing (NaN, 0, < 0), infinite and beyond-range pixels.
+depth_images = hnp.arrays(
+    np.float32,
+    st.tuples(st.integers(1, 10), st.integers(1, 12)),
+    elements=st.one_of(
+        st.floats(0.9375, 1.0625, width=32),
+        st.floats(1.875, 2.125, width=32),
+        st.sampled_from([np.nan, 0.0, -1.0, np.inf, 6.0]),
+    ),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    depth_images,
+    st.sampled_from([(1, 2), (0, 1), (2, 3), (1, 1)]),
+    st.sampled_from([5.0, np.inf]),
+)
+def test_surface_terms_equal_the_per_pixel_definition(depth, smoothing_and_step, max_range):
+    smoothing_px, step = smoothing_and_step
+    k = np.array([[8.0, 0, 6.0], [0, 9.0, 5.0], [0, 0, 1]])
+    cos, edges = surface_terms(depth, k, 0.05, max_range, smoothing_px, step)
+    ref_cos, ref_edges = reference_surface_terms(depth, k, 0.05, max_range, smoothing_px, step)
+    np.testing.assert_array_equal(edges, ref_edges)
+    np.testing.assert_allclose(cos, ref_cos, rtol=0, atol=1e-5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    depth_images,
+    st.sampled_from(
+        [
+            RgbdSensorParams(),
+            RgbdSensorParams(incidence_power=2.0, edge_radius_px=1, edge_confidence=0.5),
+            RgbdSensorParams(edge_confidence=1.0, max_range=1.5),
+            RgbdSensorParams(edge_radius_px=6),  # past the bounded window: the full transform
+        ]
+    ),
+)
+def test_confidence_equals_the_model_written_out(depth, params):
+    k = np.array([[8.0, 0, 6.0], [0, 9.0, 5.0], [0, 0, 1]])
+    np.testing.assert_allclose(
+        rgbd_confidence(depth, k, params), reference_confidence(depth, k, params), atol=1e-5
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    hnp.arrays(
+        bool,
+        st.tuples(st.integers(1, 40), st.integers(1, 40)),
+        elements=st.booleans() | st.just(False),
+    ),
+    st.sampled_from([0.0, 1.0, 1.4, 2.0, 3.0, 4.5, 7.0, np.inf]),
+)
+def test_bounded_edge_distance_is_the_full_transform_cut_at_the_bound(edges, max_px):
+    full = (
+        cv2.distanceTransform((~edges).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+        if edges.any()
+        else np.full(edges.shape, np.inf, np.float32)
+    )
+    expected = np.where(full <= max_px, full, np.inf)
+    np.testing.assert_array_equal(edge_distance(edges, max_px), expected)
+
+
+def test_axial_noise_is_sigma_z_of_depth_and_incidence_times_a_standard_normal():
+    # A tilted plane filling the image: no discontinuity, no grazing pixel, so the only random
+    # draw is the per-pixel normal.
+    h, w = 60, 80
+    k = np.array([[w / 2, 0, w / 2], [0, w / 2, h / 2], [0, 0, 1.0]])
+    clean = plane_depth(2.0, 20.0, h=h, w=w)
+    params = RgbdSensorParams()
+    noisy = add_depth_noise(clean, k, np.random.default_rng(4), params)
+    cos, edges = surface_terms(
+        clean, k, params.edge_jump_rel, np.inf, params.normal_smoothing_px, params.normal_step_px
+    )
+    assert not edges.any() and np.all(np.arccos(cos) < np.deg2rad(params.grazing_start_deg))
+    theta = np.arccos(cos).astype(np.float64)
+    t = theta / (np.pi / 2 - theta)
+    sigma = (
+        params.sigma_a
+        + params.sigma_b * (clean - params.sigma_z0) ** 2
+        + params.sigma_angle / np.sqrt(clean) * t * t
+    )
+    normal = np.random.default_rng(4).standard_normal((h, w), dtype=np.float32)
+    np.testing.assert_allclose(noisy, clean + sigma * normal, rtol=0, atol=1e-6)
