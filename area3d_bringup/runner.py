@@ -101,6 +101,9 @@ FUSION_NODES = ("perception", "semantics", "planner")
 # A replayed frame that perception has not answered within this long is published again (its
 # first copy may have gone out before a restarted node's readers had matched).
 REPLAY_RESEND_S = 10.0
+# After the camera was restarted, a goal whose frame has not arrived whole is sent again this often
+# (the camera answers a repeated stamp with the same frame; the graph fuses each stamp once).
+CAPTURE_RESEND_S = 5.0
 
 
 class EpisodeError(RuntimeError):
@@ -389,8 +392,10 @@ class MissionManager(Node):
         `stamp` (default: now) is the capture stamp; a capture repeated after the camera restarted
         keeps it, so if the dead camera had published the frame after all, the graph sees the same
         frame twice (and fuses it once) rather than one view as two. Once the camera has been
-        restarted, an unanswered goal is sent again halfway through the timeout: a new camera
-        process's reader can be listed a moment before the runner's writer has matched it."""
+        restarted, a goal whose frame has not arrived whole is sent again every
+        `CAPTURE_RESEND_S`: a new camera process's reader can be listed a moment before the
+        runner's writer has matched it, and its writers can send the frame before they have
+        matched the runner's readers (then some parts of the frame arrive, others never)."""
         stamp = self.clock() if stamp is None else stamp
         goal = msgs.PoseStamped(
             header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T_world_cam)
@@ -401,7 +406,8 @@ class MissionManager(Node):
         )  # fmt: skip
         self.goal_pub.publish(goal)
         deadline = time.monotonic() + timeout_s
-        resend_at = deadline - timeout_s / 2 if self.respawns().get("sim_bridge") else None
+        restarted = bool(self.respawns().get("sim_bridge"))
+        resend_at = time.monotonic() + CAPTURE_RESEND_S
         with self._lock:
             while True:
                 status = self._status.get(stamp)
@@ -418,8 +424,8 @@ class MissionManager(Node):
                     )
                 self._lock.wait(min(remaining, 0.1))
                 self.check("sim_bridge")  # a restarted camera never got the goal: ask again
-                if resend_at is not None and time.monotonic() > resend_at and not parts:
-                    resend_at = None
+                if restarted and time.monotonic() > resend_at:
+                    resend_at = time.monotonic() + CAPTURE_RESEND_S
                     self.goal_pub.publish(goal)
         K, _, _ = codecs.camera_info_to_intrinsics(parts["info"])
         return Frame(
