@@ -267,11 +267,16 @@ def bench_soak(
     duration: float = typer.Option(600.0, help="longest stream, seconds"),
     rate: float = typer.Option(10.0, help="camera rate, Hz"),
     scene: str = typer.Option("single_object"),
+    mask_lag: float = typer.Option(
+        1.0, help="the planner's mask_lag_s (0: every request waits for masks covering its frame)"
+    ),
 ) -> None:
     """Benchmark: 640x480 RGB-D at 10 Hz through perception and the planner (see area3d_bringup.soak_bench)."""
     from area3d_bringup.soak_bench import run_bench
 
-    run_bench(frames=frames, duration_s=duration, rate_hz=rate, scene_name=scene)
+    run_bench(
+        frames=frames, duration_s=duration, rate_hz=rate, scene_name=scene, mask_lag_s=mask_lag
+    )
 
 
 @bench_app.command("episode")

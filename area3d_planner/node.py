@@ -11,6 +11,7 @@ knows only what a robot knows, never the simulator's scene.
 from __future__ import annotations
 
 import json
+import time
 from collections import OrderedDict, deque
 from collections.abc import Sequence
 from dataclasses import fields
@@ -126,6 +127,14 @@ PARAMS = (
         "eager rebuilds start at most this often unless a request waits for one, seconds",
         range=(0.0, 60.0),
     ),
+    Param(
+        "mask_lag_s",
+        0.0,
+        "a request plans from masks built up to this long (in capture time) before its frame "
+        "instead of waiting for a rebuild; 0 = masks that cover its frame (a streaming camera: "
+        "0.5), seconds",
+        range=(0.0, 60.0),
+    ),
     # Perception's output for a frame can trail the camera's pose by seconds (first frames, a
     # feed-forward model on CPU), so parts wait this long for their partners.
     Param(
@@ -155,6 +164,7 @@ class PlannerNode(Node):
             background=p["eager_cache"],
             on_refresh=self._on_refresh,
             refresh_interval_s=p["refresh_interval_s"],
+            mask_lag_s=p["mask_lag_s"],
         )
         self.sync = StampSync(
             ("depth", "confidence", "pose"),
@@ -330,13 +340,20 @@ class PlannerNode(Node):
         except ValueError as exc:
             log.warning(f"next_best_view: start pose rejected ({exc}); planning without a start")
             start = None
+        t0 = time.perf_counter()
         if not self.server.wait_fused(stamp, sync_timeout_s):
             log.warning(
                 f"next_best_view: frame {stamp} not fused after {sync_timeout_s} s; planning with what is fused"
             )
+        t1 = time.perf_counter()
         poses, reason = self.server.plan(
             PlanRequest(start, stamp, int(round(request.goal.pose.position.x)))
         )
+        # where the last request's time went, in the status (a mission manager's latency budget)
+        self.server.last_request_s = {
+            "wait_fused": round(t1 - t0, 4),
+            **{k: round(v, 4) for k, v in self.server.last_plan_s.items()},
+        }
         if reason:
             log.warning(f"next_best_view: {reason}")
         now = self._now_ns()

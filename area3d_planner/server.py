@@ -214,6 +214,10 @@ class NextBestViewServer:
     background: bool = False
     on_refresh: object | None = None  # Callable[[], None]
     refresh_interval_s: float = 0.0
+    # A request accepts masks built from a map whose newest frame was captured at most this long
+    # before the request's frame (0: it waits for masks that cover its frame). The uncertainty
+    # field is always the current one; only which voxels each candidate sees may lag.
+    mask_lag_s: float = 0.0
     grid: FusedGrid = field(init=False)
     committed: int = field(init=False, default=0)
     initial_frames: int | None = field(init=False, default=None)
@@ -221,6 +225,10 @@ class NextBestViewServer:
     _sequence: list | None = field(
         init=False, default=None
     )  # a sequential policy's remaining views
+    # seconds the last plan spent waiting for the masks and selecting views; the node adds the
+    # wait for the request's frame (`last_request_s`, in the status)
+    last_plan_s: dict = field(init=False, default_factory=dict)
+    last_request_s: dict = field(init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         c = self.config
@@ -282,6 +290,7 @@ class NextBestViewServer:
         self._map_version = 0  # occupancy changes (fused frames)
         self._stamp_version: dict[int, int] = {}  # map version that holds each stamp
         self._cache_version = 0  # map version of the installed seeds and masks
+        self._cache_stamp = 0  # newest frame stamp in the map the installed masks were built from
         self._refreshing = False
         self._cache_waiters = 0  # requests waiting in wait_cache
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
@@ -396,10 +405,15 @@ class NextBestViewServer:
 
     def wait_cache(self, stamp_ns: int = 0, timeout_s: float | None = None) -> bool:
         """Background mode: block until the masks cover the frame `stamp_ns` (0 or a stamp not
-        fused: every fused frame), or timeout; True if they do. Always True without background."""
+        fused: every fused frame), or timeout; True if they do. Always True without background.
+        With `mask_lag_s` > 0, masks built from a map whose newest frame is at most that much
+        older than `stamp_ns` (any, for 0) do without waiting."""
         if not self.background:
             return True
         with self._refreshed:
+            lag_ns = int(self.mask_lag_s * 1e9)
+            if lag_ns > 0 and self._cache_version > 0 and stamp_ns - self._cache_stamp <= lag_ns:
+                return True  # recent enough (`mask_lag_s`)
             target = self._stamp_version.get(int(stamp_ns), self._map_version)
             self._cache_waiters += 1
             self._refreshed.notify_all()  # the worker may be holding back: a request waits
@@ -424,6 +438,7 @@ class NextBestViewServer:
                     return
                 self._last_refresh = time.monotonic()
                 version = self._map_version
+                stamp = self.last_fused_stamp
                 occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
                 self._refreshing = True
             try:
@@ -441,6 +456,7 @@ class NextBestViewServer:
                         except Exception:  # noqa: BLE001 - reported by the request path
                             self.context.invalidate_fields()
                 self._cache_version = version
+                self._cache_stamp = stamp
                 self._refreshing = False
                 self.refresh_count += 1
                 self._refreshed.notify_all()
@@ -468,6 +484,7 @@ class NextBestViewServer:
             "committed_views": self.committed,
             "remaining_budget": self.remaining_budget(),
             "cache_ready": self.cache_ready(),
+            "last_request_s": self.last_request_s,
         }
 
     def plan(self, request: PlanRequest) -> tuple[list[np.ndarray], str]:
@@ -514,8 +531,11 @@ class NextBestViewServer:
                 # a float64 sum of float32 values cannot overflow: it is finite iff every value is
                 if not np.isfinite(arr.sum(dtype=np.float64)):
                     return [], f"{name} uncertainty: got NaN voxels, expected finite values"
+            t0 = time.perf_counter()
             if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
                 return [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
+            t1 = time.perf_counter()
+            self.last_plan_s = {"wait_cache": t1 - t0}
             self.context.start = None if request.start is None else np.asarray(request.start, float)
             try:
                 seeds, rotations = self.context.candidates()
@@ -538,6 +558,7 @@ class NextBestViewServer:
                     poses = self.policy.select_views(self.context, want)
             except InputError as exc:
                 return [], str(exc)
+            self.last_plan_s["select"] = time.perf_counter() - t1
             if not poses:
                 return [], "no candidate view sees the region of interest"
             self.committed += len(poses)

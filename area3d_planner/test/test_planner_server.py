@@ -356,3 +356,35 @@ def test_a_frame_replayed_with_the_same_stamp_is_fused_once():
     assert server.grid.frames == grid_after_one[1] == 1
     assert server.status()["frames_fused"] == 1
     assert server.add_frame(6, *frame()) is True and server.grid.frames == 2
+
+
+def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a_rebuild():
+    """mask_lag_s: masks built from a map at most that much older (capture time) than the
+    request's frame do; an older map still makes the request wait for the rebuild."""
+    f = frames()  # stamps 1, 2, 3 ns
+    srv = NextBestViewServer(refresh_config(), background=True, mask_lag_s=1e-9)  # 1 ns
+    build = srv.context.build
+    gate = threading.Event()
+    builds = []
+
+    def held_build(occupancy, kinds=()):
+        builds.append(srv._map_version)
+        if len(builds) > 1:
+            gate.wait(30.0)  # every rebuild after the first waits for the test
+        return build(occupancy, kinds)
+
+    srv.context.build = held_build
+    try:
+        srv.add_frame(*f[0])
+        assert srv.wait_cache(1, timeout_s=30.0)
+        srv.add_frame(*f[1])  # 1 ns after the masks' newest frame: within the lag
+        poses, reason = srv.plan(PlanRequest(f[1][4], 2, 1))
+        assert reason == "" and len(poses) == 1
+        assert not srv.cache_ready()  # planned while the masks lag the map
+        srv.add_frame(*f[2])  # 2 ns after it: beyond the lag, the request waits for a rebuild
+        assert not srv.wait_cache(3, timeout_s=0.2)
+        gate.set()
+        assert srv.wait_cache(3, timeout_s=30.0) and srv.cache_ready()
+    finally:
+        gate.set()
+        srv.close()
