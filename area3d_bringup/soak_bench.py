@@ -123,6 +123,7 @@ def run_bench(
             rss_idle = {name: rss_mb(pid) for name, pid in pids.items()}
             rss_start: dict[str, float] = {}  # once warm: after the first tenth of the stream
             rss_peak = dict(rss_idle)
+            rss_tenths: dict[str, list[int]] = {}  # at the end of each tenth of the stream
 
             sent: list[int] = []
             latencies: list[float] = []
@@ -186,6 +187,9 @@ def run_bench(
                         rss_peak[name] = max(rss_peak[name], rss_mb(pid))
                 if k == count // 10:
                     rss_start = {name: rss_mb(pid) for name, pid in pids.items()}
+                if (k + 1) % max(1, count // 10) == 0:  # the curve: flat, or growing to a bound
+                    for name, pid in pids.items():
+                        rss_tenths.setdefault(name, []).append(round(rss_mb(pid)))
             stream_s = time.perf_counter() - t0
             streaming.clear()
             asker.join(timeout=120)
@@ -216,6 +220,7 @@ def run_bench(
         "rss_start_mb": rss_start,
         "rss_end_mb": rss_end,
         "rss_peak_mb": rss_peak,
+        "rss_tenths_mb": rss_tenths,
         "plan_requests": len(latencies),
         "plan_failures": empty_plans,
         "plan_p50_s": float(np.percentile(lat, 50)),
@@ -264,6 +269,10 @@ def _print_table(f: dict) -> None:
             f"{name} RSS idle / after 1/10 of the stream -> end (peak)",
             f"{idle:.0f} / {start:.0f} -> {end:.0f} ({peak:.0f}) MB",
             "start = end",
+        )
+    for name, tenths in f["rss_tenths_mb"].items():
+        table.add_row(
+            f"{name} RSS at each tenth of the stream", " ".join(map(str, tenths)) + " MB", ""
         )
     table.add_row(
         f"next view during fusion ({f['plan_requests']} requests) p50 / p95 / max",
