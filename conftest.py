@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import os
 
-# Domains 102..221: above the range `area3d run` picks free domains from (1..101), unique per
-# pytest process so that parallel or repeated sessions do not see each other.
-os.environ["ROS_DOMAIN_ID"] = str(102 + os.getpid() % 120)
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+from area3d_msgs_py import middleware
 
-from area3d_msgs_py import middleware  # noqa: E402
+# A domain held for the whole session, as `area3d run` holds one (a lock file, its discovery
+# port free): no other pytest session or episode on this machine can be given it. Picked in
+# 1..101, whose ports lie below the kernel's ephemeral range, where a socket opened by any
+# process could take a participant's port first.
+os.environ.pop("ROS_DOMAIN_ID", None)
+_DOMAIN = middleware.DomainLease()
+os.environ["ROS_DOMAIN_ID"] = str(_DOMAIN.domain_id)
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 middleware.configure()

@@ -69,23 +69,27 @@ PERCEPTION_DEPTH_TOPIC = "area3d/perception/depth"
 PERCEPTION_CONFIDENCE_TOPIC = "area3d/perception/confidence"
 NBV_SERVICE = "area3d/planner/next_best_view"
 TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
-#: what the bag holds besides the camera topics and the goals: {topic: (type, latched)}
+# The grid is published after every fusion; the runner's reader keeps a backlog of them.
+GRID_READER_DEPTH = 100
+#: what the bag holds besides the camera topics and the goals: {topic: (type, reader QoS)}.
+#: Perception's and semantics' per-frame outputs are read transient local, as their writers
+#: publish them: a reader that the writer matches only after a frame's output went out (its
+#: discovery of this process finished late) still gets it, and the bag and the replay's count
+#: of what perception answered miss nothing.
 GRAPH_OUTPUTS = {
-    CAMERA_STATUS_TOPIC: (msgs.String, False),
-    PERCEPTION_DEPTH_TOPIC: (msgs.Image, False),
-    PERCEPTION_CONFIDENCE_TOPIC: (msgs.Image, False),
-    "area3d/semantics/regions": (msgs.String, True),
-    "area3d/semantics/weight": (msgs.Image, False),
-    "area3d/semantics/uncertainty": (msgs.Image, False),
-    GRID_TOPIC: (msgs.PointCloud2, True),
-    "area3d/planner/next_views": (msgs.Path, False),
-    PLANNER_STATUS_TOPIC: (msgs.String, False),
+    CAMERA_STATUS_TOPIC: (msgs.String, qos.frames()),
+    PERCEPTION_DEPTH_TOPIC: (msgs.Image, qos.graph_frames()),
+    PERCEPTION_CONFIDENCE_TOPIC: (msgs.Image, qos.graph_frames()),
+    "area3d/semantics/regions": (msgs.String, qos.latched(qos.FRAME_DEPTH)),
+    "area3d/semantics/weight": (msgs.Image, qos.graph_frames()),
+    "area3d/semantics/uncertainty": (msgs.Image, qos.graph_frames()),
+    GRID_TOPIC: (msgs.PointCloud2, qos.latched(GRID_READER_DEPTH)),
+    "area3d/planner/next_views": (msgs.Path, qos.frames()),
+    PLANNER_STATUS_TOPIC: (msgs.String, qos.frames()),
 }
 # Readers each camera topic has once the graph is up (the runner's own included): volatile
 # topics drop what is published before a reader has matched, so goals and replayed frames wait.
 EXPECTED_READERS = {"goal": 1, "color": 3, "depth": 3, "info": 3, "pose": 3}
-# The grid is published after every fusion; the runner's reader keeps a backlog of them.
-GRID_READER_DEPTH = 100
 # The runner's topics each graph node reads: once a new process of a restarted node reads them
 # all, and the runner's writers have matched every reader discovery lists, it is up (a dead
 # process's readers linger in discovery for a while, and a reader discovery lists a moment
@@ -203,9 +207,7 @@ class MissionManager(Node):
         self.runner_pubs = {"goal": self.goal_pub, **self.replay_pubs}  # what graph nodes read
         for key, (topic, msg_type) in CAMERA_TOPICS.items():
             self._listen(topic, msg_type, qos.frames(), self._on_part(key, msg_type))
-        for topic, (msg_type, latched) in GRAPH_OUTPUTS.items():
-            depth = GRID_READER_DEPTH if topic == GRID_TOPIC else qos.FRAME_DEPTH
-            profile = qos.latched(depth) if latched else qos.reliable(depth)
+        for topic, (msg_type, profile) in GRAPH_OUTPUTS.items():
             self._listen(topic, msg_type, profile, self._on_output(topic))
         self.tf_from_graph = msgs.TFMessage is not None
         if self.tf_from_graph:

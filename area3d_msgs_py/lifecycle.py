@@ -8,6 +8,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import NoReturn
 
@@ -21,6 +22,12 @@ from area3d_msgs_py.errors import InputError
 # What a node's constructor raises for a configuration it cannot start with (bad parameters, a
 # missing file, model or library): logged as fatal, exit code 1.
 STARTUP_ERRORS: tuple[type[Exception], ...] = (InputError, FileNotFoundError)
+# rclpy handles SIGINT and SIGTERM on a thread of its own: it triggers every executor's guard
+# condition, then shuts the contexts down. The node is torn down only once that thread is done (or
+# after this long): destroying the executor's guard condition while that thread still walks the
+# list of them, or shutting the context down beside it, can crash the process (a planner exited
+# with -11 on SIGINT on a loaded machine) or end it with a traceback (rcl_shutdown twice).
+SIGNAL_SHUTDOWN_WAIT_S = 10.0
 
 
 class PublishGate:
@@ -60,13 +67,15 @@ def run_node(
     Ctrl-C is a clean stop wherever it lands: while the node is being built, between building
     and spinning, or while spinning. `on_stop(node)` runs first when the node stops, before the
     executor waits for the callbacks in flight: it lets a callback that waits on the node's own
-    work (a request waiting for a rebuild) return at once."""
+    work (a request waiting for a rebuild) return at once. After a signal, the executor, node and
+    context are torn down only once rclpy's signal thread has shut the context down."""
     # `kill -USR1 <pid>` prints where every thread of the node is (a node that hangs can be read)
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     middleware.configure()
     rclpy.init(args=args)
     node: Node | None = None
     spinner: Executor | None = None
+    signalled = False
     try:
         spinner = executor()  # first: a Ctrl-C while the node is built finds it whole
         try:
@@ -77,16 +86,25 @@ def run_node(
         spinner.add_node(node)
         spinner.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        signalled = True
     finally:
         if on_stop is not None and node is not None:
             on_stop(node)
+        if signalled:
+            _wait_for_signal_shutdown(SIGNAL_SHUTDOWN_WAIT_S)
         if spinner is not None:
             spinner.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def _wait_for_signal_shutdown(timeout_s: float) -> None:
+    """Wait until the default context is shut down, as rclpy's signal thread does last."""
+    deadline = time.monotonic() + timeout_s
+    while rclpy.ok() and time.monotonic() < deadline:
+        time.sleep(0.005)
 
 
 def exit_process(code: int) -> NoReturn:

@@ -87,7 +87,11 @@ PARAMS = (
             ("right_camera_info", RIGHT_INFO_TOPIC, ("perception",)),
         )
     ),
-    Param("readers.all", ("",), "nodes that must read every frame topic as well ('' = none)"),
+    Param(
+        "readers.all",
+        ("",),
+        "nodes that must read every frame topic and the status as well ('' = none)",
+    ),
     Param(
         "readers_timeout_s",
         10.0,
@@ -155,6 +159,8 @@ class SimBridgeNode(Node):
             self.pub_info: set(p["readers.camera_info"]) | everyone,
             self.pub_pose: set(p["readers.pose"]) | everyone,
         }
+        if everyone:  # the status that follows the first frame reaches them too
+            self.required_readers[self.pub_status] = everyone
         if p["stereo"]:
             self.required_readers[self.pub_right] = set(p["readers.right"]) | everyone
             self.required_readers[self.pub_right_info] = (

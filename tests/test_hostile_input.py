@@ -74,13 +74,14 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
         graph.node.create_subscription(msgs.String, topic, status[node].append, qos.frames())
         for node, topic in STATUS.items()
     ]
-    depth_out = graph.listen(msgs.Image, "area3d/perception/depth")
-    weights = graph.listen(msgs.Image, "area3d/semantics/weight")
+    # transient local, as perception and semantics publish them (a late match still gets them)
+    depth_out = graph.listen(msgs.Image, "area3d/perception/depth", qos.graph_frames())
+    weights = graph.listen(msgs.Image, "area3d/semantics/weight", qos.graph_frames())
     request = graph.probe.publisher(msgs.String, "area3d/semantics/request")
     pubs = _camera_publishers(graph)
     graph.start()
     # sim_bridge's status comes once per goal: every status must reach us before the barrage
-    assert graph.wait_for(lambda: all(r.get_publisher_count() >= 1 for r in status_readers), 60)
+    assert graph.wait_for(lambda: all(r.get_publisher_count() >= 1 for r in status_readers))
     readers = Counter(topic for topics in SUBSCRIBED.values() for topic in topics)
     client = subprocess.run(
         [sys.executable, str(CLIENT), json.dumps({"width": W, "height": H, "readers": readers})],
@@ -98,7 +99,6 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
             lambda n=node, t=by_topic: (
                 _last_status(status[n]).get("rejected", {}).get("by_topic") == dict(t)
             ),
-            60,
         ), (node, dict(by_topic), _last_status(status[node]), graph.lines[-30:])
         assert _last_status(status[node])["rejected"]["by_field"] == dict(by_field), node
     # sim_bridge's status is per goal: the last refusal carries every rejection so far
@@ -107,7 +107,6 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
         lambda: (
             _last_status(status["sim_bridge"]).get("rejected", {}).get("by_field") == dict(by_field)
         ),
-        60,
     ), (_last_status(status["sim_bridge"]), graph.lines[-30:])
     assert not _last_status(status["sim_bridge"])["ok"]
 
@@ -123,14 +122,14 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
     stamp = codecs.stamp_to_ns(graph.node.get_clock().now().to_msg())
     _publish_frame(graph, pubs, stamp, rgb, depth, K, T)
     assert graph.wait_for(
-        lambda: any(codecs.stamp_to_ns(m.header.stamp) == stamp for m in depth_out), 60
+        lambda: any(codecs.stamp_to_ns(m.header.stamp) == stamp for m in depth_out)
     ), graph.lines[-30:]
     request.publish(msgs.String(data="again"))
     assert graph.wait_for(
-        lambda: any(codecs.stamp_to_ns(m.header.stamp) == stamp for m in weights), 120
+        lambda: any(codecs.stamp_to_ns(m.header.stamp) == stamp for m in weights)
     ), graph.lines[-30:]
     assert graph.wait_for(
-        lambda: _last_status(status["planner"]).get("last_fused_stamp_ns") == stamp, 60
+        lambda: _last_status(status["planner"]).get("last_fused_stamp_ns") == stamp
     ), (_last_status(status["planner"]), graph.lines[-30:])
     plan_request = msgs.GetPlan_Request()
     plan_request.start.header = codecs.header(stamp, "world")
@@ -148,9 +147,8 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
     assert graph.wait_for(
         lambda: any(json.loads(m.data)["stamp_ns"] == stamp + 1 and json.loads(m.data)["ok"]
                     for m in status["sim_bridge"]),
-        60,
     ), graph.lines[-30:]  # fmt: skip
     # ... through perception into the planner (and nothing is in flight when the graph stops)
     assert graph.wait_for(
-        lambda: _last_status(status["planner"]).get("last_fused_stamp_ns") == stamp + 1, 60
+        lambda: _last_status(status["planner"]).get("last_fused_stamp_ns") == stamp + 1
     ), (_last_status(status["planner"]), graph.lines[-30:])

@@ -17,7 +17,7 @@ from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters
 from area3d_msgs_py.probe import Probe
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-TIMEOUT_S = 30.0
+TIMEOUT_S = 120.0  # generous: a loaded machine is slow (every wait ends once its condition holds)
 
 
 def _string(name: str, value: str) -> ParameterMsg:

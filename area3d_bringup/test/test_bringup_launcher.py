@@ -55,7 +55,15 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _pids(launcher: Launcher, timeout_s: float = 10.0) -> dict[str, int]:
+def _catches_sigint(pid: int) -> bool:
+    """The process has a SIGINT handler installed (Linux: the SigCgt mask in /proc/PID/status)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) & (1 << (signal.SIGINT - 1)))
+    return False
+
+
+def _pids(launcher: Launcher, timeout_s: float = 60.0) -> dict[str, int]:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         pids = {
@@ -107,7 +115,7 @@ def test_death_of_a_node_is_reported_by_name(tmp_path, fake_env):
     launcher.start()
     try:
         with pytest.raises(NodeDied) as info:
-            deadline = time.monotonic() + 15
+            deadline = time.monotonic() + 60
             while time.monotonic() < deadline:
                 launcher.check()
                 time.sleep(0.05)
@@ -299,7 +307,12 @@ def test_ctrl_c_stops_a_launcher_started_with_sigint_ignored(tmp_path, fake_env)
         text=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
     )
-    assert "pid=" in parent.stdout.readline()  # the node is up, the launcher waits
+    assert "pid=" in parent.stdout.readline()  # the node is up ...
+    # ... and the launcher waits, Ctrl-C caught: before `wait()` SIGINT is still ignored here
+    deadline = time.monotonic() + 60
+    while not _catches_sigint(parent.pid):
+        assert time.monotonic() < deadline and parent.poll() is None, "the launcher never waited"
+        time.sleep(0.01)
     parent.send_signal(signal.SIGINT)
     out, _ = parent.communicate(timeout=120)
     assert parent.returncode == 0, out

@@ -25,7 +25,7 @@ from area3d_msgs_py.parameters import (
 from area3d_msgs_py.probe import Probe
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-TIMEOUT_S = 30.0
+TIMEOUT_S = 120.0  # generous: a loaded machine is slow (every wait ends once its condition holds)
 NS = "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}"
 
 

@@ -26,7 +26,7 @@ from area3d_semantics.node import (
 from area3d_semantics.weights import semantic_uncertainty, sigma_from_confidence
 
 H, W = 60, 80
-TIMEOUT_S = 30.0
+TIMEOUT_S = 120.0  # generous: a loaded machine is slow (every wait ends once its condition holds)
 
 
 class Rig:
@@ -58,7 +58,7 @@ class Rig:
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
         # discovery: every publisher matched before anything is sent
-        self.spin(
+        assert self.spin(
             lambda: all(
                 p.get_subscription_count() >= 1
                 for p in (self.color, self.depth, self.conf, self.request)
@@ -71,10 +71,12 @@ class Rig:
             codecs.msg_to_image(msg)
         )
 
-    def spin(self, done, timeout_s=TIMEOUT_S):
+    def spin(self, done, timeout_s=TIMEOUT_S) -> bool:
+        """Wait until `done()` holds (True) or `timeout_s` passes (False)."""
         deadline = time.monotonic() + timeout_s
         while not done() and time.monotonic() < deadline:
             time.sleep(0.02)
+        return bool(done())
 
     def frame(self, stamp, image, depth, confidence=None):
         self.color.publish(codecs.image_to_msg(image, "rgb8", stamp, "camera_optical_frame"))
@@ -118,7 +120,7 @@ def test_initial_views_are_analysed_once_and_each_frame_gets_weight_and_usem():
         for stamp, image, depth, confidence in data[:3]:
             rig.frame(stamp, image, depth, confidence)
         stamps = [d[0] for d in data[:3]]
-        rig.spin(lambda: rig.regions and all(s in rig.usem for s in stamps))
+        assert rig.spin(lambda: rig.regions and all(s in rig.usem for s in stamps))
         assert len(rig.regions) == 1
         payload = json.loads(rig.regions[0].data)
         assert payload["prompt_version"] == "v1" and payload["backend"] == "heuristic"
@@ -141,7 +143,7 @@ def test_initial_views_are_analysed_once_and_each_frame_gets_weight_and_usem():
         assert len(rig.regions) == 1 and data[3][0] not in rig.weights
         # A request re-runs the query on everything collected so far.
         rig.request.publish(msgs.String(data="again"))
-        rig.spin(lambda: len(rig.regions) >= 2 and data[3][0] in rig.weights)
+        assert rig.spin(lambda: len(rig.regions) >= 2 and data[3][0] in rig.weights)
         again = json.loads(rig.regions[-1].data)
         assert [img["stamp_ns"] for img in again["images"]] == [d[0] for d in data]
     finally:
@@ -163,14 +165,14 @@ def test_unreachable_vlm_falls_back_and_the_node_keeps_running():
         data = frames(2)
         for stamp, image, depth, _ in data:
             rig.frame(stamp, image, depth)  # confidence arrives later
-        rig.spin(lambda: rig.regions and all(d[0] in rig.weights for d in data))
+        assert rig.spin(lambda: rig.regions and all(d[0] in rig.weights for d in data))
         payload = json.loads(rig.regions[0].data)
         assert payload["backend"] == "openai" and payload["fallback_used"] == "zeros"
         assert url in payload["error"]
         assert all(not rig.weights[d[0]][0].any() for d in data)
         # the default sigma is constant (independent of perception): U_sem needs no confidence,
         # and with zero weights it is Norm(1) = 1 everywhere
-        rig.spin(lambda: all(d[0] in rig.usem for d in data))
+        assert rig.spin(lambda: all(d[0] in rig.usem for d in data))
         for d in data:
             np.testing.assert_allclose(rig.usem[d[0]][0], 1.0, atol=1e-6)
     finally:
@@ -199,18 +201,18 @@ def test_requests_arriving_while_a_query_runs_are_answered_by_one_more_query():
         data = frames(3)
         for stamp, image, depth, _ in data[:2]:
             rig.frame(stamp, image, depth)
-        rig.spin(lambda: len(rig.regions) == 1)
+        assert rig.spin(lambda: len(rig.regions) == 1)
         held = HeldBackend()
         rig.semantics.backend = held
         rig.request.publish(msgs.String(data="first"))
         assert held.entered.wait(TIMEOUT_S)
         rig.frame(*data[2][:3])  # a new frame, then two requests while the first query runs
-        rig.spin(lambda: len(rig.semantics.views.complete) == 3)
+        assert rig.spin(lambda: len(rig.semantics.views.complete) == 3)
         rig.request.publish(msgs.String(data="second"))
         rig.request.publish(msgs.String(data="third"))
-        rig.spin(lambda: rig.semantics._pending_request)
+        assert rig.spin(lambda: rig.semantics._pending_request)
         held.release.set()
-        rig.spin(lambda: len(rig.regions) >= 3)
+        assert rig.spin(lambda: len(rig.regions) >= 3)
         rig.spin(lambda: False, 1.0)
         # the running query, then one more for both waiting requests, with every frame by then
         assert len(rig.regions) == 3 and held.calls == 2

@@ -31,6 +31,14 @@ FRAMES = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+# README: perception's and semantics' per-frame outputs are transient local on both sides
+# (keep-last 50), so a reader matched after a frame's output went out still gets it.
+GRAPH_FRAMES = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=50,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 LATCHED = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=1,
@@ -43,11 +51,11 @@ TOPICS = {
     "/area3d/camera/camera_info": (CameraInfo, FRAMES),
     "/area3d/camera/pose": (PoseStamped, FRAMES),
     "/area3d/camera/status": (String, FRAMES),
-    "/area3d/perception/depth": (Image, FRAMES),
-    "/area3d/perception/confidence": (Image, FRAMES),
+    "/area3d/perception/depth": (Image, GRAPH_FRAMES),
+    "/area3d/perception/confidence": (Image, GRAPH_FRAMES),
     "/area3d/semantics/regions": (String, LATCHED),
-    "/area3d/semantics/weight": (Image, FRAMES),
-    "/area3d/semantics/uncertainty": (Image, FRAMES),
+    "/area3d/semantics/weight": (Image, GRAPH_FRAMES),
+    "/area3d/semantics/uncertainty": (Image, GRAPH_FRAMES),
     "/area3d/planner/uncertainty_grid": (PointCloud2, LATCHED),
     "/area3d/planner/next_views": (Path, FRAMES),
     "/area3d/planner/status": (String, FRAMES),
