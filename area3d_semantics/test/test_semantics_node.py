@@ -40,7 +40,7 @@ class Rig:
         self.peer = rclpy.create_node("feeder", context=self.context)
         self.regions, self.weights, self.usem = [], {}, {}
         self.peer.create_subscription(
-            msgs.String, REGIONS_TOPIC, self.regions.append, qos.latched()
+            msgs.String, REGIONS_TOPIC, self.regions.append, qos.latched(qos.DEFAULT_DEPTH)
         )
         self.peer.create_subscription(
             msgs.Image, WEIGHT_TOPIC, self._store(self.weights), qos.reliable(64)
