@@ -142,6 +142,17 @@ def geometric_uncertainty(
 
 
 @njit(cache=True, inline="always")
+def _axis_start(o, d, i):  # pragma: no cover - compiled
+    """Step sign, ray parameter of the first voxel boundary and parameter per voxel along one
+    axis, for a ray at `o` with direction component `d` starting in voxel `i`."""
+    if d > 0:
+        return 1, (i + 1 - o) / d, 1.0 / d
+    if d < 0:
+        return -1, (i - o) / d, -1.0 / d
+    return 0, np.inf, np.inf
+
+
+@njit(cache=True, inline="always")
 def _walk_ray(o0, o1, o2, e0, e1, e2, nx, ny, nz, free, count):  # pragma: no cover - compiled
     """Amanatides-Woo traversal of one ray in voxel units; marks every voxel before its end voxel.
 
@@ -149,7 +160,6 @@ def _walk_ray(o0, o1, o2, e0, e1, e2, nx, ny, nz, free, count):  # pragma: no co
     The walk from the first voxel to the end voxel takes exactly their Manhattan distance in
     steps, so the loop runs that many steps (marking, then stepping) and needs no end test.
     """
-    inf = np.inf
     d0, d1, d2 = e0 - o0, e1 - o1, e2 - o2
     # Clip the segment [0, 1] to the grid box [0, n] on every axis (slab method).
     t0 = 0.0
@@ -176,24 +186,9 @@ def _walk_ray(o0, o1, o2, e0, e1, e2, nx, ny, nz, free, count):  # pragma: no co
     j = min(max(int(np.floor(o1 + ts * d1)), 0), ny - 1)
     k = min(max(int(np.floor(o2 + ts * d2)), 0), nz - 1)
     steps = abs(int(np.floor(e0)) - i) + abs(int(np.floor(e1)) - j) + abs(int(np.floor(e2)) - k)
-    if d0 > 0:
-        si, tmi, tdi = 1, (i + 1 - o0) / d0, 1.0 / d0
-    elif d0 < 0:
-        si, tmi, tdi = -1, (i - o0) / d0, -1.0 / d0
-    else:
-        si, tmi, tdi = 0, inf, inf
-    if d1 > 0:
-        sj, tmj, tdj = 1, (j + 1 - o1) / d1, 1.0 / d1
-    elif d1 < 0:
-        sj, tmj, tdj = -1, (j - o1) / d1, -1.0 / d1
-    else:
-        sj, tmj, tdj = 0, inf, inf
-    if d2 > 0:
-        sk, tmk, tdk = 1, (k + 1 - o2) / d2, 1.0 / d2
-    elif d2 < 0:
-        sk, tmk, tdk = -1, (k - o2) / d2, -1.0 / d2
-    else:
-        sk, tmk, tdk = 0, inf, inf
+    si, tmi, tdi = _axis_start(o0, d0, i)
+    sj, tmj, tdj = _axis_start(o1, d1, j)
+    sk, tmk, tdk = _axis_start(o2, d2, k)
     flat = (i * ny + j) * nz + k
     fi, fj = si * ny * nz, sj * nz
     for _ in range(steps):
