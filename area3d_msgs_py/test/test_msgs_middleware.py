@@ -182,10 +182,14 @@ PUBLISHER_SCRIPT = """
     image_pub.publish(codecs.image_to_msg(rgb, "rgb8", 123, "camera_optical_frame"))
     cloud_pub.publish(codecs.pointcloud_to_msg(cloud, 456, "world"))
     print("published", flush=True)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
+    # serve the latched samples until the test closes our stdin, then stop without a signal
+    import sys, threading
+    done = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
+    while not done.is_set():
+        rclpy.spin_once(node, timeout_sec=0.05)
+    node.destroy_node()
+    rclpy.shutdown()
 """
 
 
@@ -193,6 +197,7 @@ def test_image_and_million_point_cloud_cross_processes_intact_and_reach_a_late_s
     proc = subprocess.Popen(
         [sys.executable, "-c", textwrap.dedent(PUBLISHER_SCRIPT)],
         env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)),
+        stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -204,8 +209,13 @@ def test_image_and_million_point_cloud_cross_processes_intact_and_reach_a_late_s
             clouds = probe.listen(msgs.PointCloud2, "test/cloud", qos.latched())
             assert probe.wait_for(lambda: images and clouds, TIMEOUT_S)
     finally:
-        proc.send_signal(2)
-        out, _ = proc.communicate(timeout=120)  # generous: a loaded machine is slow to tear down
+        # closing its stdin stops the publisher (a SIGINT to a plain `rclpy.spin` once left it
+        # hanging in rclpy's shutdown for over 120 s on a loaded machine)
+        try:
+            out, _ = proc.communicate(input="", timeout=120)  # generous: a loaded machine
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
     assert proc.returncode == 0, out
     rng = np.random.default_rng(7)
     rgb = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
