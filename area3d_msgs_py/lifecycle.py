@@ -3,6 +3,7 @@ or shutdown, and tear everything down quietly; the one `main` body every AREA3D 
 
 from __future__ import annotations
 
+import ctypes
 import faulthandler
 import os
 import signal
@@ -119,4 +120,8 @@ def exit_process(code: int) -> NoReturn:
             stream.flush()
         except (OSError, ValueError):  # a closed pipe: nothing left to say
             pass
+    try:  # and C's stdio buffers (ROS logging to a piped stdout is buffered there)
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):
+        pass
     os._exit(code)
