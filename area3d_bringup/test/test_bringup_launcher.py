@@ -162,29 +162,36 @@ def test_a_dying_node_is_respawned_after_the_delay_until_its_retries_are_spent(t
     assert codes["fine"] == 0
 
 
-def test_children_die_with_a_killed_launcher(tmp_path, fake_env):
-    script = tmp_path / "launch_and_hang.py"
+def _launcher_script(tmp_path, fake_env, node: str, then: str) -> Path:
+    """A script that starts a launcher of one fake node `node`, printing its output, then runs
+    the lines `then` (names: `launcher`)."""
+    script = tmp_path / f"launch_{node}.py"
     script.write_text(
         textwrap.dedent(
             f"""
-        import sys, time
-        from pathlib import Path
-        from area3d_bringup.launcher import Launcher
-        from area3d_bringup.launch_description import NodeSpec
-        launcher = Launcher([NodeSpec("orphan", "fake_node", {{}})], Path({str(tmp_path)!r}), env={fake_env!r},
-                            log_sink=lambda l: print(l, flush=True))
-        launcher.start()
-        time.sleep(60)
-        """
+            import time
+            from pathlib import Path
+            from area3d_bringup.launcher import Launcher
+            from area3d_bringup.launch_description import NodeSpec
+            launcher = Launcher([NodeSpec({node!r}, "fake_node", {{}})], Path({str(tmp_path)!r}),
+                                env={fake_env!r}, log_sink=lambda l: print(l, flush=True))
+            launcher.start()
+            """
         )
+        + textwrap.dedent(then)
     )
+    return script
+
+
+def test_children_die_with_a_killed_launcher(tmp_path, fake_env):
+    script = _launcher_script(tmp_path, fake_env, "orphan", "time.sleep(600)\n")
     parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
     line = parent.stdout.readline()
     child_pid = int(line.split("pid=")[1].split()[0])
     assert _alive(child_pid)
     parent.kill()
     parent.wait()
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 120  # ends as soon as the node is gone
     while _alive(child_pid) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not _alive(child_pid), "a node outlived its killed launcher"
@@ -283,23 +290,17 @@ def test_perceptions_estimates_are_attached_to_the_frames_they_belong_to(tmp_pat
 def test_ctrl_c_stops_a_launcher_started_with_sigint_ignored(tmp_path, fake_env):
     # A parent that ignores SIGINT passes that on to its children, and Python then installs no
     # KeyboardInterrupt handler: the launcher must still stop the graph on Ctrl-C.
-    script = tmp_path / "launch_and_wait.py"
-    script.write_text(
-        textwrap.dedent(
-            f"""
-        from pathlib import Path
-        from area3d_bringup.launcher import Launcher
-        from area3d_bringup.launch_description import NodeSpec
-        launcher = Launcher([NodeSpec("node", "fake_node", {{}})], Path({str(tmp_path)!r}), env={fake_env!r},
-                            log_sink=lambda l: print(l, flush=True))
-        launcher.start()
+    script = _launcher_script(
+        tmp_path,
+        fake_env,
+        "node",
+        """
         try:
             launcher.wait()
         finally:
             codes = launcher.stop()
-        print(f"stopped {{codes}}", flush=True)
-        """
-        )
+        print(f"stopped {codes}", flush=True)
+        """,
     )
     parent = subprocess.Popen(
         [sys.executable, str(script)],
