@@ -86,8 +86,13 @@ def run_node(
             return 1
         spinner.add_node(node)
         spinner.spin()
+        signalled = True  # spin returns only once the context is shut down: a signal
     except (KeyboardInterrupt, ExternalShutdownException):
         signalled = True
+    except Exception:
+        if rclpy.ok():
+            raise
+        signalled = True  # the context was shut down under the executor's wait: a signal
     finally:
         if on_stop is not None and node is not None:
             on_stop(node)
