@@ -31,7 +31,7 @@ def pixel_rays(K: np.ndarray, height: int, width: int) -> np.ndarray:
     return _cached_rays(key, int(height), int(width))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _backproject(depth, fx, fy, cx, cy, T):  # pragma: no cover - compiled
     h, w = depth.shape
     n = 0

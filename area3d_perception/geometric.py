@@ -227,11 +227,12 @@ def _carve_rays(origin, ends, shape, free):  # pragma: no cover - compiled
         )  # fmt: skip
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _mark_rays(origin, ends, shape, crossed):  # pragma: no cover - compiled
     """Set to 1 every voxel of the flat uint8 `crossed` that a ray crossed before its end voxel.
     Rays run in parallel: concurrent writes to a voxel all write the same 1, so the result is the
-    set `_carve_rays` counts > 0 in, whatever the order."""
+    set `_carve_rays` counts > 0 in, whatever the order. Runs without the GIL (it writes only its
+    own output), so a node's other threads (a plan request) go on meanwhile."""
     for r in prange(ends.shape[0]):
         _walk_ray(
             origin[0], origin[1], origin[2], ends[r, 0], ends[r, 1], ends[r, 2],
@@ -324,7 +325,7 @@ def frame_rays(
     )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _frame_ray_ends(depth, fx, fy, cx, cy, T, stride, max_range):  # pragma: no cover - compiled
     h, w = depth.shape
     rows = (h + stride - 1) // stride

@@ -79,7 +79,7 @@ class GridSpec:
         return _flat_index(points, self.lower, float(self.voxel_size), np.asarray(self.shape))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _flat_index(points, lower, voxel_size, shape):  # pragma: no cover - compiled
     n = points.shape[0]
     flat = np.empty(n, dtype=np.int64)

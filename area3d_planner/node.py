@@ -135,6 +135,13 @@ PARAMS = (
         "0.5), seconds",
         range=(0.0, 60.0),
     ),
+    Param(
+        "rebuild_nice",
+        0,
+        "the background rebuild runs this much nicer (lower CPU priority) than the node, so "
+        "fusion comes first (a streaming camera with mask_lag_s > 0: 10); 0 = the same",
+        range=(0, 19),
+    ),
     # Perception's output for a frame can trail the camera's pose by seconds (first frames, a
     # feed-forward model on CPU), so parts wait this long for their partners.
     Param(
@@ -165,6 +172,7 @@ class PlannerNode(Node):
             on_refresh=self._on_refresh,
             refresh_interval_s=p["refresh_interval_s"],
             mask_lag_s=p["mask_lag_s"],
+            rebuild_nice=p["rebuild_nice"],
         )
         self.sync = StampSync(
             ("depth", "confidence", "pose"),
@@ -181,6 +189,7 @@ class PlannerNode(Node):
         # a rejection is announced by the status that follows requests (created below)
         self.rejections = Rejections(on_count=lambda: self._status_after_request.reset())
         self.dropped = 0
+        self.last_fused_age_s: float | None = None  # age of the last frame fused, seconds
 
         self.grid_pub = self.create_publisher(msgs.PointCloud2, GRID_TOPIC, qos.latched())
         self.status_pub = self.create_publisher(msgs.String, STATUS_TOPIC, qos.reliable(50))
@@ -240,6 +249,9 @@ class PlannerNode(Node):
         status = {
             **self.server.status(),
             "parts_dropped_unpaired": self.dropped,
+            "last_fused_age_s": None
+            if self.last_fused_age_s is None
+            else round(self.last_fused_age_s, 4),
             "rejected": self.rejections.snapshot(),
         }
         return msgs.String(data=json.dumps(status))
@@ -305,6 +317,8 @@ class PlannerNode(Node):
 
     def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
         if self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"]):
+            # how old the frame was once fused, by this node's clock (capture stamps only)
+            self.last_fused_age_s = (self._now_ns() - stamp) / 1e9
             self._publish_state(stamp)
         else:
             self.get_logger().info(f"frame {stamp} is fused already; the repeat changes nothing")

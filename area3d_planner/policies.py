@@ -8,7 +8,7 @@ confidence upstream (perception).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -79,6 +79,32 @@ class PlanningContext:
         if self.committed_decay is None:
             return self._fields[policy.name]
         return self._fields[policy.name] * self.committed_decay
+
+    def snapshot(self, policy: Policy) -> PlanningContext:
+        """A copy from which `policy` (a `Policy.map_free` one) selects views while the map goes
+        on changing: the candidates, the policy's visibility cache and its field are made now
+        (under the caller's lock) and shared read only; the camera poses and the committed decay
+        are copied. The copy reads of the grid only its spec and region, which never change.
+        `adopt` takes the decay of the views it committed back."""
+        caches = {}
+        fields = {}
+        if policy.relevant is not None:
+            caches[policy.relevant] = self.cache(policy.relevant)
+            self.policy_field(policy)
+            fields[policy.name] = self._fields[policy.name]
+        return replace(
+            self,
+            camera_positions=list(self.camera_positions),
+            camera_poses=list(self.camera_poses),
+            committed_decay=None if self.committed_decay is None else self.committed_decay.copy(),
+            _candidates=self.candidates(),
+            _caches=caches,
+            _fields=fields,
+        )
+
+    def adopt(self, snapshot: PlanningContext) -> None:
+        """Keep the committed decay of views selected on `snapshot` (taken from this context)."""
+        self.committed_decay = snapshot.committed_decay
 
     def commit(self, cache: VisibilityCache, views: list[int], poses: list[np.ndarray]) -> None:
         """Remember the decay u <- (1 - eta) u of committed views (at the poses really taken) for
@@ -222,6 +248,9 @@ class Policy:
     name = ""
     sequential = False
     relevant: str | None = None  # the visibility cache it plans with (None: seeds only)
+    # selects from a `PlanningContext.snapshot` alone, without reading the map: the planner then
+    # selects outside its lock, so frames go on being fused meanwhile
+    map_free = False
 
     def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
         raise NotImplementedError
@@ -231,6 +260,7 @@ class GreedyFieldPolicy(Policy):
     """Lazy greedy (Algorithm 1) on a utility field provided by `field(context)`."""
 
     relevant = "roi_not_free"
+    map_free = True
 
     def field(self, context: PlanningContext) -> np.ndarray:
         raise NotImplementedError
@@ -351,6 +381,7 @@ class VLMNaivePolicy(GreedyFieldPolicy):
     """
 
     name = "vlm_naive"
+    map_free = False  # its fallback (uniform) checks camera positions against the map
 
     def field(self, context: PlanningContext) -> np.ndarray:
         s = context.grid.semantic()

@@ -7,6 +7,7 @@ plan requests with `(poses, reason)`: an empty pose list always comes with the r
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -218,6 +219,10 @@ class NextBestViewServer:
     # before the request's frame (0: it waits for masks that cover its frame). The uncertainty
     # field is always the current one; only which voxels each candidate sees may lag.
     mask_lag_s: float = 0.0
+    # The background rebuild runs this much nicer than the process (its threads yield the CPU to
+    # fusion and requests). For a streaming camera with `mask_lag_s` > 0, where no request waits
+    # for a rebuild, fusing every frame on time comes first; with 0, a request waits on it.
+    rebuild_nice: int = 0
     grid: FusedGrid = field(init=False)
     committed: int = field(init=False, default=0)
     initial_frames: int | None = field(init=False, default=None)
@@ -280,7 +285,8 @@ class NextBestViewServer:
         self.context.visibility.validate()
         self.context.greedy.validate()
         self.policy = make_policy(c.policy)
-        self._lock = threading.RLock()
+        self._lock = threading.RLock()  # the map, the caches and the bookkeeping
+        self._plan_lock = threading.Lock()  # plans one at a time (taken before `_lock`)
         self._fused = threading.Condition(self._lock)
         self._frames: OrderedDict[int, _Frame] = OrderedDict()
         self._pending_semantic: OrderedDict[int, np.ndarray] = OrderedDict()
@@ -296,6 +302,7 @@ class NextBestViewServer:
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
         self.refresh_count = 0  # background rebuilds run so far
+        self.worker_tid: int | None = None  # the rebuild worker's thread id (Linux)
         self._worker: threading.Thread | None = None
         if self.background:
             self._worker = threading.Thread(
@@ -425,6 +432,12 @@ class NextBestViewServer:
                 self._cache_waiters -= 1
 
     def _refresh_loop(self) -> None:
+        self.worker_tid = threading.get_native_id()
+        if (
+            self.rebuild_nice > 0
+        ):  # Linux: a thread's own nice value; the build's threads inherit it
+            base = os.getpriority(os.PRIO_PROCESS, self.worker_tid)
+            os.setpriority(os.PRIO_PROCESS, self.worker_tid, min(19, base + self.rebuild_nice))
         kinds = () if self.policy.relevant is None else (self.policy.relevant,)
         while True:
             with self._refreshed:
@@ -492,74 +505,89 @@ class NextBestViewServer:
 
         Empty plan when: no frame fused yet, the budget is spent, the request asks for more views
         than there are candidates, no valid candidate seed, a non-finite field or a bad start pose.
+
+        Plans run one at a time. A policy that selects from a snapshot (`Policy.map_free`: AREA3D
+        and the other greedy fields) does so outside the map's lock, so frames arriving meanwhile
+        are fused at once; the map is only locked to take the snapshot (the field of the current
+        evidence) and to keep the committed views afterwards.
         """
-        with self._lock:
-            if self.grid.frames == 0:
-                return [], "no frame fused yet: capture the initial views first"
-            if request.start is not None:
-                s = np.asarray(request.start, float)
-                if s.shape != (4, 4) or not np.all(np.isfinite(s)):
-                    return (
-                        [],
-                        f"start: got {s.shape} with non-finite values, expected a finite (4, 4) pose",
-                    )
-            try:
-                num = int(request.num_views)
-            except (TypeError, ValueError):
-                return [], f"num_views: got {request.num_views!r}, expected an integer >= 0"
-            if num < 0:
-                return (
-                    [],
-                    f"num_views: got {num}, expected an integer >= 0 (0 = the remaining budget)",
-                )
-            if self.initial_frames is None:
-                self.initial_frames = self.grid.frames
-            remaining = self.remaining_budget()
-            if remaining == 0:
-                return [], f"budget: all {self.budget} views are spent"
-            if num == 0:
-                # batch: the whole remaining budget at once; closed loop: the next best view only.
-                want = remaining if self.config.mode == "batch" else 1
-            else:
-                want = num
-            if want > remaining:
-                return (
-                    [],
-                    f"num_views: got {num}, expected at most the remaining budget {remaining}",
-                )
-            for name, arr in (("geometric", self.grid.conf_sum), ("semantic", self.grid.sem_sum)):
-                # a float64 sum of float32 values cannot overflow: it is finite iff every value is
-                if not np.isfinite(arr.sum(dtype=np.float64)):
-                    return [], f"{name} uncertainty: got NaN voxels, expected finite values"
-            t0 = time.perf_counter()
-            if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
-                return [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
-            t1 = time.perf_counter()
-            self.last_plan_s = {"wait_cache": t1 - t0}
-            self.context.start = None if request.start is None else np.asarray(request.start, float)
-            try:
-                seeds, rotations = self.context.candidates()
-                if seeds.shape[0] == 0:
-                    return (
-                        [],
-                        "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
-                    )
-                candidates = seeds.shape[0] * rotations.shape[1]
-                if want > candidates:
-                    return (
-                        [],
-                        f"num_views: got {want}, expected at most the {candidates} candidate views",
-                    )
-                if self.policy.sequential:
-                    if self._sequence is None:  # planned once, handed out in order
-                        self._sequence = self.policy.select_views(self.context, remaining)
-                    poses, self._sequence = self._sequence[:want], self._sequence[want:]
-                else:
-                    poses = self.policy.select_views(self.context, want)
-            except InputError as exc:
-                return [], str(exc)
-            self.last_plan_s["select"] = time.perf_counter() - t1
-            if not poses:
-                return [], "no candidate view sees the region of interest"
-            self.committed += len(poses)
-            return poses, ""
+        with self._plan_lock:
+            snapshot = None
+            with self._lock:
+                checked = self._check_request(request)
+                if isinstance(checked, str):
+                    return [], checked
+                want, remaining = checked
+                t0 = time.perf_counter()
+                if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
+                    return [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
+                t1 = time.perf_counter()
+                self.last_plan_s = {"wait_cache": t1 - t0}
+                start = None if request.start is None else np.asarray(request.start, float)
+                self.context.start = start
+                try:
+                    seeds, rotations = self.context.candidates()
+                    if seeds.shape[0] == 0:
+                        return (
+                            [],
+                            "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
+                        )
+                    candidates = seeds.shape[0] * rotations.shape[1]
+                    if want > candidates:
+                        return (
+                            [],
+                            f"num_views: got {want}, expected at most the {candidates} candidate views",
+                        )
+                    if self.policy.sequential:
+                        if self._sequence is None:  # planned once, handed out in order
+                            self._sequence = self.policy.select_views(self.context, remaining)
+                        poses, self._sequence = self._sequence[:want], self._sequence[want:]
+                    elif self.policy.map_free:
+                        snapshot = self.context.snapshot(self.policy)
+                    else:
+                        poses = self.policy.select_views(self.context, want)
+                except InputError as exc:
+                    return [], str(exc)
+            if snapshot is not None:  # the selection itself: fusion goes on meanwhile
+                try:
+                    poses = self.policy.select_views(snapshot, want)
+                except InputError as exc:
+                    return [], str(exc)
+            with self._lock:
+                if snapshot is not None:
+                    self.context.adopt(snapshot)
+                self.last_plan_s["select"] = time.perf_counter() - t1
+                if not poses:
+                    return [], "no candidate view sees the region of interest"
+                self.committed += len(poses)
+                return poses, ""
+
+    def _check_request(self, request: PlanRequest) -> tuple[int, int] | str:
+        """(views wanted, remaining budget) for a request, or the reason it gets no plan (lock
+        held)."""
+        if self.grid.frames == 0:
+            return "no frame fused yet: capture the initial views first"
+        if request.start is not None:
+            s = np.asarray(request.start, float)
+            if s.shape != (4, 4) or not np.all(np.isfinite(s)):
+                return f"start: got {s.shape} with non-finite values, expected a finite (4, 4) pose"
+        try:
+            num = int(request.num_views)
+        except (TypeError, ValueError):
+            return f"num_views: got {request.num_views!r}, expected an integer >= 0"
+        if num < 0:
+            return f"num_views: got {num}, expected an integer >= 0 (0 = the remaining budget)"
+        if self.initial_frames is None:
+            self.initial_frames = self.grid.frames
+        remaining = self.remaining_budget()
+        if remaining == 0:
+            return f"budget: all {self.budget} views are spent"
+        # 0: batch plans the whole remaining budget at once, closed loop the next best view only
+        want = num or (remaining if self.config.mode == "batch" else 1)
+        if want > remaining:
+            return f"num_views: got {num}, expected at most the remaining budget {remaining}"
+        for name, arr in (("geometric", self.grid.conf_sum), ("semantic", self.grid.sem_sum)):
+            # a float64 sum of float32 values cannot overflow: it is finite iff every value is
+            if not np.isfinite(arr.sum(dtype=np.float64)):
+                return f"{name} uncertainty: got NaN voxels, expected finite values"
+        return want, remaining

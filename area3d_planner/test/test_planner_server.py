@@ -388,3 +388,52 @@ def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a
     finally:
         gate.set()
         srv.close()
+
+
+def test_frames_are_fused_while_a_plan_selects_its_views():
+    """The selection runs on a snapshot outside the map's lock: a frame arriving meanwhile is
+    fused at once, and the plan's committed decay is kept afterwards."""
+    f = frames()
+    srv = NextBestViewServer(refresh_config())
+    srv.add_frame(*f[0])
+    select = srv.policy.select_views
+    selecting, release = threading.Event(), threading.Event()
+
+    def held_select(context, budget):
+        selecting.set()
+        release.wait(30.0)
+        return select(context, budget)
+
+    srv.policy.select_views = held_select
+    answers = []
+    planner = threading.Thread(target=lambda: answers.append(srv.plan(PlanRequest(None, 1, 1))))
+    planner.start()
+    try:
+        assert selecting.wait(30.0)
+        fused = []
+        fuser = threading.Thread(target=lambda: fused.append(srv.add_frame(*f[1])))
+        fuser.start()
+        fuser.join(30.0)
+        assert fused == [True] and srv.grid.frames == 2  # while the selection is held
+        assert planner.is_alive() and srv.context.committed_decay is None
+    finally:
+        release.set()
+        planner.join(30.0)
+    ((poses, reason),) = answers
+    assert reason == "" and len(poses) == 1 and srv.committed == 1
+    decay = srv.context.committed_decay
+    assert decay is not None and np.isclose(decay.min(), 0.7)
+
+
+def test_the_background_rebuild_runs_at_the_niceness_asked_for():
+    import os
+
+    srv = NextBestViewServer(refresh_config(), background=True, rebuild_nice=5)
+    try:
+        srv.add_frame(*frames()[0])
+        assert srv.wait_cache(1, timeout_s=60.0)
+        base = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, srv.worker_tid) == min(19, base + 5)
+        assert base == os.getpriority(os.PRIO_PROCESS, threading.get_native_id())  # only it
+    finally:
+        srv.close()
