@@ -30,3 +30,55 @@ def test_a_closed_gate_refuses_later_publishes_and_waits_for_one_in_progress():
     assert published == ["during"]
     with gate as running:
         assert not running  # every publish after close is refused
+
+
+ARENA_PROBE = """
+import ctypes, re, sys, tempfile, threading
+from area3d_msgs_py.lifecycle import limit_malloc_arenas
+if sys.argv[1] == "limit":
+    assert limit_malloc_arenas(2)
+barrier = threading.Barrier(8)
+held = []
+def work():
+    held.append(bytearray(200_000))  # above pymalloc's limit: from C malloc, in this thread's arena
+    barrier.wait(60)
+threads = [threading.Thread(target=work) for _ in range(8)]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join(60)
+libc = ctypes.CDLL(None)
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+with tempfile.NamedTemporaryFile(suffix=".xml") as f:
+    stream = libc.fopen(f.name.encode(), b"w")
+    libc.malloc_info(0, stream)
+    libc.fclose(stream)
+    print(len(re.findall(r"<heap nr=", open(f.name).read())))
+"""
+
+
+def _arenas(mode: str) -> int:
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    out = subprocess.run(
+        [sys.executable, "-c", ARENA_PROBE, mode],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    return int(out.stdout.split()[-1])
+
+
+def test_a_node_process_keeps_to_two_malloc_arenas_however_many_threads_allocate():
+    # without the cap, glibc gives each of the 8 threads an arena of its own; with it, the threads
+    # share two beside the main thread's (malloc_info lists that one too)
+    assert _arenas("default") >= 8
+    assert _arenas("limit") <= 3
