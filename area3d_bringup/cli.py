@@ -270,12 +270,24 @@ def bench_soak(
     mask_lag: float = typer.Option(
         1.0, help="the planner's mask_lag_s (0: every request waits for masks covering its frame)"
     ),
+    rebuild_nice: int = typer.Option(
+        10, help="the planner's rebuild_nice (0: its mask rebuilds compete with fusion for the CPU)"
+    ),
+    json_out: Path = typer.Option(
+        None, "--json", help="also write every figure, and each request's times, to this file"
+    ),
 ) -> None:
     """Benchmark: 640x480 RGB-D at 10 Hz through perception and the planner (see area3d_bringup.soak_bench)."""
     from area3d_bringup.soak_bench import run_bench
 
     run_bench(
-        frames=frames, duration_s=duration, rate_hz=rate, scene_name=scene, mask_lag_s=mask_lag
+        frames=frames,
+        duration_s=duration,
+        rate_hz=rate,
+        scene_name=scene,
+        mask_lag_s=mask_lag,
+        rebuild_nice=rebuild_nice,
+        json_out=json_out,
     )
 
 

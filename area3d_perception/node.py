@@ -146,6 +146,7 @@ class PerceptionNode(Node):
         self.status = StatusPublisher(self, STATUS_TOPIC, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
+        self.last_frame_age_s: float | None = None  # age of the last frame published, seconds
 
         self.pub_depth = self.create_publisher(msgs.Image, OUT_DEPTH_TOPIC, qos.graph_frames())
         self.pub_conf = self.create_publisher(msgs.Image, OUT_CONFIDENCE_TOPIC, qos.graph_frames())
@@ -176,6 +177,9 @@ class PerceptionNode(Node):
         return {
             "node": "perception",
             "frames_published": self.frames_published,
+            "last_frame_age_s": None
+            if self.last_frame_age_s is None
+            else round(self.last_frame_age_s, 4),
             "frames_waiting_for_camera_info": len(self.waiting),
             "parts_dropped_unpaired": self.dropped,
             "rejected": self.rejections.snapshot(),
@@ -278,6 +282,9 @@ class PerceptionNode(Node):
         self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
         self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
         self.frames_published += 1
+        # how old the frame was when its outputs went out, by this node's clock (the camera's
+        # stamp is its capture time; recorded or simulated stamps make this meaningless)
+        self.last_frame_age_s = (self.get_clock().now().nanoseconds - stamp) / 1e9
         self.status.changed()
 
 

@@ -1,0 +1,25 @@
+"""The soak benchmark on a short stream: every frame the camera sends is published by perception
+and fused by the planner, the mission manager (a process of its own) gets a plan for each
+request, and each stage reports how old its frames were. Its figures (memory, latency) are the
+benchmark's to print, not this test's to assert."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from area3d_bringup.soak_bench import run_bench
+
+
+def test_a_short_stream_loses_no_frame_and_every_request_gets_a_plan():
+    f = run_bench(frames=40, duration_s=60.0, rate_hz=10.0, plan_every_s=0.5, print_table=False)
+    assert f["frames_sent"] == 40
+    assert f["frames_published_by_perception"] == 40
+    assert f["frames_fused"] == 40 and f["caught_up"]
+    assert f["planner_parts_dropped"] == 0
+    assert f["plan_requests"] >= 1 and f["plan_failures"] == []
+    assert len(f["plan_splits_s"]) == f["plan_requests"]
+    for split in f["plan_splits_s"]:
+        assert {"wait_fused", "wait_cache", "select"} <= set(split)
+    for name in ("perception", "planner"):
+        p50, p95, top = f["frame_age_s"][name]
+        assert np.isfinite(top) and 0 < p50 <= p95 <= top
