@@ -257,6 +257,7 @@ def run_bench(
         # every request's round trip and the planner's split of it, in order
         "plan_round_trips_s": [round(v, 4) for v in latencies],
         "plan_splits_s": breakdown,
+        "planner_fused_ages_s": [round(float(v), 4) for v in ages["planner"]],
     }
     if print_table:
         _print_table(figures)
