@@ -253,6 +253,7 @@ def run_bench(
         "target_plan_p95_s": TARGET_PLAN_P95_S,
         "perception_rejected": last(perception_status).get("rejected"),
         "planner_parts_dropped": last(planner_status).get("parts_dropped_unpaired"),
+        "planner_frames_dropped_backlog": last(planner_status).get("frames_dropped_backlog"),
         "drop_lines": [line for line in lines if " dropped: " in line][:5],
         # every request's round trip and the planner's split of it, in order
         "plan_round_trips_s": [round(v, 4) for v in latencies],
@@ -321,6 +322,11 @@ def _print_table(f: dict) -> None:
     )
     table.add_row("fused by the planner", str(f["frames_fused"]), "= frames sent")
     table.add_row("planner: parts dropped unpaired", str(f["planner_parts_dropped"]), "0")
+    table.add_row(
+        "planner: frames dropped, fusion backlog full",
+        str(f["planner_frames_dropped_backlog"]),
+        "0",
+    )
     table.add_row(
         "stream / drain after it", f"{f['stream_s']:.0f} s / {f['drain_after_stream_s']:.1f} s", ""
     )

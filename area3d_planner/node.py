@@ -69,6 +69,8 @@ MAX_FRAMES_WITHOUT_INFO = 64
 # Service requests and frame callbacks run on separate threads: a request waits for the frame it
 # names to be fused, which needs the frame callbacks to keep running.
 EXECUTOR_THREADS = 3
+# Whole frames waiting for the fusion worker at most (640x480 depth + confidence: 2.4 MB each).
+FUSION_BACKLOG = 128
 STATUS_AFTER_REQUEST_S = 0.05  # the status follows a request's answer this much later, seconds
 # On shutdown a mask rebuild in flight gets this long to finish; the node exits regardless, so
 # Ctrl-C stops it within ROS 2's usual couple of seconds (issue 13: within 2 s).
@@ -193,7 +195,8 @@ class PlannerNode(Node):
         # a rejection is announced by the status that follows requests (created below)
         self.rejections = Rejections(on_count=lambda: self._status_after_request.reset())
         self.dropped = 0
-        self._fusion_queue: queue.SimpleQueue = queue.SimpleQueue()  # whole frames, in order
+        self._fusion_queue: queue.Queue = queue.Queue(FUSION_BACKLOG)  # whole frames, in order
+        self.backlog_dropped = 0
         self._fusion_worker = threading.Thread(
             target=self._fusion_loop, name="planner-fusion", daemon=True
         )
@@ -259,6 +262,7 @@ class PlannerNode(Node):
         status = {
             **self.server.status(),
             "parts_dropped_unpaired": self.dropped,
+            "frames_dropped_backlog": self.backlog_dropped,
             "last_fused_age_s": None
             if self.last_fused_age_s is None
             else round(self.last_fused_age_s, 4),
@@ -284,7 +288,10 @@ class PlannerNode(Node):
 
     def _stop_fusion(self, timeout_s: float) -> None:
         """Stop the fusion worker after the frame in flight (frames still queued are not fused)."""
-        self._fusion_queue.put(None)
+        try:
+            self._fusion_queue.put(None, timeout=max(timeout_s, 0.1))
+        except queue.Full:  # a full backlog: the worker ends at the closed gate anyway
+            pass
         if self._fusion_worker is not threading.current_thread():
             self._fusion_worker.join(timeout_s)
 
@@ -334,8 +341,17 @@ class PlannerNode(Node):
         self._fuse(stamp, frame, K)
 
     def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
-        """Hand a whole frame to the fusion worker, in arrival order."""
-        self._fusion_queue.put((stamp, frame, K))
+        """Hand a whole frame to the fusion worker, in arrival order; a frame that finds
+        FUSION_BACKLOG frames waiting is dropped, logged and counted (`frames_dropped_backlog`):
+        a camera that outruns the planner for good must not grow its memory without bound."""
+        try:
+            self._fusion_queue.put_nowait((stamp, frame, K))
+        except queue.Full:
+            self.backlog_dropped += 1
+            self.get_logger().warning(
+                f"frame at stamp {stamp} dropped: {FUSION_BACKLOG} frames wait for fusion already "
+                "(the camera outruns the planner)"
+            )
 
     def _fusion_loop(self) -> None:
         """Fuse frames one at a time, off the executor.

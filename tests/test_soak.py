@@ -15,7 +15,7 @@ def test_a_short_stream_loses_no_frame_and_every_request_gets_a_plan():
     assert f["frames_sent"] == 40
     assert f["frames_published_by_perception"] == 40
     assert f["frames_fused"] == 40 and f["caught_up"]
-    assert f["planner_parts_dropped"] == 0
+    assert f["planner_parts_dropped"] == 0 and f["planner_frames_dropped_backlog"] == 0
     assert f["plan_requests"] >= 1 and f["plan_failures"] == []
     assert len(f["plan_splits_s"]) == f["plan_requests"]
     for split in f["plan_splits_s"]:
