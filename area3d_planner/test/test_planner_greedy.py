@@ -162,3 +162,35 @@ def test_a_taken_view_rules_out_the_same_direction_from_the_centre_at_any_range(
     np.testing.assert_array_equal(only_near, [1, 0, 0, 0, 0, 0, 0, 0])
     off = GreedyParams(nms_radius=0.02, nms_angle_deg=30.0)
     np.testing.assert_array_equal(taken_views(cache, taken, off, centre)[:, 0], only_near)
+
+
+def test_views_taken_from_many_repeated_and_jittered_poses_match_a_direct_count():
+    """Repeated poses (a camera streaming from one place) count once; the result is the direct
+    pose-by-pose test of distance and angle, with and without the centre rule."""
+    cache, _, _ = random_instance(5)
+    rng = np.random.default_rng(1)
+    places = [cache.view_pose(int(v)) for v in rng.choice(cache.num_views, 6, replace=False)]
+    poses = []
+    for k in range(600):
+        T = places[k % len(places)].copy()
+        if k % 3 == 0:  # a third of them moved by up to a few millimetres
+            T[:3, 3] += rng.normal(0.0, 0.002, 3)
+        poses.append(T)
+    centre = cache.seeds.mean(axis=0)
+    for params, c in (
+        (GreedyParams(nms_radius=0.08, nms_angle_deg=25.0), None),
+        (GreedyParams(nms_radius=0.08, nms_angle_deg=25.0, nms_centre_angle_deg=8.0), centre),
+    ):
+        expected = np.zeros((cache.num_seeds, cache.num_bins), bool)
+        for T in poses:
+            near = np.linalg.norm(cache.seeds - T[:3, 3], axis=1) <= params.nms_radius
+            if c is not None:
+                rays = cache.seeds - c
+                rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+                taken = (T[:3, 3] - c) / np.linalg.norm(T[:3, 3] - c)
+                near |= rays @ taken >= np.cos(np.radians(params.nms_centre_angle_deg))
+            cos = np.clip(cache.forward @ T[:3, 2], -1.0, 1.0)
+            expected |= near[:, None] & (np.degrees(np.arccos(cos)) <= params.nms_angle_deg + 1e-9)
+        got = taken_views(cache, poses, params, c)
+        assert expected.any() and not expected.all()
+        np.testing.assert_array_equal(got, expected)

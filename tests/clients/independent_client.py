@@ -198,6 +198,17 @@ def main():
     spec = json.loads(sys.argv[1])
     rclpy.init()
     client = Client()
+    extra = []  # nodes added to the client's executor later
+    try:
+        run(client, spec, extra)
+    finally:
+        # a failed check too stops the executor's thread before the interpreter ends (left
+        # spinning, it aborted the process at exit instead of letting it exit 1)
+        client.close(*extra)
+        rclpy.try_shutdown()
+
+
+def run(client, spec, extra):
     camera_topics = [t for t in TOPICS if t.startswith("/area3d/camera/")]
     client.wait(lambda: client.goal.get_subscription_count() >= 1, "the camera's goal subscription")
     client.wait(
@@ -294,6 +305,7 @@ def main():
     # a subscriber that starts now still gets the latched grid
     late_grid = []
     late = rclpy.create_node("late_subscriber")
+    extra.append(late)
     late.create_subscription(
         PointCloud2, "/area3d/planner/uncertainty_grid", late_grid.append, LATCHED
     )
@@ -313,8 +325,6 @@ def main():
         ),
         flush=True,
     )
-    client.close(late)
-    rclpy.try_shutdown()
 
 
 if __name__ == "__main__":
