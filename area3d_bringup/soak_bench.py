@@ -84,7 +84,7 @@ def run_bench(
     count = int(min(frames, round(duration_s * rate_hz)))
     scene, views = _frames(scene_name, width, height)
     planner = {
-        **scene_parameters(scene.name)["planner"],
+        **scene_parameters(scene_name)["planner"],
         "mode": "closed_loop",
         "budget": 2**31 - 1,  # every request plans; the budget never runs out
         "mask_lag_s": mask_lag_s,
@@ -301,7 +301,7 @@ def _parts(breakdown: list[dict], q: float) -> dict:
     """{part: q-th percentile, seconds} of the planner's per-request split (`last_request_s`)."""
     return {
         key: float(np.percentile([b[key] for b in breakdown if key in b], q))
-        for key in ("wait_fused", "wait_cache", "select")
+        for key in ("wait_fused", "wait_cache", "select", "masks_behind")
         if any(key in b for b in breakdown)
     }
 
@@ -348,6 +348,13 @@ def _print_table(f: dict) -> None:
         f"{f['plan_p50_s'] * 1e3:.0f} / {f['plan_p95_s'] * 1e3:.0f} / {f['plan_max_s'] * 1e3:.0f} ms",
         f"p95 < {f['target_plan_p95_s'] * 1e3:.0f} ms",
     )
+    behind = [f[f"plan_parts_p{q}_s"].get("masks_behind") for q in (50, 95)]
+    if None not in behind:
+        table.add_row(
+            "  masks planned with, behind the request's frame, p50 / p95",
+            f"{behind[0]:.2f} / {behind[1]:.2f} s",
+            f"<= mask_lag_s {f['mask_lag_s']:g} s without waiting",
+        )
     for q in (50, 95):
         parts = f[f"plan_parts_p{q}_s"]
         if parts:

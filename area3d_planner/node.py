@@ -142,6 +142,13 @@ PARAMS = (
         range=(0.0, 60.0),
     ),
     Param(
+        "grid_period_s",
+        1.0,
+        "while frames wait for fusion, the grid goes out at most this often (it goes out after "
+        "every frame otherwise, and once fusion has caught up), seconds",
+        range=(0.0, 3600.0),
+    ),
+    Param(
         "rebuild_nice",
         0,
         "the background rebuild runs this much nicer (lower CPU priority) than the node, so "
@@ -197,6 +204,8 @@ class PlannerNode(Node):
         self.dropped = 0
         self._fusion_queue: queue.Queue = queue.Queue(FUSION_BACKLOG)  # whole frames, in order
         self.backlog_dropped = 0
+        self.grid_period_s = p["grid_period_s"]
+        self._grid_sent = -np.inf  # time.monotonic() of the last grid published by fusion
         self._fusion_worker = threading.Thread(
             target=self._fusion_loop, name="planner-fusion", daemon=True
         )
@@ -385,7 +394,14 @@ class PlannerNode(Node):
                 if fused:
                     # how old the frame was once fused, by this node's clock (capture stamps only)
                     self.last_fused_age_s = (self._now_ns() - stamp) / 1e9
-                    self._publish_state(stamp)
+                    # the grid after every frame while fusion keeps up; during a backlog at most
+                    # every grid_period_s, and always once it has caught up (the last state)
+                    now = time.monotonic()
+                    if self._fusion_queue.empty() or now - self._grid_sent >= self.grid_period_s:
+                        self._grid_sent = now
+                        self._publish_state(stamp)
+                    else:
+                        self.status_pub.publish(self._status())
                 else:
                     self.get_logger().info(
                         f"frame {stamp} is fused already; the repeat changes nothing"

@@ -523,6 +523,9 @@ class NextBestViewServer:
                     return [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
                 t1 = time.perf_counter()
                 self.last_plan_s = {"wait_cache": t1 - t0}
+                if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
+                    behind = max(0, int(request.stamp_ns) - self._cache_stamp) / 1e9
+                    self.last_plan_s["masks_behind"] = behind
                 start = None if request.start is None else np.asarray(request.start, float)
                 self.context.start = start
                 try:

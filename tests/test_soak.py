@@ -6,12 +6,24 @@ benchmark's to print, not this test's to assert."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from area3d_bringup.soak_bench import run_bench
+from sim_bridge.holdout_scenes import write_holdout_scene
 
 
-def test_a_short_stream_loses_no_frame_and_every_request_gets_a_plan():
-    f = run_bench(frames=40, duration_s=60.0, rate_hz=10.0, plan_every_s=0.5, print_table=False)
+@pytest.mark.parametrize("scene", ["single_object", "generated tabletop"])
+def test_a_short_stream_loses_no_frame_and_every_request_gets_a_plan(scene, tmp_path):
+    if scene.startswith("generated"):  # a scene file by path, without metadata
+        scene = str(write_holdout_scene("tabletop", tmp_path / "tabletop", seed=1))
+    f = run_bench(
+        frames=40,
+        duration_s=60.0,
+        rate_hz=10.0,
+        plan_every_s=0.5,
+        scene_name=scene,
+        print_table=False,
+    )
     assert f["frames_sent"] == 40
     assert f["frames_published_by_perception"] == 40
     assert f["frames_fused"] == 40 and f["caught_up"]

@@ -381,6 +381,7 @@ def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a
         poses, reason = srv.plan(PlanRequest(f[1][4], 2, 1))
         assert reason == "" and len(poses) == 1
         assert not srv.cache_ready()  # planned while the masks lag the map
+        assert srv.last_plan_s["masks_behind"] == pytest.approx(1e-9)  # by 1 ns, as reported
         srv.add_frame(*f[2])  # 2 ns after it: beyond the lag, the request waits for a rebuild
         assert not srv.wait_cache(3, timeout_s=0.2)
         gate.set()
