@@ -69,7 +69,8 @@ PERCEPTION_DEPTH_TOPIC = "area3d/perception/depth"
 PERCEPTION_CONFIDENCE_TOPIC = "area3d/perception/confidence"
 NBV_SERVICE = "area3d/planner/next_best_view"
 TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
-# The grid is published after every fusion; the runner's reader keeps a backlog of them.
+# The grid is published after every fusion (in a burst, at most once a second and after the
+# last); the runner's reader keeps a backlog of them.
 GRID_READER_DEPTH = 100
 #: what the bag holds besides the camera topics and the goals: {topic: (type, reader QoS)}.
 #: Perception's and semantics' per-frame outputs are read transient local, as their writers

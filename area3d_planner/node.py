@@ -2,7 +2,8 @@
 
 Subscribes area3d/perception/depth, area3d/perception/confidence, area3d/camera/pose and
 area3d/camera/camera_info (paired by stamp), area3d/semantics/uncertainty. Publishes the latched
-area3d/planner/uncertainty_grid (after every fused frame), area3d/planner/status and
+area3d/planner/uncertainty_grid (after every fused frame; during a backlog at most every
+grid_period_s), area3d/planner/status and
 area3d/planner/next_views; serves area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Names are
 relative: `__ns` moves them all. The region of interest and workspace are parameters: the planner
 knows only what a robot knows, never the simulator's scene.
