@@ -298,6 +298,8 @@ class PlannerNode(Node):
 
     def _stop_fusion(self, timeout_s: float) -> None:
         """Stop the fusion worker after the frame in flight (frames still queued are not fused)."""
+        if not self._fusion_worker.is_alive():
+            return
         try:
             self._fusion_queue.put(None, timeout=max(timeout_s, 0.1))
         except queue.Full:  # a full backlog: the worker ends at the closed gate anyway

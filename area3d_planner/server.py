@@ -433,9 +433,8 @@ class NextBestViewServer:
 
     def _refresh_loop(self) -> None:
         self.worker_tid = threading.get_native_id()
-        if (
-            self.rebuild_nice > 0
-        ):  # Linux: a thread's own nice value; the build's threads inherit it
+        if self.rebuild_nice > 0:
+            # Linux: the nice value is a thread's own, and the build's threads inherit it
             base = os.getpriority(os.PRIO_PROCESS, self.worker_tid)
             os.setpriority(os.PRIO_PROCESS, self.worker_tid, min(19, base + self.rebuild_nice))
         kinds = () if self.policy.relevant is None else (self.policy.relevant,)
