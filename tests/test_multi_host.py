@@ -112,7 +112,9 @@ def test_camera_and_perception_on_one_host_the_rest_on_another_complete_an_episo
     data = json.loads((run_dir / "episode.json").read_text())
     assert len(data["views"]) == BUDGET
     assert data["recorded"]["/area3d/perception/depth"] == BUDGET  # perception ran on host a
-    assert data["recorded"]["/area3d/planner/uncertainty_grid"] >= BUDGET
+    # the planner on host b published its grid: after every fusion but within a burst (the 4
+    # initial views), so at least after the last of the burst and after each planned view
+    assert data["recorded"]["/area3d/planner/uncertainty_grid"] >= BUDGET - 4 + 1
     log = (run_dir / "nodes.log").read_text()
     assert "[planner]" in log and "[sim_bridge]" not in log and "[perception]" not in log
     assert "sim_bridge" in camera_log and "perception" in camera_log
