@@ -131,7 +131,7 @@ def run_bench(
             pids = {name: proc.pid for name, proc in launcher.processes.items()}
             rss_idle = {name: rss_mb(pid) for name, pid in pids.items()}
             rss_start: dict[str, float] = {}  # once warm: after the first tenth of the stream
-            warm = (0, 0, 0, 0)  # then: the stamp, and how many statuses and answers came before
+            warm = (0, 0, 0)  # then: how many planner and perception statuses and answers came
             rss_peak = dict(rss_idle)
             rss_tenths: dict[str, list[int]] = {}  # at the end of each tenth of the stream
 
@@ -189,7 +189,7 @@ def run_bench(
                         rss_peak[name] = max(rss_peak[name], rss_mb(pid))
                 if k == count // 10:
                     rss_start = {name: rss_mb(pid) for name, pid in pids.items()}
-                    warm = (stamp, len(planner_status), len(perception_status), len(latencies))
+                    warm = (len(planner_status), len(perception_status), len(latencies))
                 if (k + 1) % max(1, count // 10) == 0:  # the curve: flat, or growing to a bound
                     for name, pid in pids.items():
                         rss_tenths.setdefault(name, []).append(round(rss_mb(pid)))
@@ -210,10 +210,10 @@ def run_bench(
             launcher.stop()
     lat = np.asarray(latencies) if latencies else np.full(1, np.nan)
     # after the first tenth of the stream (warm: numba kernels loaded, the middleware's pools grown)
-    lat_warm = lat[warm[3] :] if lat[warm[3] :].size else np.full(1, np.nan)
+    lat_warm = lat[warm[2] :] if lat[warm[2] :].size else np.full(1, np.nan)
     ages = {
-        "perception": _ages(perception_status[warm[2] :], "last_frame_age_s"),
-        "planner": _ages(planner_status[warm[1] :], "last_fused_age_s"),
+        "perception": _ages(perception_status[warm[1] :], "last_frame_age_s"),
+        "planner": _ages(planner_status[warm[0] :], "last_fused_age_s"),
     }
     figures = {
         "scene": scene.name,
@@ -291,7 +291,7 @@ def _stop_manager(manager: subprocess.Popen) -> None:
 
 
 def _ages(statuses: list, key: str) -> np.ndarray:
-    """The `key` values (seconds) in a node's status messages, NaN where absent."""
+    """The `key` values (seconds) in a node's status messages that carry one ([NaN] if none do)."""
     values = [json.loads(m.data).get(key) for m in statuses]
     values = [v for v in values if v is not None]
     return np.asarray(values, float) if values else np.full(1, np.nan)

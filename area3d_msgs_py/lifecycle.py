@@ -31,8 +31,8 @@ STARTUP_ERRORS: tuple[type[Exception], ...] = (InputError, FileNotFoundError)
 SIGNAL_SHUTDOWN_WAIT_S = 10.0
 # glibc gives each new thread an arena of its own, up to 8 per core, and memory freed in one arena
 # is reused by that arena only. A node's executor, middleware and worker threads each take and
-# free frames of megabytes, so each arena kept its own peak: a planner held 110 MB more, and its
-# resident memory wandered by 20 MB, against two arenas in a 2-minute soak (`area3d bench soak`).
+# free frames of megabytes, so each arena kept its own peak: in 2-minute soaks (`area3d bench
+# soak`) a planner held 545-554 MB with the default arenas and 429-478 MB with two.
 MALLOC_ARENAS = 2
 M_ARENA_MAX = -8  # mallopt parameter, glibc's malloc.h
 
