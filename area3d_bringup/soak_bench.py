@@ -44,6 +44,19 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def rss_parts_mb(pid: int) -> dict[str, float]:
+    """The resident set's parts in MB (Linux /proc): anonymous (the heap: the node's own data),
+    shared memory (the middleware's shared-memory segments, mapped from every peer, whose pages
+    count once touched) and file-backed (code, libraries)."""
+    keys = {"RssAnon:": "anon", "RssShmem:": "shmem", "RssFile:": "file"}
+    parts = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key = line.split(":")[0] + ":"
+        if key in keys:
+            parts[keys[key]] = int(line.split()[1]) / 1024.0
+    return parts
+
+
 def _frames(scene_name: str, width: int, height: int) -> tuple[object, list]:
     """[(rgb, depth, K, T)] of the scene's initial and held-out views at width x height."""
     from sim_bridge.render import RgbdRenderer
@@ -134,6 +147,7 @@ def run_bench(
             warm = (0, 0, 0)  # then: how many planner and perception statuses and answers came
             rss_peak = dict(rss_idle)
             rss_tenths: dict[str, list[int]] = {}  # at the end of each tenth of the stream
+            rss_parts_tenths: dict[str, dict[str, list[int]]] = {}  # ... and its parts
 
             sent: list[int] = []
             latencies: list[float] = []
@@ -193,6 +207,10 @@ def run_bench(
                 if (k + 1) % max(1, count // 10) == 0:  # the curve: flat, or growing to a bound
                     for name, pid in pids.items():
                         rss_tenths.setdefault(name, []).append(round(rss_mb(pid)))
+                        for part, mb in rss_parts_mb(pid).items():
+                            rss_parts_tenths.setdefault(name, {}).setdefault(part, []).append(
+                                round(mb)
+                            )
             stream_s = time.perf_counter() - t0
             _stop_manager(manager)
             reader.join(timeout=120)
@@ -213,8 +231,10 @@ def run_bench(
     lat_warm = lat[warm[2] :] if lat[warm[2] :].size else np.full(1, np.nan)
     ages = {
         "perception": _ages(perception_status[warm[1] :], "last_frame_age_s"),
+        "planner_paired": _ages(planner_status[warm[0] :], "last_paired_age_s"),
         "planner": _ages(planner_status[warm[0] :], "last_fused_age_s"),
     }
+    fusion_s = _ages(planner_status[warm[0] :], "last_fusion_s")
     figures = {
         "scene": scene.name,
         "image": f"{width}x{height}",
@@ -233,6 +253,7 @@ def run_bench(
         "rss_end_mb": rss_end,
         "rss_peak_mb": rss_peak,
         "rss_tenths_mb": rss_tenths,
+        "rss_parts_tenths_mb": rss_parts_tenths,
         "plan_requests": len(latencies),
         "plan_failures": empty_plans,
         "plan_p50_s": float(np.percentile(lat, 50)),
@@ -240,12 +261,19 @@ def run_bench(
         "plan_max_s": float(lat.max()),
         "plan_warm_p50_s": float(np.percentile(lat_warm, 50)),
         "plan_warm_p95_s": float(np.percentile(lat_warm, 95)),
-        # age of each frame when perception published it / when the planner had fused it (their
-        # statuses, after the first tenth): p50, p95, max
+        # age of each frame when perception published it / when the planner had all its parts /
+        # when the planner had fused it (their statuses, after the first tenth): p50, p95, max
+        # (the planner's figures are sampled at each status it sends: most frames, not all)
         "frame_age_s": {
             name: [float(np.percentile(a, 50)), float(np.percentile(a, 95)), float(a.max())]
             for name, a in ages.items()
         },
+        # one frame's fusion in the planner, p50 / p95 / max
+        "fusion_s": [
+            float(np.percentile(fusion_s, 50)),
+            float(np.percentile(fusion_s, 95)),
+            float(fusion_s.max()),
+        ],
         # the planner's own account, p50 and p95: waiting for the frame, for the masks, selecting;
         # the rest of a round trip is transport and the executors' queues
         "plan_parts_p50_s": _parts(breakdown, 50),
@@ -343,6 +371,8 @@ def _print_table(f: dict) -> None:
         table.add_row(
             f"{name} RSS at each tenth of the stream", " ".join(map(str, tenths)) + " MB", ""
         )
+        for part, values in f["rss_parts_tenths_mb"].get(name, {}).items():
+            table.add_row(f"  of which {part}", " ".join(map(str, values)) + " MB", "")
     table.add_row(
         f"next view during fusion ({f['plan_requests']} requests) p50 / p95 / max",
         f"{f['plan_p50_s'] * 1e3:.0f} / {f['plan_p95_s'] * 1e3:.0f} / {f['plan_max_s'] * 1e3:.0f} ms",
@@ -373,12 +403,22 @@ def _print_table(f: dict) -> None:
         f"p95 < {f['target_plan_p95_s'] * 1e3:.0f} ms",
     )
     for name, (p50, p95, top) in f["frame_age_s"].items():
-        what = "published by perception" if name == "perception" else "fused by the planner"
+        what = {
+            "perception": "published by perception",
+            "planner_paired": "whole at the planner",
+            "planner": "fused by the planner",
+        }[name]
         table.add_row(
             f"frame age once {what}, p50 / p95 / max",
             f"{p50 * 1e3:.0f} / {p95 * 1e3:.0f} / {top * 1e3:.0f} ms",
             "",
         )
+    p50, p95, top = f["fusion_s"]
+    table.add_row(
+        "one frame's fusion in the planner, p50 / p95 / max",
+        f"{p50 * 1e3:.0f} / {p95 * 1e3:.0f} / {top * 1e3:.0f} ms",
+        "",
+    )
     table.add_row("requests without a plan", str(len(f["plan_failures"])), "0")
     Console().print(table)
     for line in f["drop_lines"]:

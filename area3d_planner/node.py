@@ -212,6 +212,10 @@ class PlannerNode(Node):
         )
         self._fusion_worker.start()
         self.last_fused_age_s: float | None = None  # age of the last frame fused, seconds
+        # the last fused frame's age when its last part arrived (it entered the fusion queue),
+        # and how long its fusion took, seconds: where a frame's age comes from
+        self.last_paired_age_s: float | None = None
+        self.last_fusion_s: float | None = None
 
         self.grid_pub = self.create_publisher(msgs.PointCloud2, GRID_TOPIC, qos.latched())
         self.status_pub = self.create_publisher(msgs.String, STATUS_TOPIC, qos.reliable(50))
@@ -273,9 +277,14 @@ class PlannerNode(Node):
             **self.server.status(),
             "parts_dropped_unpaired": self.dropped,
             "frames_dropped_backlog": self.backlog_dropped,
-            "last_fused_age_s": None
-            if self.last_fused_age_s is None
-            else round(self.last_fused_age_s, 4),
+            **{
+                key: None if value is None else round(value, 4)
+                for key, value in (
+                    ("last_paired_age_s", self.last_paired_age_s),
+                    ("last_fused_age_s", self.last_fused_age_s),
+                    ("last_fusion_s", self.last_fusion_s),
+                )
+            },
             "rejected": self.rejections.snapshot(),
         }
         return msgs.String(data=json.dumps(status))
@@ -357,7 +366,7 @@ class PlannerNode(Node):
         FUSION_BACKLOG frames waiting is dropped, logged and counted (`frames_dropped_backlog`):
         a camera that outruns the planner for good must not grow its memory without bound."""
         try:
-            self._fusion_queue.put_nowait((stamp, frame, K))
+            self._fusion_queue.put_nowait((stamp, frame, K, self._now_ns()))
         except queue.Full:
             self.backlog_dropped += 1
             self.get_logger().warning(
@@ -376,7 +385,8 @@ class PlannerNode(Node):
             item = self._fusion_queue.get()
             if item is None:
                 return
-            stamp, frame, K = item
+            stamp, frame, K, queued_ns = item
+            t0 = time.perf_counter()
             try:
                 fused = self.server.add_frame(
                     stamp, frame["depth"], frame["confidence"], K, frame["pose"]
@@ -395,6 +405,8 @@ class PlannerNode(Node):
                 if not running:
                     return
                 if fused:
+                    self.last_fusion_s = time.perf_counter() - t0
+                    self.last_paired_age_s = (queued_ns - stamp) / 1e9
                     # how old the frame was once fused, by this node's clock (capture stamps only)
                     self.last_fused_age_s = (self._now_ns() - stamp) / 1e9
                     # the grid after every frame while fusion keeps up; during a backlog at most

@@ -32,6 +32,10 @@ def test_a_short_stream_loses_no_frame_and_every_request_gets_a_plan(scene, tmp_
     assert len(f["plan_splits_s"]) == f["plan_requests"]
     for split in f["plan_splits_s"]:
         assert {"wait_fused", "wait_cache", "select"} <= set(split)
-    for name in ("perception", "planner"):
+    for name in ("perception", "planner_paired", "planner"):
         p50, p95, top = f["frame_age_s"][name]
         assert np.isfinite(top) and 0 < p50 <= p95 <= top
+    # a frame is whole at the planner before it is fused, and fusing it takes time
+    assert f["frame_age_s"]["planner_paired"][0] < f["frame_age_s"]["planner"][0]
+    p50, p95, top = f["fusion_s"]
+    assert 0 < p50 <= p95 <= top

@@ -82,3 +82,59 @@ def test_a_node_process_keeps_to_two_malloc_arenas_however_many_threads_allocate
     # share two beside the main thread's (malloc_info lists that one too)
     assert _arenas("default") >= 8
     assert _arenas("limit") <= 3
+
+
+MMAP_PROBE = """
+import ctypes, sys
+from area3d_msgs_py.lifecycle import tune_process
+if sys.argv[1] == "tuned":
+    tune_process()
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in (
+        "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+        "fordblks", "keepcost")]
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = MallInfo2
+libc.malloc.restype = ctypes.c_void_p
+libc.malloc.argtypes = [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+big, small = 3 * 2**20, 2**20
+libc.free(libc.malloc(big))  # glibc's own rule raises its threshold to the size of this block
+before = libc.mallinfo2().hblkhd
+blocks = [libc.malloc(big), libc.malloc(small)]
+mapped = libc.mallinfo2().hblkhd - before
+for block in blocks:
+    libc.free(block)
+print(mapped, sys.getswitchinterval())
+"""
+
+
+def _mapped_bytes_and_switch_interval(mode: str) -> tuple[int, float]:
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_MMAP_THRESHOLD_"}
+    out = subprocess.run(
+        [sys.executable, "-c", MMAP_PROBE, mode],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    mapped, interval = out.stdout.split()[-2:]
+    return int(mapped), float(interval)
+
+
+def test_a_node_process_maps_blocks_of_megabytes_afresh_and_switches_threads_every_millisecond():
+    from area3d_msgs_py.lifecycle import GIL_SWITCH_INTERVAL_S, LARGE_BLOCK_BYTES
+
+    # by default glibc, having freed a 3 MB block, serves the next one from the heap
+    mapped, interval = _mapped_bytes_and_switch_interval("default")
+    assert mapped == 0 and interval == 0.005
+    # tuned, the 3 MB block is mapped (and returned to the system when freed); the 1 MB one, below
+    # the threshold, still comes from the heap
+    mapped, interval = _mapped_bytes_and_switch_interval("tuned")
+    assert 3 * 2**20 <= mapped < 3 * 2**20 + LARGE_BLOCK_BYTES // 2
+    assert interval == GIL_SWITCH_INTERVAL_S
