@@ -165,3 +165,60 @@ def test_cloud_holds_occupied_and_uncertain_voxels_with_their_fields():
     assert r["occupancy"] == 1 and r["geometric"] == pytest.approx(0.25)
     assert r["uncertainty"] == pytest.approx(0.26)
     assert not np.any(cloud["occupancy"] == 0)  # known free voxels carry nothing
+
+
+def _observation_by_arrays(grid, depth, conf, K, T, max_range, stride, no_return):
+    """What a frame tells the grid, computed the direct way: every pixel back-projected into
+    arrays, a bincount over the voxels, the carving into a fresh grid."""
+    from area3d_perception.backproject import backproject
+    from area3d_perception.geometric import carve_depth_frame
+    from area3d_planner.fusion import _no_return_carving
+
+    n = grid.spec.num_voxels
+    points, pixel = backproject(depth, K, T)
+    c = conf.reshape(-1)[pixel].astype(np.float64)
+    vox, inside = grid.spec.flat_index(points)
+    keep = inside & np.isfinite(c)
+    vox, c = vox[keep], np.clip(c[keep], 0.0, 1.0)
+    count = np.bincount(vox, minlength=n)
+    hit = count > 0
+    frame_conf = np.bincount(vox, weights=c, minlength=n)[hit] / count[hit]
+    crossed = carve_depth_frame(
+        grid.spec,
+        depth,
+        K,
+        T,
+        np.zeros(grid.spec.shape, np.uint8),
+        stride,
+        max_range,
+        carve_no_return=_no_return_carving(depth, no_return),
+        count=False,
+    ).reshape(-1)
+    return np.flatnonzero(hit), frame_conf, np.flatnonzero((crossed > 0) & ~hit)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_frame_tallied_in_one_pass_tells_the_grid_what_the_direct_computation_does(seed):
+    # random poses (some looking out of the grid), depths with holes and beyond the grid,
+    # confidences with NaN and outside [0, 1]; frames one after another on one grid, so a scratch
+    # not cleared after a frame would show in the next
+    rng = np.random.default_rng(seed)
+    grid = make_grid(gamma=0.01)
+    for _ in range(6):
+        eye = rng.uniform(0.05, 0.95, 3)
+        T = look_at(eye, eye + rng.normal(size=3))
+        depth = rng.uniform(0.02, 1.5, (48, 64)).astype(np.float32)
+        depth[rng.random(depth.shape) < 0.1] = np.nan
+        depth[20:30, 10:40] = np.nan  # a region without return: carves to max range
+        conf = rng.uniform(-0.2, 1.2, depth.shape).astype(np.float32)
+        conf[rng.random(conf.shape) < 0.1] = np.nan
+        for stride, no_return in ((1, "regions"), (2, "all"), (3, "none")):
+            got = grid.observe_depth(depth, conf, K, T, 1.0, stride, no_return)
+            hit, frame_conf, free = _observation_by_arrays(
+                grid, depth, conf, K, T, 1.0, stride, no_return
+            )
+            assert hit.size > 0 and free.size > 0
+            np.testing.assert_array_equal(got.hit, hit)
+            np.testing.assert_array_equal(got.confidence, frame_conf.astype(np.float32))
+            np.testing.assert_array_equal(got.free, free)
+            grid.apply_depth(got)
