@@ -199,42 +199,46 @@ class FusedGrid:
             if self._scratch is None:
                 self._scratch = _FrameScratch(self.spec)
             scratch = self._scratch
-            # Surface hits: every pixel with a return and a confidence, back-projected
-            # (X = T D K^-1 x) into its voxel; each voxel's sample is the mean confidence of its
-            # pixels. One pass, tallied in the scratch, instead of arrays of every pixel.
-            touched = _tally_surface_hits(
-                depth,
-                conf,
-                float(K[0, 0]),
-                float(K[1, 1]),
-                float(K[0, 2]),
-                float(K[1, 2]),
-                T,
-                self.spec.lower,
-                float(self.spec.voxel_size),
-                np.asarray(self.spec.shape, np.int64),
-                scratch.pixels,
-                scratch.conf_sum,
-                scratch.touched,
-            )
-            hit = np.sort(scratch.touched[:touched])
-            frame_conf = scratch.conf_sum[hit] / scratch.pixels[hit]
-            # Free space: the perception package's carving (the one DDA for camera rays),
-            # counted once per voxel per frame here; pixels with no return carve out to
-            # max_range. A voxel hit in this frame is not free in it.
-            carve_depth_frame(
-                self.spec,
-                depth,
-                K,
-                T,
-                scratch.crossed,
-                stride,
-                max_range,
-                carve_no_return=_no_return_carving(depth, no_return),
-                count=False,  # crossed or not: the rays run in parallel
-            )
-            crossed = np.flatnonzero(scratch.crossed)
-            free = crossed[scratch.pixels[crossed] == 0]
+            try:
+                # Surface hits: every pixel with a return and a confidence, back-projected
+                # (X = T D K^-1 x) into its voxel; each voxel's sample is the mean confidence
+                # of its pixels. One pass, tallied in the scratch, not arrays of every pixel.
+                touched = _tally_surface_hits(
+                    depth,
+                    conf,
+                    float(K[0, 0]),
+                    float(K[1, 1]),
+                    float(K[0, 2]),
+                    float(K[1, 2]),
+                    T,
+                    self.spec.lower,
+                    float(self.spec.voxel_size),
+                    np.asarray(self.spec.shape, np.int64),
+                    scratch.pixels,
+                    scratch.conf_sum,
+                    scratch.touched,
+                )
+                hit = np.sort(scratch.touched[:touched])
+                frame_conf = scratch.conf_sum[hit] / scratch.pixels[hit]
+                # Free space: the perception package's carving (the one DDA for camera rays),
+                # counted once per voxel per frame here; pixels with no return carve out to
+                # max_range. A voxel hit in this frame is not free in it.
+                carve_depth_frame(
+                    self.spec,
+                    depth,
+                    K,
+                    T,
+                    scratch.crossed,
+                    stride,
+                    max_range,
+                    carve_no_return=_no_return_carving(depth, no_return),
+                    count=False,  # crossed or not: the rays run in parallel
+                )
+                crossed = np.flatnonzero(scratch.crossed)
+                free = crossed[scratch.pixels[crossed] == 0]
+            except BaseException:
+                scratch.reset()  # a frame that fails part way leaves nothing behind
+                raise
             scratch.clear(hit, crossed)
         capped = np.minimum(frame_conf, self.max_confidence)
         return DepthObservation(
@@ -393,9 +397,15 @@ class _FrameScratch:
         self.crossed = np.zeros(spec.shape, np.uint8)  # voxels the frame's rays crossed
 
     def clear(self, hit: np.ndarray, crossed: np.ndarray) -> None:
+        """Zero what a frame wrote: its hit voxels and the voxels its rays crossed."""
         self.pixels[hit] = 0
         self.conf_sum[hit] = 0.0
         self.crossed.reshape(-1)[crossed] = 0
+
+    def reset(self) -> None:
+        self.pixels.fill(0)
+        self.conf_sum.fill(0.0)
+        self.crossed.fill(0)
 
 
 @njit(cache=True, nogil=True)

@@ -222,3 +222,26 @@ def test_a_frame_tallied_in_one_pass_tells_the_grid_what_the_direct_computation_
             np.testing.assert_array_equal(got.confidence, frame_conf.astype(np.float32))
             np.testing.assert_array_equal(got.free, free)
             grid.apply_depth(got)
+
+
+def test_a_frame_that_fails_part_way_leaves_nothing_in_the_next_frames_tally(monkeypatch):
+    import area3d_planner.fusion as fusion
+
+    grid = make_grid(gamma=0.01)
+    depth, T = wall_frame()
+    conf = np.full_like(depth, 0.75)
+    real_carve = fusion.carve_depth_frame
+
+    def failing_carve(*args, **kwargs):
+        real_carve(*args, **kwargs)  # the scratch has the frame's hits and crossings by now
+        raise RuntimeError("carving failed")
+
+    monkeypatch.setattr(fusion, "carve_depth_frame", failing_carve)
+    with pytest.raises(RuntimeError):
+        grid.observe_depth(depth, conf, K, T, 5.0, 1, "regions")
+    monkeypatch.setattr(fusion, "carve_depth_frame", real_carve)
+    got = grid.observe_depth(depth, conf, K, T, 5.0, 1, "regions")
+    hit, frame_conf, free = _observation_by_arrays(grid, depth, conf, K, T, 5.0, 1, "regions")
+    np.testing.assert_array_equal(got.hit, hit)
+    np.testing.assert_array_equal(got.confidence, frame_conf.astype(np.float32))
+    np.testing.assert_array_equal(got.free, free)
