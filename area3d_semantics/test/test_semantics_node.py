@@ -67,9 +67,13 @@ class Rig:
 
     @staticmethod
     def _store(into):
-        return lambda msg: into.setdefault(codecs.stamp_to_ns(msg.header.stamp), []).append(
-            codecs.msg_to_image(msg)
-        )
+        def store(msg):
+            # decoded first, then published to the test in one assignment: the test thread reads
+            # `into` while this runs, and must never find a stamp without its image
+            stamp, image = codecs.stamp_to_ns(msg.header.stamp), codecs.msg_to_image(msg)
+            into[stamp] = [*into.get(stamp, []), image]
+
+        return store
 
     def spin(self, done, timeout_s=TIMEOUT_S) -> bool:
         """Wait until `done()` holds (True) or `timeout_s` passes (False)."""
