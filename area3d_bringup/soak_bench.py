@@ -264,16 +264,9 @@ def run_bench(
         # age of each frame when perception published it / when the planner had all its parts /
         # when the planner had fused it (their statuses, after the first tenth): p50, p95, max
         # (the planner's figures are sampled at each status it sends: most frames, not all)
-        "frame_age_s": {
-            name: [float(np.percentile(a, 50)), float(np.percentile(a, 95)), float(a.max())]
-            for name, a in ages.items()
-        },
+        "frame_age_s": {name: _p50_p95_max(a) for name, a in ages.items()},
         # one frame's fusion in the planner, p50 / p95 / max
-        "fusion_s": [
-            float(np.percentile(fusion_s, 50)),
-            float(np.percentile(fusion_s, 95)),
-            float(fusion_s.max()),
-        ],
+        "fusion_s": _p50_p95_max(fusion_s),
         # the planner's own account, p50 and p95: waiting for the frame, for the masks, selecting;
         # the rest of a round trip is transport and the executors' queues
         "plan_parts_p50_s": _parts(breakdown, 50),
@@ -323,6 +316,10 @@ def _ages(statuses: list, key: str) -> np.ndarray:
     values = [json.loads(m.data).get(key) for m in statuses]
     values = [v for v in values if v is not None]
     return np.asarray(values, float) if values else np.full(1, np.nan)
+
+
+def _p50_p95_max(values: np.ndarray) -> list[float]:
+    return [float(np.percentile(values, 50)), float(np.percentile(values, 95)), float(values.max())]
 
 
 def _parts(breakdown: list[dict], q: float) -> dict:
