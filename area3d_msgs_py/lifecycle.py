@@ -77,32 +77,28 @@ class PublishGate:
             self._open = False
 
 
-def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
-    """Cap glibc's malloc arenas for the threads this process starts from now on; True if done.
-
-    Leaves the cap alone where the user sets one (MALLOC_ARENA_MAX in the environment) and where
-    the C library is not glibc."""
-    if "MALLOC_ARENA_MAX" in os.environ:
+def _mallopt(parameter: int, value: int, env_var: str) -> bool:
+    """glibc's mallopt(parameter, value), unless the user set `env_var` (glibc's own environment
+    setting for it) or the C library is not glibc; True if done."""
+    if env_var in os.environ:
         return False
     try:
         mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):
         return False
-    return bool(mallopt(M_ARENA_MAX, int(arenas)))
+    return bool(mallopt(parameter, int(value)))
+
+
+def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
+    """Cap glibc's malloc arenas for the threads this process starts from now on; True if done.
+    A MALLOC_ARENA_MAX in the environment wins."""
+    return _mallopt(M_ARENA_MAX, arenas, "MALLOC_ARENA_MAX")
 
 
 def map_large_blocks(threshold: int = LARGE_BLOCK_BYTES) -> bool:
     """Fix glibc's mmap threshold at `threshold` bytes (see LARGE_BLOCK_BYTES); True if done.
-
-    Leaves it alone where the user sets one (MALLOC_MMAP_THRESHOLD_ in the environment) and where
-    the C library is not glibc."""
-    if "MALLOC_MMAP_THRESHOLD_" in os.environ:
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return False
-    return bool(mallopt(M_MMAP_THRESHOLD, int(threshold)))
+    A MALLOC_MMAP_THRESHOLD_ in the environment wins."""
+    return _mallopt(M_MMAP_THRESHOLD, threshold, "MALLOC_MMAP_THRESHOLD_")
 
 
 def tune_process() -> None:

@@ -32,6 +32,16 @@ def pixel_rays(K: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
+def pixel_to_world(u, v, d, fx, fy, cx, cy, T, out):  # pragma: no cover - compiled
+    """out[:3] = T (d K^-1 [u + 0.5, v + 0.5, 1]): the world point of pixel (u, v) at depth d
+    along the optical z axis. The one back-projection of the compiled kernels."""
+    px = (u + 0.5 - cx) / fx * d
+    py = (v + 0.5 - cy) / fy * d
+    for a in range(3):
+        out[a] = T[a, 0] * px + T[a, 1] * py + T[a, 2] * d + T[a, 3]
+
+
+@njit(cache=True, nogil=True)
 def _backproject(depth, fx, fy, cx, cy, T):  # pragma: no cover - compiled
     h, w = depth.shape
     n = 0
@@ -44,15 +54,11 @@ def _backproject(depth, fx, fy, cx, cy, T):  # pragma: no cover - compiled
     pixel = np.empty(n, dtype=np.int64)
     m = 0
     for v in range(h):
-        y = (v + 0.5 - cy) / fy
         for u in range(w):
             d = np.float64(depth[v, u])
             if not (np.isfinite(d) and d > 0):
                 continue
-            px = (u + 0.5 - cx) / fx * d
-            py = y * d
-            for a in range(3):
-                points[m, a] = T[a, 0] * px + T[a, 1] * py + T[a, 2] * d + T[a, 3]
+            pixel_to_world(u, v, d, fx, fy, cx, cy, T, points[m])
             pixel[m] = v * w + u
             m += 1
     return points, pixel

@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import backproject
+from area3d_perception.backproject import backproject, pixel_to_world
 from area3d_perception.geometric import carve_depth_frame
 from area3d_perception.grid import GridSpec
 
@@ -413,14 +413,14 @@ def _tally_surface_hits(
     depth, conf, fx, fy, cx, cy, T, lower, voxel_size, shape, pixels, conf_sum, touched
 ):  # pragma: no cover - compiled
     """Back-project each pixel with a finite depth > 0 and a finite confidence (clipped to
-    [0, 1]) into its voxel (the arithmetic of `backproject` and `GridSpec.flat_index`), and
+    [0, 1]) into its voxel (`pixel_to_world`, then the voxel rule of `GridSpec.flat_index`), and
     tally pixels and confidence per voxel inside the grid; returns how many voxels it touched
     (their ids in touched[:count]). Reads only its inputs and the scratch, so it releases the
     GIL."""
     h, w = depth.shape
+    point = np.empty(3, np.float64)
     count = 0
     for v in range(h):
-        y = (v + 0.5 - cy) / fy
         for u in range(w):
             d = np.float64(depth[v, u])
             if not (np.isfinite(d) and d > 0):
@@ -428,13 +428,11 @@ def _tally_surface_hits(
             c = np.float64(conf[v, u])
             if not np.isfinite(c):
                 continue
-            px = (u + 0.5 - cx) / fx * d
-            py = y * d
+            pixel_to_world(u, v, d, fx, fy, cx, cy, T, point)
             index = 0
             inside = True
             for a in range(3):
-                point = T[a, 0] * px + T[a, 1] * py + T[a, 2] * d + T[a, 3]
-                x = np.floor((point - lower[a]) / voxel_size)
+                x = np.floor((point[a] - lower[a]) / voxel_size)
                 if not (np.isfinite(x) and 0 <= x < shape[a]):
                     inside = False
                     break

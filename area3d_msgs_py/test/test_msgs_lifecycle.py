@@ -60,21 +60,27 @@ with tempfile.NamedTemporaryFile(suffix=".xml") as f:
 """
 
 
-def _arenas(mode: str) -> int:
+def _probe(code: str, mode: str, unset: str) -> list[str]:
+    """The words `code` prints, run in a fresh interpreter with `mode` and without `unset` in
+    its environment."""
     import os
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    env = {k: v for k, v in os.environ.items() if k != unset}
     out = subprocess.run(
-        [sys.executable, "-c", ARENA_PROBE, mode],
+        [sys.executable, "-c", code, mode],
         env=env,
         capture_output=True,
         text=True,
         timeout=120,
         check=True,
     )
-    return int(out.stdout.split()[-1])
+    return out.stdout.split()
+
+
+def _arenas(mode: str) -> int:
+    return int(_probe(ARENA_PROBE, mode, "MALLOC_ARENA_MAX")[-1])
 
 
 def test_a_node_process_keeps_to_two_malloc_arenas_however_many_threads_allocate():
@@ -110,20 +116,7 @@ print(mapped, sys.getswitchinterval())
 
 
 def _mapped_bytes_and_switch_interval(mode: str) -> tuple[int, float]:
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if k != "MALLOC_MMAP_THRESHOLD_"}
-    out = subprocess.run(
-        [sys.executable, "-c", MMAP_PROBE, mode],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
-    )
-    mapped, interval = out.stdout.split()[-2:]
+    mapped, interval = _probe(MMAP_PROBE, mode, "MALLOC_MMAP_THRESHOLD_")[-2:]
     return int(mapped), float(interval)
 
 
