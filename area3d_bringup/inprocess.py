@@ -71,11 +71,14 @@ def run_inprocess_episode(
     )
     server = NextBestViewServer(config)
     baseline = float(camera_params.get("stereo_baseline", STEREO_BASELINE)) if stereo else 0.0
-    camera = SimCamera(scene, stereo_baseline=baseline)
+    camera = SimCamera(
+        scene,
+        depth_noise=bool(camera_params.get("depth_noise", True)),
+        seed=int(camera_params.get("noise_seed", 0)) + seed,
+        stereo_baseline=baseline,
+    )
     estimator = FrameEstimator(
         backend=perception.get("backend", "rgbd"),
-        noise=bool(perception.get("noise", True)),
-        noise_seed=int(perception.get("noise_seed", 0)) + seed,
         uniform_confidence=bool(perception.get("uniform_confidence", False)),
         stereo=StereoParams(
             **{

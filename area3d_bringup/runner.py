@@ -630,7 +630,13 @@ def run_episode(
     )
     for node, values in config.overrides.items():
         overrides.setdefault(node, {}).update(values)
-    specs = build_graph(load_parameters(config.params_file), overrides)
+    parameters = load_parameters(config.params_file)
+    # the camera's noise differs from seed to seed, as in the in-process path
+    noise_seed = overrides.get("sim_bridge", {}).get(
+        "noise_seed", parameters.get("sim_bridge", {}).get("noise_seed", 0)
+    )
+    overrides["sim_bridge"]["noise_seed"] = int(noise_seed) + config.seed
+    specs = build_graph(parameters, overrides)
 
     recorded: dict[str, int] = dict(saved.get("recorded", {})) if resume is not None else {}
     lease = middleware.DomainLease(config.domain_id)

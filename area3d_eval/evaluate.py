@@ -37,7 +37,7 @@ from area3d_eval.rundir import (
     frame_files,
     read_episode,
     read_frame,
-    reconstruction_depth,
+    reconstruction_input,
     write_json,
 )
 from area3d_msgs_py.errors import InputError
@@ -194,8 +194,8 @@ def evaluate_run(
         t = time.perf_counter()
         for path in files[fusion.num_frames : n]:
             frame = read_frame(path)
-            depth = reconstruction_depth(frame, depth_source)
-            fusion.integrate(frame.rgb, depth, frame.K, frame.T_world_cam)
+            depth, confidence = reconstruction_input(frame, depth_source)
+            fusion.integrate(frame.rgb, depth, frame.K, frame.T_world_cam, confidence)
         timings["tsdf"] += time.perf_counter() - t
         t = time.perf_counter()
         mesh = fusion.extract_mesh()

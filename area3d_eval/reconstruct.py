@@ -2,6 +2,14 @@
 
 The paper evaluates the selected views with 3D Gaussian Splatting (see `splat.py`); on a CPU the
 reconstruction is a TSDF mesh fused from the same frames, evaluated against the ground-truth mesh.
+
+Each pixel's measurement enters the running weighted average of the voxels it reaches with its
+confidence as weight (Curless and Levoy's weighted TSDF, 1996; the per-pixel weight is the depth's
+confidence in [0, 1], 1 for every pixel when none is given): a later, confident view of a surface
+outweighs an early, poor estimate of it instead of being averaged with it as an equal. Open3D's
+voxel block grid holds the volume (block allocation in the camera frustum, marching cubes); the
+weighted update of its voxels is ours (`_integrate_weighted`), as Open3D integrates every pixel
+with weight 1.
 """
 
 from __future__ import annotations
@@ -12,13 +20,17 @@ from typing import Any
 
 import numpy as np
 
+from numba import njit
+
 from area3d_eval.open3d_loader import import_open3d
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import depth_to_world
 
 BLOCK_RESOLUTION = 8  # voxels per block edge (Open3D's default)
 INITIAL_BLOCK_COUNT = 20_000  # hash map capacity to start with; it grows on demand
-MIN_WEIGHT = 0.5  # keep every voxel seen by at least one frame (each frame adds weight 1)
+# Voxels whose summed weight (confidence) is below this are left out of the mesh: every voxel a
+# measurement reached counts, however unsure (pixels with confidence 0 add nothing).
+MIN_WEIGHT = 1e-3
 
 
 @dataclass(frozen=True)
@@ -117,10 +129,16 @@ class TsdfFusion:
         self.num_frames = 0
 
     def integrate(
-        self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray
+        self,
+        rgb: np.ndarray,
+        depth: np.ndarray,
+        K: np.ndarray,
+        T_world_cam: np.ndarray,
+        confidence: np.ndarray | None = None,
     ) -> None:
         """Fuse one frame. rgb (H, W, 3) uint8; depth (H, W) float32 metres, NaN = no return;
-        K (3, 3); T_world_cam (4, 4) optical frame in `world`."""
+        K (3, 3); T_world_cam (4, 4) optical frame in `world`; confidence (H, W) in [0, 1], the
+        weight of each pixel's measurement (NaN = 0; None = 1 everywhere)."""
         o3d = import_open3d()
         core = o3d.core
         rgb = np.asarray(rgb)
@@ -131,48 +149,63 @@ class TsdfFusion:
             raise InputError("rgb", f"{rgb.dtype} {rgb.shape}", "(H, W, 3) uint8")
         if depth.shape != rgb.shape[:2]:
             raise InputError("depth", f"shape {depth.shape}", f"(H, W) = {rgb.shape[:2]} like rgb")
+        if confidence is None:
+            confidence = np.ones(depth.shape, np.float32)
+        confidence = np.asarray(confidence, dtype=np.float32)
+        if confidence.shape != depth.shape:
+            raise InputError(
+                "confidence", f"shape {confidence.shape}", f"(H, W) = {depth.shape} like depth"
+            )
         if K.shape != (3, 3) or not K[0, 0] > 0:
             raise InputError("K", K.tolist(), "(3, 3) intrinsics with fx > 0")
         if T_world_cam.shape != (4, 4) or not np.all(np.isfinite(T_world_cam)):
             raise InputError("T_world_cam", T_world_cam.shape, "a finite (4, 4) pose")
         p = self.params
-        rgb, depth, K = subsample(rgb, depth, K, int(p.depth_stride))
+        stride = int(p.depth_stride)
+        _, confidence, _ = subsample(rgb, confidence, K, stride)
+        rgb, depth, K = subsample(rgb, depth, K, stride)
         if self.roi_lo is not None:
             depth = mask_outside_box(
                 depth, K, T_world_cam, self.roi_lo - p.roi_margin, self.roi_hi + p.roi_margin
             )
-        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+        weight = np.where(np.isfinite(confidence), np.clip(confidence, 0.0, 1.0), 0.0)
+        depth = np.where(np.isfinite(depth) & (depth > 0) & (weight > 0), depth, 0.0)
+        depth = depth.astype(np.float32)
         self.num_frames += 1
         if not depth.any():
             return
         # Open3D puts pixel centres at integer coordinates: its principal point is ours - 0.5 px.
         K_o3d = K.copy()
         K_o3d[:2, 2] -= 0.5
-        intrinsic = core.Tensor(K_o3d, core.float64)
-        extrinsic = core.Tensor(np.linalg.inv(T_world_cam), core.float64)
+        extrinsic = np.linalg.inv(T_world_cam)
         depth_img = o3d.t.geometry.Image(core.Tensor(np.ascontiguousarray(depth)))
-        colour_img = o3d.t.geometry.Image(
-            core.Tensor(np.ascontiguousarray(rgb, dtype=np.float32) / 255.0)
-        )
-        multiplier = float(p.sdf_trunc / p.voxel_length)
         blocks = self._grid.compute_unique_block_coordinates(
             depth_img,
-            intrinsic,
-            extrinsic,
+            core.Tensor(K_o3d, core.float64),
+            core.Tensor(extrinsic, core.float64),
             1.0,
             float(p.depth_trunc),
-            trunc_voxel_multiplier=multiplier,
+            trunc_voxel_multiplier=float(p.sdf_trunc / p.voxel_length),
         )
-        self._grid.integrate(
-            blocks,
-            depth_img,
-            colour_img,
-            intrinsic,
-            intrinsic,
+        hashmap = self._grid.hashmap()
+        hashmap.activate(blocks)  # may grow the map: read the attributes afterwards
+        buffer_ids, _ = hashmap.find(blocks)
+        coords, voxel_ids = self._grid.voxel_coordinates_and_flattened_indices(
+            buffer_ids.to(core.int32)
+        )
+        _integrate_weighted(
+            coords.numpy(),
+            voxel_ids.numpy(),
+            self._grid.attribute("tsdf").numpy().reshape(-1),
+            self._grid.attribute("weight").numpy().reshape(-1),
+            self._grid.attribute("color").numpy().reshape(-1, 3),
+            depth,
+            weight.astype(np.float32),
+            np.ascontiguousarray(rgb, dtype=np.float32),  # Open3D keeps colour in 0-255
+            K_o3d,
             extrinsic,
-            1.0,
+            float(p.sdf_trunc),
             float(p.depth_trunc),
-            trunc_voxel_multiplier=multiplier,
         )
 
     def extract_mesh(self) -> Any:
@@ -189,6 +222,60 @@ class TsdfFusion:
                 np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0)
             )
         return mesh
+
+
+@njit(cache=True, nogil=True)
+def _integrate_weighted(
+    coords, voxel_ids, tsdf, weight, color, depth, conf, rgb, K, T_cam_world, sdf_trunc, depth_max
+):  # pragma: no cover - compiled
+    """Weighted TSDF update of the voxels at `coords` (V, 3) world metres (their flat attribute
+    indices `voxel_ids`): project each into the image (K with pixel centres at integer
+    coordinates), take the nearest pixel's depth d and weight c, and where d > 0 and the voxel is
+    in front of or at most sdf_trunc behind the surface, fold min(d - z, trunc) / trunc and the
+    pixel's colour into the voxel's averages with weight c."""
+    h, w = depth.shape
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    for n in range(coords.shape[0]):
+        x, y, z = coords[n, 0], coords[n, 1], coords[n, 2]
+        xc = (
+            T_cam_world[0, 0] * x
+            + T_cam_world[0, 1] * y
+            + T_cam_world[0, 2] * z
+            + T_cam_world[0, 3]
+        )
+        yc = (
+            T_cam_world[1, 0] * x
+            + T_cam_world[1, 1] * y
+            + T_cam_world[1, 2] * z
+            + T_cam_world[1, 3]
+        )
+        zc = (
+            T_cam_world[2, 0] * x
+            + T_cam_world[2, 1] * y
+            + T_cam_world[2, 2] * z
+            + T_cam_world[2, 3]
+        )
+        if zc <= 0:
+            continue
+        u = int(np.floor(fx * xc / zc + cx + 0.5))
+        v = int(np.floor(fy * yc / zc + cy + 0.5))
+        if u < 0 or v < 0 or u >= w or v >= h:
+            continue
+        d = depth[v, u]
+        c = conf[v, u]
+        if not (d > 0 and d <= depth_max and c > 0):
+            continue
+        sdf = d - zc
+        if sdf < -sdf_trunc:
+            continue
+        value = min(sdf, sdf_trunc) / sdf_trunc
+        k = voxel_ids[n]
+        old = weight[k]
+        total = old + c
+        tsdf[k] = (old * tsdf[k] + c * value) / total
+        for a in range(3):
+            color[k, a] = (old * color[k, a] + c * rgb[v, u, a]) / total
+        weight[k] = total
 
 
 def tsdf_reconstruct(

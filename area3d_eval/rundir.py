@@ -10,7 +10,8 @@ Layout (all paths relative to RUN_DIR):
 - `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
   K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index. Optional:
   estimated_depth (H, W) float32 metres NaN = missing and confidence (H, W) float32 in [0, 1],
-  what perception made of the frame (the depth the TSDF uses with depth_source "estimated").
+  what perception made of the frame (the depth and the weights the TSDF uses with depth_source
+  "estimated").
 - `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays
   x, y, z, uncertainty, geometric, semantic, occupancy (one entry per voxel).
 - `bag/`: rosbag2 MCAP of everything the graph published (`bag_N/` for resumed parts); the
@@ -191,17 +192,24 @@ def check_depth_source(depth_source: str) -> str:
     return depth_source
 
 
-def reconstruction_depth(frame: Frame, depth_source: str) -> np.ndarray:
-    """The (H, W) float32 depth the TSDF integrates for `frame` under `depth_source`."""
+def reconstruction_input(frame: Frame, depth_source: str) -> tuple[np.ndarray, np.ndarray]:
+    """(depth, confidence), both (H, W) float32, that the TSDF integrates for `frame` under
+    `depth_source`: the camera's depth weighted by the camera's sensor model
+    (`area3d_perception.sensor_model.rgbd_confidence`, whatever the planner was told), or
+    perception's estimate weighted by perception's confidence (both kept in the frame)."""
     if check_depth_source(depth_source) == "sensor":
-        return frame.depth
-    if frame.estimated_depth is None:
-        raise InputError(
-            f"frames/{frame.index:04d}.npz estimated_depth",
-            None,
-            "perception's depth in every frame (run the episode with depth_source estimated)",
-        )
-    return frame.estimated_depth
+        from area3d_perception.sensor_model import rgbd_confidence
+
+        return frame.depth, rgbd_confidence(frame.depth, frame.K)
+    for name in ("estimated_depth", "confidence"):
+        if getattr(frame, name) is None:
+            raise InputError(
+                f"frames/{frame.index:04d}.npz {name}",
+                None,
+                "perception's depth and confidence in every frame (run the episode with "
+                "depth_source estimated)",
+            )
+    return frame.estimated_depth, frame.confidence
 
 
 def frame_path(run_dir: Path, index: int) -> Path:

@@ -1,13 +1,15 @@
 """One captured frame in, metric depth and per-pixel confidence in [0, 1] out, for any backend.
 
 Backends:
-    rgbd              sensor depth (optionally with simulated noise) + `rgbd_confidence`
+    rgbd              sensor depth + `rgbd_confidence`
     uniform           sensor depth, confidence 1 on every valid pixel (the "w/o feed-forward" ablation)
     stereo            depth matched from a rectified pair (left = the colour image) + stereo confidence
     vggt              VGGT depth + confidence over a sliding window of recent views, scaled to metres
     depth_anything_3  the same with Depth Anything 3
 
-This is the pure core of the perception node: no transport, arrays in and out.
+This is the pure core of the perception node: no transport, arrays in and out. It never alters the
+depth it is given (a real camera's noise is in its depth already; the simulated camera adds its own,
+`sim_bridge.camera`): invalid values become NaN, and depth beyond the sensor's range is cut.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from area3d_perception.feedforward import (
     align_scale_to_poses,
     normalize_confidence,
 )
-from area3d_perception.sensor_model import RgbdSensorParams, add_depth_noise, rgbd_confidence
+from area3d_perception.sensor_model import RgbdSensorParams, rgbd_confidence
 from area3d_perception.stereo import StereoMatcher, StereoParams
 
 BACKENDS = ("rgbd", "vggt", "depth_anything_3", "uniform", "stereo")
@@ -107,9 +109,7 @@ def check_frame(
 class FrameEstimator:
     """Per-frame depth + confidence with one of `BACKENDS`.
 
-    sensor: noise/confidence model of the depth camera (rgbd backend; noise for all backends).
-    noise: add simulated sensor noise to the incoming depth (simulation only).
-    noise_seed: seed of the noise generator, for repeatable episodes.
+    sensor: confidence model of the depth camera (rgbd backend) and its range (every backend).
     checkpoint/device: feed-forward weights (file for vggt, directory for depth_anything_3).
     window: views per feed-forward pass. confidence_normalization: see `normalize_confidence`.
     model_factory: builds the feed-forward model (defaults to the real backends; tests inject one).
@@ -122,8 +122,6 @@ class FrameEstimator:
         self,
         backend: str = "rgbd",
         sensor: RgbdSensorParams | None = None,
-        noise: bool = False,
-        noise_seed: int = 0,
         checkpoint: str = "",
         device: str = "auto",
         window: int = FEEDFORWARD_WINDOW,
@@ -140,8 +138,6 @@ class FrameEstimator:
         self.backend = backend
         self.uniform_confidence = bool(uniform_confidence)
         self.sensor = sensor or RgbdSensorParams()
-        self.noise = bool(noise)
-        self.rng = np.random.default_rng(noise_seed)
         self.window = int(window)
         self.confidence_normalization = confidence_normalization
         self.model = None
@@ -194,8 +190,6 @@ class FrameEstimator:
         metric = None
         if depth is not None:
             metric, notes = sanitize_depth(depth)
-            if self.noise:
-                metric = add_depth_noise(metric, K, self.rng, self.sensor)
         if self.backend in FEEDFORWARD_BACKENDS:
             if rgb is None:
                 raise InputError("color", None, f"an rgb image for the {self.backend} backend")

@@ -57,8 +57,6 @@ PARAMS = (
     Param("backend", "rgbd", "depth + confidence estimator", choices=BACKENDS),
     Param("checkpoint", "", "local VGGT / Depth Anything 3 weights (never downloaded at run time)"),
     Param("device", "auto", "torch device of a feed-forward backend: auto | cpu | cuda[:N]"),
-    Param("noise", False, "inject simulated depth-sensor noise into the incoming depth"),
-    Param("noise_seed", 0, "seed of the injected noise", range=(0, 2**31 - 1)),
     Param("window", FEEDFORWARD_WINDOW, "views per feed-forward pass", range=(1, 256)),
     Param(
         "confidence_normalization",
@@ -84,7 +82,7 @@ PARAMS = (
         Param(
             f"sensor.{f.name}",
             f.default,
-            f"RgbdSensorParams.{f.name} (depth-camera noise / confidence model)",
+            f"RgbdSensorParams.{f.name} (the depth camera's confidence model)",
             range=(0, 1e6),
         )
         for f in dataclasses.fields(RgbdSensorParams)
@@ -124,8 +122,6 @@ class PerceptionNode(Node):
         self.estimator = FrameEstimator(
             backend=p["backend"],
             sensor=sensor,
-            noise=p["noise"],
-            noise_seed=p["noise_seed"],
             checkpoint=p["checkpoint"],
             device=p["device"],
             window=p["window"],
@@ -170,7 +166,7 @@ class PerceptionNode(Node):
                     msg_type, topic, guarded(self, callback, topic, self.rejections), qos.frames()
                 )
         self.get_logger().info(
-            f"backend={p['backend']} noise={p['noise']} use_depth={self.use_depth}"
+            f"backend={p['backend']} use_depth={self.use_depth}"
         )
 
     def _status(self) -> dict:

@@ -1,4 +1,10 @@
-"""The simulated camera: validate a goal pose, render it, optionally add sensor noise. No transport."""
+"""The simulated camera: validate a goal pose, render it, add the depth sensor's noise. No transport.
+
+A real depth camera does not return the scene's exact depth: the camera adds the noise of a
+Kinect-class structured-light sensor (axial noise growing with range and incidence, lateral jitter
+and flying pixels at depth edges, dropouts at grazing angles; `area3d_perception.sensor_model`,
+the same model perception's `rgbd` confidence is derived from) before anything downstream sees it.
+"""
 
 from __future__ import annotations
 
@@ -6,13 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from area3d_perception.sensor_model import RgbdSensorParams, add_depth_noise
 from sim_bridge.render import HFOV_DEG, MAX_RANGE, RgbdRenderer
 from sim_bridge.scenes import Scene
 from sim_bridge.validity import CLEARANCE, check_pose
 
-# Axial noise of a structured-light depth camera, sigma(z) = a + b (z - c)^2 metres
-# (Nguyen, Izadi, Lovell 2012, Kinect); used only when depth_noise is on.
-NOISE_A, NOISE_B, NOISE_C = 0.0012, 0.0019, 0.4
 # optical frame in camera_link (x forward, y left, z up): REP 103 rpy (-pi/2, 0, -pi/2).
 # 6 cm: a compact robot stereo head (our choice; 5-12 cm is common). With fx = 320 px, depth
 # 0.3 m is 64 px of disparity and 5 m is 3.8 px.
@@ -48,12 +52,6 @@ def link_from_optical(T_world_cam: np.ndarray) -> np.ndarray:
     return T_world_cam @ np.linalg.inv(T_link_opt)
 
 
-def add_depth_noise(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """depth (H, W) float32 metres plus zero-mean Gaussian noise growing with z^2; NaN stays NaN."""
-    sigma = NOISE_A + NOISE_B * (depth - NOISE_C) ** 2
-    return (depth + sigma * rng.standard_normal(depth.shape)).astype(np.float32)
-
-
 class SimCamera:
     """Validates goal poses against the scene and renders the valid ones.
 
@@ -61,6 +59,9 @@ class SimCamera:
     captures (the node's spin thread). stereo_baseline > 0 (metres) renders a second, right image
     from the left pose shifted along the optical x axis: a rectified pair with the same K; 0 = mono.
     Only the left pose is checked for clearance (the right camera is part of the same body).
+    depth_noise: add the depth sensor's noise (`sensor`, default a Kinect-class camera) to every
+    depth image, drawn from a generator seeded with `seed` (repeatable episodes); False returns
+    the renderer's exact depth (ground truth for benchmarks).
     """
 
     def __init__(
@@ -74,6 +75,7 @@ class SimCamera:
         depth_noise: bool = False,
         seed: int = 0,
         stereo_baseline: float = 0.0,
+        sensor: RgbdSensorParams | None = None,
     ) -> None:
         if not (np.isfinite(stereo_baseline) and stereo_baseline >= 0):
             raise ValueError(
@@ -83,7 +85,8 @@ class SimCamera:
         self.scene = scene
         self.width, self.height, self.hfov_deg, self.max_range = width, height, hfov_deg, max_range
         self.clearance = clearance
-        self.depth_noise = depth_noise
+        self.depth_noise = bool(depth_noise)
+        self.sensor = sensor or RgbdSensorParams(max_range=max_range)
         self._rng = np.random.default_rng(seed)
         self._renderer: RgbdRenderer | None = None
 
@@ -107,7 +110,7 @@ class SimCamera:
             return Capture(False, check.reason, T)
         rgb, depth = self.renderer.render(T)
         if self.depth_noise:
-            depth = add_depth_noise(depth, self._rng)
+            depth = add_depth_noise(depth, self.K, self._rng, self.sensor)
         rgb_right = None
         if self.stereo_baseline > 0:
             rgb_right, _ = self.renderer.render(right_from_left(T, self.stereo_baseline))

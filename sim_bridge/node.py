@@ -7,6 +7,7 @@ depth, camera_info, the capture pose, a status line per goal and, where `tf2_msg
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Sequence
@@ -26,6 +27,7 @@ from area3d_msgs_py.parameters import (
     declare_parameters,
     report_unknown_parameters,
 )
+from area3d_perception.sensor_model import RgbdSensorParams
 from sim_bridge.camera import (
     R_LINK_OPTICAL,
     STEREO_BASELINE,
@@ -65,7 +67,23 @@ PARAMS = (
         "goals closer than this to geometry are refused, metres",
         range=(0.0, 10.0),
     ),
-    Param("depth_noise", False, "add depth-sensor noise in the renderer"),
+    Param(
+        "depth_noise",
+        True,
+        "add a depth camera's noise to the rendered depth (axial, lateral, flying pixels, "
+        "dropouts at edges and grazing angles; sensor.*); false = the renderer's exact depth",
+    ),
+    Param("noise_seed", 0, "seed of the depth noise (repeatable episodes)", range=(0, 2**31 - 1)),
+    *(
+        Param(
+            f"sensor.{f.name}",
+            f.default,
+            f"RgbdSensorParams.{f.name} (the simulated depth camera's noise model)",
+            range=(0, 1e6),
+        )
+        for f in dataclasses.fields(RgbdSensorParams)
+        if f.name != "max_range"  # the camera's range is max_range
+    ),
     Param("stereo", False, "also render and publish the right image of a rectified stereo pair"),
     Param(
         "stereo_baseline",
@@ -119,7 +137,16 @@ class SimBridgeNode(Node):
             p["max_range"],
             p["clearance"],
             p["depth_noise"],
+            seed=p["noise_seed"],
             stereo_baseline=p["stereo_baseline"] if p["stereo"] else 0.0,
+            sensor=RgbdSensorParams(
+                max_range=p["max_range"],
+                **{
+                    f.name: p[f"sensor.{f.name}"]
+                    for f in dataclasses.fields(RgbdSensorParams)
+                    if f.name != "max_range"
+                },
+            ),
         )
         self.pub_color = self.create_publisher(msgs.Image, COLOR_TOPIC, qos.frames())
         self.pub_depth = self.create_publisher(msgs.Image, DEPTH_TOPIC, qos.frames())

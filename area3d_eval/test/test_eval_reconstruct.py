@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from area3d_eval.metrics import surface_metrics
-from area3d_eval.reconstruct import TsdfParams, subsample, tsdf_reconstruct
+from area3d_eval.reconstruct import TsdfFusion, TsdfParams, subsample, tsdf_reconstruct
 from area3d_eval.render import render_mesh
 from area3d_eval.synthetic import hemisphere_views, intrinsics
 from area3d_msgs_py.errors import InputError
@@ -87,3 +87,45 @@ def test_bad_rgb_is_rejected_with_its_name(sphere_frames):
     rgb, depth, K, T = frames[0]
     with pytest.raises(InputError, match="rgb"):
         tsdf_reconstruct([(rgb.astype(np.float32), depth, K, T)])
+
+
+def _surface_offsets(mesh, centre_radius: float) -> np.ndarray:
+    """Radial distance of the mesh vertices from the sphere's true surface."""
+    return np.linalg.norm(np.asarray(mesh.vertices), axis=1) - centre_radius
+
+
+def test_a_confident_view_outweighs_an_earlier_poor_estimate_of_the_same_surface(sphere_frames):
+    """Each frame is seen twice: first with depth 6 mm too far (inside the sphere) and low
+    confidence, then exact and confident. Weighted by confidence the surface lands near the
+    truth; with equal weights (no confidence) it lands between the two, millimetres inside."""
+    _, frames = sphere_frames
+    poor = [(rgb, depth + 0.006, K, T) for rgb, depth, K, T in frames]
+    ones = [np.ones_like(f[1]) for f in frames]
+    low = [np.full_like(f[1], 0.05) for f in frames]
+
+    def fused(confidences_poor, confidences_good):
+        fusion = TsdfFusion(TsdfParams())
+        for (rgb, depth, K, T), c in zip(poor, confidences_poor, strict=True):
+            fusion.integrate(rgb, depth, K, T, c)
+        for (rgb, depth, K, T), c in zip(frames, confidences_good, strict=True):
+            fusion.integrate(rgb, depth, K, T, c)
+        return np.median(_surface_offsets(fusion.extract_mesh(), RADIUS))
+
+    weighted = fused(low, ones)
+    equal = fused(ones, ones)
+    unweighted = fused([None] * len(frames), [None] * len(frames))
+    print(f"median radial offset: weighted {weighted * 1e3:.2f} mm, equal {equal * 1e3:.2f} mm")
+    assert abs(weighted) < 0.3 * abs(equal)
+    assert -0.004 < equal < -0.001
+    assert unweighted == pytest.approx(equal, abs=1e-6)  # no confidence = weight 1 per pixel
+
+
+def test_pixels_with_no_confidence_add_nothing(sphere_frames):
+    _, frames = sphere_frames
+    rgb, depth, K, T = frames[0]
+    fusion = TsdfFusion(TsdfParams())
+    fusion.integrate(rgb, depth, K, T, np.zeros_like(depth))
+    fusion.integrate(rgb, depth, K, T, np.full_like(depth, np.nan))
+    assert len(fusion.extract_mesh().triangles) == 0
+    with pytest.raises(InputError, match="confidence"):
+        fusion.integrate(rgb, depth, K, T, np.ones((3, 3), np.float32))

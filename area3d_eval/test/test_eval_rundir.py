@@ -9,12 +9,13 @@ import pytest
 from area3d_eval.rundir import (
     iter_frames,
     read_episode,
-    reconstruction_depth,
+    reconstruction_input,
     to_jsonable,
     write_episode,
     write_frame,
 )
 from area3d_msgs_py.errors import InputError
+from area3d_perception.sensor_model import rgbd_confidence
 
 
 def test_frames_round_trip_in_index_order(tmp_path):
@@ -68,11 +69,16 @@ def test_perception_estimates_round_trip_and_feed_the_tsdf_only_when_asked(tmp_p
     np.testing.assert_array_equal(with_estimate.estimated_depth, estimate)
     np.testing.assert_array_equal(with_estimate.confidence, confidence)
     assert without.estimated_depth is None and without.confidence is None
-    np.testing.assert_array_equal(reconstruction_depth(with_estimate, "estimated"), estimate)
-    np.testing.assert_array_equal(reconstruction_depth(without, "sensor"), depth)
+    used, weights = reconstruction_input(with_estimate, "estimated")
+    np.testing.assert_array_equal(used, estimate)
+    np.testing.assert_array_equal(weights, confidence)
+    used, weights = reconstruction_input(without, "sensor")
+    np.testing.assert_array_equal(used, depth)
+    # the camera's depth is weighted by the camera's sensor model, not by what perception said
+    np.testing.assert_array_equal(weights, rgbd_confidence(depth, np.eye(3)))
     with pytest.raises(InputError, match="frames/0001.npz estimated_depth"):
-        reconstruction_depth(without, "estimated")
+        reconstruction_input(without, "estimated")
     with pytest.raises(InputError, match="depth_source: got 'lidar'"):
-        reconstruction_depth(with_estimate, "lidar")
+        reconstruction_input(with_estimate, "lidar")
     with pytest.raises(InputError, match="estimated_depth"):
         write_frame(tmp_path, 2, rgb, depth, np.eye(3), np.eye(4), 3, estimate[:5])
