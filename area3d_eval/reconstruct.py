@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
 from numba import njit
 
 from area3d_eval.open3d_loader import import_open3d

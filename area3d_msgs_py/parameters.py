@@ -79,7 +79,6 @@ class Param:
         return None
 
 
-
 # Parameters every node that checks its inputs declares alike (`area3d_msgs_py.inputs`).
 MAX_STAMP_AHEAD_PARAM = Param(
     "max_stamp_ahead_s",
@@ -88,6 +87,7 @@ MAX_STAMP_AHEAD_PARAM = Param(
     range=(0.0, 1e6),
 )
 WORLD_FRAME_PARAM = Param("world_frame", "world", "frame_id every camera pose must be expressed in")
+
 
 def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     """Declare ``params`` on ``node``; returns {name: value at start}.

@@ -165,9 +165,7 @@ class PerceptionNode(Node):
                 self.create_subscription(
                     msg_type, topic, guarded(self, callback, topic, self.rejections), qos.frames()
                 )
-        self.get_logger().info(
-            f"backend={p['backend']} use_depth={self.use_depth}"
-        )
+        self.get_logger().info(f"backend={p['backend']} use_depth={self.use_depth}")
 
     def _status(self) -> dict:
         return {

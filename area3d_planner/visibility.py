@@ -244,7 +244,7 @@ def valid_seeds(
 def free_side_normals(spec: GridSpec, occupancy: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """(K, 3) unit normals of voxels `ids`: the mean direction to their known-free face neighbours
     (where a surface they hold faces), zero for voxels with none."""
-    free = (np.asarray(occupancy).reshape(spec.shape) == 0)
+    free = np.asarray(occupancy).reshape(spec.shape) == 0
     ijk = np.stack(np.unravel_index(np.asarray(ids, np.int64), spec.shape), axis=1)
     shape = np.asarray(spec.shape)
     n = np.zeros((ijk.shape[0], 3))
