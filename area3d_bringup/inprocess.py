@@ -75,6 +75,7 @@ def run_inprocess_episode(
         scene,
         depth_noise=bool(camera_params.get("depth_noise", True)),
         seed=int(camera_params.get("noise_seed", 0)) + seed,
+        image_noise=float(camera_params.get("image_noise", 1.0)),
         stereo_baseline=baseline,
     )
     estimator = FrameEstimator(

@@ -48,9 +48,10 @@ POLICIES: dict[str, dict[str, dict]] = {
         "planner": {"policy": "area3d", "semantic_weight": 0.0},
         "semantics": {"backend": "none"},
     },
-    # uniform confidence on whatever depth the perception backend estimates (with rgbd: the same
-    # output as the `uniform` backend)
-    "no_ff": {"planner": {"policy": "area3d"}, "perception": {"uniform_confidence": True}},
+    # the planner takes confidence 1 on whatever depth the perception backend estimates (with
+    # rgbd: what the `uniform` backend gives); perception's output and the reconstruction from it
+    # stay those of every other policy
+    "no_ff": {"planner": {"policy": "area3d", "uniform_confidence": True}},
     "gamma0": {"planner": {"policy": "area3d", "gamma": 0.0}},
 }
 

@@ -13,7 +13,8 @@ Layout (all paths relative to RUN_DIR):
   what perception made of the frame (the depth and the weights the TSDF uses with depth_source
   "estimated").
 - `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays
-  x, y, z, uncertainty, geometric, semantic, occupancy (one entry per voxel).
+  x, y, z, uncertainty, geometric, semantic, occupancy, hard (one entry per voxel; older runs
+  have no `hard`).
 - `bag/`: rosbag2 MCAP of everything the graph published (`bag_N/` for resumed parts); the
   message count of each topic is in episode.json under "recorded".
 - `nodes.log`, `params.yaml`: every node's log and the parameters it was started with.
@@ -53,7 +54,7 @@ GRID_INITIAL_FILE = "grid_initial.npz"
 GRID_FINAL_FILE = "grid_final.npz"
 LOG_FILE = "nodes.log"
 BAG_DIR = "bag"
-GRID_FIELDS = ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy")
+GRID_FIELDS = ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy", "hard")
 # Free space a new episode asks for before it starts: a 40-view room episode at 640x480 writes
 # about 90 MB of frames, and its bag holds every image and grid the graph published.
 MIN_FREE_MB = 1024.0

@@ -15,6 +15,7 @@ CLOUD_DTYPE = np.dtype(
         ("geometric", np.float32),
         ("semantic", np.float32),
         ("occupancy", np.float32),
+        ("hard", np.float32),
     ]
 )
 
@@ -29,7 +30,8 @@ def grid_to_cloud(grid: FusedGrid, field: np.ndarray | None = None) -> np.ndarra
 
     A voxel is non-empty when it is occupied, or its fused uncertainty (or `field` (N,), e.g. a
     decayed copy) is > gamma + EMPTY_MARGIN. uncertainty = the fused U, geometric and semantic =
-    the two fields, occupancy = -1 unknown, 0 free, 1 occupied (as float32).
+    the two fields, occupancy = -1 unknown, 0 free, 1 occupied (as float32), hard = 1 on the
+    voxels no view is expected to resolve (`FusedGrid.hard`), else 0.
     """
     occ = grid.occupancy()
     u = grid.fused() if field is None else np.asarray(field, np.float32)
@@ -42,6 +44,7 @@ def grid_to_cloud(grid: FusedGrid, field: np.ndarray | None = None) -> np.ndarra
     cloud["geometric"] = grid.geometric()[keep]
     cloud["semantic"] = grid.semantic()[keep]
     cloud["occupancy"] = occ[keep]
+    cloud["hard"] = grid.hard(occ)[keep]
     return cloud
 
 

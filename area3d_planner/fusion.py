@@ -28,6 +28,24 @@ LOG_ODDS_MAX = float(np.log(0.97 / 0.03))
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 1
 GEOMETRIC_RULES = ("product", "mean")
+# What a view is worth: the uncertainty an observation is predicted to remove ("removable": what
+# the voxel holds times how much of it a new direction can still resolve), or the uncertainty the
+# voxel holds ("held", the paper's mask-weighted utility).
+GAIN_RULES = ("removable", "held")
+
+
+def _direction_bins(count: int) -> np.ndarray:
+    """(count, 3) unit vectors spread evenly over the sphere (Fibonacci lattice)."""
+    i = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * i / count
+    r = np.sqrt(1.0 - z * z)
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+# Directions a voxel is observed from, in bins about 45 degrees wide (one bit each of a uint32):
+# two views count as distinct directions when they fall into different bins.
+DIRECTION_BINS = _direction_bins(20)
 NO_RETURN_RULES = ("none", "regions", "all")
 # No-return pixels farther than this from any return (pixels) are open space (sky, a window, a
 # doorway beyond range); nearer ones are dropouts of a surface and carve nothing.
@@ -63,15 +81,28 @@ def _no_return_carving(depth: np.ndarray, rule: str) -> bool | np.ndarray:
     return ~near_return
 
 
+def direction_bits(centres: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """(K,) uint32: one bit per voxel, the `DIRECTION_BINS` bin of the direction from each voxel
+    centre (K, 3) to the camera centre (3,)."""
+    d = np.asarray(camera, np.float64)[None, :] - np.asarray(centres, np.float64)
+    bins = np.argmax(d @ DIRECTION_BINS.T, axis=1)
+    return np.left_shift(np.uint32(1), bins.astype(np.uint32))
+
+
 @dataclass(frozen=True)
 class DepthObservation:
     """One frame's evidence: hit voxel ids (ascending) with the frame's mean confidence and
-    log(1 - capped confidence) in each, and the ids of voxels its rays crossed as free."""
+    log(1 - capped confidence) in each, and the bit of the direction they were seen from; the ids
+    of voxels its rays crossed as free; and the region voxels it looked at without a return
+    (`missed`: in view, within range, their pixel has no depth) with their direction bits."""
 
     hit: np.ndarray  # (M,) int64
     confidence: np.ndarray  # (M,) float32
     log_residual: np.ndarray  # (M,) float32
     free: np.ndarray  # (F,) int64
+    hit_bits: np.ndarray | None = None  # (M,) uint32
+    missed: np.ndarray | None = None  # (K,) int64
+    missed_bits: np.ndarray | None = None  # (K,) uint32
 
 
 class FusedGrid:
@@ -84,6 +115,12 @@ class FusedGrid:
     the semantic field in U (0 = the "without VLM" ablation). geometric_rule: "product" (each
     observation lowers the uncertainty, see `geometric`) or "mean" (1 - mean confidence).
     max_confidence: cap of one observation's confidence in the product rule.
+    gain_rule: "removable" (a voxel is worth what an observation can still remove, see
+    `achievability`) or "held" (what it holds). retry_gain: after each distinct direction a voxel
+    was observed from without being pinned down, the share of its remaining uncertainty a new
+    direction is expected to resolve is multiplied by this. hard_min_directions /
+    hard_max_confidence: a region voxel observed from at least that many directions whose best
+    confidence stayed below that is a hard voxel (`hard`): no view is expected to resolve it.
     """
 
     def __init__(
@@ -96,6 +133,10 @@ class FusedGrid:
         semantic_weight: float = 1.0,  # equal weight of both fields (paper fuses them unweighted)
         geometric_rule: str = "product",
         max_confidence: float = 0.9,  # one view lowers a voxel's uncertainty at most 10-fold
+        gain_rule: str = "removable",
+        retry_gain: float = 0.5,  # our choice: each failed direction halves the hope in the next
+        hard_min_directions: int = 3,  # our choice: "several distinct directions"
+        hard_max_confidence: float = 0.3,  # our choice: the rgbd model's edge confidence is 0.2
     ) -> None:
         if geometric_rule not in GEOMETRIC_RULES:
             raise InputError(
@@ -103,6 +144,18 @@ class FusedGrid:
             )
         if not (0.0 < max_confidence < 1.0):
             raise InputError("max_confidence", max_confidence, "a value in (0, 1)")
+        if gain_rule not in GAIN_RULES:
+            raise InputError("gain_rule", gain_rule, f"one of {', '.join(GAIN_RULES)}")
+        if not (0.0 <= retry_gain <= 1.0):
+            raise InputError("retry_gain", retry_gain, "a value in [0, 1]")
+        if not (1 <= int(hard_min_directions) <= len(DIRECTION_BINS)):
+            raise InputError(
+                "hard_min_directions",
+                hard_min_directions,
+                f"an integer in [1, {len(DIRECTION_BINS)}] directions",
+            )
+        if not (0.0 <= hard_max_confidence <= 1.0):
+            raise InputError("hard_max_confidence", hard_max_confidence, "a value in [0, 1]")
         roi_lo = np.asarray(roi_lo, dtype=np.float64)
         roi_hi = np.asarray(roi_hi, dtype=np.float64)
         if roi_lo.shape != (3,) or roi_hi.shape != (3,) or not np.all(roi_hi > roi_lo):
@@ -124,6 +177,10 @@ class FusedGrid:
         self.semantic_weight = float(semantic_weight)
         self.geometric_rule = geometric_rule
         self.max_confidence = float(max_confidence)
+        self.gain_rule = gain_rule
+        self.retry_gain = float(retry_gain)
+        self.hard_min_directions = int(hard_min_directions)
+        self.hard_max_confidence = float(hard_max_confidence)
         n = spec.num_voxels
         self.conf_sum = np.zeros(n, np.float32)
         self.hit_count = np.zeros(n, np.float32)
@@ -131,8 +188,12 @@ class FusedGrid:
         self.free_count = np.zeros(n, np.float32)
         self.sem_sum = np.zeros(n, np.float32)
         self.sem_count = np.zeros(n, np.float32)
+        self.best_confidence = np.zeros(n, np.float32)  # best frame confidence of each voxel
+        self.directions = np.zeros(n, np.uint32)  # DIRECTION_BINS it was observed from (bits)
         centers = spec.centers()
         self.roi_mask = np.all((centers >= roi_lo) & (centers <= roi_hi), axis=1)
+        self.roi_ids = np.flatnonzero(self.roi_mask)
+        self.roi_centres = np.ascontiguousarray(centers[self.roi_ids])
         self.frames = 0
         self.semantic_frames = 0
         # one frame's per-voxel tallies, allocated once and cleared after each frame (see
@@ -236,16 +297,36 @@ class FusedGrid:
                 )
                 crossed = np.flatnonzero(scratch.crossed)
                 free = crossed[scratch.pixels[crossed] == 0]
+                # Region voxels in view whose pixel has no depth: looked at, not resolved
+                # (neither hit nor carved), e.g. a glossy or blank surface without a return.
+                missed_at = _unresolved_in_view(
+                    depth,
+                    float(K[0, 0]),
+                    float(K[1, 1]),
+                    float(K[0, 2]),
+                    float(K[1, 2]),
+                    np.ascontiguousarray(np.linalg.inv(T)),
+                    self.roi_centres,
+                    float(max_range),
+                    scratch.pixels,
+                    scratch.crossed.reshape(-1),
+                    self.roi_ids,
+                )
+                missed = self.roi_ids[missed_at]
             except BaseException:
                 scratch.reset()  # a frame that fails part way leaves nothing behind
                 raise
             scratch.clear(hit, crossed)
         capped = np.minimum(frame_conf, self.max_confidence)
+        camera = T[:3, 3]
         return DepthObservation(
             hit=hit,
             confidence=frame_conf.astype(np.float32),
             log_residual=np.log1p(-capped).astype(np.float32),
             free=free,
+            hit_bits=direction_bits(self.spec.centers_of(hit), camera),
+            missed=missed,
+            missed_bits=direction_bits(self.roi_centres[missed_at], camera),
         )
 
     def apply_depth(self, observation: DepthObservation) -> None:
@@ -255,6 +336,11 @@ class FusedGrid:
         self.log_residual[hit] += observation.log_residual
         self.hit_count[hit] += 1.0
         self.free_count[observation.free] += 1.0
+        self.best_confidence[hit] = np.maximum(self.best_confidence[hit], observation.confidence)
+        if observation.hit_bits is not None:
+            self.directions[hit] |= observation.hit_bits
+        if observation.missed is not None:
+            self.directions[observation.missed] |= observation.missed_bits
         self.frames += 1
 
     def integrate_semantic(
@@ -354,9 +440,51 @@ class FusedGrid:
         s[seen] = self.sem_sum[seen] / self.sem_count[seen]
         return s
 
+    def direction_count(self) -> np.ndarray:
+        """(N,) uint8: how many distinct directions (`DIRECTION_BINS`) each voxel was observed
+        from, with a return (a hit) or without one (in view, no depth at its pixel)."""
+        return np.bitwise_count(self.directions).astype(np.uint8)
+
+    def achievability(self) -> np.ndarray:
+        """(N,) float32 in [0, 1]: the share of a voxel's uncertainty a view from a new direction
+        is expected to resolve, from what the depth backend achieved on it so far:
+
+            a = c* + (1 - c*) retry_gain^n
+
+        c* the best confidence any frame reached on the voxel (0 if none hit it), n the distinct
+        directions it was observed from. Never observed: 1. Seen once with confidence 0.2 (a
+        depth edge, a blank surface for stereo): 0.6, as another direction may do better; after
+        three directions that all stayed at 0.2: 0.3, and no view is expected to do better than
+        the best so far. A voxel in view three times without any return (glossy, dark, blank):
+        0.125.
+        """
+        n = self.direction_count().astype(np.float32)
+        c = self.best_confidence
+        return (c + (1.0 - c) * np.float32(self.retry_gain) ** n).astype(np.float32)
+
+    def hard(self, occ: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool: region voxels that are not known free, were observed from at least
+        `hard_min_directions` distinct directions and never reached `hard_max_confidence`: what
+        the camera cannot resolve (reported, not chased)."""
+        occ = self.occupancy() if occ is None else occ
+        return (
+            self.roi_mask
+            & (occ != FREE)
+            & (self.direction_count() >= self.hard_min_directions)
+            & (self.best_confidence < self.hard_max_confidence)
+        )
+
     def fused(self) -> np.ndarray:
-        """(N,) float32 utility field U = max(0, G + semantic_weight * S * sqrt(G)) + gamma on every
-        voxel that is not known free; 0 on known free voxels and outside the ROI.
+        """(N,) float32 utility field on every voxel that is not known free (0 on known free
+        voxels and outside the ROI):
+
+            held:       U = max(0, G + semantic_weight * S * sqrt(G)) + gamma
+            removable:  U = a * max(0, G + semantic_weight * S * sqrt(G)) + gamma
+
+        with a the voxel's `achievability`: a view is worth the uncertainty it is predicted to
+        remove, not the uncertainty the voxel holds (the mask weights add the view's own share:
+        resolution, and incidence where enabled). gamma, the paper's global weight, stays on
+        every voxel as it is.
 
         The semantic term falls with the observations too, at half the rate of G on a log scale:
         a region the VLM flags as hard stays attractive for about twice as many views as one it
@@ -368,6 +496,8 @@ class FusedGrid:
         if self.geometric_rule == "product":
             s = s * np.sqrt(g)
         u = np.maximum(g + np.float32(self.semantic_weight) * s, 0.0)
+        if self.gain_rule == "removable":
+            u = u * self.achievability()
         u = u + np.float32(self.gamma)
         u[occ == FREE] = 0.0
         u[~self.roi_mask] = 0.0
@@ -406,6 +536,37 @@ class _FrameScratch:
         self.pixels.fill(0)
         self.conf_sum.fill(0.0)
         self.crossed.fill(0)
+
+
+@njit(cache=True, nogil=True)
+def _unresolved_in_view(
+    depth, fx, fy, cx, cy, T_cam_world, centres, max_range, pixels, crossed, ids
+):  # pragma: no cover - compiled
+    """Positions (into `centres` (K, 3), flat voxel `ids` (K,)) of the voxels in front of the
+    camera, within max_range, inside the image, whose centre's pixel has no finite depth and
+    which the frame neither hit (`pixels` of the voxel 0) nor carved (`crossed` 0)."""
+    h, w = depth.shape
+    out = np.empty(centres.shape[0], np.int64)
+    count = 0
+    for k in range(centres.shape[0]):
+        x, y, z = centres[k, 0], centres[k, 1], centres[k, 2]
+        zc = T_cam_world[2, 0] * x + T_cam_world[2, 1] * y + T_cam_world[2, 2] * z
+        zc += T_cam_world[2, 3]
+        if not (zc > 0 and zc <= max_range):
+            continue
+        xc = T_cam_world[0, 0] * x + T_cam_world[0, 1] * y + T_cam_world[0, 2] * z
+        yc = T_cam_world[1, 0] * x + T_cam_world[1, 1] * y + T_cam_world[1, 2] * z
+        u = np.floor(fx * (xc + T_cam_world[0, 3]) / zc + cx)
+        v = np.floor(fy * (yc + T_cam_world[1, 3]) / zc + cy)
+        if not (0 <= u < w and 0 <= v < h):
+            continue
+        if np.isfinite(depth[int(v), int(u)]):
+            continue
+        voxel = ids[k]
+        if pixels[voxel] == 0 and crossed[voxel] == 0:
+            out[count] = k
+            count += 1
+    return out[:count]
 
 
 @njit(cache=True, nogil=True)

@@ -57,6 +57,9 @@ class PlanningContext:
     aim_views: bool = True  # turn each committed view to the centroid of the utility it sees
     camera_positions: list = field(default_factory=list)  # (3,) centres of the fused frames
     camera_poses: list = field(default_factory=list)  # (4, 4) poses of the fused frames
+    # how many of the fused frames were the initial views (set at the first plan): the working
+    # distance is theirs, the operator's choice, and does not drift with the views planned since
+    initial_views: int | None = None
     _candidates: tuple | None = None
     _caches: dict = field(default_factory=dict)
     _fields: dict = field(default_factory=dict)
@@ -201,11 +204,15 @@ class PlanningContext:
         return self.grid.roi_mask & (occupancy != FREE)
 
     def working_distance(self) -> float | None:
-        """Median distance of the captured frames' cameras to the ROI centre (None before any)."""
-        if not self.camera_positions:
+        """Median distance of the initial views' cameras to the ROI centre (of every captured
+        frame before the first plan; None before any). Planned views do not move it: with every
+        captured view counted, views taken on the outer shell pushed the shells outwards
+        (0.44 -> 0.70 m over an object episode)."""
+        positions = self.camera_positions[: self.initial_views or None]
+        if not positions:
             return None
         c = self.region_centre()
-        return float(np.median(np.linalg.norm(np.asarray(self.camera_positions) - c, axis=1)))
+        return float(np.median(np.linalg.norm(np.asarray(positions) - c, axis=1)))
 
     def range_gain(self, seeds: np.ndarray) -> np.ndarray | None:
         """(S,) range prior of `seeds` around the working distance (None: no prior)."""

@@ -73,9 +73,20 @@ class PlannerConfig:
     eta: float = 0.3  # paper, supplement: decay factor
     decay: str = "frustum"  # the paper decays the whole frustum; "visible": only the mask
     semantic_weight: float = 1.0  # 0 = the "without VLM" ablation
+    # confidence 1 on every pixel with depth, whatever perception says: the "without feed-forward"
+    # ablation, taken here so that perception's output (and the reconstruction) stays the same
+    uniform_confidence: bool = False
     unobserved_uncertainty: float = 1.0  # DESIGN.md: unobserved space = high uncertainty
     geometric_rule: str = "product"  # each observation lowers uncertainty; "mean": 1 - mean conf
     max_confidence: float = 0.9  # one observation lowers a voxel's uncertainty at most 10-fold
+    # a view is worth the uncertainty it is predicted to remove ("removable") or what the voxels
+    # it sees hold ("held", the paper's utility); see FusedGrid.achievability
+    gain_rule: str = "removable"
+    retry_gain: float = (
+        0.5  # each distinct direction that did not pin a voxel down halves the next's share
+    )
+    hard_min_directions: int = 3  # a voxel seen from this many directions ...
+    hard_max_confidence: float = 0.3  # ... that never reached this confidence is a hard voxel
     no_return: str = (
         "regions"  # carve along no-return pixels: "regions" (sky, not dropouts) | all | none
     )
@@ -249,6 +260,10 @@ class NextBestViewServer:
             c.semantic_weight,
             c.geometric_rule,
             c.max_confidence,
+            c.gain_rule,
+            c.retry_gain,
+            c.hard_min_directions,
+            c.hard_max_confidence,
         )
         self.context = PlanningContext(
             grid=self.grid,
@@ -333,6 +348,8 @@ class NextBestViewServer:
         with self._lock:
             if int(stamp_ns) in self._fused_stamps:
                 return False
+        if self.config.uniform_confidence:
+            conf = np.isfinite(np.asarray(depth)).astype(np.float32)
         observation = self.grid.observe_depth(
             depth,
             conf,
@@ -495,6 +512,7 @@ class NextBestViewServer:
             "voxel_size": self.grid.spec.voxel_size,
             "committed_views": self.committed,
             "remaining_budget": self.remaining_budget(),
+            "hard_voxels": int(self.grid.hard().sum()),
             "cache_ready": self.cache_ready(),
             "last_request_s": self.last_request_s,
         }
@@ -581,6 +599,7 @@ class NextBestViewServer:
             return f"num_views: got {num}, expected an integer >= 0 (0 = the remaining budget)"
         if self.initial_frames is None:
             self.initial_frames = self.grid.frames
+            self.context.initial_views = self.initial_frames
         remaining = self.remaining_budget()
         if remaining == 0:
             return f"budget: all {self.budget} views are spent"

@@ -3,7 +3,9 @@
 A real depth camera does not return the scene's exact depth: the camera adds the noise of a
 Kinect-class structured-light sensor (axial noise growing with range and incidence, lateral jitter
 and flying pixels at depth edges, dropouts at grazing angles; `area3d_perception.sensor_model`,
-the same model perception's `rgbd` confidence is derived from) before anything downstream sees it.
+the same model perception's `rgbd` confidence is derived from) before anything downstream sees it,
+and its images carry the read noise of an 8-bit sensor (each pixel and channel, each image of a
+stereo pair on its own).
 """
 
 from __future__ import annotations
@@ -61,7 +63,8 @@ class SimCamera:
     Only the left pose is checked for clearance (the right camera is part of the same body).
     depth_noise: add the depth sensor's noise (`sensor`, default a Kinect-class camera) to every
     depth image, drawn from a generator seeded with `seed` (repeatable episodes); False returns
-    the renderer's exact depth (ground truth for benchmarks).
+    the renderer's exact depth (ground truth for benchmarks). image_noise: standard deviation of
+    the Gaussian read noise added to every colour image, grey levels (0 = the exact rendering).
     """
 
     def __init__(
@@ -76,11 +79,15 @@ class SimCamera:
         seed: int = 0,
         stereo_baseline: float = 0.0,
         sensor: RgbdSensorParams | None = None,
+        image_noise: float = 0.0,
     ) -> None:
         if not (np.isfinite(stereo_baseline) and stereo_baseline >= 0):
             raise ValueError(
                 f"stereo_baseline: got {stereo_baseline!r}, expected metres >= 0 (0 = no stereo)"
             )
+        if not (np.isfinite(image_noise) and image_noise >= 0):
+            raise ValueError(f"image_noise: got {image_noise!r}, expected grey levels >= 0")
+        self.image_noise = float(image_noise)
         self.stereo_baseline = float(stereo_baseline)
         self.scene = scene
         self.width, self.height, self.hfov_deg, self.max_range = width, height, hfov_deg, max_range
@@ -114,7 +121,16 @@ class SimCamera:
         rgb_right = None
         if self.stereo_baseline > 0:
             rgb_right, _ = self.renderer.render(right_from_left(T, self.stereo_baseline))
+        if self.image_noise > 0:
+            rgb = self._read_noise(rgb)
+            rgb_right = None if rgb_right is None else self._read_noise(rgb_right)
         return Capture(True, "ok", T, rgb, depth, rgb_right)
+
+    def _read_noise(self, rgb: np.ndarray) -> np.ndarray:
+        noise = self._rng.standard_normal(rgb.shape, dtype=np.float32) * np.float32(
+            self.image_noise
+        )
+        return np.clip(np.rint(rgb + noise), 0, 255).astype(np.uint8)
 
     def close(self) -> None:
         if self._renderer is not None:

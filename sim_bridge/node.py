@@ -73,7 +73,18 @@ PARAMS = (
         "add a depth camera's noise to the rendered depth (axial, lateral, flying pixels, "
         "dropouts at edges and grazing angles; sensor.*); false = the renderer's exact depth",
     ),
-    Param("noise_seed", 0, "seed of the depth noise (repeatable episodes)", range=(0, 2**31 - 1)),
+    Param(
+        "image_noise",
+        1.0,
+        "read noise of the colour images, standard deviation in grey levels (0 = exact)",
+        range=(0.0, 64.0),
+    ),
+    Param(
+        "noise_seed",
+        0,
+        "seed of the depth and image noise (repeatable episodes)",
+        range=(0, 2**31 - 1),
+    ),
     *(
         Param(
             f"sensor.{f.name}",
@@ -138,6 +149,7 @@ class SimBridgeNode(Node):
             p["clearance"],
             p["depth_noise"],
             seed=p["noise_seed"],
+            image_noise=p["image_noise"],
             stereo_baseline=p["stereo_baseline"] if p["stereo"] else 0.0,
             sensor=RgbdSensorParams(
                 max_range=p["max_range"],

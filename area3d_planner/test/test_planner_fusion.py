@@ -78,18 +78,83 @@ def test_pixels_without_return_carve_free_space_to_max_range_when_asked():
     assert not np.any(occ == 1)
 
 
-def test_fused_adds_gamma_to_every_non_free_roi_voxel_and_is_zero_outside_the_roi():
+@pytest.mark.parametrize("gain_rule", ["removable", "held"])
+def test_fused_adds_gamma_to_every_non_free_roi_voxel_and_is_zero_outside_the_roi(gain_rule):
     spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.05)
-    grid = FusedGrid(spec, np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, 0.5]), gamma=0.01)
+    grid = FusedGrid(
+        spec,
+        np.array([0.0, 0.0, 0.0]),
+        np.array([1.0, 1.0, 0.5]),
+        gamma=0.01,
+        gain_rule=gain_rule,
+    )
     depth, T = wall_frame()
     grid.integrate_depth(depth, np.full_like(depth, 0.75), K, T, stride=1)
     u, occ, geo = grid.fused(), grid.occupancy(), grid.geometric()
     inside = grid.roi_mask
     non_free = occ != 0
-    np.testing.assert_allclose(u[inside & non_free], geo[inside & non_free] + 0.01, rtol=1e-6)
+    share = grid.achievability() if gain_rule == "removable" else 1.0
+    expected = (geo * share + 0.01)[inside & non_free]
+    np.testing.assert_allclose(u[inside & non_free], expected, rtol=1e-6)
     assert np.all(u[inside & ~non_free] == 0)
     assert np.all(u[~inside] == 0)
     assert inside.any() and (~inside).any()
+    wall = at(grid, [0.62, 0.5, 0.4])
+    if gain_rule == "removable":  # seen once with 0.75: 0.75 + 0.25 / 2 of its G can still go
+        assert u[wall] == pytest.approx(0.25 * 0.875 + 0.01)
+
+
+def _view_of_wall_from(angle_deg: float):
+    """The wall frame's camera turned about the wall point (0.625, 0.5, 0.5) by `angle_deg` in
+    the horizontal plane, with the depth of the plane x = 0.625 in that view."""
+    target = np.array([0.625, 0.5, 0.5])
+    a = np.radians(angle_deg)
+    eye = target - 0.525 * np.array([np.cos(a), np.sin(a), 0.0])
+    T = look_at(eye, target)
+    v, u = np.mgrid[0:48, 0:64]
+    rays = np.stack([(u + 0.5 - 32) / 32, (v + 0.5 - 24) / 32, np.ones((48, 64))], -1)
+    world = rays @ T[:3, :3].T
+    t = (0.625 - eye[0]) / world[..., 0]  # distance along each ray to the plane, as optical z
+    return np.where(t > 0, t, np.nan).astype(np.float32), T
+
+
+def test_a_surface_no_direction_resolves_stops_attracting_and_is_reported_hard():
+    grid = make_grid(gamma=0.0)
+    wall = at(grid, [0.62, 0.5, 0.5])
+    shares, hard = [], []
+    for angle in (0.0, 50.0, -50.0):  # three distinct directions (bins about 45 degrees wide)
+        depth, T = _view_of_wall_from(angle)
+        grid.integrate_depth(depth, np.full_like(depth, 0.2), K, T, stride=1)
+        shares.append(grid.achievability()[wall])
+        hard.append(bool(grid.hard()[wall]))
+    assert grid.direction_count()[wall] == 3
+    # c* + (1 - c*) / 2^n with c* = 0.2: hope falls with every direction that did no better
+    np.testing.assert_allclose(shares, [0.2 + 0.8 / 2, 0.2 + 0.8 / 4, 0.2 + 0.8 / 8], rtol=1e-5)
+    assert hard == [False, False, True]
+    assert grid.fused()[wall] == pytest.approx(grid.geometric()[wall] * shares[-1], rel=1e-5)
+    # the same three views with a confident backend: nothing is hard, little is left to remove
+    sure = make_grid(gamma=0.0)
+    for angle in (0.0, 50.0, -50.0):
+        depth, T = _view_of_wall_from(angle)
+        sure.integrate_depth(depth, np.full_like(depth, 0.9), K, T, stride=1)
+    assert not sure.hard()[wall] and sure.achievability()[wall] > 0.9
+
+
+def test_voxels_in_view_without_any_return_lose_attraction_after_several_directions():
+    grid = make_grid(gamma=0.0)
+    glossy = at(grid, [0.62, 0.5, 0.5])
+    for n, angle in enumerate((0.0, 50.0, -50.0), start=1):
+        depth, T = _view_of_wall_from(angle)
+        depth[20:28, 28:36] = np.nan  # the middle of the wall returns nothing (a mirror, glass)
+        grid.integrate_depth(depth, np.ones_like(depth), K, T, stride=1)
+        assert grid.occupancy()[glossy] == -1  # neither hit nor carved: still unknown
+        assert grid.achievability()[glossy] == pytest.approx(0.5**n)
+    assert grid.hard()[glossy]
+    assert grid.fused()[glossy] == pytest.approx(0.5**3)  # unobserved uncertainty 1 x 1/8
+    # a voxel the camera never looked at keeps its full share
+    assert grid.achievability()[at(grid, [0.9, 0.9, 0.9])] == 1.0
+    with pytest.raises(InputError, match="gain_rule"):
+        make_grid(gamma=0.0, gain_rule="hope")
 
 
 def test_gamma_zero_ablation_leaves_unobserved_uncertainty_only():
@@ -163,7 +228,9 @@ def test_cloud_holds_occupied_and_uncertain_voxels_with_their_fields():
     assert row.size == 1
     r = cloud[row[0]]
     assert r["occupancy"] == 1 and r["geometric"] == pytest.approx(0.25)
-    assert r["uncertainty"] == pytest.approx(0.26)
+    # one view with confidence 0.75: G 0.25 of which a new direction can remove 0.875, + gamma
+    assert r["uncertainty"] == pytest.approx(0.25 * 0.875 + 0.01)
+    assert r["hard"] == 0.0
     assert not np.any(cloud["occupancy"] == 0)  # known free voxels carry nothing
 
 

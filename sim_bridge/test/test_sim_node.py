@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from area3d_perception.sensor_model import RgbdSensorParams, axial_sigma
 from sim_bridge.camera import SimCamera, link_from_optical, right_from_left
@@ -83,6 +84,28 @@ def test_the_camera_delivers_depth_with_a_sensors_noise_repeatable_per_seed():
         exact.close()
         for cam in noisy:
             cam.close()
+
+
+def test_the_camera_adds_read_noise_to_each_image_of_a_stereo_pair():
+    scene = load_scene("single_object")
+    T = scene.initial_views[0]
+    exact = SimCamera(scene, width=160, height=120, stereo_baseline=0.06)
+    noisy = SimCamera(scene, width=160, height=120, stereo_baseline=0.06, image_noise=2.0)
+    try:
+        clean, cap = exact.capture(T), noisy.capture(T)
+        for a, b in ((cap.rgb, clean.rgb), (cap.rgb_right, clean.rgb_right)):
+            diff = a.astype(float) - b.astype(float)
+            inside = (b > 10) & (b < 245)  # away from clipping at 0 and 255
+            assert np.std(diff[inside]) == pytest.approx(2.0, rel=0.1)
+            assert abs(np.mean(diff[inside])) < 0.1
+        left = cap.rgb.astype(float) - clean.rgb
+        right = cap.rgb_right.astype(float) - clean.rgb_right
+        assert abs(np.corrcoef(left.ravel(), right.ravel())[0, 1]) < 0.05  # independent
+    finally:
+        exact.close()
+        noisy.close()
+    with pytest.raises(ValueError, match="image_noise"):
+        SimCamera(scene, image_noise=-1.0)
 
 
 def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
@@ -185,20 +208,23 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
         assert color.header.frame_id == depth.header.frame_id == "camera_optical_frame"
         with RgbdRenderer(scene, width=160, height=120) as renderer:
             rgb_ref, depth_ref = renderer.render(T)
-        # the depth carries the camera's noise (on by default), drawn from noise_seed: the same
-        # camera core at the pose the node received gives the same image
+        # depth and colour carry the camera's noise (on by default: depth noise and 1 grey level
+        # of read noise), drawn from noise_seed: the same camera core at the pose the node
+        # received gives the same images
         received = codecs.pose_to_matrix(pose.pose)
-        twin = SimCamera(scene, width=160, height=120, depth_noise=True, seed=5)
+        twin = SimCamera(scene, width=160, height=120, depth_noise=True, seed=5, image_noise=1.0)
         try:
-            expected = twin.capture(received).depth
+            expected = twin.capture(received)
         finally:
             twin.close()
         published = codecs.msg_to_image(depth)
-        np.testing.assert_array_equal(published, expected)
+        np.testing.assert_array_equal(published, expected.depth)
+        np.testing.assert_array_equal(codecs.msg_to_image(color), expected.rgb)
         assert not np.allclose(published, depth_ref, equal_nan=True)
-        # same image up to rasterisation of a pose that went through a quaternion and back
+        # the exact rendering up to the read noise and the rasterisation of a pose that went
+        # through a quaternion and back
         diff = np.abs(codecs.msg_to_image(color).astype(int) - rgb_ref.astype(int))
-        assert np.mean(diff) < 0.5 and np.mean(diff > 8) < 0.01
+        assert 0.2 < np.mean(diff) < 2.0 and np.mean(diff > 8) < 0.01
         K, width, height = codecs.camera_info_to_intrinsics(info)
         assert (width, height) == (160, 120) and np.allclose(K, renderer.K)
         assert np.allclose(codecs.pose_to_matrix(pose.pose), T, atol=1e-6)

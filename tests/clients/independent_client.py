@@ -60,7 +60,7 @@ TOPICS = {
     "/area3d/planner/next_views": (Path, FRAMES),
     "/area3d/planner/status": (String, FRAMES),
 }
-GRID_FIELDS = ["x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy"]
+GRID_FIELDS = ["x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy", "hard"]
 
 
 def check(condition, what):
