@@ -45,7 +45,12 @@ def run_inprocess_episode(
     from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
     from area3d_semantics.analysis import analyze_views
     from area3d_semantics.backends import make_backend
-    from area3d_semantics.weights import SemanticParams, semantic_uncertainty, weight_map
+    from area3d_semantics.weights import (
+        SemanticParams,
+        semantic_uncertainty,
+        sigma_from_confidence,
+        weight_map,
+    )
     from sim_bridge.camera import STEREO_BASELINE, SimCamera
     from sim_bridge.scenes import load_scene
 
@@ -125,7 +130,7 @@ def run_inprocess_episode(
         views.append(
             {"index": len(views), "stamp_ns": stamp, "T_world_cam": cap.T_world_cam, "kind": kind}
         )
-        captured.append((stamp, cap.rgb, cap.depth))
+        captured.append((stamp, cap.rgb, cap.depth, result.confidence))
         return True
 
     try:
@@ -136,11 +141,11 @@ def run_inprocess_episode(
         analysis = analyze_views(
             backend, [c[1] for c in captured], [c[2] for c in captured], fallback="heuristic"
         )
-        for i, (stamp, rgb, _) in enumerate(captured):
+        by_confidence = semantics.get("sigma_source", "constant") == "confidence"
+        for i, (stamp, rgb, _, confidence) in enumerate(captured):
             weight = weight_map(analysis.regions_of(i), rgb.shape[0], rgb.shape[1], sem_params)
-            if analysis.regions:
-                usem = semantic_uncertainty(np.ones_like(weight), weight, sem_params.lam)
-                server.add_semantic(stamp, usem)
+            sigma = sigma_from_confidence(confidence) if by_confidence else np.ones_like(weight)
+            server.add_semantic(stamp, semantic_uncertainty(sigma, weight, sem_params.lam))
         add_time("semantics", time.perf_counter() - t)
         refused = 0
         while len(views) < total and refused <= total:

@@ -43,6 +43,11 @@ def _direction_bins(count: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
+# The depth backend's confidence by range, tallied in bins of this width (metres) from every hit;
+# a bin needs this many hits before it counts (else its nearest counted neighbour's value).
+RANGE_BIN = 0.1
+RANGE_BIN_MIN_HITS = 50
+
 # Directions a voxel is observed from, in bins about 45 degrees wide (one bit each of a uint32):
 # two views count as distinct directions when they fall into different bins.
 DIRECTION_BINS = _direction_bins(20)
@@ -101,6 +106,7 @@ class DepthObservation:
     log_residual: np.ndarray  # (M,) float32
     free: np.ndarray  # (F,) int64
     hit_bits: np.ndarray | None = None  # (M,) uint32
+    hit_range: np.ndarray | None = None  # (M,) float32 metres: optical depth of each hit voxel
     missed: np.ndarray | None = None  # (K,) int64
     missed_bits: np.ndarray | None = None  # (K,) uint32
 
@@ -190,6 +196,9 @@ class FusedGrid:
         self.sem_count = np.zeros(n, np.float32)
         self.best_confidence = np.zeros(n, np.float32)  # best frame confidence of each voxel
         self.directions = np.zeros(n, np.uint32)  # DIRECTION_BINS it was observed from (bits)
+        # confidence of every hit, summed per RANGE_BIN of its optical depth, and the hit counts
+        self.range_confidence = np.zeros(int(np.ceil(100.0 / RANGE_BIN)), np.float64)
+        self.range_hits = np.zeros_like(self.range_confidence)
         centers = spec.centers()
         self.roi_mask = np.all((centers >= roi_lo) & (centers <= roi_hi), axis=1)
         self.roi_ids = np.flatnonzero(self.roi_mask)
@@ -319,12 +328,14 @@ class FusedGrid:
             scratch.clear(hit, crossed)
         capped = np.minimum(frame_conf, self.max_confidence)
         camera = T[:3, 3]
+        hit_centres = self.spec.centers_of(hit)
         return DepthObservation(
             hit=hit,
             confidence=frame_conf.astype(np.float32),
             log_residual=np.log1p(-capped).astype(np.float32),
             free=free,
-            hit_bits=direction_bits(self.spec.centers_of(hit), camera),
+            hit_bits=direction_bits(hit_centres, camera),
+            hit_range=((hit_centres - camera) @ T[:3, 2]).astype(np.float32),
             missed=missed,
             missed_bits=direction_bits(self.roi_centres[missed_at], camera),
         )
@@ -339,6 +350,14 @@ class FusedGrid:
         self.best_confidence[hit] = np.maximum(self.best_confidence[hit], observation.confidence)
         if observation.hit_bits is not None:
             self.directions[hit] |= observation.hit_bits
+        if observation.hit_range is not None:
+            bins = np.minimum(
+                (np.maximum(observation.hit_range, 0.0) / RANGE_BIN).astype(np.int64),
+                self.range_hits.size - 1,
+            )
+            n = self.range_hits.size
+            self.range_confidence += np.bincount(bins, observation.confidence, minlength=n)
+            self.range_hits += np.bincount(bins, minlength=n)
         if observation.missed is not None:
             self.directions[observation.missed] |= observation.missed_bits
         self.frames += 1
@@ -461,6 +480,22 @@ class FusedGrid:
         n = self.direction_count().astype(np.float32)
         c = self.best_confidence
         return (c + (1.0 - c) * np.float32(self.retry_gain) ** n).astype(np.float32)
+
+    def range_profile(self) -> tuple[np.ndarray, float]:
+        """(profile (R,) float64, RANGE_BIN): the mean confidence of the hits in each range bin,
+        relative to the best bin, from every frame fused so far; a bin with fewer than
+        RANGE_BIN_MIN_HITS hits takes the value of the nearest bin with enough (all ones before
+        any). What a view's range lets the depth backend achieve: with stereo, confidence falls
+        with the distance; with a depth camera it hardly changes within a few metres."""
+        counted = np.flatnonzero(self.range_hits >= RANGE_BIN_MIN_HITS)
+        if counted.size == 0:
+            return np.ones(self.range_hits.size), RANGE_BIN
+        mean = self.range_confidence[counted] / self.range_hits[counted]
+        best = float(mean.max())
+        if not best > 0:
+            return np.ones(self.range_hits.size), RANGE_BIN
+        profile = np.interp(np.arange(self.range_hits.size), counted, mean / best)
+        return profile, RANGE_BIN
 
     def hard(self, occ: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: region voxels that are not known free, were observed from at least

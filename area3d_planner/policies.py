@@ -190,6 +190,7 @@ class PlanningContext:
             self.visibility,
             relevant=relevant,
             occluders=occluders,
+            range_profile=self.grid.range_profile() if self.visibility.range_profile else None,
         )
 
     def install(self, candidates: tuple, caches: dict) -> None:

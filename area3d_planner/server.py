@@ -104,6 +104,7 @@ class PlannerConfig:
     incidence: bool = (
         False  # a surface seen at a grazing angle counts by its cosine (off: no gain measured)
     )
+    range_profile: bool = True  # a voxel counts by the confidence the backend reaches at that range
     hfov_deg: float = 90.0  # paper: FOV 90 degrees
     max_range: float = 5.0  # paper: max depth 5 m
     width: int = 640
@@ -285,6 +286,7 @@ class NextBestViewServer:
                 pixels_per_voxel=c.pixels_per_voxel or LEVEL_DEFAULTS[level]["pixels_per_voxel"],
                 unknown_occludes=c.unknown_occludes,
                 incidence=c.incidence,
+                range_profile=c.range_profile,
             ),
             greedy=GreedyParams(
                 eta=c.eta,

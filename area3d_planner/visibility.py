@@ -63,6 +63,10 @@ class VisibilityParams:
     # Weigh each voxel by the cosine between its free-space side and the direction to the camera
     # (the surface it may hold is seen foreshortened at a grazing angle).
     incidence: bool = False
+    # Weigh each voxel by the confidence the depth backend reached at the view's range so far,
+    # relative to its best range (FusedGrid.range_profile): a stereo camera's depth is less
+    # precise far away, a depth camera's hardly changes within a few metres.
+    range_profile: bool = True
 
     def validate(self) -> None:
         if self.level not in LEVELS:
@@ -316,6 +320,7 @@ class VisibilityCache:
         relevant: np.ndarray | None = None,
         threads: int | None = None,
         occluders: np.ndarray | None = None,
+        range_profile: tuple[np.ndarray, float] | None = None,
     ) -> VisibilityCache:
         """Dense masks of every (seed, orientation) view: every relevant voxel visible from the
         seed (cube-map z-buffer of the occupied voxels) and inside the view's frustum.
@@ -324,7 +329,9 @@ class VisibilityCache:
         (S, B, 3, 3) or (B, 3, 3) shared by every seed. relevant: (N,) bool, the voxels recorded
         (default: every voxel that is not known free). occluders: (N,) bool, the voxels splatted
         into the z-buffer (default: the occupied ones). threads: worker threads (default: CPU
-        count); the result does not depend on it.
+        count); the result does not depend on it. range_profile: (profile (R,) float, bin metres),
+        the depth backend's confidence by range relative to its best (`FusedGrid.range_profile`),
+        a factor of each voxel's weight (None: 1 at every range).
         """
         params = params or VisibilityParams()
         params.validate()
@@ -358,6 +365,8 @@ class VisibilityCache:
         chunks = np.array_split(np.arange(seeds.shape[0]), max(1, n_chunks))
         scratch = threading.local()
         tol = 0.7 * spec.voxel_size  # the surface layer counts, one voxel behind it does not
+        profile, profile_bin = range_profile or (np.ones(1), params.max_range)
+        profile = np.ascontiguousarray(profile, np.float64)
 
         def run(idx: np.ndarray):
             if not hasattr(scratch, "zbuf"):
@@ -379,6 +388,8 @@ class VisibilityCache:
                 tol,
                 scratch.zbuf,
                 scratch.dirty,
+                profile,
+                float(profile_bin),
             )
 
         if seeds.shape[0] == 0:

@@ -156,6 +156,8 @@ def seed_view_masks(
     tol,
     zbuf,
     dirty,
+    range_profile,
+    range_bin,
 ):
     """Visibility masks of every view at every seed, as CSR rows.
 
@@ -167,7 +169,9 @@ def seed_view_masks(
     resolution allows: min(1, (focal * voxel_size / z)^2 * cos / pixels_per_voxel), i.e. the
     pixels its surface covers over the pixels a voxel needs; cos is the cosine between the
     voxel's normal (N, 3) (unit, towards free space; zero = unknown, cos taken as 1) and the
-    direction to the camera, so a surface seen at a grazing angle counts little.
+    direction to the camera, so a surface seen at a grazing angle counts little; and times
+    range_profile[z // range_bin] (the last entry beyond its end): the confidence the depth
+    backend reaches at that range, relative to its best (ones: no preference).
     zbuf: (6, n, n) float32 scratch, all inf, with its dirty (6, 4) int64 rectangles (see
     `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32, weights float32).
     """
@@ -180,6 +184,7 @@ def seed_view_masks(
     total = 0
     visible = np.empty(centres.shape[0], np.int64)
     fs2 = (focal * voxel_size) ** 2
+    n_profile = range_profile.shape[0] - 1
     for s in range(n_seeds):
         o = seeds[s]
         fill_zbuffer(o, occ_centres, voxel_size, max_range, zbuf, dirty)
@@ -219,7 +224,8 @@ def seed_view_masks(
                     if cos <= 0.0:
                         continue
                 out_ids[total + count] = ids[k]
-                out_w[total + count] = min(1.0, fs2 * cos / (z * z) / pixels_per_voxel)
+                share = min(1.0, fs2 * cos / (z * z) / pixels_per_voxel)
+                out_w[total + count] = share * range_profile[min(int(z / range_bin), n_profile)]
                 count += 1
             nnz[s * n_views + b] = count
             total += count

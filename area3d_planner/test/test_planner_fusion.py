@@ -140,6 +140,20 @@ def test_a_surface_no_direction_resolves_stops_attracting_and_is_reported_hard()
     assert not sure.hard()[wall] and sure.achievability()[wall] > 0.9
 
 
+def test_the_range_profile_is_the_backends_mean_confidence_by_range_relative_to_its_best():
+    grid = make_grid(gamma=0.0)
+    assert np.all(grid.range_profile()[0] == 1.0)  # nothing seen yet: no preference
+    T = look_at(np.array([0.02, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
+    depth = np.full((48, 64), 0.3, np.float32)  # a near wall in the left half of the image ...
+    depth[:, 32:] = 0.9  # ... and a far one in the right half
+    conf = np.where(depth < 0.5, 0.8, 0.2).astype(np.float32)
+    grid.integrate_depth(depth, conf, K, T, stride=1)
+    profile, width = grid.range_profile()
+    near, far = profile[int(0.3 / width)], profile[int(0.9 / width)]
+    assert near == pytest.approx(1.0) and far == pytest.approx(0.25, rel=0.05)
+    assert profile[-1] == pytest.approx(far)  # beyond the last bin seen: its value
+
+
 def test_voxels_in_view_without_any_return_lose_attraction_after_several_directions():
     grid = make_grid(gamma=0.0)
     glossy = at(grid, [0.62, 0.5, 0.5])

@@ -142,6 +142,25 @@ def test_weights_are_the_share_of_pixels_a_voxel_needs_that_it_gets(distance):
     assert set(ids.tolist()) <= set(in_view.tolist())
 
 
+def test_a_range_profile_scales_each_weight_by_the_confidence_reached_at_that_range():
+    spec, occ, _ = wall_scene(1.2)
+    params = VisibilityParams(level="room", face_res=128)
+    R = look_rotation(np.array([1.0, 0.0, 0.0]))
+    plain = VisibilityCache.build(spec, occ, np.zeros((1, 3)), R[None], params)
+    # bins of 1.21 m: full up to 1.21 m, half beyond (the wall's voxels straddle it)
+    profile = np.array([1.0, 0.5])
+    scaled = VisibilityCache.build(
+        spec, occ, np.zeros((1, 3)), R[None], params, range_profile=(profile, 1.21)
+    )
+    ids, w_plain = plain.mask(0)
+    ids_scaled, w_scaled = scaled.mask(0)
+    np.testing.assert_array_equal(ids, ids_scaled)  # what is seen does not change
+    z = spec.centers_of(ids)[:, 0]  # optical depth: the camera looks along +x from the origin
+    factor = np.where(z >= 1.21, 0.5, 1.0)
+    np.testing.assert_allclose(w_scaled, w_plain * factor, rtol=1e-6)
+    assert (z >= 1.21).any() and (z < 1.21).any()
+
+
 def fused_clutter(seed: int):
     """A grid fused from depth frames of random boxes on a floor, as the planner sees it."""
     rng = np.random.default_rng(seed)
