@@ -88,8 +88,8 @@ def _no_return_carving(depth: np.ndarray, rule: str) -> bool | np.ndarray:
 
 def direction_bits(centres: np.ndarray, camera: np.ndarray) -> np.ndarray:
     """(K,) uint32: one bit per voxel, the `DIRECTION_BINS` bin of the direction from each voxel
-    centre (K, 3) to the camera centre (3,)."""
-    d = np.asarray(camera, np.float64)[None, :] - np.asarray(centres, np.float64)
+    centre (K, 3) to the camera centre (3,) (or to its own point of (K, 3))."""
+    d = np.asarray(camera, np.float64) - np.asarray(centres, np.float64)
     bins = np.argmax(d @ DIRECTION_BINS.T, axis=1)
     return np.left_shift(np.uint32(1), bins.astype(np.uint32))
 
@@ -480,6 +480,11 @@ class FusedGrid:
         n = self.direction_count().astype(np.float32)
         c = self.best_confidence
         return (c + (1.0 - c) * np.float32(self.retry_gain) ** n).astype(np.float32)
+
+    def view_evidence(self) -> tuple[np.ndarray, tuple[np.ndarray, float]]:
+        """What the visibility masks weigh views by, copied (a rebuild runs while fusion goes on):
+        (the `directions` each voxel was observed from, the `range_profile`)."""
+        return self.directions.copy(), self.range_profile()
 
     def range_profile(self) -> tuple[np.ndarray, float]:
         """(profile (R,) float64, RANGE_BIN): the mean confidence of the hits in each range bin,

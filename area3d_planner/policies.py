@@ -166,15 +166,24 @@ class PlanningContext:
         _, rotations = orientation_bins(p)
         return points, np.broadcast_to(rotations, (points.shape[0], *rotations.shape)).copy()
 
-    def build(self, occupancy: np.ndarray, kinds: tuple = ()) -> tuple[tuple, dict]:
+    def build(
+        self, occupancy: np.ndarray, kinds: tuple = (), evidence: tuple | None = None
+    ) -> tuple[tuple, dict]:
         """Candidate views and the visibility caches named in `kinds` (see `cache`) for an
-        occupancy snapshot (N,) int8, without touching the context: ((seeds, rotations), caches)."""
+        occupancy snapshot (N,) int8 and the grid's `view_evidence()` taken with it (None: read
+        now), without touching the context: ((seeds, rotations), caches)."""
         candidates = self.candidate_views(occupancy)
-        caches = {kind: self._build_cache(kind, occupancy, *candidates) for kind in kinds}
+        evidence = evidence or self.grid.view_evidence()
+        caches = {kind: self._build_cache(kind, occupancy, *candidates, evidence) for kind in kinds}
         return candidates, caches
 
     def _build_cache(
-        self, kind: str, occupancy: np.ndarray, seeds: np.ndarray, rotations: np.ndarray
+        self,
+        kind: str,
+        occupancy: np.ndarray,
+        seeds: np.ndarray,
+        rotations: np.ndarray,
+        evidence: tuple | None = None,
     ) -> VisibilityCache:
         occluders = None
         relevant = self._relevant(kind, occupancy)
@@ -182,6 +191,7 @@ class PlanningContext:
             # everything not carved hides what is behind it: only its boundary can be seen
             occluders = self.grid.boundary(occupancy)
             relevant = relevant & occluders
+        directions, profile = evidence or self.grid.view_evidence()
         return VisibilityCache.build(
             self.grid.spec,
             occupancy,
@@ -190,7 +200,8 @@ class PlanningContext:
             self.visibility,
             relevant=relevant,
             occluders=occluders,
-            range_profile=self.grid.range_profile() if self.visibility.range_profile else None,
+            range_profile=profile if self.visibility.range_profile else None,
+            directions=directions,
         )
 
     def install(self, candidates: tuple, caches: dict) -> None:

@@ -105,6 +105,7 @@ class PlannerConfig:
         False  # a surface seen at a grazing angle counts by its cosine (off: no gain measured)
     )
     range_profile: bool = True  # a voxel counts by the confidence the backend reaches at that range
+    repeat_gain: float = 0.25  # a voxel seen again from a direction already taken counts this much
     hfov_deg: float = 90.0  # paper: FOV 90 degrees
     max_range: float = 5.0  # paper: max depth 5 m
     width: int = 640
@@ -287,6 +288,7 @@ class NextBestViewServer:
                 unknown_occludes=c.unknown_occludes,
                 incidence=c.incidence,
                 range_profile=c.range_profile,
+                repeat_gain=c.repeat_gain,
             ),
             greedy=GreedyParams(
                 eta=c.eta,
@@ -471,9 +473,10 @@ class NextBestViewServer:
                 version = self._map_version
                 stamp = self.last_fused_stamp
                 occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
+                evidence = self.grid.view_evidence()
                 self._refreshing = True
             try:
-                built = self.context.build(occupancy, kinds)
+                built = self.context.build(occupancy, kinds, evidence)
             except Exception:  # noqa: BLE001 - the request path rebuilds and reports it
                 built = None
             with self._refreshed:

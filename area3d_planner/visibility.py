@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
+from area3d_planner.fusion import DIRECTION_BINS
 from area3d_planner.masks import score_all_views, score_view_list, score_views
 from area3d_planner.zbuffer import in_frustum, new_zbuffer, seed_view_masks
 
@@ -67,6 +68,10 @@ class VisibilityParams:
     # relative to its best range (FusedGrid.range_profile): a stereo camera's depth is less
     # precise far away, a depth camera's hardly changes within a few metres.
     range_profile: bool = True
+    # A voxel seen again from a direction it was already observed from (a DIRECTION_BINS bin,
+    # about 45 degrees) counts this much of a new observation: the same line of sight repeats the
+    # same errors (a stereo match, a depth edge, a grazing angle) and the same occlusions.
+    repeat_gain: float = 0.25
 
     def validate(self) -> None:
         if self.level not in LEVELS:
@@ -81,6 +86,8 @@ class VisibilityParams:
             raise InputError("max_range", self.max_range, "a finite value > 0 metres")
         if not (0 <= self.near < self.max_range):
             raise InputError("near", self.near, f"a value in [0, max_range={self.max_range}) m")
+        if not (0.0 <= self.repeat_gain <= 1.0):
+            raise InputError("repeat_gain", self.repeat_gain, "a value in [0, 1]")
         if not (self.pixels_per_voxel > 0 and np.isfinite(self.pixels_per_voxel)):
             raise InputError("pixels_per_voxel", self.pixels_per_voxel, "a finite value > 0")
         if not (self.seed_spacing > 0 and np.isfinite(self.seed_spacing)):
@@ -321,6 +328,7 @@ class VisibilityCache:
         threads: int | None = None,
         occluders: np.ndarray | None = None,
         range_profile: tuple[np.ndarray, float] | None = None,
+        directions: np.ndarray | None = None,
     ) -> VisibilityCache:
         """Dense masks of every (seed, orientation) view: every relevant voxel visible from the
         seed (cube-map z-buffer of the occupied voxels) and inside the view's frustum.
@@ -331,7 +339,10 @@ class VisibilityCache:
         into the z-buffer (default: the occupied ones). threads: worker threads (default: CPU
         count); the result does not depend on it. range_profile: (profile (R,) float, bin metres),
         the depth backend's confidence by range relative to its best (`FusedGrid.range_profile`),
-        a factor of each voxel's weight (None: 1 at every range).
+        a factor of each voxel's weight (None: 1 at every range). directions: (N,) uint32, the
+        `fusion.DIRECTION_BINS` each voxel was observed from (`FusedGrid.directions`): a view
+        from a direction a voxel was already observed from weighs it by params.repeat_gain
+        (None: every direction is new).
         """
         params = params or VisibilityParams()
         params.validate()
@@ -367,6 +378,10 @@ class VisibilityCache:
         tol = 0.7 * spec.voxel_size  # the surface layer counts, one voxel behind it does not
         profile, profile_bin = range_profile or (np.ones(1), params.max_range)
         profile = np.ascontiguousarray(profile, np.float64)
+        if directions is None:
+            record_dirs = np.zeros(record_ids.size, np.uint32)
+        else:
+            record_dirs = np.ascontiguousarray(np.asarray(directions, np.uint32)[record_ids])
 
         def run(idx: np.ndarray):
             if not hasattr(scratch, "zbuf"):
@@ -390,6 +405,9 @@ class VisibilityCache:
                 scratch.dirty,
                 profile,
                 float(profile_bin),
+                record_dirs,
+                DIRECTION_BINS,
+                float(params.repeat_gain),
             )
 
         if seeds.shape[0] == 0:

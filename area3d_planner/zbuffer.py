@@ -158,6 +158,9 @@ def seed_view_masks(
     dirty,
     range_profile,
     range_bin,
+    voxel_directions,
+    direction_bins,
+    repeat_gain,
 ):
     """Visibility masks of every view at every seed, as CSR rows.
 
@@ -171,7 +174,10 @@ def seed_view_masks(
     voxel's normal (N, 3) (unit, towards free space; zero = unknown, cos taken as 1) and the
     direction to the camera, so a surface seen at a grazing angle counts little; and times
     range_profile[z // range_bin] (the last entry beyond its end): the confidence the depth
-    backend reaches at that range, relative to its best (ones: no preference).
+    backend reaches at that range, relative to its best (ones: no preference); and times
+    repeat_gain where the voxel was already observed from the seed's direction: bit b of
+    voxel_directions[k] (N,) uint32 set, b the row of direction_bins (D, 3) nearest the direction
+    from the voxel to the seed (a second look along the same line repeats the same errors).
     zbuf: (6, n, n) float32 scratch, all inf, with its dirty (6, 4) int64 rectangles (see
     `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32, weights float32).
     """
@@ -183,12 +189,26 @@ def seed_view_masks(
     out_w = np.empty(cap, np.float32)
     total = 0
     visible = np.empty(centres.shape[0], np.int64)
+    repeat = np.empty(centres.shape[0], np.float64)
     fs2 = (focal * voxel_size) ** 2
     n_profile = range_profile.shape[0] - 1
     for s in range(n_seeds):
         o = seeds[s]
         fill_zbuffer(o, occ_centres, voxel_size, max_range, zbuf, dirty)
         n_vis = visible_from(o, centres, zbuf, voxel_size, tol, max_range, visible)
+        for q in range(n_vis):
+            k = visible[q]
+            repeat[q] = 1.0
+            if voxel_directions[k] != 0:
+                best, bin_of = -2.0, 0
+                for d in range(direction_bins.shape[0]):
+                    dot = direction_bins[d, 0] * (o[0] - centres[k, 0])
+                    dot += direction_bins[d, 1] * (o[1] - centres[k, 1])
+                    dot += direction_bins[d, 2] * (o[2] - centres[k, 2])
+                    if dot > best:
+                        best, bin_of = dot, d
+                if (voxel_directions[k] >> np.uint32(bin_of)) & np.uint32(1):
+                    repeat[q] = repeat_gain
         for b in range(n_views):
             R = rotations[s, b]
             if total + n_vis > cap:
@@ -224,7 +244,7 @@ def seed_view_masks(
                     if cos <= 0.0:
                         continue
                 out_ids[total + count] = ids[k]
-                share = min(1.0, fs2 * cos / (z * z) / pixels_per_voxel)
+                share = min(1.0, fs2 * cos / (z * z) / pixels_per_voxel) * repeat[q]
                 out_w[total + count] = share * range_profile[min(int(z / range_bin), n_profile)]
                 count += 1
             nnz[s * n_views + b] = count

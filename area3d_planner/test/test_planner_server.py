@@ -248,11 +248,11 @@ def test_frames_arriving_during_a_rebuild_coalesce_into_one_more_rebuild():
     versions = []
     build = srv.context.build
 
-    def slow_build(occupancy, kinds=()):
+    def slow_build(occupancy, kinds=(), evidence=None):
         versions.append(srv._map_version)
         started.set()
         gate.wait(30.0)
-        return build(occupancy, kinds)
+        return build(occupancy, kinds, evidence)
 
     srv.context.build = slow_build
     try:
@@ -275,7 +275,7 @@ def test_a_request_waits_for_the_rebuild_that_covers_its_stamp():
     srv = NextBestViewServer(refresh_config(), background=True)
     gate = threading.Event()
     build = srv.context.build
-    srv.context.build = lambda occ, kinds=(): gate.wait(30.0) and build(occ, kinds)
+    srv.context.build = lambda occ, kinds=(), ev=None: gate.wait(30.0) and build(occ, kinds, ev)
     try:
         f = frames()
         srv.add_frame(*f[0])
@@ -367,11 +367,11 @@ def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a
     gate = threading.Event()
     builds = []
 
-    def held_build(occupancy, kinds=()):
+    def held_build(occupancy, kinds=(), evidence=None):
         builds.append(srv._map_version)
         if len(builds) > 1:
             gate.wait(30.0)  # every rebuild after the first waits for the test
-        return build(occupancy, kinds)
+        return build(occupancy, kinds, evidence)
 
     srv.context.build = held_build
     try:

@@ -161,6 +161,30 @@ def test_a_range_profile_scales_each_weight_by_the_confidence_reached_at_that_ra
     assert (z >= 1.21).any() and (z < 1.21).any()
 
 
+def test_a_voxel_already_seen_from_the_seeds_direction_counts_repeat_gain_of_a_new_one():
+    from area3d_planner.fusion import direction_bits
+
+    spec, occ, _ = wall_scene(1.2)
+    params = VisibilityParams(level="room", face_res=128, repeat_gain=0.25)
+    R = look_rotation(np.array([1.0, 0.0, 0.0]))
+    seed = np.zeros((1, 3))
+    plain = VisibilityCache.build(spec, occ, seed, R[None], params)
+    ids, w_plain = plain.mask(0)
+    centres = spec.centers_of(ids)
+    directions = np.zeros(spec.num_voxels, np.uint32)
+    seen_here = centres[:, 1] > 0  # half of the wall was observed from this camera's direction
+    directions[ids[seen_here]] = direction_bits(centres[seen_here], seed[0])
+    # the other half from another direction only (straight above): still new from here
+    directions[ids[~seen_here]] = direction_bits(
+        centres[~seen_here], centres[~seen_here] + [0, 0, 1]
+    )
+    again = VisibilityCache.build(spec, occ, seed, R[None], params, directions=directions)
+    ids_again, w_again = again.mask(0)
+    np.testing.assert_array_equal(ids, ids_again)
+    np.testing.assert_allclose(w_again, w_plain * np.where(seen_here, 0.25, 1.0), rtol=1e-6)
+    assert seen_here.any() and (~seen_here).any()
+
+
 def fused_clutter(seed: int):
     """A grid fused from depth frames of random boxes on a floor, as the planner sees it."""
     rng = np.random.default_rng(seed)
