@@ -158,6 +158,19 @@ def _grid_volume(grid: Mapping[str, np.ndarray], field: str) -> tuple[np.ndarray
     return vol, axes
 
 
+def hard_voxels_xy(
+    grid: Mapping[str, np.ndarray], z: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of a flat grid's hard voxels (its `hard` field > 0; none in grids without it),
+    those at height `z` only when given (to 1 um)."""
+    if "hard" not in grid:
+        return np.zeros(0), np.zeros(0)
+    hard = np.asarray(grid["hard"]) > 0
+    if z is not None:
+        hard &= np.abs(np.asarray(grid["z"], np.float64) - z) < 1e-6
+    return np.asarray(grid["x"], np.float64)[hard], np.asarray(grid["y"], np.float64)[hard]
+
+
 def plot_grid_slices(
     before: Mapping[str, np.ndarray] | None,
     after: Mapping[str, np.ndarray] | None,
@@ -166,7 +179,9 @@ def plot_grid_slices(
     title: str = "",
 ) -> Path | None:
     """Rows before / after, columns: horizontal slice at the grid's middle height and the max
-    projection along z, colour = `field` (one colour scale for all panels). None if no grid."""
+    projection along z, colour = `field` (one colour scale for all panels); the hard voxels (a
+    grid's `hard` field: what no view is expected to resolve) marked in cyan, those of the slice
+    on the slice, every one on the projection. None if no grid."""
     grids = [
         (name, g)
         for name, g in (("before", before), ("after", after))
@@ -181,6 +196,7 @@ def plot_grid_slices(
         len(volumes), 2, figsize=(10, 4.2 * len(volumes)), dpi=DPI, squeeze=False
     )
     image = None
+    hard_grids = [g for _, g in grids]
     for row, (name, vol, (xs, ys, zs)) in enumerate(volumes):
         mid = len(zs) // 2
         with np.errstate(all="ignore"):
@@ -205,6 +221,12 @@ def plot_grid_slices(
             ax.set_title(f"{name}: {label}")
             ax.set_xlabel("x [m]")
             ax.set_ylabel("y [m]")
+            x, y = hard_voxels_xy(hard_grids[row], zs[mid] if col == 0 else None)
+            if x.size:
+                ax.scatter(x, y, s=4, c="cyan", marker="s", linewidths=0, label="hard")
+            total = hard_voxels_xy(hard_grids[row])[0].size
+            if col == 1 and total:
+                ax.legend(loc="upper right", fontsize=7, title=f"{total} hard voxels")
     fig.colorbar(image, ax=axes, shrink=0.8, label=field)
     fig.suptitle(title or f"{field} grid")
     return _save(fig, out_path)

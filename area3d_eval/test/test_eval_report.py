@@ -169,10 +169,29 @@ def test_an_estimated_depth_run_is_reconstructed_from_perceptions_depth(tmp_path
     )
     for path in frame_files(run):  # perception "estimated" every surface 3 cm too far
         f = read_frame(path)
-        write_frame(run, f.index, f.rgb, f.depth, f.K, f.T_world_cam, f.stamp_ns, f.depth + 0.03)
+        confidence = np.ones_like(f.depth)
+        write_frame(
+            run, f.index, f.rgb, f.depth, f.K, f.T_world_cam, f.stamp_ns, f.depth + 0.03, confidence
+        )
     sensor = evaluate_run(run, scene, write=False, **SMALL)
     episode = json.loads((run / EPISODE_FILE).read_text())
     (run / EPISODE_FILE).write_text(json.dumps({**episode, "depth_source": "estimated"}))
     estimated = evaluate_run(run, scene, write=False, **SMALL)  # the episode's choice
     assert sensor["depth_source"] == "sensor" and estimated["depth_source"] == "estimated"
     assert estimated["final"]["accuracy"] > sensor["final"]["accuracy"] + 0.01, (sensor, estimated)
+
+
+def test_hard_voxels_are_picked_from_a_grid_by_height_and_absent_grids_have_none():
+    from area3d_eval.plots import hard_voxels_xy
+
+    grid = {
+        "x": np.array([0.0, 0.1, 0.2, 0.3]),
+        "y": np.array([1.0, 1.1, 1.2, 1.3]),
+        "z": np.array([0.5, 0.5, 0.6, 0.5]),
+        "hard": np.array([1.0, 0.0, 1.0, 1.0], np.float32),
+    }
+    x, y = hard_voxels_xy(grid)
+    np.testing.assert_array_equal(x, [0.0, 0.2, 0.3])
+    x, y = hard_voxels_xy(grid, 0.5)
+    np.testing.assert_array_equal(y, [1.0, 1.3])
+    assert hard_voxels_xy({k: v for k, v in grid.items() if k != "hard"})[0].size == 0
