@@ -252,6 +252,9 @@ class TransformBuffer:
     max_angular_speed: rad/s; the same for rotation. None = not checked.
     max_ahead_s: a dynamic sample's stamp may be at most this far ahead of the receiver's clock
         (`now_ns` given to `add`).
+
+    Not thread-safe: a node whose callbacks run on several threads holds one lock around `add`
+    and `lookup`.
     """
 
     def __init__(

@@ -66,10 +66,10 @@ def test_interpolation_lies_on_the_geodesic_between_the_two_samples(a, b, span, 
     theta = angle(Ta[:3, :3], Tb[:3, :3])
     assert angle(Ta[:3, :3], T[:3, :3]) == pytest.approx(u * theta, abs=1e-6)
     assert angle(T[:3, :3], Tb[:3, :3]) == pytest.approx((1 - u) * theta, abs=1e-6)
-    # scipy's Slerp, an independent implementation, agrees
-    expected = Slerp([0.0, 1.0], Rotation.from_quat([a[1], b[1]]))([u]).as_matrix()[0]
-    np.testing.assert_allclose(T[:3, :3], expected, atol=1e-6)
     np.testing.assert_allclose(T[3], [0, 0, 0, 1])
+    if theta < np.pi - 1e-3:  # half a turn has two geodesics; scipy may take the other
+        expected = Slerp([0.0, 1.0], Rotation.from_quat([a[1], b[1]]))([u]).as_matrix()[0]
+        np.testing.assert_allclose(T[:3, :3], expected, atol=1e-6)
 
 
 @st.composite
@@ -332,6 +332,7 @@ def test_a_pose_stamped_stream_is_the_camera_pose_itself():
 @settings(max_examples=100, deadline=None)
 @given(a=quaternions(), b=quaternions(), u=st.floats(0, 1))
 def test_slerp_agrees_with_scipy(a, b, u):
+    assume(abs(np.dot(a, b)) > 1e-3)  # not half a turn apart: two geodesics, either is right
     expected = Slerp([0.0, 1.0], Rotation.from_quat([a, b]))([u]).as_matrix()[0]
     got = transforms.quaternion_to_rotation(transforms.slerp(a, b, u))
     np.testing.assert_allclose(got, expected, atol=1e-6)
