@@ -3,16 +3,26 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# The ROS 2 interfaces (tf2_msgs, area3d_interfaces), generated and built into the venv.
+INTERFACES := $(VENV)/.interfaces
+INTERFACE_SOURCES := $(shell find area3d_interfaces third_party/tf2_msgs -type f -not -name '*.md') \
+	tools/build_interfaces.py tools/wheel_targets.cmake
 
 .PHONY: install run test lint bench clean
 
 $(STAMP): pyproject.toml
+	$(PYTHON) tools/build_interfaces.py --check
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[dev]"
 	touch $(STAMP)
 
-install: $(STAMP)
+# Rebuilt when an interface, the build script or the venv's packages change (the script also
+# keeps a digest of its inputs and skips the build when nothing it depends on changed).
+$(INTERFACES): $(STAMP) $(INTERFACE_SOURCES)
+	$(PY) tools/build_interfaces.py
+
+install: $(INTERFACES)
 
 run: install
 	$(VENV)/bin/area3d run

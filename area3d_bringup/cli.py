@@ -238,6 +238,7 @@ def scenes() -> None:
 
 BENCHES = {
     "transport": "area3d_bringup.transport_bench",
+    "tf": "area3d_msgs_py.tf_bench",
     "render": "sim_bridge.bench",
     "stereo": "area3d_bringup.stereo_bench",
     "perception": "area3d_perception.bench",

@@ -1,4 +1,6 @@
-"""numpy <-> ROS 2 message codecs (on the generated rclpy message classes): Image, PointCloud2, Pose / Transform, CameraInfo, stamps.
+"""numpy <-> ROS 2 message codecs (on the generated rclpy message classes): Image, PointCloud2,
+Pose / Transform / PoseArray, CameraInfo, stamps, TF (TFMessage), the NextBestView service and
+hard regions.
 
 Conventions: images are (H, W, 3) uint8 in rgb order, (H, W) uint8 for mono8 and (H, W) float32
 metres for depth (NaN = no return); poses are 4x4 float64 homogeneous matrices; stamps are int
@@ -7,12 +9,20 @@ nanoseconds since the Unix epoch.
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Iterable
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from area3d_msgs_py import msgs
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.transforms import (  # noqa: F401  (rotations live there; re-exported here)
+    QUATERNION_NORM_TOLERANCE,
+    StampedTransform,
+    check_quaternion,
+    quaternion_to_rotation,
+    rotation_to_quaternion,
+)
 
 NS_PER_S = 1_000_000_000
 # REP 118 / sensor_msgs image_encodings: bytes per pixel and the numpy element type.
@@ -41,8 +51,6 @@ POINTFIELD_DTYPES: dict[int, str] = {
 }
 _DTYPE_TO_POINTFIELD = {v: k for k, v in POINTFIELD_DTYPES.items()}
 
-# Quaternion norm tolerance: ROS tools (tf2) warn beyond ~1e-3 off unit length.
-QUATERNION_NORM_TOLERANCE = 1e-3
 # Rotation orthonormality tolerance on max |R^T R - I| (float64 poses composed a few times).
 ROTATION_TOLERANCE = 1e-5
 
@@ -295,59 +303,17 @@ def _check_matrix(T: Any, field: str) -> np.ndarray:
     return T
 
 
-def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (4,) unit quaternion (x, y, z, w) with w >= 0 (Shepperd's method)."""
-    trace = np.trace(R)
-    diag = np.diag(R)
-    i = int(np.argmax(np.r_[trace, diag]))
-    if i == 0:
-        w = np.sqrt(1.0 + trace) / 2.0
-        q = np.array(
-            [
-                (R[2, 1] - R[1, 2]) / (4 * w),
-                (R[0, 2] - R[2, 0]) / (4 * w),
-                (R[1, 0] - R[0, 1]) / (4 * w),
-                w,
-            ]
-        )
-    else:
-        a = i - 1
-        b, c = (a + 1) % 3, (a + 2) % 3
-        s = np.sqrt(1.0 + R[a, a] - R[b, b] - R[c, c]) * 2.0
-        q = np.empty(4)
-        q[a] = s / 4.0
-        q[b] = (R[b, a] + R[a, b]) / s
-        q[c] = (R[c, a] + R[a, c]) / s
-        q[3] = (R[c, b] - R[b, c]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
-    """(4,) unit quaternion (x, y, z, w) -> (3, 3) rotation."""
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def _check_quaternion(orientation: Any, field: str) -> np.ndarray:
-    q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=np.float64)
-    norm = np.linalg.norm(q)
-    if not np.isfinite(norm) or abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise InputError(
-            field, q.tolist(), f"a unit quaternion (|norm - 1| <= {QUATERNION_NORM_TOLERANCE})"
-        )
-    return q / norm
+    return check_quaternion((orientation.x, orientation.y, orientation.z, orientation.w), field)
 
 
-def matrix_to_pose(T: np.ndarray) -> Any:
+def _prefixed(prefix: str, field: str) -> str:
+    return f"{prefix}.{field}" if prefix else field
+
+
+def matrix_to_pose(T: np.ndarray, field: str = "T") -> Any:
     """(4, 4) homogeneous transform -> geometry_msgs/Pose (quaternion with w >= 0)."""
-    T = _check_matrix(T, "T")
+    T = _check_matrix(T, field)
     x, y, z, w = rotation_to_quaternion(T[:3, :3])
     px, py, pz = (float(v) for v in T[:3, 3])
     return msgs.Pose(
@@ -356,33 +322,57 @@ def matrix_to_pose(T: np.ndarray) -> Any:
     )
 
 
-def pose_to_matrix(pose: Any) -> np.ndarray:
-    """geometry_msgs/Pose -> (4, 4) float64; rejects quaternions off unit length by > 1e-3."""
-    q = _check_quaternion(pose.orientation, "orientation")
+def pose_to_matrix(pose: Any, field: str = "") -> np.ndarray:
+    """geometry_msgs/Pose -> (4, 4) float64; rejects quaternions off unit length by > 1e-3.
+    field: the pose's own field in its message, prefixed to the names in a rejection."""
+    q = _check_quaternion(pose.orientation, _prefixed(field, "orientation"))
     p = np.array([pose.position.x, pose.position.y, pose.position.z], dtype=np.float64)
     if not np.isfinite(p).all():
-        raise InputError("position", p.tolist(), "finite coordinates")
+        raise InputError(_prefixed(field, "position"), p.tolist(), "finite coordinates")
     T = np.eye(4)
     T[:3, :3] = quaternion_to_rotation(q)
     T[:3, 3] = p
     return T
 
 
-def matrix_to_transform(T: np.ndarray) -> Any:
+def matrix_to_transform(T: np.ndarray, field: str = "T") -> Any:
     """(4, 4) homogeneous transform -> geometry_msgs/Transform."""
-    pose = matrix_to_pose(T)
+    pose = matrix_to_pose(T, field)
     p = pose.position
     return msgs.Transform(translation=msgs.Vector3(x=p.x, y=p.y, z=p.z), rotation=pose.orientation)
 
 
-def transform_to_matrix(transform: Any) -> np.ndarray:
-    """geometry_msgs/Transform -> (4, 4) float64; rejects non-unit quaternions."""
-    q = _check_quaternion(transform.rotation, "rotation")
+def transform_to_matrix(transform: Any, field: str = "") -> np.ndarray:
+    """geometry_msgs/Transform -> (4, 4) float64; rejects non-unit quaternions and non-finite
+    translations. field: as for pose_to_matrix."""
+    q = _check_quaternion(transform.rotation, _prefixed(field, "rotation"))
     t = transform.translation
+    p = np.array([t.x, t.y, t.z], dtype=np.float64)
+    if not np.isfinite(p).all():
+        raise InputError(_prefixed(field, "translation"), p.tolist(), "finite coordinates")
     T = np.eye(4)
     T[:3, :3] = quaternion_to_rotation(q)
-    T[:3, 3] = (t.x, t.y, t.z)
+    T[:3, 3] = p
     return T
+
+
+def matrices_to_pose_array(Ts: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    """(N, 4, 4) homogeneous transforms -> geometry_msgs/PoseArray (N may be 0)."""
+    Ts = np.asarray(Ts, dtype=np.float64)
+    if Ts.ndim != 3 or Ts.shape[1:] != (4, 4):
+        raise InputError("poses", Ts.shape, "(N, 4, 4) homogeneous transforms")
+    return msgs.PoseArray(
+        header=header(stamp_ns, frame_id),
+        poses=[matrix_to_pose(T, f"poses[{i}]") for i, T in enumerate(Ts)],
+    )
+
+
+def pose_array_to_matrices(msg: Any, field: str = "poses") -> np.ndarray:
+    """geometry_msgs/PoseArray -> (N, 4, 4) float64; a bad pose is named by its index."""
+    Ts = np.empty((len(msg.poses), 4, 4))
+    for i, pose in enumerate(msg.poses):
+        Ts[i] = pose_to_matrix(pose, f"{field}[{i}]")
+    return Ts
 
 
 # camera info ---------------------------------------------------------------------------------
@@ -447,3 +437,207 @@ def camera_info_to_baseline(msg: Any) -> float:
             "p[3]", float(P[0, 3]), "Tx = -fx * baseline < 0: the right camera of a stereo pair"
         )
     return float(baseline)
+
+
+# TF ------------------------------------------------------------------------------------------
+def stamped_transform_to_msg(transform: StampedTransform) -> Any:
+    """(parent, child, stamp_ns, 4x4) -> geometry_msgs/TransformStamped."""
+    parent, child, stamp_ns, T = transform
+    for field, frame in (("parent", parent), ("child", child)):
+        if not isinstance(frame, str) or not frame:
+            raise InputError(field, frame, "a frame's name")
+    return msgs.TransformStamped(
+        header=header(stamp_ns, parent),
+        child_frame_id=child,
+        transform=matrix_to_transform(T, "T"),
+    )
+
+
+def msg_to_stamped_transform(msg: Any, field: str = "") -> StampedTransform:
+    """geometry_msgs/TransformStamped -> (parent, child, stamp_ns, 4x4); field: as pose_to_matrix."""
+    return StampedTransform(
+        msg.header.frame_id,
+        msg.child_frame_id,
+        stamp_to_ns(msg.header.stamp),
+        transform_to_matrix(msg.transform, _prefixed(field, "transform")),
+    )
+
+
+def transforms_to_tf_message(transforms: Iterable[StampedTransform]) -> Any:
+    """[(parent, child, stamp_ns, 4x4), ...] -> tf2_msgs/TFMessage (for /tf or /tf_static)."""
+    return msgs.TFMessage(transforms=[stamped_transform_to_msg(t) for t in transforms])
+
+
+def tf_message_to_transforms(msg: Any) -> list[StampedTransform]:
+    """tf2_msgs/TFMessage -> [(parent, child, stamp_ns, 4x4), ...]; a bad transform is named by
+    its index (`transforms[3].transform.rotation`). A node that must keep the good transforms of a
+    message with a bad one decodes each with msg_to_stamped_transform (transforms.TransformBuffer
+    checks them one by one)."""
+    return [msg_to_stamped_transform(t, f"transforms[{i}]") for i, t in enumerate(msg.transforms)]
+
+
+# the next-best-view service (area3d_interfaces/srv/NextBestView) ------------------------------
+#: Planning modes a request may name; "" leaves the planner's own `mode` parameter.
+VIEW_MODES = ("closed_loop", "batch")
+UINT32_MAX = 2**32 - 1
+
+
+class ViewRequest(NamedTuple):
+    """A NextBestView request: how many views, the mode ("" = the planner's), the camera's
+    current pose (4x4 in frame_id) and the stamp of the last frame it was captured with."""
+
+    count: int
+    mode: str
+    current: np.ndarray
+    stamp_ns: int
+    frame_id: str
+
+
+class ViewAnswer(NamedTuple):
+    """A NextBestView response: views (N, 4, 4) optical-frame poses in frame_id, best first, and
+    the predicted gain of each (N,); success False with a message and no views when refused."""
+
+    success: bool
+    message: str
+    views: np.ndarray
+    gains: np.ndarray
+    stamp_ns: int
+    frame_id: str
+
+
+def _check_mode(mode: Any) -> str:
+    if mode not in ("", *VIEW_MODES):
+        raise InputError("mode", mode, f"one of {', '.join(VIEW_MODES)} or empty")
+    return mode
+
+
+def view_request_to_msg(
+    count: int, current: np.ndarray, stamp_ns: int, frame_id: str, mode: str = ""
+) -> Any:
+    """area3d_interfaces/srv/NextBestView.Request. count: views wanted, 0 = what the budget
+    allows; current: 4x4 camera pose in frame_id, stamped with the last captured frame."""
+    if not isinstance(count, int | np.integer) or isinstance(count, bool):
+        raise InputError("count", count, "an int of views >= 0 (0 = as many as the budget allows)")
+    if not 0 <= count <= UINT32_MAX:
+        raise InputError("count", count, "an int of views >= 0 (0 = as many as the budget allows)")
+    pose = matrix_to_pose(current, "current")
+    return msgs.NextBestView.Request(
+        count=int(count),
+        mode=_check_mode(mode),
+        current=msgs.PoseStamped(header=header(stamp_ns, frame_id), pose=pose),
+    )
+
+
+def msg_to_view_request(msg: Any) -> ViewRequest:
+    """Checked fields of a NextBestView request (mode, current pose); see ViewRequest."""
+    return ViewRequest(
+        count=int(msg.count),
+        mode=_check_mode(msg.mode),
+        current=pose_to_matrix(msg.current.pose, "current.pose"),
+        stamp_ns=stamp_to_ns(msg.current.header.stamp),
+        frame_id=msg.current.header.frame_id,
+    )
+
+
+def view_answer_to_msg(views: np.ndarray, gains: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    """A successful NextBestView.Response: views (N, 4, 4) best first, gains (N,) finite."""
+    views = np.asarray(views, dtype=np.float64)
+    gains = np.asarray(gains, dtype=np.float32).reshape(-1)
+    pose_array = matrices_to_pose_array(views, stamp_ns, frame_id)
+    if gains.shape != (len(views),):
+        raise InputError("gains", gains.shape, f"({len(views)},): one gain per view")
+    if not np.isfinite(gains).all():
+        raise InputError("gains", gains.tolist(), "finite predicted gains")
+    return msgs.NextBestView.Response(success=True, message="", views=pose_array, gains=gains)
+
+
+def view_refusal_to_msg(message: str, stamp_ns: int, frame_id: str) -> Any:
+    """A NextBestView.Response that says why no view is given (success False, no views)."""
+    if not isinstance(message, str) or not message:
+        raise InputError("message", message, "the reason no view is given")
+    return msgs.NextBestView.Response(
+        success=False,
+        message=message,
+        views=msgs.PoseArray(header=header(stamp_ns, frame_id), poses=[]),
+        gains=np.zeros(0, np.float32),
+    )
+
+
+def msg_to_view_answer(msg: Any) -> ViewAnswer:
+    """Checked fields of a NextBestView response; see ViewAnswer."""
+    views = pose_array_to_matrices(msg.views, "views.poses")
+    gains = np.array(msg.gains, dtype=np.float32)
+    if gains.shape != (len(views),):
+        raise InputError("gains", gains.shape, f"({len(views)},): one gain per view")
+    return ViewAnswer(
+        success=bool(msg.success),
+        message=msg.message,
+        views=views,
+        gains=gains,
+        stamp_ns=stamp_to_ns(msg.views.header.stamp),
+        frame_id=msg.views.header.frame_id,
+    )
+
+
+# hard regions (area3d_interfaces/msg/HardRegionArray) ---------------------------------------
+#: One hard region per row: centroid and extent in metres, in the array's frame.
+HARD_REGION_DTYPE = np.dtype(
+    [
+        ("centroid", "<f8", (3,)),
+        ("extent", "<f8", (3,)),
+        ("voxel_count", "<u4"),
+        ("direction_count", "<u4"),
+        ("mean_uncertainty", "<f4"),
+    ]
+)
+
+
+def hard_regions_to_msg(regions: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    """(N,) HARD_REGION_DTYPE -> area3d_interfaces/HardRegionArray (order kept)."""
+    regions = np.asarray(regions)
+    if regions.dtype != HARD_REGION_DTYPE or regions.ndim != 1:
+        raise InputError(
+            "regions", f"{regions.dtype} {regions.shape}", "a (N,) array of HARD_REGION_DTYPE"
+        )
+    numbers = np.concatenate(
+        [regions["centroid"], regions["extent"], regions["mean_uncertainty"][:, None]], axis=1
+    )
+    if not np.isfinite(numbers).all():
+        raise InputError("regions", "non-finite values", "finite centroids, extents, uncertainty")
+    if (regions["extent"] < 0).any():
+        raise InputError("regions.extent", regions["extent"].tolist(), "sizes >= 0 m")
+    return msgs.HardRegionArray(
+        header=header(stamp_ns, frame_id),
+        regions=[
+            msgs.HardRegion(
+                centroid=msgs.Point(x=float(c[0]), y=float(c[1]), z=float(c[2])),
+                extent=msgs.Vector3(x=float(e[0]), y=float(e[1]), z=float(e[2])),
+                voxel_count=int(n),
+                direction_count=int(d),
+                mean_uncertainty=float(u),
+            )
+            for c, e, n, d, u in zip(
+                regions["centroid"],
+                regions["extent"],
+                regions["voxel_count"],
+                regions["direction_count"],
+                regions["mean_uncertainty"],
+                strict=True,
+            )
+        ],
+    )
+
+
+def msg_to_hard_regions(msg: Any) -> np.ndarray:
+    """area3d_interfaces/HardRegionArray -> (N,) HARD_REGION_DTYPE."""
+    regions = np.zeros(len(msg.regions), HARD_REGION_DTYPE)
+    for i, region in enumerate(msg.regions):
+        c, e = region.centroid, region.extent
+        regions[i] = (
+            (c.x, c.y, c.z),
+            (e.x, e.y, e.z),
+            region.voxel_count,
+            region.direction_count,
+            region.mean_uncertainty,
+        )
+    return regions

@@ -5,8 +5,10 @@
     >>> msgs.deserialize(msgs.serialize(t), "builtin_interfaces/msg/Time") == t
     True
 
-``TFMessage`` is None when ``tf2_msgs`` does not import (it is not on PyPI; a sourced ROS 2
-install provides it): TF is then published only where it can be.
+``tf2_msgs`` (TFMessage only; it is not on PyPI) and ``area3d_interfaces`` (NextBestView,
+HardRegion, HardRegionArray) are generated and built into the environment by ``make install``
+(``tools/build_interfaces.py``); with a sourced ROS 2 install, colcon builds ``area3d_interfaces`` and
+ROS 2 has ``tf2_msgs``.
 """
 
 from __future__ import annotations
@@ -18,13 +20,14 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import (
     Point,
     Pose,
+    PoseArray,
     PoseStamped,
     Quaternion,
     Transform,
     TransformStamped,
     Vector3,
 )
-from nav_msgs.msg import Path
+from nav_msgs.msg import Odometry, Path
 from nav_msgs.srv import GetPlan
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField, RegionOfInterest
@@ -33,17 +36,24 @@ from std_msgs.msg import Header, String
 from area3d_msgs_py.errors import InputError
 
 try:
+    from area3d_interfaces.msg import HardRegion, HardRegionArray
+    from area3d_interfaces.srv import NextBestView
     from tf2_msgs.msg import TFMessage
-except ImportError:  # not on PyPI: only a sourced ROS 2 install has it
-    TFMessage = None
+except ImportError as exc:  # built by `make install`, not installed by pip
+    raise ImportError(
+        f"{exc.name or exc}: the ROS 2 interfaces tf2_msgs and area3d_interfaces are not built "
+        "into this environment: run `make install` (or `python tools/build_interfaces.py` with "
+        "this environment's python)"
+    ) from exc
 
 GetPlan_Request = GetPlan.Request
 GetPlan_Response = GetPlan.Response
 
 __all__ = [
-    "CameraInfo", "GetPlan", "GetPlan_Request", "GetPlan_Response", "Header", "Image", "Path",
-    "Point", "PointCloud2", "PointField", "Pose", "PoseStamped", "Quaternion", "RegionOfInterest",
-    "String", "TFMessage", "Time", "Transform", "TransformStamped", "Vector3",
+    "CameraInfo", "GetPlan", "GetPlan_Request", "GetPlan_Response", "HardRegion",
+    "HardRegionArray", "Header", "Image", "NextBestView", "Odometry", "Path", "Point",
+    "PointCloud2", "PointField", "Pose", "PoseArray", "PoseStamped", "Quaternion",
+    "RegionOfInterest", "String", "TFMessage", "Time", "Transform", "TransformStamped", "Vector3",
     "deserialize", "get", "serialize", "type_name_of",
 ]  # fmt: skip
 

@@ -327,3 +327,135 @@ def test_bad_intrinsics_and_stamps_are_rejected():
 def test_unknown_message_type_is_rejected():
     raises_field("type_name", msgs.get, "sensor_msgs/msg/Nope")
     raises_field("type_name", msgs.get, "not a type")
+
+
+# ---- TF, the next-best-view service and hard regions -----------------------------------------
+def rigid(q, t):
+    T = np.eye(4)
+    T[:3, :3] = codecs.quaternion_to_rotation(q)
+    T[:3, 3] = t
+    return T
+
+
+translations = hnp.arrays(np.float64, 3, elements=st.floats(-100, 100))
+rigids = st.builds(rigid, unit_quaternions, translations)
+frame_names = st.text(
+    alphabet=st.characters(min_codepoint=ord("a"), max_codepoint=ord("z")) | st.just("_"),
+    min_size=1,
+    max_size=12,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(edges=st.lists(st.tuples(frame_names, frame_names, stamps, rigids), min_size=0, max_size=6))
+def test_tf_message_round_trips_as_parent_child_stamp_and_matrix(edges):
+    msg = wire(codecs.transforms_to_tf_message(edges))
+    assert msgs.type_name_of(msg) == "tf2_msgs/msg/TFMessage"
+    back = codecs.tf_message_to_transforms(msg)
+    assert len(back) == len(edges)
+    for (parent, child, stamp, T), got in zip(edges, back, strict=True):
+        assert (got.parent, got.child, got.stamp_ns) == (parent, child, stamp)
+        np.testing.assert_allclose(got.T, T, atol=1e-9)
+
+
+def test_a_bad_transform_in_a_tf_message_is_named_by_its_index():
+    edges = [("world", "a", 1, np.eye(4)), ("a", "b", 1, np.eye(4))]
+    msg = codecs.transforms_to_tf_message(edges)
+    msg.transforms[1].transform.rotation.w = 2.0
+    raises_field("transforms[1].transform.rotation", codecs.tf_message_to_transforms, msg)
+    msg.transforms[1].transform.rotation.w = 1.0
+    msg.transforms[0].transform.translation.x = float("nan")
+    raises_field("transforms[0].transform.translation", codecs.tf_message_to_transforms, msg)
+    raises_field("child", codecs.stamped_transform_to_msg, ("world", "", 1, np.eye(4)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    count=st.integers(0, 2**32 - 1),
+    mode=st.sampled_from(["", "closed_loop", "batch"]),
+    current=rigids,
+    stamp=stamps,
+    frame=frame_names,
+)
+def test_next_best_view_request_round_trips(count, mode, current, stamp, frame):
+    msg = wire(codecs.view_request_to_msg(count, current, stamp, frame, mode))
+    assert msgs.type_name_of(msg) == "area3d_interfaces/srv/NextBestView_Request"
+    got = codecs.msg_to_view_request(msg)
+    assert (got.count, got.mode, got.stamp_ns, got.frame_id) == (count, mode, stamp, frame)
+    np.testing.assert_allclose(got.current, current, atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    views=st.lists(rigids, min_size=0, max_size=8),
+    data=st.data(),
+    stamp=stamps,
+    frame=frame_names,
+)
+def test_next_best_view_response_round_trips_views_best_first_with_their_gains(
+    views, data, stamp, frame
+):
+    gains = data.draw(hnp.arrays(np.float32, len(views), elements=st.floats(0, 1e6, width=32)))
+    Ts = np.array(views).reshape(-1, 4, 4)
+    msg = wire(codecs.view_answer_to_msg(Ts, gains, stamp, frame))
+    got = codecs.msg_to_view_answer(msg)
+    assert got.success and got.message == ""
+    assert (got.stamp_ns, got.frame_id) == (stamp, frame)
+    np.testing.assert_allclose(got.views, Ts, atol=1e-9)
+    np.testing.assert_array_equal(got.gains, gains)  # float32 on the wire: exact
+
+
+def test_a_refused_request_carries_its_reason_and_no_view():
+    msg = wire(codecs.view_refusal_to_msg("no frame yet: wait for the first capture", 5, "map"))
+    got = codecs.msg_to_view_answer(msg)
+    assert not got.success and got.message.startswith("no frame yet")
+    assert got.views.shape == (0, 4, 4) and got.gains.shape == (0,)
+    assert got.frame_id == "map"
+    raises_field("message", codecs.view_refusal_to_msg, "", 5, "map")
+
+
+def test_bad_next_best_view_fields_are_named():
+    raises_field("mode", codecs.view_request_to_msg, 1, np.eye(4), 1, "w", "sideways")
+    raises_field("count", codecs.view_request_to_msg, -1, np.eye(4), 1, "w")
+    raises_field("count", codecs.view_request_to_msg, 2.5, np.eye(4), 1, "w")
+    request = codecs.view_request_to_msg(1, np.eye(4), 1, "w")
+    request.current.pose.orientation.w = 3.0
+    raises_field("current.pose.orientation", codecs.msg_to_view_request, request)
+    request.current.pose.orientation.w, request.mode = 1.0, "Batch"
+    raises_field("mode", codecs.msg_to_view_request, request)
+    raises_field("gains", codecs.view_answer_to_msg, np.stack([np.eye(4)] * 2), [1.0], 1, "w")
+    raises_field("gains", codecs.view_answer_to_msg, np.eye(4)[None], [np.nan], 1, "w")
+    answer = codecs.view_answer_to_msg(np.stack([np.eye(4)] * 2), [2.0, 1.0], 1, "w")
+    answer.views.poses[1].position.z = float("inf")
+    raises_field("views.poses[1].position", codecs.msg_to_view_answer, answer)
+    answer.views.poses[1].position.z = 0.0
+    answer.gains = [1.0]
+    raises_field("gains", codecs.msg_to_view_answer, answer)
+
+
+@settings(max_examples=40, deadline=None)
+@given(data=st.data(), n=st.integers(0, 10), stamp=stamps)
+def test_hard_regions_round_trip(data, n, stamp):
+    regions = np.zeros(n, codecs.HARD_REGION_DTYPE)
+    regions["centroid"] = data.draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(-50, 50)))
+    regions["extent"] = data.draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(0, 10)))
+    regions["voxel_count"] = data.draw(hnp.arrays(np.uint32, n))
+    regions["direction_count"] = data.draw(hnp.arrays(np.uint32, n))
+    regions["mean_uncertainty"] = data.draw(
+        hnp.arrays(np.float32, n, elements=st.floats(0, 1, width=32))
+    )
+    msg = wire(codecs.hard_regions_to_msg(regions, stamp, "world"))
+    back = codecs.msg_to_hard_regions(msg)
+    assert back.dtype == codecs.HARD_REGION_DTYPE
+    for name in codecs.HARD_REGION_DTYPE.names:
+        np.testing.assert_array_equal(back[name], regions[name])
+    assert codecs.stamp_to_ns(msg.header.stamp) == stamp
+
+
+def test_bad_hard_regions_are_refused():
+    regions = np.zeros(1, codecs.HARD_REGION_DTYPE)
+    regions["extent"] = -1.0
+    raises_field("regions.extent", codecs.hard_regions_to_msg, regions, 1, "w")
+    regions["extent"], regions["centroid"] = 1.0, np.nan
+    raises_field("regions", codecs.hard_regions_to_msg, regions, 1, "w")
+    raises_field("regions", codecs.hard_regions_to_msg, np.zeros(3), 1, "w")
