@@ -987,10 +987,3 @@ def _spin(executor: SingleThreadedExecutor) -> None:
 
 def _grid(cdr: bytes) -> np.ndarray:
     return codecs.msg_to_pointcloud(msgs.deserialize(cdr, "sensor_msgs/msg/PointCloud2"))
-
-
-def episode_summary(run_dir: Path) -> dict:
-    data = json.loads((Path(run_dir) / rundir.EPISODE_FILE).read_text())
-    return {k: data[k] for k in ("scene", "policy", "seed", "budget", "mode")} | {
-        "views": len(data["views"])
-    }

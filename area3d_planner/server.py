@@ -297,7 +297,6 @@ class NextBestViewServer:
         self._stamp_version: dict[int, int] = {}  # map version that holds each stamp
         self._cache_version = 0  # map version of the installed seeds and masks
         self._cache_stamp = 0  # newest frame stamp in the map the installed masks were built from
-        self._refreshing = False
         self._cache_waiters = 0  # requests waiting in wait_cache
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
@@ -452,7 +451,6 @@ class NextBestViewServer:
                 version = self._map_version
                 stamp = self.last_fused_stamp
                 occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
-                self._refreshing = True
             try:
                 built = self.context.build(occupancy, kinds)
             except Exception:  # noqa: BLE001 - the request path rebuilds and reports it
@@ -469,7 +467,6 @@ class NextBestViewServer:
                             self.context.invalidate_fields()
                 self._cache_version = version
                 self._cache_stamp = stamp
-                self._refreshing = False
                 self.refresh_count += 1
                 self._refreshed.notify_all()
             if self.on_refresh is not None:

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
+from area3d_msgs_py.camera_pose import look_at, look_rotation
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy
@@ -11,8 +12,6 @@ from area3d_planner.visibility import (
     VisibilityCache,
     VisibilityParams,
     lattice_positions,
-    look_at,
-    look_rotation,
     orientation_bins,
     shell_positions,
     shell_rotations,
@@ -289,7 +288,9 @@ def test_free_side_normals_point_to_the_carved_side_and_grazing_views_count_less
     wall = np.flatnonzero(np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i)
     normals = free_side_normals(spec, occ, wall[:5])
     np.testing.assert_allclose(normals, np.tile([-1.0, 0.0, 0.0], (5, 1)))
-    behind = np.flatnonzero(np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i + 3)
+    behind = np.flatnonzero(
+        np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i + 3
+    )
     assert not free_side_normals(spec, occ, behind[:5]).any()  # no free neighbour: no normal
     R = look_rotation(np.array([1.0, 0.0, 0.0]))[None]
     fine = dataclasses.replace(FAST, pixels_per_voxel=1e4, incidence=True)  # no saturation
