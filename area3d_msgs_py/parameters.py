@@ -79,7 +79,6 @@ class Param:
         return None
 
 
-
 # Parameters every node that checks its inputs declares alike (`area3d_msgs_py.inputs`).
 MAX_STAMP_AHEAD_PARAM = Param(
     "max_stamp_ahead_s",
@@ -88,6 +87,7 @@ MAX_STAMP_AHEAD_PARAM = Param(
     range=(0.0, 1e6),
 )
 WORLD_FRAME_PARAM = Param("world_frame", "world", "frame_id every camera pose must be expressed in")
+
 
 def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     """Declare ``params`` on ``node``; returns {name: value at start}.
@@ -129,6 +129,35 @@ def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:
             raise InputError(p.name, value, problem)
         registry[p.name] = p
         values[p.name] = tuple(value) if isinstance(p.default, tuple) else value
+    return values
+
+
+def parameter_values(params: Iterable[Param], given: dict[str, Any]) -> dict[str, Any]:
+    """{name: value} as `declare_parameters` gives them to a node started with the parameters
+    `given` (defaults for the rest), without a node: what a node's cores are built from, also
+    where no node runs (`area3d_bringup.inprocess`). Keys of `given` that no parameter declares
+    are ignored; a refused value raises InputError as on a node."""
+    values: dict[str, Any] = {}
+    for p in params:
+        value = given.get(p.name, p.default)
+        if isinstance(p.default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if isinstance(p.default, list | tuple):
+            if p.default and isinstance(p.default[0], float) and _all_numbers(value):
+                value = [float(v) for v in value]
+            value = tuple(value) if isinstance(p.default, tuple) else list(value)
+        if type(value) is not type(p.default) and not (
+            isinstance(p.default, list | tuple) and isinstance(value, list | tuple)
+        ):
+            raise InputError(p.name, value, f"a {type(p.default).__name__}: {p.description}")
+        if p.range is not None and not isinstance(value, bool) and not isinstance(value, str):
+            lo, hi = p.range
+            if isinstance(value, int | float) and not lo <= value <= hi:
+                raise InputError(p.name, value, f"a value in [{lo}, {hi}]: {p.description}")
+        problem = p.problem(value)
+        if problem:
+            raise InputError(p.name, value, problem)
+        values[p.name] = value
     return values
 
 

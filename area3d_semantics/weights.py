@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, fields
 
+import cv2
 import numpy as np
 from numba import njit
 
@@ -229,3 +230,29 @@ def semantic_uncertainty(sigma: np.ndarray, weight: np.ndarray, lam: float = 1.0
     if weight.shape != sigma.shape:
         raise InputError("weight", weight.shape, f"the shape of sigma {sigma.shape}")
     return _modulate(np.ascontiguousarray(sigma), np.ascontiguousarray(weight), np.float32(lam))
+
+
+#: sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's weights
+#: alone, independent of the depth backbone, so the no-feed-forward and no-VLM ablations each
+#: remove one thing) or "confidence" (1 - perception confidence, the paper's backbone sigma).
+SIGMA_SOURCES = ("constant", "confidence")
+
+
+def frame_uncertainty(
+    weight: np.ndarray, lam: float, confidence: np.ndarray | None = None
+) -> np.ndarray:
+    """U_sem (h, w) float32 in [0, 1] of one frame from its weight map W (H, W) in [0, 1]:
+    sigma = 1 - `confidence` (h, w) (sigma source "confidence"), or 1 where `confidence` is None
+    (sigma source "constant", then h, w = H, W). A weight map of another size than the
+    confidence is resampled to it (perception may run at another resolution; the mask is smooth,
+    so resampling is exact enough)."""
+    weight = np.asarray(weight, dtype=np.float32)
+    if confidence is None:
+        sigma = np.ones(weight.shape, np.float32)
+    else:
+        sigma = sigma_from_confidence(confidence)
+    if weight.shape != sigma.shape:
+        weight = cv2.resize(
+            weight, (sigma.shape[1], sigma.shape[0]), interpolation=cv2.INTER_LINEAR
+        )
+    return semantic_uncertainty(sigma, weight, lam)
