@@ -296,7 +296,7 @@ def bench_transport(requests: int = 50) -> dict:
 
     from area3d_bringup.launch_description import NodeSpec, scene_parameters
     from area3d_bringup.launcher import Launcher
-    from area3d_msgs_py import codecs, middleware, msgs, qos
+    from area3d_msgs_py import codecs, middleware, msgs, topics
     from area3d_msgs_py.probe import Probe
 
     middleware.configure()
@@ -310,17 +310,20 @@ def bench_transport(requests: int = 50) -> dict:
             env=middleware.graph_env(),
             log_sink=lines.append,
         )
-        statuses = probe.listen(msgs.String, "area3d/planner/status", qos.reliable(50))
+        status = topics.PLANNER_STATUS
+        statuses = probe.listen(status.msg_type, status.name, status.qos())
         pubs = {
-            key: probe.publisher(kind, topic, profile)
-            for key, kind, topic, profile in (
-                ("depth", msgs.Image, "area3d/perception/depth", qos.graph_frames()),
-                ("conf", msgs.Image, "area3d/perception/confidence", qos.graph_frames()),
-                ("pose", msgs.PoseStamped, "area3d/camera/pose", qos.frames()),
-                ("info", msgs.CameraInfo, "area3d/camera/camera_info", qos.frames()),
+            key: probe.publisher(topic.msg_type, topic.name, topic.qos())
+            for key, topic in (
+                ("depth", topics.PERCEPTION_DEPTH),
+                ("conf", topics.PERCEPTION_CONFIDENCE),
+                ("pose", topics.POSE),
+                ("info", topics.CAMERA_INFO),
             )
         }
-        client = probe.node.create_client(msgs.GetPlan, "area3d/planner/next_best_view")
+        client = probe.node.create_client(
+            topics.NEXT_BEST_VIEW.srv_type, topics.NEXT_BEST_VIEW.name
+        )
 
         launcher.start()
         try:

@@ -90,7 +90,7 @@ def run_bench(
     """Stream min(frames, duration_s * rate_hz) frames; returns the figures (see module doc)."""
     from area3d_bringup.launch_description import NodeSpec, scene_parameters
     from area3d_bringup.launcher import Launcher
-    from area3d_msgs_py import codecs, middleware, msgs, qos
+    from area3d_msgs_py import codecs, middleware, msgs, topics
     from area3d_msgs_py.probe import Probe
 
     middleware.configure()
@@ -116,18 +116,22 @@ def run_bench(
             env=middleware.graph_env(),
             log_sink=lines.append,
         )
-        planner_status = probe.listen(msgs.String, "area3d/planner/status", qos.reliable(50))
-        perception_status = probe.listen(msgs.String, "area3d/perception/status", qos.reliable(50))
+        planner_status, perception_status = (
+            probe.listen(topic.msg_type, topic.name, topic.qos())
+            for topic in (topics.PLANNER_STATUS, topics.PERCEPTION_STATUS)
+        )
         pubs = {
-            key: probe.publisher(kind, f"area3d/camera/{topic}")
-            for key, kind, topic in (
-                ("color", msgs.Image, "color/image_raw"),
-                ("depth", msgs.Image, "depth/image_raw"),
-                ("info", msgs.CameraInfo, "camera_info"),
-                ("pose", msgs.PoseStamped, "pose"),
+            key: probe.publisher(topic.msg_type, topic.name, topic.qos())
+            for key, topic in (
+                ("color", topics.COLOR),
+                ("depth", topics.DEPTH),
+                ("info", topics.CAMERA_INFO),
+                ("pose", topics.POSE),
             )
         }
-        client = probe.node.create_client(msgs.GetPlan, "area3d/planner/next_best_view")
+        client = probe.node.create_client(
+            topics.NEXT_BEST_VIEW.srv_type, topics.NEXT_BEST_VIEW.name
+        )
         manager = None
 
         def last(statuses: list) -> dict:

@@ -49,6 +49,12 @@ LEVEL_DEFAULTS = {
 LEVELS = ("auto", "object", "room")
 
 
+def paper_budget(level: str) -> int:
+    """The paper's view budget T at `level` ("object" or "room"): total views, O_0 included
+    (25 object level, 40 scene level)."""
+    return LEVEL_DEFAULTS[level]["budget"]
+
+
 @dataclass
 class PlannerConfig:
     """All planner parameters; defaults are the paper's where it fixes them.
