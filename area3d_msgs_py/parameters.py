@@ -15,6 +15,7 @@ Keys in the parameter file or ``-p`` that no declaration uses are reported by na
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -30,6 +31,7 @@ from rclpy.parameter import Parameter
 
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.inputs import MAX_STAMP_AHEAD_S
+from area3d_msgs_py.param_fields import description_of, is_described
 
 #: declared by rclpy itself on every node
 BUILTIN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
@@ -79,12 +81,42 @@ class Param:
         return None
 
 
+def params_of(
+    config: type, prefix: str = "", skip: Iterable[str] = (), read_only: bool = True
+) -> tuple[Param, ...]:
+    """The parameters of a dataclass whose fields are made with `param_fields.described`: one
+    per field (named `prefix` + field name, less those in `skip`), with the field's default,
+    description and unit, range, choices and check."""
+    params = []
+    for f in dataclasses.fields(config):
+        if f.name in skip:
+            continue
+        if not is_described(f):
+            raise TypeError(f"{config.__name__}.{f.name}: a parameter needs a described() field")
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if isinstance(default, tuple) and _all_numbers(default):
+            default = tuple(float(v) for v in default)
+        meta = f.metadata
+        params.append(
+            Param(
+                prefix + f.name,
+                default,
+                description_of(f),
+                read_only=read_only,
+                range=meta.get("range"),
+                choices=meta.get("choices"),
+                check=meta.get("check"),
+            )
+        )
+    return tuple(params)
+
+
 # Parameters every node that checks its inputs declares alike (`area3d_msgs_py.inputs`).
 MAX_STAMP_AHEAD_PARAM = Param(
     "max_stamp_ahead_s",
     MAX_STAMP_AHEAD_S,
     "inputs stamped further ahead of this node's clock are refused, seconds",
-    range=(0.0, 1e6),
+    range=(0.0, 86400.0),
 )
 WORLD_FRAME_PARAM = Param("world_frame", "world", "frame_id every camera pose must be expressed in")
 

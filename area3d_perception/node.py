@@ -31,6 +31,7 @@ from area3d_msgs_py.parameters import (
     WORLD_FRAME_PARAM,
     Param,
     declare_parameters,
+    params_of,
     report_unknown_parameters,
 )
 from area3d_msgs_py.status import StatusPublisher
@@ -49,7 +50,7 @@ PARAMS = (
     Param("device", "auto", "torch device of a feed-forward backend: auto | cpu | cuda[:N]"),
     Param("noise", False, "inject simulated depth-sensor noise into the incoming depth"),
     Param("noise_seed", 0, "seed of the injected noise", range=(0, 2**31 - 1)),
-    Param("window", FEEDFORWARD_WINDOW, "views per feed-forward pass", range=(1, 256)),
+    Param("window", FEEDFORWARD_WINDOW, "views per feed-forward pass, frames", range=(1, 256)),
     Param(
         "confidence_normalization",
         "inverse",
@@ -70,25 +71,9 @@ PARAMS = (
     ),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
-    *(
-        Param(
-            f"sensor.{f.name}",
-            f.default,
-            f"RgbdSensorParams.{f.name} (depth-camera noise / confidence model)",
-            range=(0, 1e6),
-        )
-        for f in dataclasses.fields(RgbdSensorParams)
-    ),
-    *(
-        Param(
-            f"stereo.{f.name}",
-            f.default,
-            f"StereoParams.{f.name} (stereo backend: SGBM and its confidence)",
-            range=(0, 1e6),
-        )
-        for f in dataclasses.fields(StereoParams)
-        if f.name != "max_range"  # the camera's range is sensor.max_range
-    ),
+    *params_of(RgbdSensorParams, "sensor."),
+    # the camera's range is sensor.max_range
+    *params_of(StereoParams, "stereo.", skip=("max_range",)),
 )
 
 

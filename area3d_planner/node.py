@@ -40,16 +40,14 @@ from area3d_msgs_py.parameters import (
     WORLD_FRAME_PARAM,
     Param,
     declare_parameters,
+    params_of,
     report_unknown_parameters,
 )
 from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.frame_sync import CameraInfoCache, HeldFrames, StampSync
 from area3d_planner.cloud import grid_to_msg
-from area3d_planner.fusion import GEOMETRIC_RULES, NO_RETURN_RULES
 from area3d_planner.fusion_worker import FusionWorker
-from area3d_planner.greedy import DECAY_REGIONS
-from area3d_planner.policies import POLICIES
-from area3d_planner.server import LEVELS, MODES, NextBestViewServer, PlannerConfig, PlanRequest
+from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
 
 CAMERA_INFO_CACHE = 64
 POSES_PENDING = 2048
@@ -63,48 +61,8 @@ EXECUTOR_THREADS = 3
 CLOSE_WAIT_S = 1.0
 
 
-def _xyz(value: Any) -> str | None:
-    return None if len(value) == 3 else "3 numbers [x, y, z] in metres"
-
-
-def _positive(value: Any) -> str | None:
-    return None if len(value) > 0 and min(value) > 0 else "one or more numbers > 0"
-
-
-def _config_param(name: str, default: Any) -> Param:
-    description = f"PlannerConfig.{name} (area3d_planner/server.py)"
-    if name == "policy":
-        return Param(name, default, "next-best-view policy", choices=tuple(sorted(POLICIES)))
-    if name == "mode":
-        return Param(
-            name,
-            default,
-            "closed_loop: re-plan after each view; batch: all views at once",
-            choices=MODES,
-        )
-    choices = {
-        "level": LEVELS,
-        "decay": DECAY_REGIONS,
-        "geometric_rule": GEOMETRIC_RULES,
-        "no_return": NO_RETURN_RULES,
-    }
-    if name in choices:
-        return Param(name, default, description, choices=choices[name])
-    if name == "shell_scales":
-        return Param(name, tuple(float(v) for v in default), description, check=_positive)
-    if name == "gamma":  # -1: the level's (paper: 0.01 object, 0.005 scene level)
-        return Param(name, float(default), description + "; < 0 = the level's", range=(-1.0, 1e6))
-    if isinstance(default, tuple):
-        return Param(name, tuple(float(v) for v in default), description + ", metres", check=_xyz)
-    if isinstance(default, bool) or isinstance(default, str):
-        return Param(name, default, description)
-    if isinstance(default, int):
-        return Param(name, default, description, range=(0, 2**31 - 1))
-    return Param(name, float(default), description, range=(0.0, 1e6))
-
-
 PARAMS = (
-    *(_config_param(f.name, getattr(PlannerConfig, f.name)) for f in fields(PlannerConfig)),
+    *params_of(PlannerConfig),
     Param(
         "sync_timeout_s",
         5.0,
@@ -138,7 +96,7 @@ PARAMS = (
         "rebuild_nice",
         0,
         "the background rebuild runs this much nicer (lower CPU priority) than the node, so "
-        "fusion comes first (a streaming camera with mask_lag_s > 0: 10); 0 = the same",
+        "fusion comes first (a streaming camera with mask_lag_s > 0: 10); 0 = the same, nice levels",
         range=(0, 19),
     ),
     # Perception's output for a frame can trail the camera's pose by seconds (first frames, a

@@ -57,14 +57,17 @@ PARAMS = (
     Param("model", "OpenGVLab/InternVL3-8B", "VLM name (paper: InternVL3)"),
     Param("api_key_env", "OPENAI_API_KEY", "environment variable holding the API key"),
     Param("timeout_s", 60.0, "VLM request timeout, seconds", range=(0.1, 3600.0)),
-    Param("retries", 2, "VLM request retries", range=(0, 100)),
-    Param("max_tokens", 2048, "VLM answer length limit", range=(16, 65536)),
+    Param("retries", 2, "VLM request retries after a failure, count", range=(0, 100)),
+    Param("max_tokens", 2048, "VLM answer length limit, tokens", range=(16, 65536)),
     Param("model_dir", "", "local model directory (backend transformers)"),
     Param("device", "auto", "torch device (backend transformers)"),
     Param("trust_remote_code", False, "let transformers run the model's own code"),
     # |O_0| = 4 at object level (paper, Sec. 4); the runner sets 15 for rooms.
     Param(
-        "num_initial_views", 4, "views in the one initial VLM query (paper: |O_0|)", range=(1, 1000)
+        "num_initial_views",
+        4,
+        "views in the one initial VLM query (paper: |O_0|), views",
+        range=(1, 1000),
     ),
     Param(
         "fallback",
@@ -89,13 +92,8 @@ PARAMS = (
         choices=SIGMA_SOURCES,
     ),
     *(
-        Param(
-            name,
-            float(value),
-            f"SemanticParams {name} (area3d_semantics/weights.py)",
-            range=(0.0, 1e6),
-        )
-        for name, value in SemanticParams().to_flat().items()
+        Param(name, float(value), description, range=bounds)
+        for name, value, description, bounds in SemanticParams.flat_parameters()
     ),
 )
 
