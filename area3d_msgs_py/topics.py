@@ -96,9 +96,7 @@ GOAL = Topic(
     depth=qos.FRAME_DEPTH,
     description="where the camera goes next: optical-frame pose in `world`",
 )
-COLOR = _camera(
-    "area3d/camera/color/image_raw", msgs.Image, (PERCEPTION, SEMANTICS), "rgb8 image"
-)
+COLOR = _camera("area3d/camera/color/image_raw", msgs.Image, (PERCEPTION, SEMANTICS), "rgb8 image")
 DEPTH = _camera(
     "area3d/camera/depth/image_raw",
     msgs.Image,
