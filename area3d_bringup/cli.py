@@ -50,7 +50,9 @@ def run(
         help="area3d | random | uniform | vlm_naive | volumetric_ig | no_vlm | no_ff | gamma0",
     ),
     budget: int = typer.Option(
-        None, help="view budget T after O_0 (default: the paper's, 25 object / 40 room)"
+        None,
+        help="view budget T: total views, the initial views O_0 included (default: the "
+        "paper's, 25 object / 40 room)",
     ),
     mode: str = typer.Option(
         "closed_loop", help="closed_loop (re-plan after each view) | batch (paper)"
@@ -85,7 +87,8 @@ def run(
     ),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
-    from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
+    from area3d_bringup.episode_config import EpisodeConfig, EpisodeError
+    from area3d_bringup.runner import run_episode
 
     config = EpisodeConfig(
         scene=scene,
@@ -304,7 +307,9 @@ def bench_episode(
     holdout: bool = typer.Option(
         True, help="also generate and run the hold-out scenes (tabletop, alcove room)"
     ),
-    budget: int = typer.Option(None),
+    budget: int = typer.Option(
+        None, help="view budget T per episode, O_0 included (default: the paper's, 25 / 40)"
+    ),
     out: Path = typer.Option(Path("runs/bench")),
     in_process: bool = typer.Option(
         False, help="call the nodes' cores in one process (same views, no transport; faster)"

@@ -21,12 +21,10 @@ ROOM_SPEED_TARGET_S = 120.0  # a room-level episode (40 views)
 def _with_policy(overrides: dict[str, dict] | None, policy: str) -> dict[str, dict]:
     """The bench's overrides for one policy: an ablation's own settings win over the command
     line's (no_ff keeps its uniform confidence whatever the backend)."""
-    from area3d_bringup.runner import POLICIES
+    from area3d_bringup.launch_description import merge
+    from area3d_bringup.presets import RUN_PRESETS
 
-    merged = {node: dict(values) for node, values in (overrides or {}).items()}
-    for node, values in POLICIES.get(policy, {}).items():
-        merged.setdefault(node, {}).update(values)
-    return merged
+    return merge(overrides, RUN_PRESETS.get(policy, {}))
 
 
 def run_episode_bench(
@@ -41,7 +39,8 @@ def run_episode_bench(
     overrides: dict[str, dict] | None = None,
     depth_source: str = "sensor",
 ) -> dict:
-    from area3d_bringup.runner import EpisodeConfig, EpisodeError, run_episode
+    from area3d_bringup.episode_config import EpisodeConfig, EpisodeError
+    from area3d_bringup.runner import run_episode
     from area3d_eval import rundir
     from area3d_eval.report import aggregate, write_report
     from sim_bridge.scenes import list_scenes

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -11,7 +12,9 @@ import yaml
 
 from area3d_bringup.graph import GRAPH_NODES
 
-__all__ = ["GRAPH_NODES", "NodeSpec", "build_graph", "load_parameters", "scene_parameters"]
+__all__ = [
+    "GRAPH_NODES", "NodeSpec", "build_graph", "load_parameters", "merge", "scene_parameters",
+]  # fmt: skip
 
 # Node sections of a parameter file apply to the node in any namespace.
 ANY_NAMESPACE = "/**/"
@@ -60,6 +63,16 @@ def scene_parameters(scene_name: str) -> dict[str, dict]:
     return {"planner": planner, "semantics": {"num_initial_views": len(scene.initial_views)}}
 
 
+def merge(*layers: Mapping[str, Mapping] | None) -> dict[str, dict]:
+    """{node: {param: value}} of parameter layers, a later layer's value winning per parameter
+    (None layers are skipped; the inputs are not changed)."""
+    merged: dict[str, dict] = {}
+    for layer in layers:
+        for node, values in (layer or {}).items():
+            merged.setdefault(node, {}).update(values)
+    return merged
+
+
 def parse_override(text: str) -> tuple[str, str, object]:
     """`NODE.NAME=VALUE` -> (node, name, yaml-typed value)."""
     key, sep, raw = text.partition("=")
@@ -88,17 +101,11 @@ def build_graph(
 ) -> list[NodeSpec]:
     """The node specs for one launch: what the camera's scene tells the planner <- bundled
     defaults (or `params`) <- `overrides`."""
-    merged = copy.deepcopy(load_parameters() if params is None else params)
-    for node, values in (overrides or {}).items():
-        merged.setdefault(node, {}).update(values)
+    merged = merge(copy.deepcopy(load_parameters() if params is None else params), overrides)
     names = {name for name, _ in nodes}
     scene = merged.get("sim_bridge", {}).get("scene")
     if scene and names & {"planner", "semantics"}:
-        derived = scene_parameters(scene)
-        for node, values in derived.items():
-            merged[node] = {**values, **merged.get(node, {})}
-        for node, values in (overrides or {}).items():
-            merged[node].update(values)
+        merged = merge(scene_parameters(scene), merged)
     # The stereo backend matches the camera's right image: a simulated camera renders one then.
     if merged.get("perception", {}).get("backend") == "stereo" and "sim_bridge" in merged:
         merged["sim_bridge"].setdefault("stereo", True)

@@ -10,6 +10,8 @@ import time
 
 import numpy as np
 
+from area3d_bringup.bench_frames import object_frames
+from area3d_bringup.transport_bench import TARGET_ROUND_TRIP_P95_S
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy
@@ -18,7 +20,6 @@ from area3d_planner.visibility import VisibilityParams
 TARGET_CACHE_S = 5.0
 TARGET_SELECT_S = 1.0
 TARGET_SPEEDUP = 10.0
-TARGET_ROUND_TRIP_P95_S = 0.05  # one closed-loop view, cache warm
 TARGET_SCORE_ERROR = 0.05  # median |score - reference| / reference, reference 16x the pixels
 
 
@@ -119,25 +120,6 @@ def bench_grid(
         "identical": lazy.views == plain.views,
         "selected": len(lazy.views),
     }
-
-
-def object_frames(scene_name: str = "single_object") -> tuple[object, list]:
-    """The scene and its initial views rendered at 640x480: [(depth, confidence, K, T)], with
-    the RGB-D sensor model's confidence."""
-    from area3d_perception.sensor_model import rgbd_confidence
-    from sim_bridge.render import RgbdRenderer
-    from sim_bridge.scenes import load_scene
-
-    scene = load_scene(scene_name)
-    renderer = RgbdRenderer(scene)
-    try:
-        frames = []
-        for T in scene.initial_views:
-            _, depth = renderer.render(T)
-            frames.append((depth, rgbd_confidence(depth, renderer.K), renderer.K, T))
-    finally:
-        renderer.close()
-    return scene, frames
 
 
 def _planner_overrides(scene) -> dict:
@@ -285,113 +267,6 @@ def bench_server(requests: int = 50) -> dict:
     }
 
 
-def bench_transport(requests: int = 50) -> dict:
-    """Closed-loop GetPlan round trip between two processes: a planner node process
-    (single_object), the scene's initial views published to it, then `requests` one-view requests
-    once area3d/planner/status says the cache is ready."""
-    import json
-    import tempfile
-    import threading
-    from pathlib import Path
-
-    from area3d_bringup.launch_description import NodeSpec, scene_parameters
-    from area3d_bringup.launcher import Launcher
-    from area3d_msgs_py import codecs, middleware, msgs, qos
-    from area3d_msgs_py.probe import Probe
-
-    middleware.configure()
-    scene, frames = object_frames()
-    params = {**scene_parameters(scene.name)["planner"], "mode": "closed_loop", "budget": 10**6}
-    lines: list[str] = []
-    with tempfile.TemporaryDirectory() as workdir, Probe("planner_bench") as probe:
-        launcher = Launcher(
-            [NodeSpec("planner", "area3d_planner.node", params)],
-            Path(workdir),
-            env=middleware.graph_env(),
-            log_sink=lines.append,
-        )
-        statuses = probe.listen(msgs.String, "area3d/planner/status", qos.reliable(50))
-        pubs = {
-            key: probe.publisher(kind, topic, profile)
-            for key, kind, topic, profile in (
-                ("depth", msgs.Image, "area3d/perception/depth", qos.graph_frames()),
-                ("conf", msgs.Image, "area3d/perception/confidence", qos.graph_frames()),
-                ("pose", msgs.PoseStamped, "area3d/camera/pose", qos.frames()),
-                ("info", msgs.CameraInfo, "area3d/camera/camera_info", qos.frames()),
-            )
-        }
-        client = probe.node.create_client(msgs.GetPlan, "area3d/planner/next_best_view")
-
-        launcher.start()
-        try:
-            if not launcher.wait_for(lambda: client.wait_for_service(timeout_sec=0.1), 120):
-                raise RuntimeError("planner service did not come up:\n" + "\n".join(lines[-20:]))
-            launcher.wait_for(
-                lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 60
-            )
-            t0 = time.perf_counter()
-            for i, (depth, conf, K, T) in enumerate(frames):
-                stamp = (i + 1) * 1_000_000
-                h, w = depth.shape
-                pubs["info"].publish(
-                    codecs.intrinsics_to_camera_info(K, w, h, stamp, "camera_optical_frame")
-                )
-                pubs["pose"].publish(
-                    msgs.PoseStamped(
-                        header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T)
-                    )
-                )
-                pubs["depth"].publish(
-                    codecs.image_to_msg(depth, "32FC1", stamp, "camera_optical_frame")
-                )
-                pubs["conf"].publish(
-                    codecs.image_to_msg(conf, "32FC1", stamp, "camera_optical_frame")
-                )
-            n = len(frames)
-
-            def ready() -> bool:
-                states = [json.loads(m.data) for m in list(statuses)]
-                return any(s.get("frames_fused") == n and s.get("cache_ready") for s in states)
-
-            is_ready = launcher.wait_for(ready, 180)
-            t_ready = time.perf_counter() - t0
-            if not is_ready:
-                raise RuntimeError("planner never reported cache_ready:\n" + "\n".join(lines[-20:]))
-            last = n * 1_000_000
-            latencies = []
-            for _ in range(requests):
-                req = msgs.GetPlan_Request(
-                    start=msgs.PoseStamped(
-                        header=codecs.header(last, "world"),
-                        pose=codecs.matrix_to_pose(frames[-1][3]),
-                    ),
-                    goal=msgs.PoseStamped(
-                        header=codecs.header(last, "world"), pose=codecs.matrix_to_pose(np.eye(4))
-                    ),
-                    tolerance=0.0,
-                )
-                req.goal.pose.position.x = 1.0
-                answered = threading.Event()
-                t = time.perf_counter()
-                future = client.call_async(req)
-                future.add_done_callback(lambda _, done=answered: done.set())
-                if not answered.wait(30.0):
-                    raise RuntimeError("no answer:\n" + "\n".join(lines[-20:]))
-                latencies.append(time.perf_counter() - t)
-                if len(future.result().plan.poses) != 1:
-                    raise RuntimeError("empty plan:\n" + "\n".join(lines[-20:]))
-        finally:
-            launcher.stop()
-    lat = np.asarray(latencies)
-    return {
-        "frames": len(frames),
-        "fused_and_cache_ready_s": t_ready,
-        "round_trip_p50_s": float(np.percentile(lat, 50)),
-        "round_trip_p95_s": float(np.percentile(lat, 95)),
-        "target_p95_s": TARGET_ROUND_TRIP_P95_S,
-    }
-
-
 def run_bench(
     views: int = 40,
     face_res: int = 128,  # the room level default
@@ -435,6 +310,8 @@ def run_bench(
             except Exception as exc:  # no renderer
                 results[f"visibility:{name}"] = {"error": f"{type(exc).__name__}: {exc}"}
     if transport and not synthetic_only:
+        from area3d_bringup.transport_bench import bench_transport
+
         try:
             results["transport:single_object"] = bench_transport(requests)
         except Exception as exc:  # no DDS, or the node did not come up

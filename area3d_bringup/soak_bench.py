@@ -17,7 +17,9 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -57,21 +59,26 @@ def rss_parts_mb(pid: int) -> dict[str, float]:
     return parts
 
 
-def _frames(scene_name: str, width: int, height: int) -> tuple[object, list]:
-    """[(rgb, depth, K, T)] of the scene's initial and held-out views at width x height."""
-    from sim_bridge.render import RgbdRenderer
-    from sim_bridge.scenes import load_scene
+@dataclass
+class _Run:
+    """What one soak records while it streams."""
 
-    scene = load_scene(scene_name)
-    renderer = RgbdRenderer(scene, width=width, height=height)
-    try:
-        frames = []
-        for T in [*scene.initial_views, *scene.eval_views]:
-            rgb, depth = renderer.render(T)
-            frames.append((rgb, depth, renderer.K, T))
-    finally:
-        renderer.close()
-    return scene, frames
+    sent: list[int] = field(default_factory=list)  # stamps published
+    latencies: list[float] = field(default_factory=list)  # request round trips, seconds
+    breakdown: list[dict] = field(default_factory=list)  # the planner's split of each
+    empty_plans: list[str] = field(default_factory=list)
+    late: int = 0  # publishes more than one period late
+    warm: tuple[int, int, int] = (0, 0, 0)  # statuses and answers before the first tenth ended
+    rss_idle: dict[str, float] = field(default_factory=dict)
+    rss_start: dict[str, float] = field(default_factory=dict)  # after the first tenth
+    rss_end: dict[str, float] = field(default_factory=dict)
+    rss_peak: dict[str, float] = field(default_factory=dict)
+    rss_tenths: dict[str, list[int]] = field(default_factory=dict)  # at each tenth's end
+    rss_parts_tenths: dict[str, dict[str, list[int]]] = field(default_factory=dict)
+    stream_t0: float = 0.0  # time.perf_counter() at the stream's start
+    stream_s: float = 0.0
+    drain_s: float = 0.0
+    caught_up: bool = False
 
 
 def run_bench(
@@ -88,14 +95,15 @@ def run_bench(
     json_out: Path | None = None,
 ) -> dict:
     """Stream min(frames, duration_s * rate_hz) frames; returns the figures (see module doc)."""
+    from area3d_bringup.bench_frames import render_views
     from area3d_bringup.launch_description import NodeSpec, scene_parameters
     from area3d_bringup.launcher import Launcher
-    from area3d_msgs_py import codecs, middleware, msgs, qos
+    from area3d_msgs_py import middleware, topics
     from area3d_msgs_py.probe import Probe
 
     middleware.configure()
     count = int(min(frames, round(duration_s * rate_hz)))
-    scene, views = _frames(scene_name, width, height)
+    scene, views = render_views(scene_name, width, height, held_out=True)
     planner = {
         **scene_parameters(scene_name)["planner"],
         "mode": "closed_loop",
@@ -106,6 +114,7 @@ def run_bench(
         "height": height,
     }
     lines: list[str] = []
+    run = _Run()
     with tempfile.TemporaryDirectory() as workdir, Probe("soak_camera") as probe:
         launcher = Launcher(
             [
@@ -116,23 +125,23 @@ def run_bench(
             env=middleware.graph_env(),
             log_sink=lines.append,
         )
-        planner_status = probe.listen(msgs.String, "area3d/planner/status", qos.reliable(50))
-        perception_status = probe.listen(msgs.String, "area3d/perception/status", qos.reliable(50))
+        planner_status, perception_status = (
+            probe.listen(topic.msg_type, topic.name, topic.qos())
+            for topic in (topics.PLANNER_STATUS, topics.PERCEPTION_STATUS)
+        )
         pubs = {
-            key: probe.publisher(kind, f"area3d/camera/{topic}")
-            for key, kind, topic in (
-                ("color", msgs.Image, "color/image_raw"),
-                ("depth", msgs.Image, "depth/image_raw"),
-                ("info", msgs.CameraInfo, "camera_info"),
-                ("pose", msgs.PoseStamped, "pose"),
+            key: probe.publisher(topic.msg_type, topic.name, topic.qos())
+            for key, topic in (
+                ("color", topics.COLOR),
+                ("depth", topics.DEPTH),
+                ("info", topics.CAMERA_INFO),
+                ("pose", topics.POSE),
             )
         }
-        client = probe.node.create_client(msgs.GetPlan, "area3d/planner/next_best_view")
+        client = probe.node.create_client(
+            topics.NEXT_BEST_VIEW.srv_type, topics.NEXT_BEST_VIEW.name
+        )
         manager = None
-
-        def last(statuses: list) -> dict:
-            return json.loads(statuses[-1].data) if statuses else {}
-
         launcher.start()
         try:
             if not launcher.wait_for(lambda: client.wait_for_service(timeout_sec=0.1), 120):
@@ -142,150 +151,184 @@ def run_bench(
             ):
                 raise RuntimeError("nodes did not subscribe:\n" + "\n".join(lines[-20:]))
             pids = {name: proc.pid for name, proc in launcher.processes.items()}
-            rss_idle = {name: rss_mb(pid) for name, pid in pids.items()}
-            rss_start: dict[str, float] = {}  # once warm: after the first tenth of the stream
-            warm = (0, 0, 0)  # then: how many planner and perception statuses and answers came
-            rss_peak = dict(rss_idle)
-            rss_tenths: dict[str, list[int]] = {}  # at the end of each tenth of the stream
-            rss_parts_tenths: dict[str, dict[str, list[int]]] = {}  # ... and its parts
-
-            sent: list[int] = []
-            latencies: list[float] = []
-            breakdown: list[dict] = []
-            empty_plans: list[str] = []
+            run.rss_idle = {name: rss_mb(pid) for name, pid in pids.items()}
+            run.rss_peak = dict(run.rss_idle)
             manager = _start_manager(plan_every_s, launcher.env)
-            manager_ready = threading.Event()
-
-            def read_manager() -> None:
-                """The mission manager's lines: one per request (see soak_manager)."""
-                for line in manager.stdout:
-                    record = json.loads(line)
-                    if record.get("ready"):
-                        manager_ready.set()
-                    elif "error" in record:
-                        empty_plans.append(record["error"])
-                    else:
-                        latencies.append(record["round_trip_s"])
-                        breakdown.append(record["split_s"])
-                        if record["views"] != 1:
-                            empty_plans.append(f"empty plan (stamp {record['stamp_ns']})")
-
-            reader = threading.Thread(target=read_manager, name="soak-manager-lines", daemon=True)
-            reader.start()
-            if not manager_ready.wait(120):
-                raise RuntimeError("the mission manager process did not find the planner service")
-            late = 0
-            t0 = time.perf_counter()
-            for k in range(count):
-                due = t0 + k / rate_hz
-                now = time.perf_counter()
-                if now < due:
-                    time.sleep(due - now)
-                elif now - due > 1.0 / rate_hz:
-                    late += 1  # this process could not keep the rate: said, not hidden
-                rgb, depth, K, T = views[k % len(views)]
-                stamp = time.time_ns()
-                frame_id = "camera_optical_frame"
-                pubs["info"].publish(
-                    codecs.intrinsics_to_camera_info(K, width, height, stamp, frame_id)
-                )
-                pubs["pose"].publish(
-                    msgs.PoseStamped(
-                        header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T)
-                    )
-                )
-                pubs["color"].publish(codecs.image_to_msg(rgb, "rgb8", stamp, frame_id))
-                pubs["depth"].publish(codecs.image_to_msg(depth, "32FC1", stamp, frame_id))
-                sent.append(stamp)
-                if k % int(rate_hz) == 0:  # once a second
-                    launcher.check()
-                    for name, pid in pids.items():
-                        rss_peak[name] = max(rss_peak[name], rss_mb(pid))
-                if k == count // 10:
-                    rss_start = {name: rss_mb(pid) for name, pid in pids.items()}
-                    warm = (len(planner_status), len(perception_status), len(latencies))
-                if (k + 1) % max(1, count // 10) == 0:  # the curve: flat, or growing to a bound
-                    for name, pid in pids.items():
-                        rss_tenths.setdefault(name, []).append(round(rss_mb(pid)))
-                        for part, mb in rss_parts_mb(pid).items():
-                            rss_parts_tenths.setdefault(name, {}).setdefault(part, []).append(
-                                round(mb)
-                            )
-            stream_s = time.perf_counter() - t0
+            reader = _read_manager(manager, run)
+            statuses = (planner_status, perception_status)
+            _stream(run, pubs, views, count, rate_hz, launcher, pids, statuses)
             _stop_manager(manager)
             reader.join(timeout=120)
-            caught_up = launcher.wait_for(
-                lambda: last(planner_status).get("last_fused_stamp_ns") == sent[-1], 180
+            run.caught_up = launcher.wait_for(
+                lambda: _last(planner_status).get("last_fused_stamp_ns") == run.sent[-1], 180
             )
-            drain_s = time.perf_counter() - t0 - stream_s
-            rss_end = {name: rss_mb(pid) for name, pid in pids.items()}
+            run.drain_s = time.perf_counter() - run.stream_t0 - run.stream_s
+            run.rss_end = {name: rss_mb(pid) for name, pid in pids.items()}
             launcher.wait_for(
-                lambda: last(perception_status).get("frames_published") == len(sent), 5
+                lambda: _last(perception_status).get("frames_published") == len(run.sent), 5
             )
         finally:
             if manager is not None:
                 _stop_manager(manager)
             launcher.stop()
-    lat = np.asarray(latencies) if latencies else np.full(1, np.nan)
+    figures = _figures(run, scene.name, width, height, rate_hz, mask_lag_s, rebuild_nice)
+    figures |= _status_figures(run, planner_status, perception_status, lines)
+    if print_table:
+        _print_table(figures)
+    if json_out is not None:
+        Path(json_out).write_text(json.dumps(figures, indent=1))
+    return figures
+
+
+def _last(statuses: list) -> dict:
+    return json.loads(statuses[-1].data) if statuses else {}
+
+
+def _read_manager(manager: subprocess.Popen, run: _Run) -> threading.Thread:
+    """Read the mission manager's lines (one per request, see soak_manager) into `run` on a
+    thread, once it says it is ready."""
+    ready = threading.Event()
+
+    def read() -> None:
+        for line in manager.stdout:
+            record = json.loads(line)
+            if record.get("ready"):
+                ready.set()
+            elif "error" in record:
+                run.empty_plans.append(record["error"])
+            else:
+                run.latencies.append(record["round_trip_s"])
+                run.breakdown.append(record["split_s"])
+                if record["views"] != 1:
+                    run.empty_plans.append(f"empty plan (stamp {record['stamp_ns']})")
+
+    reader = threading.Thread(target=read, name="soak-manager-lines", daemon=True)
+    reader.start()
+    if not ready.wait(120):
+        raise RuntimeError("the mission manager process did not find the planner service")
+    return reader
+
+
+def _stream(
+    run: _Run,
+    pubs: dict,
+    views: list,
+    count: int,
+    rate_hz: float,
+    launcher: Any,
+    pids: dict[str, int],
+    statuses: tuple[list, list],
+) -> None:
+    """Publish `count` frames at `rate_hz` with fresh stamps; sample the nodes' memory."""
+    from area3d_msgs_py import codecs, msgs
+
+    t0 = time.perf_counter()
+    for k in range(count):
+        due = t0 + k / rate_hz
+        now = time.perf_counter()
+        if now < due:
+            time.sleep(due - now)
+        elif now - due > 1.0 / rate_hz:
+            run.late += 1  # this process could not keep the rate: said, not hidden
+        rgb, depth, K, T = views[k % len(views)]
+        stamp = time.time_ns()
+        frame_id = "camera_optical_frame"
+        height, width = depth.shape
+        pubs["info"].publish(codecs.intrinsics_to_camera_info(K, width, height, stamp, frame_id))
+        pubs["pose"].publish(
+            msgs.PoseStamped(header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T))
+        )
+        pubs["color"].publish(codecs.image_to_msg(rgb, "rgb8", stamp, frame_id))
+        pubs["depth"].publish(codecs.image_to_msg(depth, "32FC1", stamp, frame_id))
+        run.sent.append(stamp)
+        if k % int(rate_hz) == 0:  # once a second
+            launcher.check()
+            for name, pid in pids.items():
+                run.rss_peak[name] = max(run.rss_peak[name], rss_mb(pid))
+        if k == count // 10:
+            run.rss_start = {name: rss_mb(pid) for name, pid in pids.items()}
+            run.warm = (len(statuses[0]), len(statuses[1]), len(run.latencies))
+        if (k + 1) % max(1, count // 10) == 0:  # the curve: flat, or growing to a bound
+            for name, pid in pids.items():
+                run.rss_tenths.setdefault(name, []).append(round(rss_mb(pid)))
+                for part, mb in rss_parts_mb(pid).items():
+                    run.rss_parts_tenths.setdefault(name, {}).setdefault(part, []).append(round(mb))
+    run.stream_t0, run.stream_s = t0, time.perf_counter() - t0
+
+
+def _figures(
+    run: _Run,
+    scene: str,
+    width: int,
+    height: int,
+    rate_hz: float,
+    mask_lag_s: float,
+    rebuild_nice: int,
+) -> dict:
+    """The stream's own figures: frames, timing, memory, request round trips."""
+    lat = np.asarray(run.latencies) if run.latencies else np.full(1, np.nan)
     # after the first tenth of the stream (warm: numba kernels loaded, the middleware's pools grown)
-    lat_warm = lat[warm[2] :] if lat[warm[2] :].size else np.full(1, np.nan)
-    ages = {
-        "perception": _ages(perception_status[warm[1] :], "last_frame_age_s"),
-        "planner_paired": _ages(planner_status[warm[0] :], "last_paired_age_s"),
-        "planner": _ages(planner_status[warm[0] :], "last_fused_age_s"),
-    }
-    fusion_s = _ages(planner_status[warm[0] :], "last_fusion_s")
-    figures = {
-        "scene": scene.name,
+    lat_warm = lat[run.warm[2] :] if lat[run.warm[2] :].size else np.full(1, np.nan)
+    return {
+        "scene": scene,
         "image": f"{width}x{height}",
         "rate_hz": rate_hz,
         "mask_lag_s": mask_lag_s,
         "rebuild_nice": rebuild_nice,
-        "frames_sent": len(sent),
-        "frames_published_by_perception": last(perception_status).get("frames_published"),
-        "frames_fused": last(planner_status).get("frames_fused"),
-        "caught_up": caught_up,
-        "stream_s": stream_s,
-        "drain_after_stream_s": drain_s,
-        "late_publishes": late,
-        "rss_idle_mb": rss_idle,
-        "rss_start_mb": rss_start,
-        "rss_end_mb": rss_end,
-        "rss_peak_mb": rss_peak,
-        "rss_tenths_mb": rss_tenths,
-        "rss_parts_tenths_mb": rss_parts_tenths,
-        "plan_requests": len(latencies),
-        "plan_failures": empty_plans,
+        "frames_sent": len(run.sent),
+        "caught_up": run.caught_up,
+        "stream_s": run.stream_s,
+        "drain_after_stream_s": run.drain_s,
+        "late_publishes": run.late,
+        "rss_idle_mb": run.rss_idle,
+        "rss_start_mb": run.rss_start,
+        "rss_end_mb": run.rss_end,
+        "rss_peak_mb": run.rss_peak,
+        "rss_tenths_mb": run.rss_tenths,
+        "rss_parts_tenths_mb": run.rss_parts_tenths,
+        "plan_requests": len(run.latencies),
+        "plan_failures": run.empty_plans,
         "plan_p50_s": float(np.percentile(lat, 50)),
         "plan_p95_s": float(np.percentile(lat, 95)),
         "plan_max_s": float(lat.max()),
         "plan_warm_p50_s": float(np.percentile(lat_warm, 50)),
         "plan_warm_p95_s": float(np.percentile(lat_warm, 95)),
+        # the planner's own account, p50 and p95: waiting for the frame, for the masks, selecting;
+        # the rest of a round trip is transport and the executors' queues
+        "plan_parts_p50_s": _parts(run.breakdown, 50),
+        "plan_parts_p95_s": _parts(run.breakdown, 95),
+        "target_plan_p95_s": TARGET_PLAN_P95_S,
+        # every request's round trip and the planner's split of it, in order
+        "plan_round_trips_s": [round(v, 4) for v in run.latencies],
+        "plan_splits_s": run.breakdown,
+    }
+
+
+def _status_figures(
+    run: _Run, planner_status: list, perception_status: list, lines: list[str]
+) -> dict:
+    """The nodes' own account, from their status lines after the first tenth of the stream."""
+    ages = {
+        "perception": _ages(perception_status[run.warm[1] :], "last_frame_age_s"),
+        "planner_paired": _ages(planner_status[run.warm[0] :], "last_paired_age_s"),
+        "planner": _ages(planner_status[run.warm[0] :], "last_fused_age_s"),
+    }
+    fusion_s = _ages(planner_status[run.warm[0] :], "last_fusion_s")
+    return {
+        "frames_published_by_perception": _last(perception_status).get("frames_published"),
+        "frames_fused": _last(planner_status).get("frames_fused"),
         # age of each frame when perception published it / when the planner had all its parts /
         # when the planner had fused it (their statuses, after the first tenth): p50, p95, max
         # (the planner's figures are sampled at each status it sends: most frames, not all)
         "frame_age_s": {name: _p50_p95_max(a) for name, a in ages.items()},
         # one frame's fusion in the planner, p50 / p95 / max
         "fusion_s": _p50_p95_max(fusion_s),
-        # the planner's own account, p50 and p95: waiting for the frame, for the masks, selecting;
-        # the rest of a round trip is transport and the executors' queues
-        "plan_parts_p50_s": _parts(breakdown, 50),
-        "plan_parts_p95_s": _parts(breakdown, 95),
-        "target_plan_p95_s": TARGET_PLAN_P95_S,
-        "perception_rejected": last(perception_status).get("rejected"),
-        "planner_parts_dropped": last(planner_status).get("parts_dropped_unpaired"),
-        "planner_frames_dropped_backlog": last(planner_status).get("frames_dropped_backlog"),
+        "perception_rejected": _last(perception_status).get("rejected"),
+        "planner_parts_dropped": _last(planner_status).get("parts_dropped_unpaired"),
+        "planner_frames_dropped_backlog": _last(planner_status).get("frames_dropped_backlog"),
         "drop_lines": [line for line in lines if " dropped: " in line][:5],
-        # every request's round trip and the planner's split of it, in order
-        "plan_round_trips_s": [round(v, 4) for v in latencies],
-        "plan_splits_s": breakdown,
         "planner_fused_ages_s": [round(float(v), 4) for v in ages["planner"]],
     }
-    if print_table:
-        _print_table(figures)
-    if json_out is not None:
-        Path(json_out).write_text(json.dumps(figures, indent=1))
-    return figures
 
 
 def _start_manager(period_s: float, env: dict) -> subprocess.Popen:

@@ -26,17 +26,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--period", type=float, default=1.0, help="seconds between requests")
     args = parser.parse_args(argv)
 
-    from area3d_msgs_py import codecs, middleware, msgs, qos
+    from area3d_msgs_py import codecs, middleware, msgs, topics
     from area3d_msgs_py.probe import Probe
-    from area3d_planner.node import NBV_SERVICE, POSE_TOPIC, STATUS_TOPIC
 
     middleware.configure()
     stop = threading.Event()
     threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
     with Probe("soak_mission_manager") as probe:
-        poses = probe.listen(msgs.PoseStamped, POSE_TOPIC, qos.reliable(50))
-        statuses = probe.listen(msgs.String, STATUS_TOPIC, qos.reliable(50))
-        client = probe.node.create_client(msgs.GetPlan, NBV_SERVICE)
+        poses = probe.listen(topics.POSE.msg_type, topics.POSE.name, topics.POSE.qos())
+        statuses = probe.listen(
+            topics.PLANNER_STATUS.msg_type, topics.PLANNER_STATUS.name, topics.PLANNER_STATUS.qos()
+        )
+        service = topics.NEXT_BEST_VIEW
+        client = probe.node.create_client(service.srv_type, service.name)
         while not stop.is_set() and not client.wait_for_service(timeout_sec=0.5):
             pass
         print(json.dumps({"ready": True}), flush=True)

@@ -3,7 +3,7 @@ target and the ratio.
 
 - topics (`area3d_msgs_py.bench`): publish-to-receive latency and throughput of a 640x480 rgb8
   image, a 640x480 32FC1 depth image and a 1M-point PointCloud2;
-- the next-best-view service (`planner_bench.bench_transport`): GetPlan round trip of one
+- the next-best-view service (`bench_transport`): GetPlan round trip of one
   closed-loop view against a planner node process with a warm cache.
 
 Both run on rclpy with the middleware setup of the graph (`area3d_msgs_py.middleware`).
@@ -12,13 +12,17 @@ Both run on rclpy with the middleware setup of the graph (`area3d_msgs_py.middle
 from __future__ import annotations
 
 import os
+import time
+
+import numpy as np
+
+TARGET_ROUND_TRIP_P95_S = 0.05  # one closed-loop GetPlan round trip (one view), cache warm
 
 
 def run_bench(samples: int = 200, cloud_samples: int = 20, requests: int = 50) -> dict:
     from rich.console import Console
     from rich.table import Table
 
-    from area3d_bringup.planner_bench import bench_transport
     from area3d_msgs_py import middleware
     from area3d_msgs_py.bench import measure_topics
 
@@ -67,3 +71,115 @@ def run_bench(samples: int = 200, cloud_samples: int = 20, requests: int = 50) -
 
 if __name__ == "__main__":
     run_bench()
+
+
+def bench_transport(requests: int = 50) -> dict:
+    """Closed-loop GetPlan round trip between two processes: a planner node process
+    (single_object), the scene's initial views published to it, then `requests` one-view requests
+    once area3d/planner/status says the cache is ready."""
+    import json
+    import tempfile
+    import threading
+    from pathlib import Path
+
+    from area3d_bringup.launch_description import NodeSpec, scene_parameters
+    from area3d_bringup.launcher import Launcher
+    from area3d_msgs_py import codecs, middleware, msgs, topics
+    from area3d_msgs_py.probe import Probe
+
+    middleware.configure()
+    from area3d_bringup.bench_frames import object_frames
+
+    scene, frames = object_frames()
+    params = {**scene_parameters(scene.name)["planner"], "mode": "closed_loop", "budget": 10**6}
+    lines: list[str] = []
+    with tempfile.TemporaryDirectory() as workdir, Probe("planner_bench") as probe:
+        launcher = Launcher(
+            [NodeSpec("planner", "area3d_planner.node", params)],
+            Path(workdir),
+            env=middleware.graph_env(),
+            log_sink=lines.append,
+        )
+        status = topics.PLANNER_STATUS
+        statuses = probe.listen(status.msg_type, status.name, status.qos())
+        pubs = {
+            key: probe.publisher(topic.msg_type, topic.name, topic.qos())
+            for key, topic in (
+                ("depth", topics.PERCEPTION_DEPTH),
+                ("conf", topics.PERCEPTION_CONFIDENCE),
+                ("pose", topics.POSE),
+                ("info", topics.CAMERA_INFO),
+            )
+        }
+        client = probe.node.create_client(
+            topics.NEXT_BEST_VIEW.srv_type, topics.NEXT_BEST_VIEW.name
+        )
+
+        launcher.start()
+        try:
+            if not launcher.wait_for(lambda: client.wait_for_service(timeout_sec=0.1), 120):
+                raise RuntimeError("planner service did not come up:\n" + "\n".join(lines[-20:]))
+            launcher.wait_for(
+                lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 60
+            )
+            t0 = time.perf_counter()
+            for i, (depth, conf, K, T) in enumerate(frames):
+                stamp = (i + 1) * 1_000_000
+                h, w = depth.shape
+                pubs["info"].publish(
+                    codecs.intrinsics_to_camera_info(K, w, h, stamp, "camera_optical_frame")
+                )
+                pubs["pose"].publish(
+                    msgs.PoseStamped(
+                        header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T)
+                    )
+                )
+                pubs["depth"].publish(
+                    codecs.image_to_msg(depth, "32FC1", stamp, "camera_optical_frame")
+                )
+                pubs["conf"].publish(
+                    codecs.image_to_msg(conf, "32FC1", stamp, "camera_optical_frame")
+                )
+            n = len(frames)
+
+            def ready() -> bool:
+                states = [json.loads(m.data) for m in list(statuses)]
+                return any(s.get("frames_fused") == n and s.get("cache_ready") for s in states)
+
+            is_ready = launcher.wait_for(ready, 180)
+            t_ready = time.perf_counter() - t0
+            if not is_ready:
+                raise RuntimeError("planner never reported cache_ready:\n" + "\n".join(lines[-20:]))
+            last = n * 1_000_000
+            latencies = []
+            for _ in range(requests):
+                req = msgs.GetPlan_Request(
+                    start=msgs.PoseStamped(
+                        header=codecs.header(last, "world"),
+                        pose=codecs.matrix_to_pose(frames[-1][3]),
+                    ),
+                    goal=msgs.PoseStamped(
+                        header=codecs.header(last, "world"), pose=codecs.matrix_to_pose(np.eye(4))
+                    ),
+                    tolerance=0.0,
+                )
+                req.goal.pose.position.x = 1.0
+                answered = threading.Event()
+                t = time.perf_counter()
+                future = client.call_async(req)
+                future.add_done_callback(lambda _, done=answered: done.set())
+                if not answered.wait(30.0):
+                    raise RuntimeError("no answer:\n" + "\n".join(lines[-20:]))
+                latencies.append(time.perf_counter() - t)
+                if len(future.result().plan.poses) != 1:
+                    raise RuntimeError("empty plan:\n" + "\n".join(lines[-20:]))
+        finally:
+            launcher.stop()
+    lat = np.asarray(latencies)
+    return {
+        "frames": len(frames),
+        "fused_and_cache_ready_s": t_ready,
+        "round_trip_p50_s": float(np.percentile(lat, 50)),
+        "round_trip_p95_s": float(np.percentile(lat, 95)),
+        "target_p95_s": TARGET_ROUND_TRIP_P95_S,
+    }

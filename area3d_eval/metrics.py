@@ -264,13 +264,3 @@ def mean_ssim(s: np.ndarray, mask: np.ndarray | None = None) -> float:
             raise InputError("mask", mask.shape, f"(H, W) = {s.shape}")
         keep &= mask
     return float(s[keep].mean()) if keep.any() else float("nan")
-
-
-def __getattr__(name: str) -> Any:
-    # evaluate_run lives in evaluate.py (it needs the reconstruction and the scene); exposed here
-    # lazily so `from area3d_eval.metrics import evaluate_run` works without an import cycle.
-    if name == "evaluate_run":
-        from area3d_eval.evaluate import evaluate_run
-
-        return evaluate_run
-    raise AttributeError(name)

@@ -254,6 +254,32 @@ def write_frame(
     return write_atomic(frame_path(run_dir, index), lambda tmp: np.savez(tmp, **arrays))
 
 
+def attach_estimates(
+    run_dir: Path,
+    frames: list[Frame],
+    estimates: dict[int, dict[str, np.ndarray]],
+    log: Callable[[str], None],
+) -> None:
+    """Rewrite each frame file with perception's output for it: `estimates` is
+    {stamp_ns: {"depth": (H, W), "confidence": (H, W)}}. A frame with no depth there keeps what
+    it has (an estimate saved before a resume) or is logged: the TSDF will refuse it."""
+    for index, frame in enumerate(frames):
+        got = estimates.get(frame.stamp_ns, {})
+        if frame.estimated_depth is not None and "depth" not in got:
+            continue  # kept from before a resume
+        if "depth" not in got:
+            log(f"no perception depth for view {index}; the TSDF will refuse it")
+            continue
+        write_frame(
+            run_dir,
+            index,
+            *frame,
+            stamp_ns=frame.stamp_ns,
+            estimated_depth=got["depth"],
+            confidence=got.get("confidence"),
+        )
+
+
 def read_frame(path: Path) -> Frame:
     with np.load(path) as data:
         return Frame(

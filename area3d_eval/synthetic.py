@@ -14,6 +14,7 @@ import trimesh
 
 from area3d_eval.render import MeshRenderer
 from area3d_eval.rundir import write_episode, write_frame
+from area3d_msgs_py.camera_pose import look_at
 
 MAX_RANGE = 5.0  # metres, the paper's camera range
 HFOV_DEG = 90.0  # the paper's camera field of view
@@ -23,21 +24,6 @@ def intrinsics(width: int, height: int, hfov_deg: float = HFOV_DEG) -> np.ndarra
     """K (3, 3) of the shared convention: fx = fy = (W / 2) / tan(hfov / 2), cx = W / 2, cy = H / 2."""
     f = (width / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """(4, 4) T_world_cam of an optical frame (z forward, x right, y down) at `eye` looking at `target`."""
-    eye = np.asarray(eye, dtype=np.float64)
-    z = np.asarray(target, dtype=np.float64) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, dtype=np.float64))
-    if np.linalg.norm(x) < 1e-9:  # looking straight along `up`: any horizontal x will do
-        x = np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    T[:3, 3] = eye
-    return T
 
 
 def hemisphere_views(

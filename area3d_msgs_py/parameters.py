@@ -15,6 +15,7 @@ Keys in the parameter file or ``-p`` that no declaration uses are reported by na
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -30,6 +31,7 @@ from rclpy.parameter import Parameter
 
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.inputs import MAX_STAMP_AHEAD_S
+from area3d_msgs_py.param_fields import description_of, is_described
 
 #: declared by rclpy itself on every node
 BUILTIN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
@@ -79,12 +81,42 @@ class Param:
         return None
 
 
+def params_of(
+    config: type, prefix: str = "", skip: Iterable[str] = (), read_only: bool = True
+) -> tuple[Param, ...]:
+    """The parameters of a dataclass whose fields are made with `param_fields.described`: one
+    per field (named `prefix` + field name, less those in `skip`), with the field's default,
+    description and unit, range, choices and check."""
+    params = []
+    for f in dataclasses.fields(config):
+        if f.name in skip:
+            continue
+        if not is_described(f):
+            raise TypeError(f"{config.__name__}.{f.name}: a parameter needs a described() field")
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if isinstance(default, tuple) and _all_numbers(default):
+            default = tuple(float(v) for v in default)
+        meta = f.metadata
+        params.append(
+            Param(
+                prefix + f.name,
+                default,
+                description_of(f),
+                read_only=read_only,
+                range=meta.get("range"),
+                choices=meta.get("choices"),
+                check=meta.get("check"),
+            )
+        )
+    return tuple(params)
+
+
 # Parameters every node that checks its inputs declares alike (`area3d_msgs_py.inputs`).
 MAX_STAMP_AHEAD_PARAM = Param(
     "max_stamp_ahead_s",
     MAX_STAMP_AHEAD_S,
     "inputs stamped further ahead of this node's clock are refused, seconds",
-    range=(0.0, 1e6),
+    range=(0.0, 86400.0),
 )
 WORLD_FRAME_PARAM = Param("world_frame", "world", "frame_id every camera pose must be expressed in")
 
@@ -129,6 +161,35 @@ def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:
             raise InputError(p.name, value, problem)
         registry[p.name] = p
         values[p.name] = tuple(value) if isinstance(p.default, tuple) else value
+    return values
+
+
+def parameter_values(params: Iterable[Param], given: dict[str, Any]) -> dict[str, Any]:
+    """{name: value} as `declare_parameters` gives them to a node started with the parameters
+    `given` (defaults for the rest), without a node: what a node's cores are built from, also
+    where no node runs (`area3d_bringup.inprocess`). Keys of `given` that no parameter declares
+    are ignored; a refused value raises InputError as on a node."""
+    values: dict[str, Any] = {}
+    for p in params:
+        value = given.get(p.name, p.default)
+        if isinstance(p.default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if isinstance(p.default, list | tuple):
+            if p.default and isinstance(p.default[0], float) and _all_numbers(value):
+                value = [float(v) for v in value]
+            value = tuple(value) if isinstance(p.default, tuple) else list(value)
+        if type(value) is not type(p.default) and not (
+            isinstance(p.default, list | tuple) and isinstance(value, list | tuple)
+        ):
+            raise InputError(p.name, value, f"a {type(p.default).__name__}: {p.description}")
+        if p.range is not None and not isinstance(value, bool) and not isinstance(value, str):
+            lo, hi = p.range
+            if isinstance(value, int | float) and not lo <= value <= hi:
+                raise InputError(p.name, value, f"a value in [{lo}, {hi}]: {p.description}")
+        problem = p.problem(value)
+        if problem:
+            raise InputError(p.name, value, problem)
+        values[p.name] = value
     return values
 
 

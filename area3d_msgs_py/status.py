@@ -1,8 +1,9 @@
-"""A node's status line: JSON in std_msgs/String on area3d/<node>/status, as the planner's.
+"""A node's status line: JSON in std_msgs/String on area3d/<node>/status (`topics.*_STATUS`).
 
 Published a moment after something changed (a frame processed, an input rejected), so a barrage of
-bad messages yields one status line after it rather than one per message, and once a period as a
-heartbeat, so `ros2 topic echo` shows the counters of a quiet node too.
+bad messages yields one status line after it rather than one per message, and, where the node
+asks for one, once a period as a heartbeat, so `ros2 topic echo` shows the counters of a quiet
+node too. A node's worker threads publish with `publish()` (inside the node's `PublishGate`).
 """
 
 from __future__ import annotations
@@ -11,27 +12,30 @@ import json
 from collections.abc import Callable
 from typing import Any
 
-from area3d_msgs_py import msgs, qos
+from area3d_msgs_py import msgs
+from area3d_msgs_py.topics import Topic
 
 CHANGE_DELAY_S = 0.05  # a burst of changes within this time yields one status line
 HEARTBEAT_S = 1.0
 
 
-def status_topic(node_name: str) -> str:
-    """The relative status topic of a node: area3d/<node>/status."""
-    return f"area3d/{node_name}/status"
-
-
 class StatusPublisher:
-    """Publishes `state()` as JSON on the node's status topic after `changed()` and every HEARTBEAT_S."""
+    """Publishes `state()` as JSON on `topic` shortly after `changed()` and, unless `heartbeat_s`
+    is None, every `heartbeat_s` seconds."""
 
-    def __init__(self, node: Any, topic: str, state: Callable[[], dict]) -> None:
-        self._node = node
+    def __init__(
+        self,
+        node: Any,
+        topic: Topic,
+        state: Callable[[], dict],
+        heartbeat_s: float | None = HEARTBEAT_S,
+    ) -> None:
         self._state = state
-        self._pub = node.create_publisher(msgs.String, topic, qos.reliable(50))
+        self._pub = node.create_publisher(msgs.String, topic.name, topic.qos())
         self._soon = node.create_timer(CHANGE_DELAY_S, self._publish_soon)
         self._soon.cancel()
-        node.create_timer(HEARTBEAT_S, self.publish)
+        if heartbeat_s is not None:
+            node.create_timer(heartbeat_s, self.publish)
 
     def changed(self) -> None:
         """Something in the state changed: publish it shortly (repeated calls coalesce)."""
@@ -42,4 +46,5 @@ class StatusPublisher:
         self.publish()
 
     def publish(self) -> None:
+        """Publish the state now."""
         self._pub.publish(msgs.String(data=json.dumps(self._state())))

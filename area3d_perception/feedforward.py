@@ -241,11 +241,6 @@ class VggtBackend:
             cam_centres=centres,
         )
 
-    def predict(self, images: Sequence[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """(depth list of (H, W) float32 model units, confidence list of (H, W) float32 raw C >= 1)."""
-        out = self.predict_views(images)
-        return out.depth, out.confidence
-
 
 class DepthAnything3Backend:
     """Depth Anything 3 (`depth-anything-3` on PyPI) from a local model directory; never downloads.
@@ -291,11 +286,6 @@ class DepthAnything3Backend:
             ],
             cam_centres=centres,
         )
-
-    def predict(self, images: Sequence[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """(depth list of (H, W) float32 model units, confidence list of (H, W) float32 raw C)."""
-        out = self.predict_views(images)
-        return out.depth, out.confidence
 
 
 def _resize_to(array: np.ndarray, image: np.ndarray, nearest: bool = False) -> np.ndarray:

@@ -19,6 +19,7 @@ restart) pairs like any other: only frames completing after its parts arrived ca
 
 from __future__ import annotations
 
+from collections import OrderedDict, deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -119,3 +120,50 @@ class StampSync:
     def pending(self, key: str) -> list[int]:
         """Stamps of the parts of stream `key` still waiting for partners, ascending."""
         return sorted(self._pending[key])
+
+
+class HeldFrames:
+    """Whole frames held until the camera info they need has arrived: a frame's topics arrive in
+    any order, camera info included. Beyond `capacity` frames the oldest is dropped."""
+
+    def __init__(self, capacity: int) -> None:
+        self._held: deque[tuple[int, Any]] = deque(maxlen=capacity)
+
+    def hold(self, stamp_ns: int, frame: Any, info_topic: str) -> str | None:
+        """Hold a whole frame; for the first one held since the last release, the warning to log
+        (None otherwise: said once, not per frame)."""
+        first = not self._held
+        self._held.append((stamp_ns, frame))
+        return (
+            f"no camera_info on {info_topic} yet; holding frames until it arrives"
+            if first
+            else None
+        )
+
+    def release(self) -> list[tuple[int, Any]]:
+        """Every frame held, oldest first, and none held any more."""
+        frames = list(self._held)
+        self._held.clear()
+        return frames
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+
+class CameraInfoCache:
+    """The camera info of the last `size` stamps: a frame takes its own stamp's, else the latest
+    (intrinsics rarely change), else none yet (`None`: hold the frame, `HeldFrames`)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = int(size)
+        self._by_stamp: OrderedDict[int, Any] = OrderedDict()
+        self.latest: Any = None
+
+    def add(self, stamp_ns: int, info: Any) -> None:
+        self.latest = info
+        self._by_stamp[int(stamp_ns)] = info
+        while len(self._by_stamp) > self.size:
+            self._by_stamp.popitem(last=False)
+
+    def get(self, stamp_ns: int) -> Any:
+        return self._by_stamp.get(int(stamp_ns), self.latest)

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit, prange
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import backproject
+from area3d_perception.backproject import backproject, pixel_to_world
 from area3d_perception.grid import GridSpec
 
 # Unobserved space is maximally uncertain (DESIGN.md: "unobserved space means high uncertainty").
@@ -344,8 +344,7 @@ def _frame_ray_ends(depth, fx, fy, cx, cy, T, stride, max_range):  # pragma: no 
             else:
                 hit[n] = False
                 d = max_range / norm
-            for a in range(3):
-                points[n, a] = T[a, 0] * x * d + T[a, 1] * y * d + T[a, 2] * d + T[a, 3]
+            pixel_to_world(u, v, d, fx, fy, cx, cy, T, points[n])
             n += 1
     return points, hit
 

@@ -3,19 +3,18 @@
 Subscribes the camera's color, depth, camera info and optical-frame pose (with the `stereo`
 backend also the right image and right camera info of a rectified pair), pairs them by stamp
 (`StampSync`), runs `FrameEstimator` and publishes depth and confidence with the source frame's
-stamp and frame_id. Topic names are relative: `__ns` moves them all.
+stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, msgs, qos
+from area3d_msgs_py import codecs, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded, reject
 from area3d_msgs_py.inputs import (
@@ -32,23 +31,15 @@ from area3d_msgs_py.parameters import (
     WORLD_FRAME_PARAM,
     Param,
     declare_parameters,
+    params_of,
     report_unknown_parameters,
 )
-from area3d_msgs_py.status import StatusPublisher, status_topic
+from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
-from area3d_perception.frame_sync import MAX_AGE_NS, StampSync
+from area3d_perception.frame_sync import MAX_AGE_NS, HeldFrames, StampSync
 from area3d_perception.sensor_model import RgbdSensorParams
 from area3d_perception.stereo import StereoParams
 
-COLOR_TOPIC = "area3d/camera/color/image_raw"
-DEPTH_TOPIC = "area3d/camera/depth/image_raw"
-INFO_TOPIC = "area3d/camera/camera_info"
-POSE_TOPIC = "area3d/camera/pose"
-RIGHT_TOPIC = "area3d/camera/right/image_rect"
-RIGHT_INFO_TOPIC = "area3d/camera/right/camera_info"
-OUT_DEPTH_TOPIC = "area3d/perception/depth"
-OUT_CONFIDENCE_TOPIC = "area3d/perception/confidence"
-STATUS_TOPIC = status_topic("perception")
 FRAME = "frame"  # rejections of a complete frame whose parts do not fit together
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
 MAX_FRAMES_WITHOUT_INFO = 8
@@ -57,7 +48,7 @@ PARAMS = (
     Param("backend", "rgbd", "depth + confidence estimator", choices=BACKENDS),
     Param("checkpoint", "", "local VGGT / Depth Anything 3 weights (never downloaded at run time)"),
     Param("device", "auto", "torch device of a feed-forward backend: auto | cpu | cuda[:N]"),
-    Param("window", FEEDFORWARD_WINDOW, "views per feed-forward pass", range=(1, 256)),
+    Param("window", FEEDFORWARD_WINDOW, "views per feed-forward pass, frames", range=(1, 256)),
     Param(
         "confidence_normalization",
         "inverse",
@@ -78,25 +69,9 @@ PARAMS = (
     ),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
-    *(
-        Param(
-            f"sensor.{f.name}",
-            f.default,
-            f"RgbdSensorParams.{f.name} (the depth camera's confidence model)",
-            range=(0, 1e6),
-        )
-        for f in dataclasses.fields(RgbdSensorParams)
-    ),
-    *(
-        Param(
-            f"stereo.{f.name}",
-            f.default,
-            f"StereoParams.{f.name} (stereo backend: SGBM and its confidence)",
-            range=(0, 1e6),
-        )
-        for f in dataclasses.fields(StereoParams)
-        if f.name != "max_range"  # the camera's range is sensor.max_range
-    ),
+    *params_of(RgbdSensorParams, "sensor."),
+    # the camera's range is sensor.max_range
+    *params_of(StereoParams, "stereo.", skip=("max_range",)),
 )
 
 
@@ -107,65 +82,49 @@ class PerceptionNode(Node):
         super().__init__("perception", **kwargs)
         p = declare_parameters(self, PARAMS)
         report_unknown_parameters(self)
-        sensor = RgbdSensorParams(
-            **{f.name: p[f"sensor.{f.name}"] for f in dataclasses.fields(RgbdSensorParams)}
-        )
         self.use_depth = p["use_depth"]
         self.stereo = p["backend"] == "stereo"
-        stereo = StereoParams(
-            **{
-                f.name: p[f"stereo.{f.name}"]
-                for f in dataclasses.fields(StereoParams)
-                if f.name != "max_range"
-            }
-        )
-        self.estimator = FrameEstimator(
-            backend=p["backend"],
-            sensor=sensor,
-            checkpoint=p["checkpoint"],
-            device=p["device"],
-            window=p["window"],
-            confidence_normalization=p["confidence_normalization"],
-            stereo=stereo,
-            uniform_confidence=p["uniform_confidence"],
-        )
+        self.estimator = estimator_from_parameters(p)
         keys = ("color", "depth", "pose") if self.use_depth else ("color", "pose")
         if self.stereo:
             keys += ("right",)
         self.sync = StampSync(keys, max_age_ns=int(p["sync_max_age_s"] * 1e9))
         self.camera: tuple[Any, int, int] | None = None
         self.right_camera: tuple[float, int, int] | None = None  # (baseline m, width, height)
-        self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
+        self.waiting = HeldFrames(MAX_FRAMES_WITHOUT_INFO)
         self.frames_published = 0
         self.world_frame = p["world_frame"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        self.status = StatusPublisher(self, STATUS_TOPIC, self._status)
+        self.status = StatusPublisher(self, topics.PERCEPTION_STATUS, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
         self.last_frame_age_s: float | None = None  # age of the last frame published, seconds
 
-        self.pub_depth = self.create_publisher(msgs.Image, OUT_DEPTH_TOPIC, qos.graph_frames())
-        self.pub_conf = self.create_publisher(msgs.Image, OUT_CONFIDENCE_TOPIC, qos.graph_frames())
+        self.pub_depth = self._publisher(topics.PERCEPTION_DEPTH)
+        self.pub_conf = self._publisher(topics.PERCEPTION_CONFIDENCE)
         inputs = [
-            (msgs.Image, COLOR_TOPIC, self.on_color),
-            (msgs.CameraInfo, INFO_TOPIC, self.on_camera_info),
-            (msgs.PoseStamped, POSE_TOPIC, self.on_pose),
+            (topics.COLOR, self.on_color),
+            (topics.CAMERA_INFO, self.on_camera_info),
+            (topics.POSE, self.on_pose),
         ]
         if self.use_depth:
-            inputs.append((msgs.Image, DEPTH_TOPIC, self.on_depth))
-        for msg_type, topic, callback in inputs:
-            self.create_subscription(
-                msg_type, topic, guarded(self, callback, topic, self.rejections), qos.frames()
-            )
+            inputs.append((topics.DEPTH, self.on_depth))
         if self.stereo:
-            for msg_type, topic, callback in (
-                (msgs.Image, RIGHT_TOPIC, self.on_right),
-                (msgs.CameraInfo, RIGHT_INFO_TOPIC, self.on_right_camera_info),
-            ):
-                self.create_subscription(
-                    msg_type, topic, guarded(self, callback, topic, self.rejections), qos.frames()
-                )
+            inputs += [
+                (topics.RIGHT_IMAGE, self.on_right),
+                (topics.RIGHT_CAMERA_INFO, self.on_right_camera_info),
+            ]
+        for topic, callback in inputs:
+            self.create_subscription(
+                topic.msg_type,
+                topic.name,
+                guarded(self, callback, topic.name, self.rejections),
+                topic.qos(),
+            )
         self.get_logger().info(f"backend={p['backend']} use_depth={self.use_depth}")
+
+    def _publisher(self, topic: topics.Topic) -> Any:
+        return self.create_publisher(topic.msg_type, topic.name, topic.qos())
 
     def _status(self) -> dict:
         return {
@@ -183,7 +142,7 @@ class PerceptionNode(Node):
     def _camera_size(self) -> tuple[int, int] | None:
         return None if self.camera is None else (self.camera[1], self.camera[2])
 
-    def on_color(self, msg: msgs.Image) -> None:
+    def on_color(self, msg: Any) -> None:
         self._add("color", msg, lambda m: decode_image(m, COLOR_ENCODINGS, self._camera_size()))
 
     def on_depth(self, msg: Any) -> None:
@@ -193,7 +152,7 @@ class PerceptionNode(Node):
         check_frame_id(msg, self.world_frame)
         self._add("pose", msg, lambda m: codecs.pose_to_matrix(m.pose))
 
-    def on_right(self, msg: msgs.Image) -> None:
+    def on_right(self, msg: Any) -> None:
         self._add("right", msg, codecs.msg_to_image)
 
     def on_camera_info(self, msg: Any) -> None:
@@ -212,9 +171,9 @@ class PerceptionNode(Node):
         return self.camera is not None and (not self.stereo or self.right_camera is not None)
 
     def _release_waiting(self) -> None:
-        while self.waiting and self._ready():
-            stamp, parts = self.waiting.popleft()
-            self._process(stamp, parts)
+        if self._ready():
+            for stamp, parts in self.waiting.release():
+                self._process(stamp, parts)
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -231,12 +190,10 @@ class PerceptionNode(Node):
         if parts is None:
             return
         if not self._ready():
-            if not self.waiting:
-                missing = INFO_TOPIC if self.camera is None else RIGHT_INFO_TOPIC
-                self.get_logger().warning(
-                    f"no camera_info on {missing} yet; holding frames until it arrives"
-                )
-            self.waiting.append((stamp, parts))
+            missing = topics.CAMERA_INFO if self.camera is None else topics.RIGHT_CAMERA_INFO
+            warning = self.waiting.hold(stamp, parts, missing.name)
+            if warning:
+                self.get_logger().warning(warning)
             return
         self._process(stamp, parts)
 
@@ -280,6 +237,31 @@ class PerceptionNode(Node):
         # stamp is its capture time; recorded or simulated stamps make this meaningless)
         self.last_frame_age_s = (self.get_clock().now().nanoseconds - stamp) / 1e9
         self.status.changed()
+
+
+def estimator_from_parameters(p: dict) -> FrameEstimator:
+    """The estimator this node's parameters `p` describe (also what `area3d_bringup.inprocess`
+    estimates with)."""
+    sensor = RgbdSensorParams(
+        **{f.name: p[f"sensor.{f.name}"] for f in dataclasses.fields(RgbdSensorParams)}
+    )
+    stereo = StereoParams(
+        **{
+            f.name: p[f"stereo.{f.name}"]
+            for f in dataclasses.fields(StereoParams)
+            if f.name != "max_range"
+        }
+    )
+    return FrameEstimator(
+        backend=p["backend"],
+        sensor=sensor,
+        checkpoint=p["checkpoint"],
+        device=p["device"],
+        window=p["window"],
+        confidence_normalization=p["confidence_normalization"],
+        stereo=stereo,
+        uniform_confidence=p["uniform_confidence"],
+    )
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.param_fields import described
 
 
 @dataclass(frozen=True)
@@ -33,38 +34,79 @@ class RgbdSensorParams:
     """Noise and confidence model of a depth camera; defaults are a Kinect-class sensor."""
 
     # Axial noise sigma_z = a + b (z - z0)^2 (Nguyen et al. 2012, fit for 10-60 deg incidence).
-    sigma_a: float = 0.0012
-    sigma_b: float = 0.0019
-    sigma_z0: float = 0.4
+    sigma_a: float = described(
+        0.0012, "axial noise sigma_z = a + b (z - z0)^2: a (Nguyen et al. 2012)", "metres",
+        (0.0, 1.0),
+    )  # fmt: skip
+    sigma_b: float = described(
+        0.0019, "axial noise: b (Nguyen et al. 2012)", "per metre", (0.0, 1.0)
+    )
+    sigma_z0: float = described(0.4, "axial noise: z0 (Nguyen et al. 2012)", "metres", (0.0, 100.0))
     # Angular growth of axial noise, c / sqrt(z) * theta^2 / (pi/2 - theta)^2 (Nguyen et al. 2012).
-    sigma_angle: float = 0.0001
+    sigma_angle: float = described(
+        0.0001,
+        "growth of axial noise with incidence theta, c / sqrt(z) theta^2 / (pi/2 - theta)^2: c "
+        "(Nguyen et al. 2012)",
+        "metres^1.5",
+        (0.0, 1.0),
+    )
     # Lateral noise in pixels, l0 + l1 * theta / (pi/2 - theta) (Nguyen et al. 2012).
-    lateral_l0_px: float = 0.8
-    lateral_l1_px: float = 0.035
+    lateral_l0_px: float = described(
+        0.8, "lateral noise l0 + l1 theta / (pi/2 - theta): l0 (Nguyen et al. 2012)", "pixels",
+        (0.0, 100.0),
+    )  # fmt: skip
+    lateral_l1_px: float = described(
+        0.035, "lateral noise: l1 (Nguyen et al. 2012)", "pixels", (0.0, 100.0)
+    )
     # Axial sigma at which range confidence falls to 1/e; 2.5 cm is reached near 3.9 m on the curve
     # above, where Kinect-class depth stops being useful for centimetre reconstruction (our choice).
-    sigma_ref: float = 0.025
+    sigma_ref: float = described(
+        0.025, "axial sigma at which the range confidence falls to 1/e", "metres", (1e-6, 10.0)
+    )
     # Normals: edge-preserving box mean of this radius, then tangents over this many pixels; at
     # 1 m a Kinect pixel is ~3 mm wide and the axial noise ~2 mm, so 1-pixel tangents would be
     # dominated by noise (our choice; KinectFusion smooths depth before normals for the same reason).
-    normal_smoothing_px: int = 1
-    normal_step_px: int = 2
+    normal_smoothing_px: int = described(
+        1, "radius of the edge-preserving mean before normals", "pixels", (0, 32)
+    )
+    normal_step_px: int = described(2, "normals: tangents over this many pixels", "pixels", (1, 32))
     # Exponent p of the incidence factor max(cos theta, 0)^p (Lambertian return: p = 1).
-    incidence_power: float = 1.0
+    incidence_power: float = described(
+        1.0, "exponent p of the incidence confidence max(cos theta, 0)^p (Lambertian: 1)", "",
+        (0.0, 10.0),
+    )  # fmt: skip
     # A neighbour differing by more than this fraction of the nearer depth is a discontinuity.
-    edge_jump_rel: float = 0.05
+    edge_jump_rel: float = described(
+        0.05,
+        "a neighbour this much farther, as a fraction of the nearer depth, makes a discontinuity",
+        "fraction",
+        (1e-6, 10.0),
+    )
     # Pixels within this many pixels of a discontinuity get reduced confidence (mixed pixels).
-    edge_radius_px: int = 2
+    edge_radius_px: int = described(
+        2, "pixels this close to a discontinuity get reduced confidence", "pixels", (0, 64)
+    )
     # Confidence factor on the discontinuity itself; ramps linearly to 1 outside the radius.
-    edge_confidence: float = 0.2
+    edge_confidence: float = described(
+        0.2, "confidence factor on a discontinuity, ramping to 1 at edge_radius_px", "", (0.0, 1.0)
+    )
     # Noise only: probability that a pixel on a discontinuity becomes a dropout (flying pixel).
-    edge_dropout: float = 0.5
+    edge_dropout: float = described(
+        0.5, "noise: probability that a pixel on a discontinuity drops out", "", (0.0, 1.0)
+    )
     # Noise only: dropout probability ramps from 0 at this incidence angle ...
-    grazing_start_deg: float = 70.0
+    grazing_start_deg: float = described(
+        70.0, "noise: dropouts start at this incidence angle", "degrees", (0.0, 90.0)
+    )
     # ... to 1 at this one (structured light loses the pattern at grazing angles).
-    grazing_full_deg: float = 85.0
+    grazing_full_deg: float = described(
+        85.0, "noise: every pixel drops out from this incidence angle", "degrees", (0.0, 90.0)
+    )
     # Returns beyond this range are NaN (the paper's camera: max range 5 m).
-    max_range: float = 5.0
+    max_range: float = described(
+        5.0, "returns beyond this range are no return (the paper's camera: 5)", "metres",
+        (0.01, 1000.0),
+    )  # fmt: skip
 
     def __post_init__(self) -> None:
         positive = {

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.param_fields import described
 
 # OpenCV's StereoSGBM returns fixed-point disparities with 4 fractional bits.
 SGBM_DISPARITY_SCALE = 16.0
@@ -40,32 +41,64 @@ class StereoParams:
     # Disparities searched at the matching resolution: 64 at half of 640 px covers 128 full-size px,
     # depths from fx B / 128 = 0.15 m at fx = 320 px (90 deg over 640 px), B = 6 cm; the object
     # scenes' views see the table from 0.2 m.
-    num_disparities: int = 64
-    block_size: int = 5  # px; OpenCV's documented range is 3-11
+    num_disparities: int = described(
+        64, "disparities searched at the matching resolution (a multiple of 16)", "pixels",
+        (16, 1024),
+    )  # fmt: skip
+    block_size: int = described(5, "SGBM block size, odd (OpenCV: 3-11)", "pixels", (1, 63))
     # Smoothness penalties P1 = 8 * bs^2, P2 = 32 * bs^2 per channel (OpenCV's sample values).
-    p1_per_px: int = 8
-    p2_per_px: int = 32
-    uniqueness_ratio: int = 10  # percent; OpenCV suggests 5-15
-    speckle_window_size: int = 100  # px; OpenCV suggests 50-200
-    speckle_range: int = 2  # px of disparity; OpenCV suggests 1-2
+    p1_per_px: int = described(
+        8, "SGBM smoothness penalty P1 = p1_per_px block_size^2 per channel", "", (0, 1024)
+    )
+    p2_per_px: int = described(
+        32, "SGBM smoothness penalty P2 = p2_per_px block_size^2 per channel", "", (1, 4096)
+    )
+    uniqueness_ratio: int = described(
+        10, "SGBM uniqueness margin (OpenCV suggests 5-15)", "percent", (0, 100)
+    )
+    speckle_window_size: int = described(
+        100, "SGBM speckle filter window (OpenCV suggests 50-200)", "pixels", (0, 10_000)
+    )
+    speckle_range: int = described(
+        2, "SGBM speckle filter range (OpenCV suggests 1-2)", "pixels of disparity", (0, 64)
+    )
     # at the matching resolution; our choice: a disagreement beyond one pixel is a mismatch, and
     # half a pixel gives exp(-1)
-    lr_max_diff_px: float = 1.0
-    lr_sigma_px: float = 0.5
-    texture_window_px: int = 7  # our choice: about the SGBM block plus a margin
+    lr_max_diff_px: float = described(
+        1.0, "left-right check: a disagreement beyond this is a mismatch", "pixels", (1e-3, 64.0)
+    )
+    lr_sigma_px: float = described(
+        0.5, "left-right check: a disagreement of this much gives confidence exp(-1)", "pixels",
+        (1e-3, 64.0),
+    )  # fmt: skip
+    texture_window_px: int = described(
+        7, "window of the texture measure (about the SGBM block plus a margin)", "pixels", (1, 101)
+    )
     # grey levels / px: RMS horizontal gradient where texture gives 0.5 (our choice: 1 grey level of
     # camera noise alone gives 0.43, so a blank surface stays below 0.16; on the simulator's
     # noise-free images larger values rank error worse, see the README)
-    texture_ref: float = 1.0
+    texture_ref: float = described(
+        1.0, "RMS horizontal gradient at which texture confidence is 0.5",
+        "grey levels per pixel", (1e-3, 255.0),
+    )  # fmt: skip
     # SGBM's sub-pixel error on textured surfaces (pixel locking) at the matching resolution, px;
     # measured on generated planes
-    disparity_sigma_px: float = 0.25
-    precision_rel_ref: float = 0.05  # our choice: 5 % relative depth error halves confidence
+    disparity_sigma_px: float = described(
+        0.25, "SGBM's sub-pixel disparity error on textured surfaces (measured)", "pixels",
+        (1e-3, 64.0),
+    )  # fmt: skip
+    precision_rel_ref: float = described(
+        0.05, "relative depth error that halves confidence", "fraction", (1e-4, 10.0)
+    )
     # Match at 1 / downscale of the resolution (2: four times fewer pixels, and the disparities
     # cover twice the range, for half the disparity precision); depth and confidence come back at
     # full size. 2 is what keeps 640x480 within 60 ms on 2 cores (README: measured figures).
-    downscale: int = 2
-    max_range: float = 5.0  # metres; the paper's camera
+    downscale: int = described(
+        2, "match at 1 / downscale of the image size (1, 2 or 4)", "", (1, 4)
+    )
+    max_range: float = described(
+        5.0, "depths beyond this are no match (the paper's camera)", "metres", (0.01, 1000.0)
+    )
 
     def validate(self) -> None:
         """Raise InputError naming the first parameter outside its domain."""

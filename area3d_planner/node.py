@@ -4,19 +4,15 @@ Subscribes area3d/perception/depth, area3d/perception/confidence, area3d/camera/
 area3d/camera/camera_info (paired by stamp), area3d/semantics/uncertainty. Publishes the latched
 area3d/planner/uncertainty_grid (after every fused frame; during a backlog at most every
 grid_period_s), area3d/planner/status and
-area3d/planner/next_views; serves area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Names are
-relative: `__ns` moves them all. The region of interest and workspace are parameters: the planner
+area3d/planner/next_views; serves area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Topics:
+`area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all. The region of interest and workspace are parameters: the planner
 knows only what a robot knows, never the simulator's scene.
 """
 
 from __future__ import annotations
 
-import json
-import queue
-import threading
 import time
 import traceback
-from collections import OrderedDict, deque
 from collections.abc import Sequence
 from dataclasses import fields
 from typing import Any
@@ -26,7 +22,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, msgs, qos
+from area3d_msgs_py import codecs, msgs, qos, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded, reject
 from area3d_msgs_py.inputs import (
@@ -44,25 +40,15 @@ from area3d_msgs_py.parameters import (
     WORLD_FRAME_PARAM,
     Param,
     declare_parameters,
+    params_of,
     report_unknown_parameters,
 )
-from area3d_msgs_py.status import status_topic
-from area3d_perception.frame_sync import StampSync
+from area3d_msgs_py.status import StatusPublisher
+from area3d_perception.frame_sync import CameraInfoCache, HeldFrames, StampSync
 from area3d_planner.cloud import grid_to_msg
-from area3d_planner.fusion import GEOMETRIC_RULES, NO_RETURN_RULES
-from area3d_planner.greedy import DECAY_REGIONS
-from area3d_planner.policies import POLICIES
-from area3d_planner.server import LEVELS, MODES, NextBestViewServer, PlannerConfig, PlanRequest
+from area3d_planner.fusion_worker import FusionWorker
+from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
 
-DEPTH_TOPIC = "area3d/perception/depth"
-CONFIDENCE_TOPIC = "area3d/perception/confidence"
-POSE_TOPIC = "area3d/camera/pose"
-INFO_TOPIC = "area3d/camera/camera_info"
-SEMANTIC_TOPIC = "area3d/semantics/uncertainty"
-GRID_TOPIC = "area3d/planner/uncertainty_grid"
-STATUS_TOPIC = status_topic("planner")
-VIEWS_TOPIC = "area3d/planner/next_views"
-NBV_SERVICE = "area3d/planner/next_best_view"
 CAMERA_INFO_CACHE = 64
 POSES_PENDING = 2048
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
@@ -70,56 +56,13 @@ MAX_FRAMES_WITHOUT_INFO = 64
 # Service requests and frame callbacks run on separate threads: a request waits for the frame it
 # names to be fused, which needs the frame callbacks to keep running.
 EXECUTOR_THREADS = 3
-# Whole frames waiting for the fusion worker at most (640x480 depth + confidence: 2.4 MB each).
-FUSION_BACKLOG = 128
-STATUS_AFTER_REQUEST_S = 0.05  # the status follows a request's answer this much later, seconds
 # On shutdown a mask rebuild in flight gets this long to finish; the node exits regardless, so
 # Ctrl-C stops it within ROS 2's usual couple of seconds (issue 13: within 2 s).
 CLOSE_WAIT_S = 1.0
 
 
-def _xyz(value: Any) -> str | None:
-    return None if len(value) == 3 else "3 numbers [x, y, z] in metres"
-
-
-def _positive(value: Any) -> str | None:
-    return None if len(value) > 0 and min(value) > 0 else "one or more numbers > 0"
-
-
-def _config_param(name: str, default: Any) -> Param:
-    description = f"PlannerConfig.{name} (area3d_planner/server.py)"
-    if name == "policy":
-        return Param(name, default, "next-best-view policy", choices=tuple(sorted(POLICIES)))
-    if name == "mode":
-        return Param(
-            name,
-            default,
-            "closed_loop: re-plan after each view; batch: all views at once",
-            choices=MODES,
-        )
-    choices = {
-        "level": LEVELS,
-        "decay": DECAY_REGIONS,
-        "geometric_rule": GEOMETRIC_RULES,
-        "no_return": NO_RETURN_RULES,
-    }
-    if name in choices:
-        return Param(name, default, description, choices=choices[name])
-    if name == "shell_scales":
-        return Param(name, tuple(float(v) for v in default), description, check=_positive)
-    if name == "gamma":  # -1: the level's (paper: 0.01 object, 0.005 scene level)
-        return Param(name, float(default), description + "; < 0 = the level's", range=(-1.0, 1e6))
-    if isinstance(default, tuple):
-        return Param(name, tuple(float(v) for v in default), description + ", metres", check=_xyz)
-    if isinstance(default, bool) or isinstance(default, str):
-        return Param(name, default, description)
-    if isinstance(default, int):
-        return Param(name, default, description, range=(0, 2**31 - 1))
-    return Param(name, float(default), description, range=(0.0, 1e6))
-
-
 PARAMS = (
-    *(_config_param(f.name, getattr(PlannerConfig, f.name)) for f in fields(PlannerConfig)),
+    *params_of(PlannerConfig),
     Param(
         "sync_timeout_s",
         5.0,
@@ -153,7 +96,7 @@ PARAMS = (
         "rebuild_nice",
         0,
         "the background rebuild runs this much nicer (lower CPU priority) than the node, so "
-        "fusion comes first (a streaming camera with mask_lag_s > 0: 10); 0 = the same",
+        "fusion comes first (a streaming camera with mask_lag_s > 0: 10); 0 = the same, nice levels",
         range=(0, 19),
     ),
     # Perception's output for a frame can trail the camera's pose by seconds (first frames, a
@@ -176,7 +119,7 @@ class PlannerNode(Node):
         super().__init__("planner", **kwargs)
         p = declare_parameters(self, PARAMS)
         report_unknown_parameters(self)
-        config = PlannerConfig(**{f.name: p[f.name] for f in fields(PlannerConfig)})
+        config = config_from_parameters(p)
         self.gate = PublishGate()  # the rebuild worker publishes only while the node runs
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
@@ -195,99 +138,79 @@ class PlannerNode(Node):
             # perception backlog: a minute of poses at 30 Hz may wait (they are small)
             pending_caps={"pose": POSES_PENDING},
         )
-        self.camera_info: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.latest_K: np.ndarray | None = None
-        self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
+        self.camera_info = CameraInfoCache(CAMERA_INFO_CACHE)  # stamp -> K
+        self.waiting = HeldFrames(MAX_FRAMES_WITHOUT_INFO)
         self.world_frame = p["world_frame"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        # a rejection is announced by the status that follows requests (created below)
-        self.rejections = Rejections(on_count=lambda: self._status_after_request.reset())
+        # The status goes out after every fused frame and rebuild, and a moment after a request's
+        # answer (never just before it: a client that also listens to the status, a mission
+        # manager, would otherwise see the answer late: measured 0.1-1.3 s round trips instead of
+        # 7 ms under rclpy). No heartbeat: each line is one event (the soak bench's ages).
+        self.status = StatusPublisher(self, topics.PLANNER_STATUS, self._status, heartbeat_s=None)
+        self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
-        self._fusion_queue: queue.Queue = queue.Queue(FUSION_BACKLOG)  # whole frames, in order
-        self.backlog_dropped = 0
-        self.grid_period_s = p["grid_period_s"]
-        self._grid_sent = -np.inf  # time.monotonic() of the last grid published by fusion
-        self._fusion_worker = threading.Thread(
-            target=self._fusion_loop, name="planner-fusion", daemon=True
+        # whole frames are fused in arrival order by a worker thread, off the executor
+        self.fusion = FusionWorker(
+            self._fuse_frame,
+            self._on_fused,
+            self._on_fusion_failed,
+            grid_period_s=p["grid_period_s"],
+            now_ns=self._now_ns,
         )
-        self._fusion_worker.start()
-        self.last_fused_age_s: float | None = None  # age of the last frame fused, seconds
-        # the last fused frame's age when its last part arrived (it entered the fusion queue),
-        # and how long its fusion took, seconds: where a frame's age comes from
-        self.last_paired_age_s: float | None = None
-        self.last_fusion_s: float | None = None
 
-        self.grid_pub = self.create_publisher(msgs.PointCloud2, GRID_TOPIC, qos.latched())
-        self.status_pub = self.create_publisher(msgs.String, STATUS_TOPIC, qos.reliable(50))
-        self.views_pub = self.create_publisher(msgs.Path, VIEWS_TOPIC, qos.reliable())
+        self.grid_pub, self.views_pub = (
+            self.create_publisher(topic.msg_type, topic.name, topic.qos())
+            for topic in (topics.UNCERTAINTY_GRID, topics.NEXT_VIEWS)
+        )
         frames = MutuallyExclusiveCallbackGroup()
-        # perception's and semantics' outputs are transient local (a late match still gets them);
-        # the camera's topics are volatile, as a camera driver publishes them
-        for msg_type, topic, callback, profile in (
-            (msgs.Image, DEPTH_TOPIC, lambda m: self._part("depth", m), qos.graph_frames()),
-            (
-                msgs.Image,
-                CONFIDENCE_TOPIC,
-                lambda m: self._part("confidence", m),
-                qos.graph_frames(),
-            ),
+        for topic, callback, depth in (
+            (topics.PERCEPTION_DEPTH, lambda m: self._part("depth", m), None),
+            (topics.PERCEPTION_CONFIDENCE, lambda m: self._part("confidence", m), None),
             # the camera's small per-frame messages queue deep: they run ahead of perception's
             # images, and a reader queue that overflows loses the frame for good
-            (
-                msgs.PoseStamped,
-                POSE_TOPIC,
-                lambda m: self._part("pose", m),
-                qos.reliable(POSES_PENDING),
-            ),
-            (msgs.CameraInfo, INFO_TOPIC, self._on_camera_info, qos.reliable(POSES_PENDING)),
-            (msgs.Image, SEMANTIC_TOPIC, self._on_semantic, qos.graph_frames()),
+            (topics.POSE, lambda m: self._part("pose", m), POSES_PENDING),
+            (topics.CAMERA_INFO, self._on_camera_info, POSES_PENDING),
+            (topics.SEMANTIC_UNCERTAINTY, self._on_semantic, qos.FRAME_DEPTH),
         ):
             self.create_subscription(
-                msg_type,
-                topic,
-                guarded(self, callback, topic, self.rejections),
-                profile,
+                topic.msg_type,
+                topic.name,
+                guarded(self, callback, topic.name, self.rejections),
+                topic.qos(depth),
                 callback_group=frames,
             )
+        service = topics.NEXT_BEST_VIEW
         self.create_service(
-            msgs.GetPlan,
-            NBV_SERVICE,
+            service.srv_type,
+            service.name,
             self._on_request,
             callback_group=MutuallyExclusiveCallbackGroup(),
         )
-        # The status after a request goes out a moment after the answer, never just before it: a
-        # client that also listens to the status (a mission manager, the runner) would otherwise
-        # see the answer late (measured: 0.1-1.3 s round trips instead of 7 ms under rclpy).
-        self._status_after_request = self.create_timer(
-            STATUS_AFTER_REQUEST_S, self._publish_status_after_request
-        )
-        self._status_after_request.cancel()
         self.get_logger().info(
             f"planner ready: policy={config.policy} mode={config.mode} "
             f"voxels={self.server.grid.spec.num_voxels}"
         )
 
     def destroy_node(self) -> None:
-        self._stop_fusion(CLOSE_WAIT_S)
+        self.fusion.stop(CLOSE_WAIT_S)
         self.server.close(CLOSE_WAIT_S)
         super().destroy_node()
 
-    def _status(self) -> msgs.String:
-        status = {
+    def _status(self) -> dict:
+        return {
             **self.server.status(),
             "parts_dropped_unpaired": self.dropped,
-            "frames_dropped_backlog": self.backlog_dropped,
+            "frames_dropped_backlog": self.fusion.dropped,
             **{
                 key: None if value is None else round(value, 4)
                 for key, value in (
-                    ("last_paired_age_s", self.last_paired_age_s),
-                    ("last_fused_age_s", self.last_fused_age_s),
-                    ("last_fusion_s", self.last_fusion_s),
+                    ("last_paired_age_s", self.fusion.last_paired_age_s),
+                    ("last_fused_age_s", self.fusion.last_fused_age_s),
+                    ("last_fusion_s", self.fusion.last_fusion_s),
                 )
             },
             "rejected": self.rejections.snapshot(),
         }
-        return msgs.String(data=json.dumps(status))
 
     def _stamp(self, msg) -> int:
         return check_stamp(msg, self.get_clock().now().nanoseconds, self.max_stamp_ahead_s)
@@ -295,41 +218,22 @@ class PlannerNode(Node):
     def _on_refresh(self) -> None:
         with self.gate as running:  # called by the rebuild worker too
             if running:
-                self.status_pub.publish(self._status())
+                self.status.publish()
 
     def stop(self) -> None:
         """Before the executor stops: no more publishing from the rebuild and fusion workers, and
         a request waiting for a mask rebuild returns at once instead of holding the executor's
         shutdown."""
         self.gate.close()
-        self._stop_fusion(0.0)
+        self.fusion.stop(0.0)
         self.server.close(0.0)
-
-    def _stop_fusion(self, timeout_s: float) -> None:
-        """Stop the fusion worker after the frame in flight (frames still queued are not fused)."""
-        if not self._fusion_worker.is_alive():
-            return
-        try:
-            self._fusion_queue.put(None, timeout=max(timeout_s, 0.1))
-        except queue.Full:  # a full backlog: the worker ends at the closed gate anyway
-            pass
-        if self._fusion_worker is not threading.current_thread():
-            self._fusion_worker.join(timeout_s)
-
-    def _publish_status_after_request(self) -> None:
-        self._status_after_request.cancel()
-        self._on_refresh()
 
     def _on_camera_info(self, msg) -> None:
         stamp = self._stamp(msg)
         K, _, _ = decode_camera_info(msg)
-        self.latest_K = K
-        self.camera_info[stamp] = K
-        while len(self.camera_info) > CAMERA_INFO_CACHE:
-            self.camera_info.popitem(last=False)
-        while self.waiting:
-            stamp, frame = self.waiting.popleft()
-            self._fuse(stamp, frame, self.camera_info.get(stamp, K))
+        self.camera_info.add(stamp, K)
+        for held_stamp, frame in self.waiting.release():
+            self._fuse(held_stamp, frame, self.camera_info.get(held_stamp))
 
     def _decode(self, key: str, msg) -> np.ndarray:
         if key == "pose":
@@ -351,76 +255,52 @@ class PlannerNode(Node):
             )
         if frame is None:
             return
-        K = self.camera_info.get(stamp, self.latest_K)
+        K = self.camera_info.get(stamp)
         if K is None:
-            if not self.waiting:
-                self.get_logger().warning(
-                    f"no camera_info on {INFO_TOPIC} yet; holding frames until it arrives"
-                )
-            self.waiting.append((stamp, frame))  # topics arrive in any order
+            warning = self.waiting.hold(stamp, frame, topics.CAMERA_INFO.name)
+            if warning:
+                self.get_logger().warning(warning)
             return
         self._fuse(stamp, frame, K)
 
     def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
-        """Hand a whole frame to the fusion worker, in arrival order; a frame that finds
-        FUSION_BACKLOG frames waiting is dropped, logged and counted (`frames_dropped_backlog`):
-        a camera that outruns the planner for good must not grow its memory without bound."""
-        try:
-            self._fusion_queue.put_nowait((stamp, frame, K, self._now_ns()))
-        except queue.Full:
-            self.backlog_dropped += 1
+        """Hand a whole frame to the fusion worker; one that finds its backlog full is dropped,
+        logged and counted (`frames_dropped_backlog`)."""
+        if not self.fusion.submit(stamp, frame, K):
             self.get_logger().warning(
-                f"frame at stamp {stamp} dropped: {FUSION_BACKLOG} frames wait for fusion already "
-                "(the camera outruns the planner)"
+                f"frame at stamp {stamp} dropped: {self.fusion.backlog} frames wait for fusion "
+                "already (the camera outruns the planner)"
             )
 
-    def _fusion_loop(self) -> None:
-        """Fuse frames one at a time, off the executor.
+    def _fuse_frame(self, stamp: int, frame: dict, K: np.ndarray) -> bool:
+        """The fusion worker's step: fuse one frame into the map (False: fused already)."""
+        return self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"])
 
-        A frame's fusion takes tens of milliseconds; run in the frames' callback group it kept
-        the group busy while the camera's next messages were ready, and rclpy's multi-threaded
-        executor polls such a group in a loop that holds the GIL (profiled: 79 % of the node's
-        GIL time during a 10 Hz soak). The callbacks now only decode and pair."""
-        while True:
-            item = self._fusion_queue.get()
-            if item is None:
-                return
-            stamp, frame, K, queued_ns = item
-            t0 = time.perf_counter()
-            try:
-                fused = self.server.add_frame(
-                    stamp, frame["depth"], frame["confidence"], K, frame["pose"]
+    def _on_fused(self, stamp: int, fused: bool, publish_grid: bool) -> bool:
+        """After the fusion worker's step (its thread): the grid and status, or the status only
+        while frames wait (`grid_period_s`); False once the node has stopped."""
+        with self.gate as running:
+            if not running:
+                return False
+            if not fused:
+                self.get_logger().info(
+                    f"frame {stamp} is fused already; the repeat changes nothing"
                 )
-            except InputError as exc:
-                reject(self, self.rejections, f"frame at stamp {stamp}", exc, topic=DEPTH_TOPIC)
-                continue
-            except Exception:  # noqa: BLE001 - the node keeps fusing the frames that follow
-                self.get_logger().error(
-                    f"frame at stamp {stamp}: fusion failed, frame dropped:\n"
-                    f"{traceback.format_exc()}"
-                )
-                self.rejections.count(DEPTH_TOPIC, "exception")
-                continue
-            with self.gate as running:
-                if not running:
-                    return
-                if fused:
-                    self.last_fusion_s = time.perf_counter() - t0
-                    self.last_paired_age_s = (queued_ns - stamp) / 1e9
-                    # how old the frame was once fused, by this node's clock (capture stamps only)
-                    self.last_fused_age_s = (self._now_ns() - stamp) / 1e9
-                    # the grid after every frame while fusion keeps up; during a backlog at most
-                    # every grid_period_s, and always once it has caught up (the last state)
-                    now = time.monotonic()
-                    if self._fusion_queue.empty() or now - self._grid_sent >= self.grid_period_s:
-                        self._grid_sent = now
-                        self._publish_state(stamp)
-                    else:
-                        self.status_pub.publish(self._status())
-                else:
-                    self.get_logger().info(
-                        f"frame {stamp} is fused already; the repeat changes nothing"
-                    )
+            elif publish_grid:
+                self._publish_state(stamp)
+            else:
+                self.status.publish()
+            return True
+
+    def _on_fusion_failed(self, stamp: int, exc: BaseException) -> None:
+        """A frame whose fusion raised is dropped; the node keeps fusing the frames that follow."""
+        depth_topic = topics.PERCEPTION_DEPTH.name
+        if isinstance(exc, InputError):
+            reject(self, self.rejections, f"frame at stamp {stamp}", exc, topic=depth_topic)
+            return
+        trace = "".join(traceback.format_exception(exc))
+        self.get_logger().error(f"frame at stamp {stamp}: fusion failed, frame dropped:\n{trace}")
+        self.rejections.count(depth_topic, "exception")
 
     def _on_semantic(self, msg) -> None:
         stamp = self._stamp(msg)
@@ -431,7 +311,7 @@ class PlannerNode(Node):
 
     def _publish_state(self, stamp_ns: int) -> None:
         self.grid_pub.publish(grid_to_msg(self.server.grid, stamp_ns, "world"))
-        self.status_pub.publish(self._status())
+        self.status.publish()
 
     def _on_request(self, request: msgs.GetPlan_Request, response: msgs.GetPlan_Response):
         try:
@@ -479,8 +359,14 @@ class PlannerNode(Node):
             ],
         )
         self.views_pub.publish(path)
-        self._status_after_request.reset()
+        self.status.changed()
         return path
+
+
+def config_from_parameters(p: dict) -> PlannerConfig:
+    """The planner configuration this node's parameters `p` describe (also what
+    `area3d_bringup.inprocess` plans with)."""
+    return PlannerConfig(**{f.name: p[f.name] for f in fields(PlannerConfig)})
 
 
 def main(args: Sequence[str] | None = None) -> int:

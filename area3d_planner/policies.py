@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
 from area3d_planner.fusion import FREE, FusedGrid
 from area3d_planner.greedy import (
@@ -26,7 +27,6 @@ from area3d_planner.visibility import (
     VisibilityCache,
     VisibilityParams,
     lattice_positions,
-    look_at,
     orientation_bins,
     shell_positions,
     shell_rotations,

@@ -16,10 +16,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.param_fields import described
 from area3d_perception.grid import GridSpec
-from area3d_planner.fusion import FusedGrid
-from area3d_planner.greedy import GreedyParams
-from area3d_planner.policies import PlanningContext, make_policy
+from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, NO_RETURN_RULES, FusedGrid
+from area3d_planner.greedy import DECAY_REGIONS, GreedyParams
+from area3d_planner.policies import POLICIES, PlanningContext, make_policy
 from area3d_planner.visibility import VisibilityParams
 
 MODES = ("batch", "closed_loop")
@@ -49,6 +50,25 @@ LEVEL_DEFAULTS = {
 LEVELS = ("auto", "object", "room")
 
 
+def paper_budget(level: str) -> int:
+    """The paper's view budget T at `level` ("object" or "room"): total views, O_0 included
+    (25 object level, 40 scene level)."""
+    return LEVEL_DEFAULTS[level]["budget"]
+
+
+def _level(key: str) -> str:
+    """The level defaults of `key`, as a description says them."""
+    return ", ".join(f"{v[key]:g} {level}" for level, v in LEVEL_DEFAULTS.items())
+
+
+def _xyz(value: tuple) -> str | None:
+    return None if len(value) == 3 else "3 numbers [x, y, z] in metres"
+
+
+def _positive(value: tuple) -> str | None:
+    return None if len(value) > 0 and min(value) > 0 else "one or more numbers > 0"
+
+
 @dataclass
 class PlannerConfig:
     """All planner parameters; defaults are the paper's where it fixes them.
@@ -57,72 +77,227 @@ class PlannerConfig:
     of interest (`roi_min`/`roi_max`) and the workspace box the camera may move in.
     """
 
-    workspace_min: tuple = (-1.0, -1.0, 0.0)
-    workspace_max: tuple = (1.0, 1.0, 1.5)
-    roi_min: tuple = (-0.3, -0.3, 0.0)
-    roi_max: tuple = (0.3, 0.3, 0.5)
-    # "object": shells around the region; "room": the camera works inside it; "auto": room when
-    # the workspace lies inside the region (grown by 10 %), object otherwise.
-    level: str = "auto"
-    voxel_size: float = 0.0  # metres; 0 = the level's (0.01 object, 0.05 room), coarser if needed
-    voxel_budget: int = 4_000_000  # the grid never holds more voxels than this
-    map_margin: float = (
-        0.1  # metres mapped around the ROI (object level; rooms map the workspace too)
+    workspace_min: tuple = described(
+        (-1.0, -1.0, 0.0), "lower corner [x, y, z] of the box the camera may move in", "metres",
+        check=_xyz,
+    )  # fmt: skip
+    workspace_max: tuple = described(
+        (1.0, 1.0, 1.5), "upper corner [x, y, z] of the box the camera may move in", "metres",
+        check=_xyz,
+    )  # fmt: skip
+    roi_min: tuple = described(
+        (-0.3, -0.3, 0.0), "lower corner [x, y, z] of the region of interest to reconstruct",
+        "metres", check=_xyz,
+    )  # fmt: skip
+    roi_max: tuple = described(
+        (0.3, 0.3, 0.5), "upper corner [x, y, z] of the region of interest to reconstruct",
+        "metres", check=_xyz,
+    )  # fmt: skip
+    level: str = described(
+        "auto",
+        "object: candidate views on shells around the region; room: the camera works inside it; "
+        "auto: room when the workspace lies inside the region (grown by 10 %), object otherwise",
+        choices=LEVELS,
     )
-    gamma: float = -1.0  # < 0 = the level's; paper, supplement: 0.01 object, 0.005 scene level
-    eta: float = 0.3  # paper, supplement: decay factor
-    decay: str = "frustum"  # the paper decays the whole frustum; "visible": only the mask
-    semantic_weight: float = 1.0  # 0 = the "without VLM" ablation
-    # confidence 1 on every pixel with depth, whatever perception says: the "without feed-forward"
-    # ablation, taken here so that perception's output (and the reconstruction) stays the same
-    uniform_confidence: bool = False
-    unobserved_uncertainty: float = 1.0  # DESIGN.md: unobserved space = high uncertainty
-    geometric_rule: str = "product"  # each observation lowers uncertainty; "mean": 1 - mean conf
-    max_confidence: float = 0.9  # one observation lowers a voxel's uncertainty at most 10-fold
-    # a view is worth the uncertainty it is predicted to remove ("removable") or what the voxels
-    # it sees hold ("held", the paper's utility); see FusedGrid.achievability
-    gain_rule: str = "removable"
-    retry_gain: float = (
-        0.5  # each distinct direction that did not pin a voxel down halves the next's share
+    voxel_size: float = described(
+        0.0,
+        "voxel edge of the fused grid; 0 = the level's "
+        f"({_level('voxel_size')}), coarser where the grid would exceed voxel_budget",
+        "metres",
+        (0.0, 1.0),
     )
-    hard_min_directions: int = 3  # a voxel seen from this many directions ...
-    hard_max_confidence: float = 0.3  # ... that never reached this confidence is a hard voxel
-    no_return: str = (
-        "regions"  # carve along no-return pixels: "regions" (sky, not dropouts) | all | none
+    voxel_budget: int = described(
+        4_000_000, "most voxels the grid may hold", "voxels", (1000, 2**31 - 1)
     )
-    clearance: float = 0.05  # metres, camera centre to the nearest occupied voxel
-    seed_spacing: float = 0.5  # metres, room level lattice of camera positions
-    shell_scales: tuple = (0.8, 1.0, 1.25)  # object level shells, x the working distance
-    fan_deg: float = 20.0  # object level: orientations +-fan around "look at the region"
-    yaw_bins: int = 12  # room level orientations
-    pitch_bins: int = 4
-    face_res: int = (
-        0  # cube-map z-buffer pixels per face edge; 0 = the level's (256 object, 128 room)
+    map_margin: float = described(
+        0.1,
+        "mapped around the region of interest (object level; rooms map the workspace too)",
+        "metres",
+        (0.0, 10.0),
     )
-    pixels_per_voxel: float = 0.0  # fully observed from this many pixels; 0 = 32 object, 64 room
-    unknown_occludes: bool = True  # a view counts the first non-free layer it sees
-    incidence: bool = (
-        False  # a surface seen at a grazing angle counts by its cosine (off: no gain measured)
+    gamma: float = described(
+        -1.0,
+        "global weight every voxel starts from, so unexplored space stays attractive; < 0 = the "
+        f"level's (paper, supplement: {_level('gamma')})",
+        "",
+        (-1.0, 10.0),
     )
-    range_profile: bool = True  # a voxel counts by the confidence the backend reaches at that range
-    repeat_gain: float = 0.25  # a voxel seen again from a direction already taken counts this much
-    hfov_deg: float = 90.0  # paper: FOV 90 degrees
-    max_range: float = 5.0  # paper: max depth 5 m
-    width: int = 640
-    height: int = 480
-    w_dist: float = 0.0
-    range_sigma: float = 0.0  # range prior around the working distance (0 = off)
-    nms_radius: float = 0.1
-    nms_angle_deg: float = 30.0
-    # object level: views taken also rule out candidates within this angle of the same direction
-    # from the region centre, at any range (0 = off)
-    nms_centre_angle_deg: float = 0.0
-    carve_stride: int = 2
-    policy: str = "area3d"
-    mode: str = "batch"
-    budget: int = 0  # total views, initial ones included; 0 = paper: T = 25 object, 40 scene
-    seed: int = 0
-    frame_cache: int = 64  # frames kept per stamp for late semantic maps
+    eta: float = described(
+        0.3, "frustum decay u <- (1 - eta) u after a view is chosen (paper: 0.3)", "", (0.0, 1.0)
+    )
+    decay: str = described(
+        "frustum",
+        "what a chosen view decays: every voxel in its frustum (the paper) or only those it sees",
+        choices=DECAY_REGIONS,
+    )
+    semantic_weight: float = described(
+        1.0, "weight of U_sem in the fused uncertainty; 0 = the w/o VLM ablation", "", (0.0, 100.0)
+    )
+    unobserved_uncertainty: float = described(
+        1.0,
+        "geometric uncertainty of a voxel no view has observed (DESIGN.md: the maximum)",
+        "",
+        (0.0, 10.0),
+    )
+    geometric_rule: str = described(
+        "product",
+        "how observations lower a voxel's geometric uncertainty: each by its confidence "
+        "(product) or 1 - their mean confidence (mean)",
+        choices=GEOMETRIC_RULES,
+    )
+    max_confidence: float = described(
+        0.9,
+        "most confidence one observation counts with (0.9: it lowers a voxel's uncertainty at "
+        "most 10-fold)",
+        "",
+        (0.0, 1.0),
+    )
+    uniform_confidence: bool = described(
+        False,
+        "every pixel with depth counts with confidence 1, whatever perception says: the w/o "
+        "feed-forward ablation, taken here so that perception's output and the reconstruction "
+        "stay those of every other policy",
+    )
+    gain_rule: str = described(
+        "removable",
+        "what a view is worth: the uncertainty it is predicted to remove (removable: what a "
+        "voxel holds times the share a new direction can still resolve, FusedGrid.achievability) "
+        "or what the voxels it sees hold (held, the paper's utility)",
+        choices=GAIN_RULES,
+    )
+    retry_gain: float = described(
+        0.5,
+        "after each distinct direction a voxel was observed from without being pinned down, the "
+        "share of its uncertainty a new direction is expected to resolve is multiplied by this",
+        "",
+        (0.0, 1.0),
+    )
+    hard_min_directions: int = described(
+        3,
+        "a region voxel observed from at least this many distinct directions ...",
+        "directions",
+        (1, 20),
+    )
+    hard_max_confidence: float = described(
+        0.3,
+        "... whose best confidence stayed below this is a hard voxel (reported, not chased)",
+        "",
+        (0.0, 1.0),
+    )
+    no_return: str = described(
+        "regions",
+        "which pixels with no return carve free space up to max_range: regions (sky, not "
+        "dropouts), all or none",
+        choices=NO_RETURN_RULES,
+    )
+    clearance: float = described(
+        0.05, "least distance from a camera centre to an occupied voxel", "metres", (0.0, 10.0)
+    )
+    seed_spacing: float = described(
+        0.5, "room level: spacing of the lattice of camera positions", "metres", (0.01, 10.0)
+    )
+    shell_scales: tuple = described(
+        (0.8, 1.0, 1.25),
+        "object level: radii of the candidate shells, times the working distance of the views",
+        check=_positive,
+    )
+    fan_deg: float = described(
+        20.0,
+        "object level: orientations within +- this around looking at the region",
+        "degrees",
+        (0.0, 90.0),
+    )
+    yaw_bins: int = described(12, "room level: orientations around the vertical", "count", (1, 360))
+    pitch_bins: int = described(4, "room level: elevations per orientation", "count", (1, 90))
+    face_res: int = described(
+        0,
+        f"edge of each face of the cube-map z-buffer; 0 = the level's ({_level('face_res')})",
+        "pixels",
+        (0, 4096),
+    )
+    pixels_per_voxel: float = described(
+        0.0,
+        "a voxel seen over this many image pixels counts as fully observed; 0 = the level's "
+        f"({_level('pixels_per_voxel')})",
+        "pixels",
+        (0.0, 1e4),
+    )
+    unknown_occludes: bool = described(
+        True, "a view sees up to the first layer that is not known free (occupied or unknown)"
+    )
+    incidence: bool = described(
+        False, "a surface seen at a grazing angle counts by its cosine (off: no gain measured)"
+    )
+    range_profile: bool = described(
+        True,
+        "a voxel counts in a view by the confidence the depth backend has reached at that range "
+        "so far, relative to its best range (FusedGrid.range_profile)",
+    )
+    repeat_gain: float = described(
+        0.25,
+        "a voxel seen again from a direction it was already observed from (bins about 45 degrees "
+        "wide) counts this share of a new observation",
+        "",
+        (0.0, 1.0),
+    )
+    hfov_deg: float = described(
+        90.0, "horizontal field of view of the candidate views (paper: 90)", "degrees", (1.0, 179.0)
+    )
+    max_range: float = described(
+        5.0, "sensing range of the candidate views and of fusion (paper: 5)", "metres",
+        (0.01, 1000.0),
+    )  # fmt: skip
+    width: int = described(640, "image width of the candidate views", "pixels", (8, 8192))
+    height: int = described(480, "image height of the candidate views", "pixels", (8, 8192))
+    w_dist: float = described(
+        0.0,
+        "distance prior: a candidate's score falls by this much per metre from the current pose "
+        "(0 = off)",
+        "per metre",
+        (0.0, 1000.0),
+    )
+    range_sigma: float = described(
+        0.0,
+        "range prior: candidates off the views' working distance d0 score exp(-((d - d0) / "
+        "(range_sigma d0))^2 / 2) (0 = off)",
+        "fraction of d0",
+        (0.0, 100.0),
+    )
+    nms_radius: float = described(
+        0.1, "candidates this close to a chosen view, looking alike, are ruled out", "metres",
+        (0.0, 10.0),
+    )  # fmt: skip
+    nms_angle_deg: float = described(
+        30.0, "... looking within this angle of it", "degrees", (0.0, 180.0)
+    )
+    nms_centre_angle_deg: float = described(
+        0.0,
+        "object level: a view taken also rules out candidates within this angle of its direction "
+        "from the region centre, at any range (0 = off)",
+        "degrees",
+        (0.0, 180.0),
+    )
+    carve_stride: int = described(
+        2, "free space is carved along every n-th pixel row and column", "pixels", (1, 64)
+    )
+    policy: str = described("area3d", "next-best-view policy", choices=tuple(sorted(POLICIES)))
+    mode: str = described(
+        "batch",
+        "closed_loop: re-plan after each view; batch: all views at once (paper)",
+        choices=MODES,
+    )
+    budget: int = described(
+        0,
+        f"total views, initial ones included; 0 = the paper's T ({_level('budget')})",
+        "views",
+        (0, 2**31 - 1),
+    )
+    seed: int = described(
+        0, "seed of the policies' random draws (random, sampled seeds)", "", (0, 2**31 - 1)
+    )
+    frame_cache: int = described(
+        64, "frames kept for semantic maps that arrive after their frame", "frames", (1, 100_000)
+    )
 
     def validate(self) -> None:
         if self.mode not in MODES:
@@ -316,7 +491,6 @@ class NextBestViewServer:
         self._stamp_version: dict[int, int] = {}  # map version that holds each stamp
         self._cache_version = 0  # map version of the installed seeds and masks
         self._cache_stamp = 0  # newest frame stamp in the map the installed masks were built from
-        self._refreshing = False
         self._cache_waiters = 0  # requests waiting in wait_cache
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
@@ -474,7 +648,6 @@ class NextBestViewServer:
                 stamp = self.last_fused_stamp
                 occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
                 evidence = self.grid.view_evidence()
-                self._refreshing = True
             try:
                 built = self.context.build(occupancy, kinds, evidence)
             except Exception:  # noqa: BLE001 - the request path rebuilds and reports it
@@ -491,7 +664,6 @@ class NextBestViewServer:
                             self.context.invalidate_fields()
                 self._cache_version = version
                 self._cache_stamp = stamp
-                self._refreshing = False
                 self.refresh_count += 1
                 self._refreshed.notify_all()
             if self.on_refresh is not None:

@@ -22,13 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from area3d_msgs_py.camera_pose import look_rotation
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import DIRECTION_BINS
 from area3d_planner.masks import score_all_views, score_view_list, score_views
 from area3d_planner.zbuffer import in_frustum, new_zbuffer, seed_view_masks
 
-UP = np.array([0.0, 0.0, 1.0])
 CHUNKS_PER_THREAD = 8  # seed chunks per worker thread when building masks (load balance)
 LEVELS = ("object", "room")
 
@@ -121,27 +121,6 @@ class VisibilityParams:
     def focal(self) -> float:
         """Focal length in pixels of the candidate views' camera."""
         return 0.5 * self.width / self.tan_x
-
-
-def look_rotation(forward: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) R_world_cam of optical frames with z along `forward` (..., 3), x horizontal
-    (zero roll), y down. forward need not be unit; straight up/down falls back to x = world +x.
-    """
-    z = np.asarray(forward, dtype=np.float64)
-    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
-    x = np.cross(z, UP)
-    nx = np.linalg.norm(x, axis=-1, keepdims=True)
-    x = np.where(nx < 1e-9, np.array([1.0, 0.0, 0.0]), x / np.maximum(nx, 1e-12))
-    y = np.cross(z, x)
-    return np.stack([x, y, z], axis=-1)
-
-
-def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(4, 4) T_world_cam at `position` whose optical axis points at `target` (zero roll)."""
-    T = np.eye(4)
-    T[:3, :3] = look_rotation(np.asarray(target, float) - np.asarray(position, float))
-    T[:3, 3] = position
-    return T
 
 
 def _direction(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:

@@ -3,8 +3,8 @@
 Subscribes color, depth and perception confidence; once the first num_initial_views frames are in,
 asks the backend once with all of them (on a worker thread, so callbacks keep running), publishes
 the regions as JSON, one weight map per frame and, as each frame's confidence arrives, its U_sem.
-Any message on the request topic re-runs the query on the frames collected so far. Topic names
-are relative: `__ns` moves them all.
+Any message on the request topic re-runs the query on the frames collected so far. Topics:
+`area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
@@ -14,11 +14,10 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
-import cv2
 import numpy as np
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, msgs, qos
+from area3d_msgs_py import codecs, msgs, topics
 from area3d_msgs_py.guard import Rejections, guarded
 from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
@@ -36,31 +35,20 @@ from area3d_msgs_py.parameters import (
     declare_parameters,
     report_unknown_parameters,
 )
-from area3d_msgs_py.status import StatusPublisher, status_topic
+from area3d_msgs_py.status import StatusPublisher
 from area3d_semantics.analysis import FALLBACKS, Analysis, analyze_views
 from area3d_semantics.backends import (
     BACKEND_NAMES,
+    Backend,
     HeuristicBackend,
     NoneBackend,
     VLMError,
     make_backend,
 )
 from area3d_semantics.views import ViewCollector
-from area3d_semantics.weights import (
-    SemanticParams,
-    semantic_uncertainty,
-    sigma_from_confidence,
-    weight_map,
-)
+from area3d_semantics.weights import SIGMA_SOURCES, SemanticParams, frame_uncertainty, weight_map
+from area3d_semantics.worker import AnalysisWorker
 
-COLOR_TOPIC = "area3d/camera/color/image_raw"
-DEPTH_TOPIC = "area3d/camera/depth/image_raw"
-CONFIDENCE_TOPIC = "area3d/perception/confidence"
-REQUEST_TOPIC = "area3d/semantics/request"
-REGIONS_TOPIC = "area3d/semantics/regions"
-WEIGHT_TOPIC = "area3d/semantics/weight"
-UNCERTAINTY_TOPIC = "area3d/semantics/uncertainty"
-STATUS_TOPIC = status_topic("semantics")
 IMAGE_QUEUE_DEPTH = 64  # the initial views (15 at room level) can arrive in one burst
 
 PARAMS = (
@@ -69,14 +57,17 @@ PARAMS = (
     Param("model", "OpenGVLab/InternVL3-8B", "VLM name (paper: InternVL3)"),
     Param("api_key_env", "OPENAI_API_KEY", "environment variable holding the API key"),
     Param("timeout_s", 60.0, "VLM request timeout, seconds", range=(0.1, 3600.0)),
-    Param("retries", 2, "VLM request retries", range=(0, 100)),
-    Param("max_tokens", 2048, "VLM answer length limit", range=(16, 65536)),
+    Param("retries", 2, "VLM request retries after a failure, count", range=(0, 100)),
+    Param("max_tokens", 2048, "VLM answer length limit, tokens", range=(16, 65536)),
     Param("model_dir", "", "local model directory (backend transformers)"),
     Param("device", "auto", "torch device (backend transformers)"),
     Param("trust_remote_code", False, "let transformers run the model's own code"),
     # |O_0| = 4 at object level (paper, Sec. 4); the runner sets 15 for rooms.
     Param(
-        "num_initial_views", 4, "views in the one initial VLM query (paper: |O_0|)", range=(1, 1000)
+        "num_initial_views",
+        4,
+        "views in the one initial VLM query (paper: |O_0|), views",
+        range=(1, 1000),
     ),
     Param(
         "fallback",
@@ -94,23 +85,15 @@ PARAMS = (
     ),
     Param("require_depth", True, "a view needs its depth before it is analysed"),
     MAX_STAMP_AHEAD_PARAM,
-    # sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's weights
-    # alone, independent of the depth backbone, so the no-feed-forward and no-VLM ablations each
-    # remove one thing) or "confidence" (1 - perception confidence, the paper's backbone sigma).
     Param(
         "sigma_source",
         "constant",
-        "backbone uncertainty sigma in U_sem",
-        choices=("constant", "confidence"),
+        "backbone uncertainty sigma in U_sem (weights.SIGMA_SOURCES)",
+        choices=SIGMA_SOURCES,
     ),
     *(
-        Param(
-            name,
-            float(value),
-            f"SemanticParams {name} (area3d_semantics/weights.py)",
-            range=(0.0, 1e6),
-        )
-        for name, value in SemanticParams().to_flat().items()
+        Param(name, float(value), description, range=bounds)
+        for name, value, description, bounds in SemanticParams.flat_parameters()
     ),
 )
 
@@ -124,27 +107,15 @@ class SemanticsNode(Node):
         report_unknown_parameters(self)
         log = self.get_logger()
         self.backend_name = p["backend"]
-        options = {
-            key: p[key]
-            for key in (
-                "base_url", "model", "api_key_env", "timeout_s", "retries", "max_tokens",
-                "model_dir", "device", "trust_remote_code",
-            )
-        }  # fmt: skip
         self.num_initial_views = p["num_initial_views"]
-        self.params = SemanticParams.from_flat({k: p[k] for k in SemanticParams().to_flat()})
+        self.params = semantic_params(p)
         self.require_depth = p["require_depth"]
         self.sigma_source = p["sigma_source"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
         self.rejections = Rejections(on_count=lambda: self.status.changed())
-        try:
-            self.backend = make_backend(self.backend_name, **options)
-        except (VLMError, ValueError) as exc:
-            fallback = HeuristicBackend() if self.fallback == "heuristic" else NoneBackend()
-            log.error(
-                f"{self.backend_name} backend unavailable ({exc}); using {fallback.name} instead"
-            )
-            self.backend = fallback
+        self.backend, problem = backend_from_parameters(p)
+        if problem:
+            log.error(problem)
 
         self.views = ViewCollector(require_depth=self.require_depth)
         self.weights: dict[int, np.ndarray] = {}  # stamp -> weight map of the latest analysis
@@ -152,27 +123,28 @@ class SemanticsNode(Node):
         self.queried = False
         self.analyses = 0
         self._lock = threading.Lock()
-        self._worker: threading.Thread | None = None
-        self.gate = PublishGate()  # the VLM worker publishes only while the node runs
-        self._pending_request = False
+        # the VLM query runs on a worker thread, so callbacks keep running meanwhile
+        self.worker = AnalysisWorker(self._analyse, self._requery)
+        self.gate = PublishGate()  # the worker publishes only while the node runs
 
-        self.pub_regions = self.create_publisher(msgs.String, REGIONS_TOPIC, qos.latched())
-        self.pub_weight = self.create_publisher(
-            msgs.Image, WEIGHT_TOPIC, qos.graph_frames(IMAGE_QUEUE_DEPTH)
-        )
-        self.pub_usem = self.create_publisher(
-            msgs.Image, UNCERTAINTY_TOPIC, qos.graph_frames(IMAGE_QUEUE_DEPTH)
-        )
-        self.status = StatusPublisher(self, STATUS_TOPIC, self._status)
-        frames = qos.reliable(IMAGE_QUEUE_DEPTH)
-        for msg_type, topic, callback, profile in (
-            (msgs.Image, COLOR_TOPIC, self.on_color, frames),
-            (msgs.Image, DEPTH_TOPIC, self.on_depth, frames),
-            (msgs.Image, CONFIDENCE_TOPIC, self.on_confidence, qos.graph_frames(IMAGE_QUEUE_DEPTH)),
-            (msgs.String, REQUEST_TOPIC, self.on_request, qos.reliable()),
+        self.pub_regions, self.pub_weight, self.pub_usem = (
+            self.create_publisher(topic.msg_type, topic.name, topic.qos())
+            for topic in (
+                topics.SEMANTIC_REGIONS, topics.SEMANTIC_WEIGHT, topics.SEMANTIC_UNCERTAINTY
+            )
+        )  # fmt: skip
+        self.status = StatusPublisher(self, topics.SEMANTICS_STATUS, self._status)
+        for topic, callback, depth in (
+            (topics.COLOR, self.on_color, IMAGE_QUEUE_DEPTH),
+            (topics.DEPTH, self.on_depth, IMAGE_QUEUE_DEPTH),
+            (topics.PERCEPTION_CONFIDENCE, self.on_confidence, IMAGE_QUEUE_DEPTH),
+            (topics.SEMANTIC_REQUEST, self.on_request, None),
         ):
             self.create_subscription(
-                msg_type, topic, guarded(self, callback, topic, self.rejections), profile
+                topic.msg_type,
+                topic.name,
+                guarded(self, callback, topic.name, self.rejections),
+                topic.qos(depth),
             )
         log.info(
             f"backend={self.backend.name} fallback={self.fallback} "
@@ -224,22 +196,22 @@ class SemanticsNode(Node):
             self.views.add_confidence(stamp, confidence)
             self._publish_usem(stamp)
 
-    def _requery_stamps(self) -> list[int]:
-        """The frames a re-query analyses (lock held)."""
-        stamps = self.views.complete
-        if self.requery_scope == "latest":
-            stamps = stamps[-self.num_initial_views :]
-        return list(stamps)
+    def _requery(self) -> list[int]:
+        """The frames a re-query analyses."""
+        with self._lock:
+            stamps = self.views.complete
+            if self.requery_scope == "latest":
+                stamps = stamps[-self.num_initial_views :]
+            return list(stamps)
 
     def on_request(self, msg) -> None:
-        with self._lock:
-            stamps = self._requery_stamps()
+        stamps = self._requery()
         if not stamps:
             self.get_logger().warning(
                 "semantics request: no complete frames yet, nothing to analyse"
             )
             return
-        self._start(stamps, reason="request")
+        self.worker.submit(stamps, reason="request")
 
     # work ------------------------------------------------------------------------------------
     def _maybe_start_initial(self) -> None:
@@ -248,29 +220,7 @@ class SemanticsNode(Node):
                 return
             self.queried = True
             stamps = self.views.complete[: self.num_initial_views]
-        self._start(stamps, reason="initial views")
-
-    def _start(self, stamps: list[int], reason: str) -> None:
-        with self._lock:
-            if self._worker is not None:  # running: it takes this request next
-                self._pending_request = True
-                return
-            self._worker = threading.Thread(
-                target=self._run, args=(stamps, reason), name="semantics-vlm", daemon=True
-            )
-            self._worker.start()
-
-    def _run(self, stamps: list[int], reason: str) -> None:
-        """Analyse `stamps`; a request that arrived meanwhile runs next in this same worker (with
-        every frame complete by then), so no request is lost."""
-        while True:
-            self._analyse(stamps, reason)
-            with self._lock:
-                if not self._pending_request:
-                    self._worker = None
-                    return
-                self._pending_request = False
-                stamps, reason = self._requery_stamps(), "request"
+        self.worker.submit(stamps, reason="initial views")
 
     def _analyse(self, stamps: list[int], reason: str) -> None:
         log = self.get_logger()
@@ -330,19 +280,35 @@ class SemanticsNode(Node):
             or stamp in self.published_usem
         ):
             return
-        weight = self.weights[stamp]
-        if by_confidence:
-            sigma = sigma_from_confidence(view.confidence)
-        else:
-            sigma = np.ones(weight.shape, np.float32)
-        if weight.shape != sigma.shape:
-            # Perception may run at another resolution; the mask is smooth, so resampling is exact enough.
-            weight = cv2.resize(
-                weight, (sigma.shape[1], sigma.shape[0]), interpolation=cv2.INTER_LINEAR
-            )
-        usem = semantic_uncertainty(sigma, weight, self.params.lam)
+        confidence = view.confidence if by_confidence else None
+        usem = frame_uncertainty(self.weights[stamp], self.params.lam, confidence)
         self.pub_usem.publish(codecs.image_to_msg(usem, "32FC1", stamp, view.frame_id))
         self.published_usem.add(stamp)
+
+
+def backend_from_parameters(p: dict) -> tuple[Backend, str | None]:
+    """The region analyser this node's parameters `p` ask for, or its fallback when it cannot be
+    made (with the reason, to log); also what `area3d_bringup.inprocess` analyses with."""
+    options = {
+        key: p[key]
+        for key in (
+            "base_url", "model", "api_key_env", "timeout_s", "retries", "max_tokens",
+            "model_dir", "device", "trust_remote_code",
+        )
+    }  # fmt: skip
+    try:
+        return make_backend(p["backend"], **options), None
+    except (VLMError, ValueError) as exc:
+        fallback = HeuristicBackend() if p["fallback"] == "heuristic" else NoneBackend()
+        return (
+            fallback,
+            f"{p['backend']} backend unavailable ({exc}); using {fallback.name} instead",
+        )
+
+
+def semantic_params(p: dict) -> SemanticParams:
+    """The weight tables and lambda of this node's parameters `p`."""
+    return SemanticParams.from_flat({k: p[k] for k in SemanticParams().to_flat()})
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -51,15 +51,3 @@ class Region:
     def to_dict(self) -> dict:
         """JSON-ready dict with the location spelled out as well."""
         return {**asdict(self), "location": self.location}
-
-    @classmethod
-    def from_dict(cls, data: dict) -> Region:
-        return cls(
-            image_index=int(data["image_index"]),
-            column=str(data["column"]),
-            row=str(data["row"]),
-            type=str(data["type"]),
-            priority=str(data["priority"]),
-            size=str(data["size"]),
-            reason=str(data.get("reason", "")),
-        )

@@ -7,12 +7,14 @@ U_sem_i(u) = Norm(sigma_i(u) * (1 + lambda * W_i(u))) (paper, Eq. 4-5 and supple
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
+import cv2
 import numpy as np
 from numba import njit
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.param_fields import described, description_of
 from area3d_semantics.masks import DEFAULT_DILATION, DEFAULT_TAPER_SIGMA, region_profiles
 from area3d_semantics.region import PRIORITIES, SIZES, TYPES, Region
 
@@ -41,13 +43,34 @@ def _size_extent() -> dict[str, float]:
 class SemanticParams:
     """Every tunable of the semantic field, paper values as defaults."""
 
-    alpha: dict[str, float] = field(default_factory=_alpha)
-    beta: dict[str, float] = field(default_factory=_beta)
-    s: dict[str, float] = field(default_factory=_s)
-    lam: float = 1.0  # modulation strength lambda: paper, supplement Table 6
-    dilation: float = DEFAULT_DILATION  # mask dilation, fraction of the cell (masks.py)
-    taper_sigma: float = DEFAULT_TAPER_SIGMA  # Gaussian taper, fraction of the cell (masks.py)
-    size_extent: dict[str, float] = field(default_factory=_size_extent)
+    # Tables: one parameter per key ("{key}" in a description is the key).
+    alpha: dict[str, float] = described(
+        _alpha(), "type weight alpha of {key} regions (the prompt's ranking)", "", (0.0, 100.0)
+    )
+    beta: dict[str, float] = described(
+        _beta(), "priority weight beta of {key} priority regions (paper)", "", (0.0, 100.0)
+    )
+    s: dict[str, float] = described(
+        _s(), "size weight s of {key} regions (paper)", "", (0.0, 100.0)
+    )
+    lam: float = described(
+        1.0, "modulation strength lambda in U_sem = Norm(sigma (1 + lambda W)) (paper)", "",
+        (0.0, 100.0),
+    )  # fmt: skip
+    dilation: float = described(
+        DEFAULT_DILATION, "dilation of a region's mask (masks.py)", "fraction of its grid cell",
+        (0.0, 10.0),
+    )  # fmt: skip
+    taper_sigma: float = described(
+        DEFAULT_TAPER_SIGMA, "Gaussian taper of a region's mask (masks.py)",
+        "fraction of its grid cell", (0.0, 10.0),
+    )  # fmt: skip
+    size_extent: dict[str, float] = described(
+        _size_extent(),
+        "extent of the mask of {key} regions (the paper uses size only through s)",
+        "fraction of its grid cell",
+        (0.0, 10.0),
+    )
 
     def __post_init__(self) -> None:
         for name, keys in (
@@ -97,6 +120,23 @@ class SemanticParams:
                     "a known semantic parameter (alpha_<type>, beta_<priority>, s_<size>, lambda, dilation, taper_sigma, size_extent_<size>)",
                 )
         return cls(alpha=alpha, beta=beta, s=s, size_extent=extent, **scalars)
+
+    @classmethod
+    def flat_parameters(cls) -> list[tuple[str, float, str, tuple[float, float]]]:
+        """(flat name, default, description with unit, range) of every tunable, the names of
+        `to_flat`: what the semantics node declares."""
+        defaults = cls().to_flat()
+        out = []
+        for f in fields(cls):
+            flat = {"lam": "lambda"}.get(f.name, f.name)
+            text, bounds = description_of(f), f.metadata["range"]
+            if isinstance(getattr(cls(), f.name), Mapping):
+                for key in getattr(cls(), f.name):
+                    name = f"{flat}_{key.lower()}"
+                    out.append((name, defaults[name], text.format(key=key), bounds))
+            else:
+                out.append((flat, defaults[flat], text, bounds))
+        return out
 
     def to_flat(self) -> dict[str, float]:
         flat = {f"alpha_{k.lower()}": v for k, v in self.alpha.items()}
@@ -229,3 +269,29 @@ def semantic_uncertainty(sigma: np.ndarray, weight: np.ndarray, lam: float = 1.0
     if weight.shape != sigma.shape:
         raise InputError("weight", weight.shape, f"the shape of sigma {sigma.shape}")
     return _modulate(np.ascontiguousarray(sigma), np.ascontiguousarray(weight), np.float32(lam))
+
+
+#: sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's weights
+#: alone, independent of the depth backbone, so the no-feed-forward and no-VLM ablations each
+#: remove one thing) or "confidence" (1 - perception confidence, the paper's backbone sigma).
+SIGMA_SOURCES = ("constant", "confidence")
+
+
+def frame_uncertainty(
+    weight: np.ndarray, lam: float, confidence: np.ndarray | None = None
+) -> np.ndarray:
+    """U_sem (h, w) float32 in [0, 1] of one frame from its weight map W (H, W) in [0, 1]:
+    sigma = 1 - `confidence` (h, w) (sigma source "confidence"), or 1 where `confidence` is None
+    (sigma source "constant", then h, w = H, W). A weight map of another size than the
+    confidence is resampled to it (perception may run at another resolution; the mask is smooth,
+    so resampling is exact enough)."""
+    weight = np.asarray(weight, dtype=np.float32)
+    if confidence is None:
+        sigma = np.ones(weight.shape, np.float32)
+    else:
+        sigma = sigma_from_confidence(confidence)
+    if weight.shape != sigma.shape:
+        weight = cv2.resize(
+            weight, (sigma.shape[1], sigma.shape[0]), interpolation=cv2.INTER_LINEAR
+        )
+    return semantic_uncertainty(sigma, weight, lam)

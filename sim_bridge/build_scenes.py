@@ -17,6 +17,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from area3d_msgs_py.camera_pose import look_at
 from sim_bridge import meshes
 from sim_bridge.scenes import (
     GAMMA,
@@ -28,7 +29,7 @@ from sim_bridge.scenes import (
     scene_to_json,
 )
 from sim_bridge.textures import write_texture
-from sim_bridge.views import look_at, orbit_views
+from sim_bridge.views import orbit_views
 
 SEED = 7  # fixed so that regenerating gives the same scenes
 TABLE_TOP_Z = 0.75  # metres, a standard table height

@@ -2,7 +2,8 @@
 
 Subscribes area3d/camera/goal_pose (PoseStamped, optical frame in `world`); publishes color,
 depth, camera_info, the capture pose, a status line per goal and, where `tf2_msgs` imports, TF
-(world -> camera_link -> camera_optical_frame). Topic names are relative: `__ns` moves them all.
+(world -> camera_link -> camera_optical_frame). Topics: `area3d_msgs_py/topics.py`; names are
+relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
@@ -10,13 +11,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, msgs, qos
+from area3d_msgs_py import codecs, msgs, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded
 from area3d_msgs_py.inputs import check_frame_id, check_stamp
@@ -25,12 +27,14 @@ from area3d_msgs_py.parameters import (
     MAX_STAMP_AHEAD_PARAM,
     Param,
     declare_parameters,
+    params_of,
     report_unknown_parameters,
 )
 from area3d_perception.sensor_model import RgbdSensorParams
 from sim_bridge.camera import (
     R_LINK_OPTICAL,
     STEREO_BASELINE,
+    Capture,
     SimCamera,
     link_from_optical,
     right_from_left,
@@ -42,18 +46,17 @@ LINK_FRAME = "camera_link"
 OPTICAL_FRAME = "camera_optical_frame"
 RIGHT_OPTICAL_FRAME = "camera_right_optical_frame"
 
-GOAL_TOPIC = "area3d/camera/goal_pose"
-COLOR_TOPIC = "area3d/camera/color/image_raw"
-DEPTH_TOPIC = "area3d/camera/depth/image_raw"
-INFO_TOPIC = "area3d/camera/camera_info"
-POSE_TOPIC = "area3d/camera/pose"
-# The right camera of a stereo pair, named as a ROS stereo camera names it (stereo_image_proc:
-# right/image_rect, right/camera_info); the left image is the colour image and its camera_info.
-RIGHT_TOPIC = "area3d/camera/right/image_rect"
-RIGHT_INFO_TOPIC = "area3d/camera/right/camera_info"
-STATUS_TOPIC = "area3d/camera/status"
-TF_TOPIC = "/tf"
-TF_STATIC_TOPIC = "/tf_static"
+# The readers.* parameters: the frame topics whose graph readers the first capture waits for.
+READER_TOPICS = {
+    "color": topics.COLOR,
+    "depth": topics.DEPTH,
+    "camera_info": topics.CAMERA_INFO,
+    "pose": topics.POSE,
+    "right": topics.RIGHT_IMAGE,
+    "right_camera_info": topics.RIGHT_CAMERA_INFO,
+}
+# While the first frame waits for its readers, they are looked for this often, seconds.
+READERS_POLL_S = 0.01
 
 PARAMS = (
     Param("scene", "single_object", "bundled scene name or path to a MuJoCo MJCF file"),
@@ -85,16 +88,8 @@ PARAMS = (
         "seed of the depth and image noise (repeatable episodes)",
         range=(0, 2**31 - 1),
     ),
-    *(
-        Param(
-            f"sensor.{f.name}",
-            f.default,
-            f"RgbdSensorParams.{f.name} (the simulated depth camera's noise model)",
-            range=(0, 1e6),
-        )
-        for f in dataclasses.fields(RgbdSensorParams)
-        if f.name != "max_range"  # the camera's range is max_range
-    ),
+    # the simulated depth camera's noise model; its range is max_range
+    *params_of(RgbdSensorParams, "sensor.", skip=("max_range",)),
     Param("stereo", False, "also render and publish the right image of a rectified stereo pair"),
     Param(
         "stereo_baseline",
@@ -106,15 +101,12 @@ PARAMS = (
     # may match a new reader later than other nodes do: the first capture waits until the nodes
     # that read each frame topic are matched (by name, so that other readers do not count).
     *(
-        Param(f"readers.{key}", readers, f"nodes that must read {topic} before the first capture")
-        for key, topic, readers in (
-            ("color", COLOR_TOPIC, ("perception", "semantics")),
-            ("depth", DEPTH_TOPIC, ("perception", "semantics")),
-            ("camera_info", INFO_TOPIC, ("perception", "planner")),
-            ("pose", POSE_TOPIC, ("perception", "planner")),
-            ("right", RIGHT_TOPIC, ("perception",)),
-            ("right_camera_info", RIGHT_INFO_TOPIC, ("perception",)),
+        Param(
+            f"readers.{key}",
+            topic.readers,
+            f"node names that must read {topic.name} before the first capture is published",
         )
+        for key, topic in READER_TOPICS.items()
     ),
     Param(
         "readers.all",
@@ -140,43 +132,20 @@ class SimBridgeNode(Node):
         p = declare_parameters(self, PARAMS)
         report_unknown_parameters(self)
         self.scene = load_scene(p["scene"])
-        self.camera = SimCamera(
-            self.scene,
-            p["width"],
-            p["height"],
-            p["hfov_deg"],
-            p["max_range"],
-            p["clearance"],
-            p["depth_noise"],
-            seed=p["noise_seed"],
-            image_noise=p["image_noise"],
-            stereo_baseline=p["stereo_baseline"] if p["stereo"] else 0.0,
-            sensor=RgbdSensorParams(
-                max_range=p["max_range"],
-                **{
-                    f.name: p[f"sensor.{f.name}"]
-                    for f in dataclasses.fields(RgbdSensorParams)
-                    if f.name != "max_range"
-                },
-            ),
-        )
-        self.pub_color = self.create_publisher(msgs.Image, COLOR_TOPIC, qos.frames())
-        self.pub_depth = self.create_publisher(msgs.Image, DEPTH_TOPIC, qos.frames())
-        self.pub_info = self.create_publisher(msgs.CameraInfo, INFO_TOPIC, qos.frames())
-        self.pub_pose = self.create_publisher(msgs.PoseStamped, POSE_TOPIC, qos.frames())
-        self.pub_status = self.create_publisher(msgs.String, STATUS_TOPIC, qos.frames())
+        self.camera = camera_from_parameters(self.scene, p)
+        self.pub_color = self._publisher(topics.COLOR)
+        self.pub_depth = self._publisher(topics.DEPTH)
+        self.pub_info = self._publisher(topics.CAMERA_INFO)
+        self.pub_pose = self._publisher(topics.POSE)
+        self.pub_status = self._publisher(topics.CAMERA_STATUS)
         self.pub_right = self.pub_right_info = None
         if p["stereo"]:
-            self.pub_right = self.create_publisher(msgs.Image, RIGHT_TOPIC, qos.frames())
-            self.pub_right_info = self.create_publisher(
-                msgs.CameraInfo, RIGHT_INFO_TOPIC, qos.frames()
-            )
+            self.pub_right = self._publisher(topics.RIGHT_IMAGE)
+            self.pub_right_info = self._publisher(topics.RIGHT_CAMERA_INFO)
         self.pub_tf = self.pub_tf_static = None
         if msgs.TFMessage is not None:
-            self.pub_tf = self.create_publisher(msgs.TFMessage, TF_TOPIC, qos.reliable(100))
-            self.pub_tf_static = self.create_publisher(
-                msgs.TFMessage, TF_STATIC_TOPIC, qos.latched()
-            )
+            self.pub_tf = self._publisher(topics.TF)
+            self.pub_tf_static = self._publisher(topics.TF_STATIC)
             T_link_opt = np.eye(4)
             T_link_opt[:3, :3] = R_LINK_OPTICAL
             static = [_transform(T_link_opt, self._now_ns(), LINK_FRAME, OPTICAL_FRAME)]
@@ -189,35 +158,49 @@ class SimBridgeNode(Node):
         else:
             self.get_logger().info(
                 "tf2_msgs does not import (it is not on PyPI; source a ROS 2 install for it): "
-                f"no {TF_TOPIC} / {TF_STATIC_TOPIC}; the camera pose is on {POSE_TOPIC}"
+                f"no {topics.TF.name} / {topics.TF_STATIC.name}; the camera pose is on "
+                f"{topics.POSE.name}"
             )
+        self.required_readers = self._required_readers(p)
+        self.readers_matched = False
+        # Frames captured before their readers matched, published in order once they have
+        # (or once readers_timeout_s has passed): the goal callback never waits.
+        self.held: deque[tuple[int, Capture]] = deque()
+        self._readers_deadline: float | None = None
+        self._readers_timer = self.create_timer(READERS_POLL_S, self._release_when_read)
+        self._readers_timer.cancel()
+        self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
+        self.rejections = Rejections()  # malformed goals, reported in every status line
+        goal = topics.GOAL
+        self.create_subscription(
+            goal.msg_type,
+            goal.name,
+            guarded(self, self.on_goal, goal.name, self.rejections),
+            goal.qos(),
+        )
+        self.get_logger().info(
+            f"scene {self.scene.name!r} ({self.scene.level}), {p['width']}x{p['height']}, "
+            f"hfov {p['hfov_deg']} deg, waiting for {self.resolve_topic_name(goal.name)}"
+        )
+
+    def _publisher(self, topic: topics.Topic) -> Any:
+        return self.create_publisher(topic.msg_type, topic.name, topic.qos())
+
+    def _required_readers(self, p: dict) -> dict[Any, set[str]]:
+        """{publisher: node names that must read it before the first frame goes out}."""
         everyone = {name for name in p["readers.all"] if name}
-        self.required_readers = {
+        required = {
             self.pub_color: set(p["readers.color"]) | everyone,
             self.pub_depth: set(p["readers.depth"]) | everyone,
             self.pub_info: set(p["readers.camera_info"]) | everyone,
             self.pub_pose: set(p["readers.pose"]) | everyone,
         }
         if everyone:  # the status that follows the first frame reaches them too
-            self.required_readers[self.pub_status] = everyone
+            required[self.pub_status] = everyone
         if p["stereo"]:
-            self.required_readers[self.pub_right] = set(p["readers.right"]) | everyone
-            self.required_readers[self.pub_right_info] = (
-                set(p["readers.right_camera_info"]) | everyone
-            )
-        self.readers_matched = False
-        self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        self.rejections = Rejections()  # malformed goals, reported in every status line
-        self.create_subscription(
-            msgs.PoseStamped,
-            GOAL_TOPIC,
-            guarded(self, self.on_goal, GOAL_TOPIC, self.rejections),
-            qos.frames(),
-        )
-        self.get_logger().info(
-            f"scene {self.scene.name!r} ({self.scene.level}), {p['width']}x{p['height']}, "
-            f"hfov {p['hfov_deg']} deg, waiting for {self.resolve_topic_name(GOAL_TOPIC)}"
-        )
+            required[self.pub_right] = set(p["readers.right"]) | everyone
+            required[self.pub_right_info] = set(p["readers.right_camera_info"]) | everyone
+        return required
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -230,14 +213,41 @@ class SimBridgeNode(Node):
             check_frame_id(msg, WORLD_FRAME)
             T = codecs.pose_to_matrix(msg.pose)
         except InputError as exc:
-            self.rejections.count(GOAL_TOPIC, exc.field)
-            self._refuse(stamp_ns, f"{GOAL_TOPIC}: {exc}")
+            self.rejections.count(topics.GOAL.name, exc.field)
+            self._refuse(stamp_ns, f"{topics.GOAL.name}: {exc}")
             return
         capture = self.camera.capture(T)
         if not capture.ok:
             self._refuse(stamp_ns, capture.reason)
             return
-        self._wait_for_readers()
+        if self.readers_matched:
+            self._publish(stamp_ns, capture)
+            return
+        self.held.append((stamp_ns, capture))
+        if self._readers_deadline is None:  # the first frame: wait for its readers
+            timeout_s = self.get_parameter("readers_timeout_s").value
+            self._readers_deadline = time.monotonic() + timeout_s
+            self._readers_timer.reset()
+        self._release_when_read()
+
+    def _release_when_read(self) -> None:
+        """Publish the held frames once their readers have matched, or once readers_timeout_s
+        has passed (then with a warning); until then, called again by a timer."""
+        missing = self._missing_readers()
+        if missing and time.monotonic() <= self._readers_deadline:
+            return
+        if missing:
+            timeout_s = self.get_parameter("readers_timeout_s").value
+            self.get_logger().warning(
+                f"publishing after {timeout_s} s without these readers: {missing}"
+            )
+        self._readers_timer.cancel()
+        self.readers_matched = True  # later readers are on their own, as with any camera
+        while self.held:
+            self._publish(*self.held.popleft())
+
+    def _publish(self, stamp_ns: int, capture: Capture) -> None:
+        T = capture.T_world_cam
         self.pub_color.publish(codecs.image_to_msg(capture.rgb, "rgb8", stamp_ns, OPTICAL_FRAME))
         self.pub_depth.publish(codecs.image_to_msg(capture.depth, "32FC1", stamp_ns, OPTICAL_FRAME))
         self.pub_info.publish(
@@ -285,20 +295,6 @@ class SimBridgeNode(Node):
                 missing[pub.topic_name] = sorted(lacking)
         return missing
 
-    def _wait_for_readers(self) -> None:
-        if self.readers_matched:
-            return
-        timeout_s = self.get_parameter("readers_timeout_s").value
-        deadline = time.monotonic() + timeout_s
-        while missing := self._missing_readers():
-            if time.monotonic() > deadline:
-                self.get_logger().warning(
-                    f"publishing after {timeout_s} s without these readers: {missing}"
-                )
-                break
-            time.sleep(0.01)
-        self.readers_matched = True  # later readers are on their own, as with any camera
-
     def _refuse(self, stamp_ns: int, reason: str) -> None:
         self.get_logger().warning(f"goal at stamp {stamp_ns} refused: {reason}")
         self._status(stamp_ns, False, reason)
@@ -316,6 +312,31 @@ class SimBridgeNode(Node):
                 )
             )
         )
+
+
+def camera_from_parameters(scene: Any, p: dict) -> SimCamera:
+    """The camera this node's parameters `p` describe (also what `area3d_bringup.inprocess`
+    captures with)."""
+    return SimCamera(
+        scene,
+        p["width"],
+        p["height"],
+        p["hfov_deg"],
+        p["max_range"],
+        p["clearance"],
+        p["depth_noise"],
+        seed=p["noise_seed"],
+        image_noise=p["image_noise"],
+        stereo_baseline=p["stereo_baseline"] if p["stereo"] else 0.0,
+        sensor=RgbdSensorParams(
+            max_range=p["max_range"],
+            **{
+                f.name: p[f"sensor.{f.name}"]
+                for f in dataclasses.fields(RgbdSensorParams)
+                if f.name != "max_range"
+            },
+        ),
+    )
 
 
 def _transform(T: np.ndarray, stamp_ns: int, parent: str, child: str) -> Any:

@@ -15,8 +15,9 @@ import mujoco
 import numpy as np
 import trimesh
 
+from area3d_msgs_py.camera_pose import look_at
 from sim_bridge.geoms import clip_to_box, geom_meshes, ground_planes, solid_geom_ids
-from sim_bridge.views import look_at
+from sim_bridge.validity import valid_positions
 
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 
@@ -111,8 +112,6 @@ class Scene:
     def valid_positions(self, points: np.ndarray, clearance: float) -> np.ndarray:
         """(N,) bool: camera centres inside the workspace and clear of geometry
         (`sim_bridge.validity.valid_positions`); what a planner given this scene may check."""
-        from sim_bridge.validity import valid_positions
-
         return valid_positions(self, points, clearance)
 
 
@@ -367,8 +366,6 @@ def _object_layout(lo, hi, rest, thin, area, floor_z) -> dict:
 
 def _first_valid(scene: Scene, candidates: np.ndarray, what: str) -> np.ndarray:
     """(V, 3) the first position of each row of `candidates` (V, C, 3) that is clear of geometry."""
-    from sim_bridge.validity import valid_positions
-
     v, c, _ = candidates.shape
     ok = valid_positions(
         scene, candidates.reshape(-1, 3), DERIVED_VIEW_CLEARANCE[scene.level]
@@ -437,8 +434,6 @@ def _farthest_points(candidates: np.ndarray, taken: np.ndarray, n: int) -> np.nd
 def _room_views(scene: Scene, layout: dict) -> tuple[np.ndarray, np.ndarray]:
     """Initial views spread over the room, held-out views filling the gaps between them at several
     heights; each looks slightly down along its heading with the most free space ahead."""
-    from sim_bridge.validity import valid_positions
-
     lo, hi = scene.workspace_min, scene.workspace_max
     floor_z = layout["floor_z"]
     xs = np.arange(lo[0], hi[0] + 1e-9, 0.25)

@@ -8,6 +8,7 @@ so a camera buried deep inside a wall or a cabinet is rejected too.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import mujoco
 import numpy as np
@@ -16,7 +17,6 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from sim_bridge.geoms import geom_meshes, ground_planes, solid_geom_ids
-from sim_bridge.scenes import Scene
 
 CLEARANCE = 0.05  # metres, minimum distance from the camera centre to any surface
 ROTATION_TOL = 1e-3  # max |R^T R - I| entry for a rotation to count as orthonormal
@@ -24,6 +24,18 @@ ROTATION_TOL = 1e-3  # max |R^T R - I| entry for a rotation to count as orthonor
 # about this much (object scenes are small, rooms are large).
 SAMPLE_SPACING = {"object": 0.004, "room": 0.015}
 OCCUPANCY_PITCH = 0.01  # metres, voxel size of the inside-a-mesh test
+
+
+class Scene(Protocol):
+    """What the checks read of a scene (`sim_bridge.scenes.Scene`): its level, workspace box,
+    compiled model and a cache the collider is kept in."""
+
+    level: str
+    workspace_min: np.ndarray
+    workspace_max: np.ndarray
+    _cache: dict
+
+    def model(self) -> tuple[mujoco.MjModel, mujoco.MjData]: ...
 
 
 @dataclass(frozen=True)

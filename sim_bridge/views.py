@@ -1,29 +1,10 @@
-"""Camera poses that look at a point: T_world_cam of the optical frame (z forward, x right, y down)."""
+"""Views on a sphere around a point, each looking at it (T_world_cam of the optical frame)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-WORLD_UP = np.array([0.0, 0.0, 1.0])  # REP 103: `world` is z-up
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(4, 4) float64 T_world_cam of an optical frame at `eye` (3,) looking at `target` (3,), metres.
-
-    The image x axis stays horizontal (no roll); looking straight up or down is resolved by
-    taking world +x as the image "down" direction.
-    """
-    eye = np.asarray(eye, dtype=np.float64)
-    z = np.asarray(target, dtype=np.float64) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, WORLD_UP)
-    if np.linalg.norm(x) < 1e-9:
-        x = np.cross(z, [1.0, 0.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
-    return T
+from area3d_msgs_py.camera_pose import look_at
 
 
 def orbit_views(

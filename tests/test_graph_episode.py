@@ -20,6 +20,9 @@ from area3d_eval.report import write_report
 from sim_bridge.scenes import load_scene
 from sim_bridge.validity import check_pose
 
+# Poses of the same view over the graph and in process: a view chosen differently is centimetres
+# and degrees away; the same view differs by the quaternion round trips (about 1e-7).
+POSE_TOLERANCE = 1e-4
 SMALL_CAMERA = {
     "sim_bridge": {"width": 320, "height": 240},
     "planner": {"width": 320, "height": 240},
@@ -63,6 +66,20 @@ def test_planned_views_are_valid_new_poses_the_camera_accepted(episode):
         assert frame["rgb"].shape == (240, 320, 3) and frame["depth"].dtype == np.float32
         assert np.isfinite(frame["depth"]).any()
         np.testing.assert_allclose(frame["T_world_cam"], poses[6])
+
+
+def test_the_in_process_path_chooses_the_views_the_graph_chose(episode, tmp_path):
+    """Same scene, preset, seed and parameters: the same views, in the same order (the graph's
+    poses went through quaternions and the scene file's rounding: a tight tolerance, not ==)."""
+    from area3d_bringup.inprocess import run_inprocess_episode
+    from area3d_eval.rundir import read_episode
+
+    graph = read_episode(episode)
+    in_process = read_episode(
+        run_inprocess_episode("single_object", "area3d", 0, tmp_path, 7, overrides=SMALL_CAMERA)
+    )
+    assert in_process.kinds() == graph.kinds()
+    np.testing.assert_allclose(in_process.poses(), graph.poses(), atol=POSE_TOLERANCE)
 
 
 def test_the_planner_published_the_latched_grid_before_and_after(episode):

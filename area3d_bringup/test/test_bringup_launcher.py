@@ -266,21 +266,17 @@ def test_the_stereo_backend_turns_the_simulated_stereo_pair_on_unless_told_other
 def test_perceptions_estimates_are_attached_to_the_frames_they_belong_to(tmp_path):
     import numpy as np
 
-    from area3d_bringup.runner import _attach_estimates
-    from area3d_eval.rundir import iter_frames, read_frame, write_frame
+    from area3d_eval.rundir import attach_estimates, iter_frames, read_frame, write_frame
 
     rgb, depth = np.zeros((4, 6, 3), np.uint8), np.full((4, 6), 2.0, np.float32)
     for index, stamp in enumerate((10, 20)):
         write_frame(tmp_path, index, rgb, depth, np.eye(3), np.eye(4), stamp)
     frames = list(iter_frames(tmp_path))
     estimate = np.full((4, 6), 2.1, np.float32)
-
-    class Manager:
-        def estimates_received(self):
-            return {20: {"depth": estimate, "confidence": np.ones((4, 6), np.float32)}, 99: {}}
+    estimates = {20: {"depth": estimate, "confidence": np.ones((4, 6), np.float32)}, 99: {}}
 
     lines = []
-    _attach_estimates(tmp_path, frames, Manager(), lines.append)
+    attach_estimates(tmp_path, frames, estimates, lines.append)
     first, second = (read_frame(tmp_path / "frames" / f"{i:04d}.npz") for i in (0, 1))
     assert first.estimated_depth is None and "view 0" in lines[0]
     np.testing.assert_array_equal(second.estimated_depth, estimate)

@@ -2,11 +2,12 @@
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 import trimesh
 
-from area3d_eval.metrics import psnr, sample_surface, ssim, surface_metrics
+from area3d_eval.metrics import psnr, sample_surface, ssim, ssim_map, surface_metrics
 from area3d_msgs_py.errors import InputError
 
 TAU = 0.01
@@ -92,9 +93,49 @@ def test_psnr_rejects_images_of_different_shapes():
         psnr(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)))
 
 
-def test_ssim_of_identical_images_is_one():
-    img = np.random.default_rng(1).integers(0, 256, (40, 50, 3), dtype=np.uint8)
-    assert ssim(img, img) == pytest.approx(1.0)
+def _image_pairs():
+    """(reference, distorted) pairs: noise at three levels, a shift, a blur, a gain, grey and
+    colour, and an image compared with itself."""
+    rng = np.random.default_rng(1)
+    ramp = (np.add.outer(np.arange(48), np.arange(64)) * 3 % 256).astype(np.uint8)
+    texture = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    smooth = cv2.GaussianBlur(texture, (7, 7), 2.0)
+    pairs = []
+    for sigma in (2, 10, 40):
+        noisy = np.clip(smooth + rng.normal(0, sigma, smooth.shape), 0, 255).astype(np.uint8)
+        pairs.append(pytest.param(smooth, noisy, id=f"noise{sigma}"))
+    pairs += [
+        pytest.param(smooth, np.roll(smooth, 2, axis=1), id="shift"),
+        pytest.param(texture, cv2.GaussianBlur(texture, (5, 5), 1.0), id="blur"),
+        pytest.param(ramp, np.clip(ramp * 0.8 + 20, 0, 255).astype(np.uint8), id="gain-grey"),
+        pytest.param(texture, texture, id="identical"),
+    ]
+    return pairs
+
+
+@pytest.mark.parametrize(("a", "b"), _image_pairs())
+def test_psnr_and_ssim_agree_with_scikit_image(a, b):
+    """scikit-image (a dev-only dependency) as the independent reference: its PSNR, and its SSIM
+    with the settings of Wang et al. 2004 (Gaussian window sigma 1.5, population covariance),
+    mean over the pixels at least a window radius from the border and over channels."""
+    metrics = pytest.importorskip("skimage.metrics", reason="scikit-image: pip install -e .[dev]")
+    channel_axis = -1 if a.ndim == 3 else None
+    mask = np.zeros(a.shape[:2], bool)
+    mask[10:30, 5:40] = True  # a region's pixels: the mean of the same map over them
+    with np.errstate(divide="ignore"):  # identical images: inf, as `psnr` gives
+        reference = metrics.peak_signal_noise_ratio(a, b, data_range=255)
+        masked_reference = metrics.peak_signal_noise_ratio(a[mask], b[mask], data_range=255)
+    assert psnr(a, b) == pytest.approx(reference, rel=1e-9)
+    _, full = metrics.structural_similarity(
+        a, b, data_range=255, channel_axis=channel_axis, gaussian_weights=True, sigma=1.5,
+        use_sample_covariance=False, full=True,
+    )  # fmt: skip
+    full = full.mean(axis=-1) if a.ndim == 3 else full
+    r = 5  # the window radius: scikit-image crops it, as `ssim` does
+    assert ssim(a, b) == pytest.approx(full[r:-r, r:-r].mean(), abs=1e-4)
+    np.testing.assert_allclose(ssim_map(a, b)[r:-r, r:-r], full[r:-r, r:-r], atol=1e-3)
+    assert ssim(a, b, mask) == pytest.approx(full[mask].mean(), abs=1e-4)
+    assert psnr(a, b, mask) == pytest.approx(masked_reference, rel=1e-9)
 
 
 def test_ssim_decreases_as_noise_grows():

@@ -5,7 +5,8 @@ import pytest
 import trimesh
 
 from area3d_eval.render import render_mesh
-from area3d_eval.synthetic import intrinsics, look_at
+from area3d_eval.synthetic import intrinsics
+from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
 
 W, H = 64, 48
@@ -21,7 +22,7 @@ def coloured_plane(
 
 
 def test_plane_seen_face_on_has_its_distance_as_depth_everywhere():
-    T = look_at([0.2, -0.1, 1.5], [0.2, -0.1, 0.0], up=[0, 1, 0])
+    T = look_at([0.2, -0.1, 1.5], [0.2, -0.1, 0.0])
     rgb, depth = render_mesh(coloured_plane(-10, 10, -10, 10), intrinsics(W, H), T, W, H)
     assert depth.shape == (H, W) and depth.dtype == np.float32
     np.testing.assert_allclose(depth, 1.5, atol=1e-5)
@@ -40,7 +41,7 @@ def test_depth_is_along_the_optical_axis_not_along_the_ray():
 
 def test_plane_edge_under_the_camera_centre_fills_exactly_half_the_columns():
     # pixel centres at u + 0.5 and cx = W / 2: columns u < W/2 look at x < 0, the rest at x > 0
-    T = look_at([0, 0, 1.0], [0, 0, 0], up=[0, 1, 0])
+    T = look_at([0, 0, 1.0], [0, 0, 0])
     half = coloured_plane(0, 10, -10, 10)
     rgb, depth = render_mesh(half, intrinsics(W, H), T, W, H)
     x_world = T[:3, 0]  # image x axis in world
@@ -50,7 +51,7 @@ def test_plane_edge_under_the_camera_centre_fills_exactly_half_the_columns():
 
 
 def test_pixels_without_surface_are_black_and_nan():
-    T = look_at([0, 0, 1.0], [0, 0, 2.0], up=[0, 1, 0])  # looking away from the plane
+    T = look_at([0, 0, 1.0], [0, 0, 2.0])  # looking away from the plane
     rgb, depth = render_mesh(coloured_plane(-1, 1, -1, 1), intrinsics(W, H), T, W, H)
     assert np.isnan(depth).all() and not rgb.any()
 
@@ -61,7 +62,7 @@ def test_vertex_colours_are_interpolated_barycentrically():
     mesh.visual.vertex_colors = np.array(
         [[0, 0, 0, 255], [200, 0, 0, 255], [200, 0, 0, 255], [0, 0, 0, 255]], np.uint8
     )
-    T = look_at([0, 0, 2.0], [0, 0, 0], up=[0, 1, 0])
+    T = look_at([0, 0, 2.0], [0, 0, 0])
     K = intrinsics(W, H)
     rgb, _ = render_mesh(mesh, K, T, W, H)
     # red grows linearly with world x from 0 at x = -1 to 200 at x = +1

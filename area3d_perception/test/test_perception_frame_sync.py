@@ -3,7 +3,7 @@
 import pytest
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.frame_sync import StampSync
+from area3d_perception.frame_sync import CameraInfoCache, HeldFrames, StampSync
 
 S = 1_000_000_000
 
@@ -98,3 +98,25 @@ def test_an_old_frame_replayed_after_newer_ones_completed_still_pairs():
         assert sync.add(key, 1 * hour, key) is None
     assert sync.add("pose", 1 * hour, "p") == {"color": "color", "depth": "depth", "pose": "p"}
     assert sync.pop_dropped() == []
+
+
+def test_frames_without_camera_info_are_held_in_order_and_the_oldest_go_beyond_capacity():
+    held = HeldFrames(capacity=2)
+    first = held.hold(1, "a", "area3d/camera/camera_info")
+    assert first is not None and "area3d/camera/camera_info" in first  # said once ...
+    assert held.hold(2, "b", "area3d/camera/camera_info") is None  # ... not per frame
+    assert held.hold(3, "c", "area3d/camera/camera_info") is None
+    assert len(held) == 2
+    assert held.release() == [(2, "b"), (3, "c")]  # the oldest went beyond capacity
+    assert len(held) == 0 and held.release() == []
+    assert held.hold(4, "d", "info") is not None  # a new wait is said again
+
+
+def test_a_frame_takes_its_own_stamps_camera_info_else_the_latest():
+    cache = CameraInfoCache(size=2)
+    assert cache.get(1) is None
+    for stamp in (1, 2, 3):
+        cache.add(stamp, f"K{stamp}")
+    assert cache.get(2) == "K2" and cache.get(3) == "K3"
+    assert cache.get(1) == "K3"  # evicted: the latest stands in
+    assert cache.get(99) == "K3"

@@ -7,17 +7,26 @@ from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs
 from area3d_msgs_py.guard import guarded
-from area3d_perception.node import (
-    COLOR_TOPIC,
-    DEPTH_TOPIC,
-    INFO_TOPIC,
-    OUT_CONFIDENCE_TOPIC,
-    OUT_DEPTH_TOPIC,
-    POSE_TOPIC,
-    RIGHT_INFO_TOPIC,
-    RIGHT_TOPIC,
-    PerceptionNode,
+from area3d_msgs_py.topics import (
+    CAMERA_INFO,
+    COLOR,
+    DEPTH,
+    PERCEPTION_CONFIDENCE,
+    PERCEPTION_DEPTH,
+    POSE,
+    RIGHT_CAMERA_INFO,
+    RIGHT_IMAGE,
 )
+from area3d_perception.node import PerceptionNode
+
+COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, POSE_TOPIC = (
+    COLOR.name,
+    DEPTH.name,
+    CAMERA_INFO.name,
+    POSE.name,
+)
+RIGHT_TOPIC, RIGHT_INFO_TOPIC = RIGHT_IMAGE.name, RIGHT_CAMERA_INFO.name
+OUT_DEPTH_TOPIC, OUT_CONFIDENCE_TOPIC = PERCEPTION_DEPTH.name, PERCEPTION_CONFIDENCE.name
 
 H, W = 48, 64
 K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])

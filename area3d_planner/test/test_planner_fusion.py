@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
+from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
 from area3d_planner.cloud import CLOUD_DTYPE, grid_to_cloud
 from area3d_planner.fusion import FusedGrid
-from area3d_planner.visibility import look_at
 
 K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])  # 64x48 image, 90 degree hfov
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
+from area3d_msgs_py.camera_pose import look_at, look_rotation
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy
@@ -11,8 +12,6 @@ from area3d_planner.visibility import (
     VisibilityCache,
     VisibilityParams,
     lattice_positions,
-    look_at,
-    look_rotation,
     orientation_bins,
     shell_positions,
     shell_rotations,

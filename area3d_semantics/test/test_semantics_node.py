@@ -12,17 +12,8 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 
-from area3d_msgs_py import codecs, msgs, qos
-from area3d_semantics.node import (
-    COLOR_TOPIC,
-    CONFIDENCE_TOPIC,
-    DEPTH_TOPIC,
-    REGIONS_TOPIC,
-    REQUEST_TOPIC,
-    UNCERTAINTY_TOPIC,
-    WEIGHT_TOPIC,
-    SemanticsNode,
-)
+from area3d_msgs_py import codecs, msgs, qos, topics
+from area3d_semantics.node import SemanticsNode
 from area3d_semantics.weights import semantic_uncertainty, sigma_from_confidence
 
 H, W = 60, 80
@@ -40,18 +31,25 @@ class Rig:
         self.peer = rclpy.create_node("feeder", context=self.context)
         self.regions, self.weights, self.usem = [], {}, {}
         self.peer.create_subscription(
-            msgs.String, REGIONS_TOPIC, self.regions.append, qos.latched(qos.DEFAULT_DEPTH)
+            msgs.String,
+            topics.SEMANTIC_REGIONS.name,
+            self.regions.append,
+            qos.latched(qos.DEFAULT_DEPTH),
         )
         self.peer.create_subscription(
-            msgs.Image, WEIGHT_TOPIC, self._store(self.weights), qos.reliable(64)
+            msgs.Image, topics.SEMANTIC_WEIGHT.name, self._store(self.weights), qos.reliable(64)
         )
         self.peer.create_subscription(
-            msgs.Image, UNCERTAINTY_TOPIC, self._store(self.usem), qos.reliable(64)
+            msgs.Image, topics.SEMANTIC_UNCERTAINTY.name, self._store(self.usem), qos.reliable(64)
         )
-        self.color = self.peer.create_publisher(msgs.Image, COLOR_TOPIC, qos.reliable(64))
-        self.depth = self.peer.create_publisher(msgs.Image, DEPTH_TOPIC, qos.reliable(64))
-        self.conf = self.peer.create_publisher(msgs.Image, CONFIDENCE_TOPIC, qos.graph_frames(64))
-        self.request = self.peer.create_publisher(msgs.String, REQUEST_TOPIC, qos.reliable())
+        self.color = self.peer.create_publisher(msgs.Image, topics.COLOR.name, qos.reliable(64))
+        self.depth = self.peer.create_publisher(msgs.Image, topics.DEPTH.name, qos.reliable(64))
+        self.conf = self.peer.create_publisher(
+            msgs.Image, topics.PERCEPTION_CONFIDENCE.name, qos.graph_frames(64)
+        )
+        self.request = self.peer.create_publisher(
+            msgs.String, topics.SEMANTIC_REQUEST.name, qos.reliable()
+        )
         self.executor = MultiThreadedExecutor(context=self.context)
         self.executor.add_node(self.semantics)
         self.executor.add_node(self.peer)
@@ -214,7 +212,7 @@ def test_requests_arriving_while_a_query_runs_are_answered_by_one_more_query():
         assert rig.spin(lambda: len(rig.semantics.views.complete) == 3)
         rig.request.publish(msgs.String(data="second"))
         rig.request.publish(msgs.String(data="third"))
-        assert rig.spin(lambda: rig.semantics._pending_request)
+        assert rig.spin(lambda: rig.semantics.worker.pending)
         held.release.set()
         assert rig.spin(lambda: len(rig.regions) >= 3)
         rig.spin(lambda: False, 1.0)

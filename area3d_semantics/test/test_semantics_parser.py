@@ -1,6 +1,7 @@
 """The answer parser against hand-written answers in the styles real VLMs produce."""
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -8,7 +9,8 @@ import pytest
 from area3d_msgs_py.errors import InputError
 from area3d_semantics.parser import UnusableAnswer, parse_answer, parse_location
 from area3d_semantics.prompt import PROMPT_VERSION, prompt_text
-from area3d_semantics.region import COLUMNS, ROWS, TYPES
+from area3d_semantics.region import COLUMNS, PRIORITIES, ROWS, SIZES, TYPES
+from area3d_semantics.weights import SemanticParams
 
 CORPUS = Path(__file__).parent / "corpus"
 EXPECTED = json.loads((CORPUS / "expected.json").read_text())
@@ -71,13 +73,52 @@ def test_location_phrases_name_the_expected_cells(text, cells):
     assert parse_location(text) == cells
 
 
-def test_the_prompt_names_every_grid_word_type_and_the_line_format():
+def _listed(text: str, after: str) -> list[str]:
+    """The comma-separated words of the prompt line that starts with `after`."""
+    line = next(line for line in text.splitlines() if line.startswith(after))
+    return [w.strip(" .") for w in line[len(after) :].split(",")]
+
+
+def _headed(text: str, heading: str) -> list[str]:
+    """The WORD of every "WORD:" in the section under `heading`, in order."""
+    section = text.split(f"\n{heading}")[1].split("\n\n")[0]
+    return re.findall(r"(?:^|\. |\n)([A-Za-z]+):", section)
+
+
+def test_the_prompts_vocabulary_is_the_parsers_in_the_same_order():
+    """Order matters: a column listed out of order puts every mask in the wrong place, and the
+    types are listed by importance, as their weights rank them."""
     text = prompt_text(4)
-    assert PROMPT_VERSION == "v1"
-    for word in (*COLUMNS, *ROWS, *TYPES, "HIGH", "MEDIUM", "LOW", "small", "medium", "large"):
-        assert word in text
-    assert "REGION: <cell> | TYPE: <type> | PRIORITY: <priority> | SIZE: <size> | REASON:" in text
-    assert "5 to 8" in text and "1 to 4" in text
+    assert PROMPT_VERSION == "v1" and "4 images" in text and "1 to 4" in text
+    assert _listed(text, "Columns, from left to right:") == list(COLUMNS)
+    assert _listed(text, "Rows, from top to bottom:") == list(ROWS)
+    assert _headed(text, "TYPES") == list(TYPES)
+    assert _headed(text, "PRIORITY") == list(PRIORITIES)
+    assert _headed(text, "SIZE") == list(SIZES)
+    alpha = SemanticParams().alpha
+    assert [alpha[t] for t in TYPES] == sorted((alpha[t] for t in TYPES), reverse=True)
+
+
+def test_an_answer_in_the_prompts_format_parses_to_exactly_its_regions():
+    """Every cell, type, priority and size the prompt offers, written in its line format, comes
+    back from the parser as that region of that image."""
+    text = prompt_text(2)
+    form = next(line for line in text.splitlines() if line.startswith("REGION: <cell>"))
+    cells = [f"{c}-{r}" for c in _listed(text, "Columns, from left to right:") for r in ROWS]
+    types, priorities, sizes = (_headed(text, h) for h in ("TYPES", "PRIORITY", "SIZE"))
+    wanted = []
+    lines = []
+    for image in (1, 2):  # 6 regions each (the prompt asks for 5 to 8): all 12 cells
+        lines.append(f"IMAGE {image}")
+        for n, cell in enumerate(cells[6 * (image - 1) : 6 * image], start=6 * (image - 1)):
+            chosen = (cell, types[n % 5], priorities[n % 3], sizes[(n // 3) % 3])
+            wanted.append((image - 1, *chosen))
+            values = dict(zip(("<cell>", "<type>", "<priority>", "<size>"), chosen, strict=True))
+            line = re.sub(r"<[a-z]+>", lambda m, v=values: v.get(m.group(0), m.group(0)), form)
+            lines.append(line.split("| REASON:")[0] + "| REASON: a view from the side.")
+    result = parse_answer("\n".join(lines), 2)
+    got = [(r.image_index, r.location, r.type, r.priority, r.size) for r in result.regions]
+    assert got == wanted
 
 
 def test_the_prompts_own_example_parses():

@@ -60,25 +60,35 @@ def test_without_dilation_the_mask_stops_at_the_cell_edge():
     assert mask[:, 161:].max() == 0.0 and mask[161:, :].max() == 0.0
 
 
-def test_high_priority_outweighs_low_by_the_beta_ratio_before_normalisation():
+def test_the_default_tables_are_the_papers_and_the_prompts_ranking():
     params = SemanticParams()
+    # paper, supplement Table 6
+    assert params.beta == {"HIGH": 3.0, "MEDIUM": 1.5, "LOW": 0.5}
+    assert params.s == {"small": 0.8, "medium": 1.0, "large": 1.2}
+    assert params.lam == 1.0
+    # not published: the prompt's order, most important first, never rising
+    alpha = [params.alpha[t] for t in ("OCCLUSION", "GEOMETRIC", "LIGHTING", "BOUNDARY", "TEXTURE")]
+    assert alpha == [1.0, 1.0, 0.6, 0.6, 0.3]
+
+
+def test_high_priority_outweighs_low_by_the_beta_ratio_before_normalisation():
+    params = SemanticParams.from_flat({"beta_high": 4.0, "beta_low": 0.25})
     high = region("left", "top", priority="HIGH")
     low = region("right", "bottom", priority="LOW")
     raw = weight_map([high, low], H, W, params, normalise=False)
-    ratio = raw[80, 80] / raw[400, 560]
-    assert ratio == pytest.approx(params.beta["HIGH"] / params.beta["LOW"], rel=1e-3)
-    assert ratio == pytest.approx(3.0 / 0.5, rel=1e-3)
+    assert raw[80, 80] / raw[400, 560] == pytest.approx(4.0 / 0.25, rel=1e-3)
 
 
-def test_weights_follow_the_type_and_size_tables():
-    params = SemanticParams()
+def test_weights_are_the_product_of_the_type_priority_and_size_weights():
+    params = SemanticParams.from_flat(
+        {"alpha_occlusion": 2.0, "alpha_texture": 0.5, "s_large": 1.5, "s_small": 0.25}
+    )
     occ = region("left", "top", type_="OCCLUSION", size="large")
     tex = region("right", "bottom", type_="TEXTURE", size="small")
     raw = weight_map([occ, tex], H, W, params, normalise=False)
-    expected = (params.alpha["OCCLUSION"] * params.s["large"]) / (
-        params.alpha["TEXTURE"] * params.s["small"]
-    )
-    assert raw[80, 80] / raw[400, 560] == pytest.approx(expected, rel=1e-3)
+    # peak of a mask is 1: the raw map there is alpha * beta * s (beta HIGH = 3 for both)
+    assert raw[80, 80] == pytest.approx(2.0 * 3.0 * 1.5, rel=1e-3)
+    assert raw[400, 560] == pytest.approx(0.5 * 3.0 * 0.25, rel=1e-3)
 
 
 def test_normalised_weight_map_has_max_one_and_overlaps_add():
@@ -89,11 +99,8 @@ def test_normalised_weight_map_has_max_one_and_overlaps_add():
     assert w.dtype == np.float32 and w.shape == (H, W)
     assert w.max() == pytest.approx(1.0) and w.min() >= 0.0
     assert w[240, 240] == pytest.approx(1.0)
-    params = SemanticParams()
-    both = 2 * params.alpha["OCCLUSION"] * params.beta["HIGH"]
-    assert w[80, 560] == pytest.approx(
-        params.alpha["TEXTURE"] * params.beta["LOW"] / both, rel=1e-3
-    )
+    # the two overlapping regions add up: 2 x (1.0 x 3.0); the texture region alone: 0.3 x 0.5
+    assert w[80, 560] == pytest.approx(0.3 * 0.5 / (2 * 1.0 * 3.0), rel=1e-3)
 
 
 def test_no_regions_give_an_all_zero_map():

@@ -5,6 +5,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import pytest
 
 from area3d_perception.sensor_model import RgbdSensorParams, axial_sigma
 from sim_bridge.camera import SimCamera, link_from_optical, right_from_left
+from sim_bridge.node import READER_TOPICS
 from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import load_scene
 
@@ -108,53 +110,92 @@ def test_the_camera_adds_read_noise_to_each_image_of_a_stereo_pair():
         SimCamera(scene, image_noise=-1.0)
 
 
-def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
-    from area3d_msgs_py import codecs, msgs, qos
-    from area3d_msgs_py.probe import Probe
-
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "sim_bridge.node",
-            "--ros-args",
-            "-p",
-            "scene:=single_object",
-            "-p",
-            "width:=160",
-            "-p",
-            "height:=120",
-            "-p",
-            "readers.all:=[sim_bridge_probe]",
-            "-p",
-            "readers.color:=[sim_bridge_probe]",
-            "-p",
-            "readers.depth:=[sim_bridge_probe]",
-            "-p",
-            "readers.camera_info:=[sim_bridge_probe]",
-            "-p",
-            "readers.pose:=[sim_bridge_probe]",
-            "-p",
-            "noise_seed:=5",
-        ],
+def _start_node() -> subprocess.Popen:
+    """The sim_bridge node as a process of its own, waiting for the probe below as its reader."""
+    readers = [f"readers.{key}:=[sim_bridge_probe]" for key in READER_TOPICS if "right" not in key]
+    args = ["scene:=single_object", "width:=160", "height:=120", "readers.all:=[sim_bridge_probe]"]
+    args.append("noise_seed:=5")
+    return subprocess.Popen(
+        [sys.executable, "-m", "sim_bridge.node", "--ros-args"]
+        + [arg for pair in (("-p", a) for a in args + readers) for arg in pair],
         env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)),
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
     )
-    probe = Probe("sim_bridge_probe")
-    topics = {
-        "status": (msgs.String, "area3d/camera/status"),
-        "color": (msgs.Image, "area3d/camera/color/image_raw"),
-        "depth": (msgs.Image, "area3d/camera/depth/image_raw"),
-        "info": (msgs.CameraInfo, "area3d/camera/camera_info"),
-        "pose": (msgs.PoseStamped, "area3d/camera/pose"),
-    }
-    got = {key: probe.listen(msg_type, topic) for key, (msg_type, topic) in topics.items()}
+
+
+def _stop_node(proc: subprocess.Popen) -> str:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        output, _ = proc.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        output, _ = proc.communicate()
+    return output
+
+
+def _check_frame(got: dict, stamp: int, scene, T: np.ndarray) -> None:
+    """The frame published for `stamp` is the scene rendered at T, with its intrinsics and TF."""
+    from area3d_msgs_py import codecs, msgs
+
+    def of_stamp(key):
+        return next(m for m in got[key] if codecs.stamp_to_ns(m.header.stamp) == stamp)
+
+    color, depth, info, pose = (of_stamp(k) for k in ("color", "depth", "info", "pose"))
+    assert color.encoding == "rgb8" and depth.encoding == "32FC1"
+    assert color.header.frame_id == depth.header.frame_id == "camera_optical_frame"
+    with RgbdRenderer(scene, width=160, height=120) as renderer:
+        rgb_ref, depth_ref = renderer.render(T)
+    # depth and colour carry the camera's noise (on by default: depth noise and 1 grey level of
+    # read noise), drawn from noise_seed: the same camera core at the pose the node received
+    # gives the same images (this node captured nothing before this frame)
+    twin = SimCamera(scene, width=160, height=120, depth_noise=True, seed=5, image_noise=1.0)
+    try:
+        expected = twin.capture(codecs.pose_to_matrix(pose.pose))
+    finally:
+        twin.close()
+    published = codecs.msg_to_image(depth)
+    np.testing.assert_array_equal(published, expected.depth)
+    np.testing.assert_array_equal(codecs.msg_to_image(color), expected.rgb)
+    assert not np.allclose(published, depth_ref, equal_nan=True)
+    # the exact rendering up to the read noise and the rasterisation of a pose that went through
+    # a quaternion and back
+    diff = np.abs(codecs.msg_to_image(color).astype(int) - rgb_ref.astype(int))
+    assert 0.2 < np.mean(diff) < 2.0 and np.mean(diff > 8) < 0.01
+    K, width, height = codecs.camera_info_to_intrinsics(info)
+    assert (width, height) == (160, 120) and np.allclose(K, renderer.K)
+    assert np.allclose(codecs.pose_to_matrix(pose.pose), T, atol=1e-6)
     if msgs.TFMessage is not None:
-        got["tf"] = probe.listen(msgs.TFMessage, "/tf")
-        got["tf_static"] = probe.listen(msgs.TFMessage, "/tf_static", qos.latched())
-    goal_pub = probe.publisher(msgs.PoseStamped, "area3d/camera/goal_pose")
+        tf = next(m for m in got["tf"] if codecs.stamp_to_ns(m.transforms[0].header.stamp) == stamp)
+        static = got["tf_static"][-1].transforms[0]
+        composed = codecs.transform_to_matrix(
+            tf.transforms[0].transform
+        ) @ codecs.transform_to_matrix(static.transform)
+        assert np.allclose(composed, T, atol=1e-6)
+
+
+def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
+    from area3d_msgs_py import codecs, msgs, topics
+    from area3d_msgs_py.probe import Probe
+
+    proc = _start_node()
+    probe = Probe("sim_bridge_probe")
+    keys = {
+        "status": topics.CAMERA_STATUS,
+        "color": topics.COLOR,
+        "depth": topics.DEPTH,
+        "info": topics.CAMERA_INFO,
+        "pose": topics.POSE,
+    }
+    got = {key: probe.listen(t.msg_type, t.name, t.qos()) for key, t in keys.items()}
+    if msgs.TFMessage is not None:
+        got["tf"] = probe.listen(msgs.TFMessage, topics.TF.name, topics.TF.qos())
+        got["tf_static"] = probe.listen(
+            msgs.TFMessage, topics.TF_STATIC.name, topics.TF_STATIC.qos()
+        )
+    goal_pub = probe.publisher(topics.GOAL.msg_type, topics.GOAL.name, topics.GOAL.qos())
     scene = load_scene("single_object")
     T = scene.initial_views[2]
     stamp_ok = 1_700_000_000_000_000_123
@@ -191,66 +232,84 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
             TIMEOUT_S,
         )
         by_stamp = {s["stamp_ns"]: s for s in statuses()}
-        assert (
-            by_stamp[stamp_ok + 1]["ok"] is False
-            and "orientation" in by_stamp[stamp_ok + 1]["reason"]
-        )
-        assert (
-            by_stamp[stamp_ok + 2]["ok"] is False and "geometry" in by_stamp[stamp_ok + 2]["reason"]
-        )
+        refused = by_stamp[stamp_ok + 1], by_stamp[stamp_ok + 2]
+        assert refused[0]["ok"] is False and "orientation" in refused[0]["reason"]
+        assert refused[1]["ok"] is False and "geometry" in refused[1]["reason"]
         assert proc.poll() is None  # still running after bad input
-
-        color = next(m for m in got["color"] if codecs.stamp_to_ns(m.header.stamp) == stamp_ok)
-        depth = next(m for m in got["depth"] if codecs.stamp_to_ns(m.header.stamp) == stamp_ok)
-        info = next(m for m in got["info"] if codecs.stamp_to_ns(m.header.stamp) == stamp_ok)
-        pose = next(m for m in got["pose"] if codecs.stamp_to_ns(m.header.stamp) == stamp_ok)
-        assert color.encoding == "rgb8" and depth.encoding == "32FC1"
-        assert color.header.frame_id == depth.header.frame_id == "camera_optical_frame"
-        with RgbdRenderer(scene, width=160, height=120) as renderer:
-            rgb_ref, depth_ref = renderer.render(T)
-        # depth and colour carry the camera's noise (on by default: depth noise and 1 grey level
-        # of read noise), drawn from noise_seed: the same camera core at the pose the node
-        # received gives the same images
-        received = codecs.pose_to_matrix(pose.pose)
-        twin = SimCamera(scene, width=160, height=120, depth_noise=True, seed=5, image_noise=1.0)
-        try:
-            expected = twin.capture(received)
-        finally:
-            twin.close()
-        published = codecs.msg_to_image(depth)
-        np.testing.assert_array_equal(published, expected.depth)
-        np.testing.assert_array_equal(codecs.msg_to_image(color), expected.rgb)
-        assert not np.allclose(published, depth_ref, equal_nan=True)
-        # the exact rendering up to the read noise and the rasterisation of a pose that went
-        # through a quaternion and back
-        diff = np.abs(codecs.msg_to_image(color).astype(int) - rgb_ref.astype(int))
-        assert 0.2 < np.mean(diff) < 2.0 and np.mean(diff > 8) < 0.01
-        K, width, height = codecs.camera_info_to_intrinsics(info)
-        assert (width, height) == (160, 120) and np.allclose(K, renderer.K)
-        assert np.allclose(codecs.pose_to_matrix(pose.pose), T, atol=1e-6)
-        if msgs.TFMessage is not None:
-            tf = next(
-                m for m in got["tf"] if codecs.stamp_to_ns(m.transforms[0].header.stamp) == stamp_ok
-            )
-            static = got["tf_static"][-1].transforms[0]
-            link = tf.transforms[0]
-            composed = codecs.transform_to_matrix(link.transform) @ codecs.transform_to_matrix(
-                static.transform
-            )
-            assert np.allclose(composed, T, atol=1e-6)
+        _check_frame(got, stamp_ok, scene, T)
     finally:
         probe.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-        try:
-            output, _ = proc.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            output, _ = proc.communicate()
+        output = _stop_node(proc)
     assert proc.returncode == 0, output  # a quiet, prompt exit on SIGINT
     assert "Traceback" not in output
     if msgs.TFMessage is None:  # said once, in the log
         assert output.count("tf2_msgs does not import") == 1
+
+
+def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
+    """The goal callback never sleeps: while the first frame waits for a reader that is not
+    there yet, later goals are answered; once the reader appears, the frame goes out."""
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from area3d_msgs_py import codecs, msgs, topics
+    from sim_bridge.node import SimBridgeNode
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    params = {"width": 160, "height": 120, "readers_timeout_s": 600.0}
+    params |= {f"readers.{key}": ["late_reader"] for key in ("color", "depth", "pose")}
+    params["readers.camera_info"] = ["late_reader"]
+    node = SimBridgeNode(
+        context=context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
+    )
+    feeder = rclpy.create_node("feeder", context=context)
+    statuses = []
+    feeder.create_subscription(
+        msgs.String, topics.CAMERA_STATUS.name, statuses.append, topics.CAMERA_STATUS.qos()
+    )
+    goals = feeder.create_publisher(msgs.PoseStamped, topics.GOAL.name, topics.GOAL.qos())
+    executor = MultiThreadedExecutor(context=context)
+    for n in (node, feeder):
+        executor.add_node(n)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+
+    def wait_for(condition) -> bool:
+        deadline = time.monotonic() + TIMEOUT_S
+        while not condition() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return condition()
+
+    def answered(stamp) -> list:
+        return [s for s in (json.loads(m.data) for m in statuses) if s["stamp_ns"] == stamp]
+
+    T = load_scene("single_object").initial_views[0]
+    try:
+        assert wait_for(
+            lambda: goals.get_subscription_count() and node.pub_status.get_subscription_count()
+        )
+        goals.publish(
+            msgs.PoseStamped(header=codecs.header(10, "world"), pose=codecs.matrix_to_pose(T))
+        )
+        assert wait_for(lambda: len(node.held) == 1)  # captured, held for its reader
+        bad = msgs.PoseStamped(header=codecs.header(11, "world"), pose=codecs.matrix_to_pose(T))
+        bad.pose.orientation.w = 3.0
+        goals.publish(bad)
+        assert wait_for(lambda: answered(11))  # the node went on meanwhile
+        assert not answered(10) and len(node.held) == 1
+        late = rclpy.create_node("late_reader", context=context)
+        frames = []
+        for topic in (topics.COLOR, topics.DEPTH, topics.CAMERA_INFO, topics.POSE):
+            late.create_subscription(topic.msg_type, topic.name, frames.append, topic.qos())
+        executor.add_node(late)
+        assert wait_for(lambda: answered(10) and len(frames) == 4)
+        assert answered(10)[0]["ok"] and not node.held
+    finally:
+        executor.shutdown()
+        context.try_shutdown()
+        spinner.join(10)
 
 
 def test_tf_in_the_bag_composes_to_the_optical_frame_pose():

@@ -4,9 +4,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from area3d_msgs_py.camera_pose import look_at
 from sim_bridge.render import RgbdRenderer, intrinsics
 from sim_bridge.scenes import load_scene
-from sim_bridge.views import look_at
 
 
 def ray_depth(scene, T, K, pixels_uv, max_range):

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from area3d_msgs_py.camera_pose import look_at
 from sim_bridge.scenes import load_scene
 from sim_bridge.validity import check_pose, valid_positions
-from sim_bridge.views import look_at
 
 TABLE_TOP = 0.75
 

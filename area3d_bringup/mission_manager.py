@@ -1,0 +1,488 @@
+"""The mission manager of `area3d run`: the runner's own node on the graph.
+
+It sends the camera its goals and collects each frame, records every topic of the graph into the
+bag, calls the planner's next-best-view service, replays saved frames onto the camera topics (for
+`--resume` and after a restart), and tracks the graph's readers so that it knows when a restarted
+node's new process is up. Topics: `area3d_msgs_py/topics.py`.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.node import Node
+
+from area3d_bringup.graph import GRAPH_NODES
+from area3d_bringup.launcher import Launcher, NodeDied
+from area3d_bringup.recorder import BagRecorder
+from area3d_eval.rundir import Frame
+from area3d_msgs_py import codecs, msgs, qos, topics
+from area3d_msgs_py.topics import Topic
+
+NAME = topics.MISSION_MANAGER
+TF_TYPE = "tf2_msgs/msg/TFMessage"  # written to the bag even where tf2_msgs does not import
+#: the topics the mission manager writes and graph nodes read: the goals, and the camera's
+#: topics onto which saved frames are replayed
+RUNNER_TOPICS: dict[str, Topic] = {
+    "goal": topics.GOAL,
+    "color": topics.COLOR,
+    "depth": topics.DEPTH,
+    "info": topics.CAMERA_INFO,
+    "pose": topics.POSE,
+}
+#: the parts of a captured frame (the camera's topics, read back by the mission manager too)
+CAMERA_PARTS = ("color", "depth", "info", "pose")
+# The grid is published after every fusion (in a burst, at most once a second and after the
+# last); the mission manager's reader keeps a backlog of them.
+GRID_READER_DEPTH = 100
+#: what the bag holds besides the camera topics and the goals: {topic: reader history depth}.
+#: Perception's and semantics' per-frame outputs are read transient local, as their writers
+#: publish them: a reader that the writer matches only after a frame's output went out (its
+#: discovery of this process finished late) still gets it, and the bag and the replay's count
+#: of what perception answered miss nothing.
+GRAPH_OUTPUTS: dict[Topic, int] = {
+    topics.CAMERA_STATUS: qos.FRAME_DEPTH,
+    topics.PERCEPTION_DEPTH: qos.FRAME_DEPTH,
+    topics.PERCEPTION_CONFIDENCE: qos.FRAME_DEPTH,
+    topics.SEMANTIC_REGIONS: qos.FRAME_DEPTH,
+    topics.SEMANTIC_WEIGHT: qos.FRAME_DEPTH,
+    topics.SEMANTIC_UNCERTAINTY: qos.FRAME_DEPTH,
+    topics.UNCERTAINTY_GRID: GRID_READER_DEPTH,
+    topics.NEXT_VIEWS: qos.FRAME_DEPTH,
+    topics.PLANNER_STATUS: qos.FRAME_DEPTH,
+}
+# Readers each runner topic has once the graph is up (the mission manager's own included):
+# volatile topics drop what is published before a reader has matched, so goals and replayed
+# frames wait.
+EXPECTED_READERS = {
+    key: len(topic.readers) + (key in CAMERA_PARTS) for key, topic in RUNNER_TOPICS.items()
+}
+# The runner's topics each graph node reads: once a new process of a restarted node reads them
+# all, and the runner's writers have matched every reader discovery lists, it is up (a dead
+# process's readers linger in discovery for a while, and a reader discovery lists a moment
+# before the writer has matched it would miss what is published in between).
+READS = {
+    name: tuple(key for key, topic in RUNNER_TOPICS.items() if name in topic.readers)
+    for name, _ in GRAPH_NODES
+}
+# The nodes whose restart loses fused evidence until the saved frames are replayed.
+FUSION_NODES = (topics.PERCEPTION, topics.SEMANTICS, topics.PLANNER)
+# A replayed frame that perception has not answered within this long is published again (its
+# first copy may have gone out before a restarted node's readers had matched).
+REPLAY_RESEND_S = 10.0
+# After the camera was restarted, a goal whose frame has not arrived whole is sent again this often
+# (the camera answers a repeated stamp with the same frame; the graph fuses each stamp once).
+CAPTURE_RESEND_S = 5.0
+
+
+class NodeRespawned(RuntimeError):
+    """A graph node was restarted while a step that depends on it was under way."""
+
+    def __init__(self, name: str):
+        self.name = name
+        super().__init__(f"node {name!r} was restarted")
+
+
+class MissionManager(Node):
+    """The runner's node: sends goals, collects frames, records the graph, calls the planner."""
+
+    def __init__(
+        self,
+        recorder: BagRecorder | None,
+        launcher: Launcher | None = None,
+        clock: Callable[[], int] | None = None,
+        keep_estimates: bool = False,
+        **kwargs: Any,
+    ):
+        super().__init__(NAME, **kwargs)
+        # {stamp: {"depth" | "confidence": image}} of perception's outputs, when the run keeps them
+        self.estimates: dict[int, dict[str, np.ndarray]] | None = {} if keep_estimates else None
+        self.recorder = recorder
+        self.launcher = launcher  # the graph's processes: who died, who was restarted when
+        self.acknowledged: dict[str, int] = self.respawns()  # restarts already caught up with
+        self.clock = clock or (lambda: self.get_clock().now().nanoseconds)
+        self.perceived: dict[int, int] = {}  # stamp -> perception outputs seen for it
+        self.known_readers: set[tuple] = set()
+        # Per runner topic: every reader id discovery has listed, and how many readers the
+        # writer has matched in all (a dead process's readers stay in both counts).
+        self.listed: dict[str, set[tuple]] = {}
+        self.matched_total: dict[str, int] = {}
+        self.unlisted_matches: dict[str, int] = {}  # matched before the runner first looked
+        self._lock = threading.Condition()
+        self._parts: dict[int, dict[str, Any]] = {}
+        self._status: dict[int, dict] = {}
+        self.planner_status: dict = {}
+        self.latest_grid: bytes | None = None
+        self.received: dict[str, int] = {}
+        # what graph nodes read: the goals, and the camera topics for replayed frames
+        self.runner_pubs = {
+            key: self.create_publisher(
+                topic.msg_type, topic.name, topic.qos(), event_callbacks=self._on_match(key)
+            )
+            for key, topic in RUNNER_TOPICS.items()
+        }
+        self.goal_pub = self.runner_pubs["goal"]
+        for key in CAMERA_PARTS:
+            self._listen(RUNNER_TOPICS[key], None, self._on_part(key))
+        for topic, depth in GRAPH_OUTPUTS.items():
+            self._listen(topic, depth, self._on_output(topic))
+        self.tf_from_graph = msgs.TFMessage is not None
+        if self.tf_from_graph:
+            self._listen(topics.TF, None, None)
+            self._listen(topics.TF_STATIC, None, None)
+        self.client = self.create_client(topics.NEXT_BEST_VIEW.srv_type, topics.NEXT_BEST_VIEW.name)
+
+    # -- callbacks (executor thread) ---------------------------------------------------------
+    def _on_match(self, key: str) -> PublisherEventCallbacks:
+        def matched(status) -> None:
+            with self._lock:
+                self.matched_total[key] = status.total_count
+
+        return PublisherEventCallbacks(matched=matched)
+
+    def _listen(self, topic: Topic, depth: int | None, handle) -> None:
+        """Record `topic` (read with history `depth`, None: the topic's) and pass each message to
+        `handle(msg, cdr)` under the lock."""
+        type_name = topic.type_name
+        resolved = self.resolve_topic_name(topic.name)
+
+        def callback(cdr: bytes) -> None:
+            msg = msgs.deserialize(cdr, type_name)
+            stamp = codecs.stamp_to_ns(msg.header.stamp) if hasattr(msg, "header") else 0
+            self.record(resolved, type_name, stamp, cdr)
+            with self._lock:
+                self.received[resolved] = self.received.get(resolved, 0) + 1
+                if handle is not None:
+                    handle(msg, cdr)
+                self._lock.notify_all()
+
+        self.create_subscription(topic.msg_type, topic.name, callback, topic.qos(depth), raw=True)
+
+    def record(self, topic: str, type_name: str, stamp_ns: int, cdr: bytes) -> None:
+        if self.recorder is not None:
+            stamp = stamp_ns or self.get_clock().now().nanoseconds
+            self.recorder.write(topic, type_name, stamp, cdr)
+
+    def _on_part(self, key: str) -> Callable[[Any, bytes], None]:
+        def handle(msg: Any, cdr: bytes) -> None:
+            stamp = codecs.stamp_to_ns(msg.header.stamp)
+            self._parts.setdefault(stamp, {})[key] = msg
+            if key == "pose" and not self.tf_from_graph:
+                self._record_tf(stamp, codecs.pose_to_matrix(msg.pose))
+
+        return handle
+
+    def _on_output(self, topic: Topic) -> Callable[[Any, bytes], None]:
+        def handle(msg: Any, cdr: bytes) -> None:
+            if topic in (topics.PERCEPTION_DEPTH, topics.PERCEPTION_CONFIDENCE):
+                stamp = codecs.stamp_to_ns(msg.header.stamp)
+                key = "depth" if topic == topics.PERCEPTION_DEPTH else "confidence"
+                if key == "depth":
+                    self.perceived[stamp] = self.perceived.get(stamp, 0) + 1
+                if self.estimates is not None:
+                    self.estimates.setdefault(stamp, {})[key] = codecs.msg_to_image(msg)
+            elif topic == topics.CAMERA_STATUS:
+                status = json.loads(msg.data)
+                self._status[int(status.get("stamp_ns", 0))] = status
+            elif topic == topics.PLANNER_STATUS:
+                self.planner_status = json.loads(msg.data)
+            elif topic == topics.UNCERTAINTY_GRID:
+                self.latest_grid = cdr
+
+        return handle
+
+    def _record_tf(self, stamp_ns: int, T_world_opt: np.ndarray) -> None:
+        """TF as sim_bridge would publish it, written to the bag (tf2_msgs does not import here)."""
+        from area3d_bringup.tf_bag import static_tf_cdr, tf_cdr
+
+        if self.recorder is None:
+            return
+        tf, tf_static = topics.TF.name, topics.TF_STATIC.name
+        if not self.recorder.counts.get(tf_static):
+            self.recorder.write(tf_static, TF_TYPE, stamp_ns, static_tf_cdr(stamp_ns))
+        self.recorder.write(tf, TF_TYPE, stamp_ns, tf_cdr(stamp_ns, T_world_opt))
+
+    # -- restarts -----------------------------------------------------------------------------
+    def respawns(self) -> dict[str, int]:
+        return {} if self.launcher is None else dict(self.launcher.respawns)
+
+    def alive_check(self) -> None:
+        """Raise `NodeDied` if a node of the graph has died for good."""
+        if self.launcher is not None:
+            self.launcher.check()
+
+    def check(self, *nodes: str) -> None:
+        """Raise `NodeDied` for a node dead for good, `NodeRespawned` if one of `nodes` was
+        restarted since the runner last caught up with it."""
+        self.alive_check()
+        counts = self.respawns()
+        for name in nodes:
+            if counts.get(name, 0) != self.acknowledged.get(name, 0):
+                raise NodeRespawned(name)
+
+    def restarted(self) -> list[str]:
+        """Nodes restarted since the runner last caught up with them."""
+        counts = self.respawns()
+        return [n for n, c in counts.items() if c != self.acknowledged.get(n, 0)]
+
+    def acknowledge(self, names: list[str]) -> None:
+        counts = self.respawns()
+        with self._lock:
+            for name in names:
+                self.acknowledged[name] = counts.get(name, 0)
+            if "planner" in names:
+                self.planner_status = {}  # the new planner starts from nothing
+
+    def _list(self, key: str) -> list:
+        """The readers discovery lists on the runner's topic `key` (all remembered in `listed`)."""
+        infos = self.get_subscriptions_info_by_topic(self.runner_pubs[key].topic_name)
+        self.listed.setdefault(key, set()).update(tuple(i.endpoint_gid) for i in infos)
+        return infos
+
+    def _readers(self, name: str) -> set[tuple]:
+        """(topic, reader id) of every reader `name` has on the runner's topics."""
+        return {
+            (key, tuple(info.endpoint_gid))
+            for key in READS[name]
+            for info in self._list(key)
+            if info.node_name == name
+        }
+
+    def _all_matched(self, key: str) -> bool:
+        """The writer has matched every reader ever listed on `key`. Exact where a live count
+        is not: discovery can list a new reader before the writer has matched it, and drop a
+        dead process's reader before (or after) the writer unmatches it."""
+        with self._lock:
+            matched = self.matched_total.get(key, 0) - self.unlisted_matches.get(key, 0)
+        return matched >= len(self.listed.get(key, ()))
+
+    def note_readers(self, names: list[str]) -> None:
+        """Remember the readers the graph's nodes have now (a later new one is a new process)."""
+        for name in names:
+            self.known_readers |= self._readers(name)
+        for key in self.runner_pubs:
+            self._list(key)
+            listed = len(self.listed[key])
+            with self._lock:
+                if key not in self.unlisted_matches:
+                    self.unlisted_matches[key] = max(0, self.matched_total.get(key, 0) - listed)
+
+    def _up(self, name: str) -> bool:
+        """A new process of `name` reads every topic it reads from the runner, all matched."""
+        new_on = {key for key, _ in self._readers(name) - self.known_readers}
+        return new_on == set(READS[name]) and all(self._all_matched(k) for k in READS[name])
+
+    def wait_new_readers(self, names: list[str], timeout_s: float) -> None:
+        """Wait until each restarted node reads the runner's topics from its new process."""
+        deadline = time.monotonic() + timeout_s
+        for name in names:
+            while not self._up(name):
+                if time.monotonic() > deadline:
+                    raise TimeoutError(
+                        f"restarted node {name!r} did not come up within {timeout_s:.0f} s"
+                    )
+                self.check(*READS)
+                time.sleep(0.05)
+        self.note_readers(names)
+
+    # -- episode steps (main thread) --------------------------------------------------------
+    def wait_for_readers(self, timeout_s: float) -> list[str]:
+        """Wait until the camera topics have their graph readers; the topics still short of them."""
+        pubs = self.runner_pubs
+        deadline = time.monotonic() + timeout_s
+        while True:
+            short = [
+                k for k, pub in pubs.items() if pub.get_subscription_count() < EXPECTED_READERS[k]
+            ]
+            if not short or time.monotonic() > deadline:
+                return short
+            self.alive_check()
+            time.sleep(0.05)
+
+    def capture(
+        self, T_world_cam: np.ndarray, timeout_s: float, stamp: int | None = None
+    ) -> Frame | str:
+        """Send the camera to `T_world_cam`; the frame, or the camera's reason for refusing.
+
+        `stamp` (default: now) is the capture stamp; a capture repeated after the camera restarted
+        keeps it, so if the dead camera had published the frame after all, the graph sees the same
+        frame twice (and fuses it once) rather than one view as two. Once the camera has been
+        restarted, a goal whose frame has not arrived whole is sent again every
+        `CAPTURE_RESEND_S`: a new camera process's reader can be listed a moment before the
+        runner's writer has matched it, and its writers can send the frame before they have
+        matched the runner's readers (then some parts of the frame arrive, others never)."""
+        stamp = self.clock() if stamp is None else stamp
+        goal = msgs.PoseStamped(
+            header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T_world_cam)
+        )
+        self.record(
+            self.resolve_topic_name(topics.GOAL.name), topics.GOAL.type_name, stamp,
+            msgs.serialize(goal),
+        )  # fmt: skip
+        self.goal_pub.publish(goal)
+        deadline = time.monotonic() + timeout_s
+        restarted = bool(self.respawns().get("sim_bridge"))
+        resend_at = time.monotonic() + CAPTURE_RESEND_S
+        with self._lock:
+            while True:
+                status = self._status.get(stamp)
+                if status is not None and not status.get("ok", False):
+                    return str(status.get("reason", "rejected"))
+                parts = self._parts.get(stamp, {})
+                if len(parts) == len(CAMERA_PARTS):
+                    del self._parts[stamp]
+                    break
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError(
+                        f"no frame from sim_bridge within {timeout_s:.0f} s for the goal stamped {stamp}"
+                    )
+                self._lock.wait(min(remaining, 0.1))
+                self.check("sim_bridge")  # a restarted camera never got the goal: ask again
+                if restarted and time.monotonic() > resend_at:
+                    resend_at = time.monotonic() + CAPTURE_RESEND_S
+                    self.goal_pub.publish(goal)
+        K, _, _ = codecs.camera_info_to_intrinsics(parts["info"])
+        return Frame(
+            rgb=codecs.msg_to_image(parts["color"]),
+            depth=codecs.msg_to_image(parts["depth"]),
+            K=K,
+            T_world_cam=codecs.pose_to_matrix(parts["pose"].pose),
+            stamp_ns=stamp,
+        )
+
+    def replay(self, frame: Frame) -> None:
+        """Publish a saved frame on the camera topics, as the camera did when it was captured."""
+        h, w = frame.depth.shape
+        header_args = (frame.stamp_ns, "camera_optical_frame")
+        pubs = self.runner_pubs
+        pubs["color"].publish(codecs.image_to_msg(frame.rgb, "rgb8", *header_args))
+        pubs["depth"].publish(codecs.image_to_msg(frame.depth, "32FC1", *header_args))
+        pubs["info"].publish(codecs.intrinsics_to_camera_info(frame.K, w, h, *header_args))
+        pubs["pose"].publish(
+            msgs.PoseStamped(
+                header=codecs.header(frame.stamp_ns, "world"),
+                pose=codecs.matrix_to_pose(frame.T_world_cam),
+            )
+        )
+
+    def estimates_received(self) -> dict[int, dict[str, np.ndarray]]:
+        """{stamp: {"depth", "confidence"}} of what perception has published so far."""
+        with self._lock:
+            return dict(self.estimates or {})
+
+    def wait_until(
+        self,
+        predicate: Callable[[], bool],
+        timeout_s: float,
+        interrupted_by: tuple = FUSION_NODES,
+    ) -> bool:
+        """Wait for `predicate` (lock held while it runs); a restart of `interrupted_by` raises:
+        what the wait counts on may never come without the replay that follows a restart."""
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while not predicate():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._lock.wait(min(remaining, 0.1))
+                self.check(*interrupted_by)
+        return True
+
+    def replay_all(self, frames: list[Frame], timeout_s: float, log: Callable[[str], None]) -> None:
+        """Replay saved frames so the graph knows them (after `--resume` or a restart).
+
+        One frame at a time, each waited for until perception has answered it: parts of a later
+        frame never overtake an earlier one, however far apart the saved stamps are. Then wait
+        until the planner has fused every one; if it has not within `REPLAY_RESEND_S`, replay
+        them all again (a restarted planner's reader can be listed by discovery a moment before
+        the runner's writer has matched it; the planner fuses each stamp once, so frames it
+        already has change nothing). Any restart meanwhile raises `NodeRespawned`: the caller
+        starts over."""
+        deadline = None
+        while True:
+            for i, frame in enumerate(frames):
+                self._replay_one(i, frame, timeout_s, log)
+            deadline = deadline or time.monotonic() + timeout_s
+            if self.wait_until(
+                lambda: int(self.planner_status.get("frames_fused", 0)) >= len(frames),
+                min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
+                interrupted_by=tuple(READS),
+            ):
+                return
+            fused = self.planner_status.get("frames_fused", 0)
+            if time.monotonic() >= deadline:
+                log(
+                    f"[mission_manager] the planner has fused {fused} of {len(frames)} replayed "
+                    f"frames after {timeout_s:.0f} s; going on"
+                )
+                return
+            log(
+                f"[mission_manager] the planner has fused {fused} of {len(frames)} replayed "
+                "frames; replaying them again"
+            )
+
+    def _replay_one(
+        self, index: int, frame: Frame, timeout_s: float, log: Callable[[str], None]
+    ) -> None:
+        """Replay one frame and wait until perception has answered it (publishing it again every
+        `REPLAY_RESEND_S`: its first copy may have gone out before a new reader matched)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            seen = self.perceived.get(frame.stamp_ns, 0)
+            self.replay(frame)
+            if self.wait_until(
+                lambda n=seen: self.perceived.get(frame.stamp_ns, 0) > n,
+                min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
+                interrupted_by=tuple(READS),
+            ):
+                return
+            if time.monotonic() >= deadline:
+                log(
+                    f"[mission_manager] replayed frame {index} (stamp {frame.stamp_ns}) not "
+                    f"processed by perception after {timeout_s:.0f} s; going on"
+                )
+                return
+
+    def wait_fused(self, count: int, timeout_s: float, key: str = "frames_fused") -> bool:
+        """Wait until the planner reports at least `count` fused frames (or semantic maps, by `key`)."""
+        return self.wait_until(lambda: int(self.planner_status.get(key, 0)) >= count, timeout_s)
+
+    def plan(self, current: Frame, count: int, timeout_s: float) -> list[np.ndarray]:
+        """Ask the planner for `count` views (0 = what the budget allows) from the current pose."""
+        request = msgs.GetPlan_Request(
+            start=msgs.PoseStamped(
+                header=codecs.header(current.stamp_ns, "world"),
+                pose=codecs.matrix_to_pose(current.T_world_cam),
+            ),
+            goal=msgs.PoseStamped(
+                header=codecs.header(current.stamp_ns, "world"),
+                pose=codecs.matrix_to_pose(np.eye(4)),
+            ),
+            tolerance=0.0,
+        )
+        request.goal.pose.position.x = float(count)
+        future = self.client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        deadline = time.monotonic() + timeout_s
+        # Poll so that a planner dying mid-call is noticed at once.
+        while not done.wait(0.1):
+            try:
+                self.check("planner")  # a restarted planner will never answer this call
+            except (NodeRespawned, NodeDied):
+                self.client.remove_pending_request(future)
+                raise
+            if time.monotonic() > deadline:
+                self.client.remove_pending_request(future)
+                raise TimeoutError(
+                    f"no answer from {topics.NEXT_BEST_VIEW.name} within {timeout_s:.0f} s"
+                )
+        response = future.result()
+        return [codecs.pose_to_matrix(p.pose) for p in response.plan.poses]

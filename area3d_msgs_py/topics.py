@@ -1,0 +1,231 @@
+"""The graph's topics and its service, in one table: name, type, QoS, who writes and who reads.
+
+Names are relative (a namespace moves the whole graph; `/tf` and `/tf_static` stay global, as
+ROS 2 has them). The nodes, the mission manager (`area3d run`) and the benchmarks take names, types
+and QoS from here; sim_bridge's `readers.*` defaults and the mission manager's wait for the
+graph's readers follow the `readers` listed here. The README's topic table says the same for a
+reader of the docs; the independent test clients (tests/clients) keep their own copies on
+purpose, as an outside ROS 2 program would.
+
+QoS: reliable keep-last everywhere; `Topic.qos` gives a topic's profile, with another history
+depth where a reader needs a deeper queue than the writer keeps. The camera's stream
+(`Topic.camera`) is volatile, as a camera driver publishes it; the per-frame outputs one graph
+node computes for another are transient local on both sides, so a reader whose discovery
+finishes late still gets the first frames (volatile readers such as RViz match either way).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from rclpy.qos import QoSProfile
+
+from area3d_msgs_py import msgs, qos
+
+# Graph node names, as they appear in the tables below (area3d_bringup/graph.py starts them).
+SIM_BRIDGE, PERCEPTION, SEMANTICS, PLANNER = "sim_bridge", "perception", "semantics", "planner"
+MISSION_MANAGER = "mission_manager"  # `area3d run`, or a robot's own mission manager
+ANYONE = "anyone"  # no particular writer: any program may publish it
+
+VOLATILE, TRANSIENT_LOCAL = "volatile", "transient_local"
+# The semantic maps of the initial views (15 at room level) can go out in one burst.
+SEMANTIC_DEPTH = 64
+TF_DEPTH = 100
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One topic of the graph. `readers`: the graph nodes that subscribe to it (anyone else may);
+    `camera`: part of the camera's stream (the inputs a real camera driver provides)."""
+
+    name: str  # relative, e.g. "area3d/camera/pose"
+    msg_type: Any  # the generated message class (None where it does not import: tf2_msgs)
+    writer: str
+    readers: tuple[str, ...] = ()
+    durability: str = VOLATILE
+    depth: int = qos.DEFAULT_DEPTH  # history the writer keeps
+    camera: bool = False
+    description: str = ""
+
+    def qos(self, depth: int | None = None) -> QoSProfile:
+        """The topic's QoS, for its writer and its readers; `depth` replaces the history depth
+        (a reader that falls behind in bursts keeps more)."""
+        depth = self.depth if depth is None else int(depth)
+        if self.durability == TRANSIENT_LOCAL:
+            return qos.latched(depth)
+        return qos.reliable(depth)
+
+    @property
+    def type_name(self) -> str:
+        """The ROS type name, e.g. "sensor_msgs/msg/Image"."""
+        return msgs.type_name_of(self.msg_type())
+
+
+@dataclass(frozen=True)
+class Service:
+    name: str
+    srv_type: Any
+    server: str
+    description: str = ""
+
+
+def _camera(name: str, msg_type: Any, readers: tuple[str, ...], description: str) -> Topic:
+    return Topic(
+        name, msg_type, SIM_BRIDGE, readers, depth=qos.FRAME_DEPTH, camera=True,
+        description=description,
+    )  # fmt: skip
+
+
+def _status(node: str) -> Topic:
+    return Topic(
+        f"area3d/{node}/status",
+        msgs.String,
+        node,
+        depth=qos.FRAME_DEPTH,
+        description="JSON status line: counters and rejected inputs, after a change",
+    )
+
+
+# -- the camera (sim_bridge, or a real camera driver) -------------------------------------------
+GOAL = Topic(
+    "area3d/camera/goal_pose",
+    msgs.PoseStamped,
+    MISSION_MANAGER,
+    (SIM_BRIDGE,),
+    depth=qos.FRAME_DEPTH,
+    description="where the camera goes next: optical-frame pose in `world`",
+)
+COLOR = _camera("area3d/camera/color/image_raw", msgs.Image, (PERCEPTION, SEMANTICS), "rgb8 image")
+DEPTH = _camera(
+    "area3d/camera/depth/image_raw",
+    msgs.Image,
+    (PERCEPTION, SEMANTICS),
+    "32FC1 depth along the optical axis, metres, NaN = no return",
+)
+CAMERA_INFO = _camera(
+    "area3d/camera/camera_info", msgs.CameraInfo, (PERCEPTION, PLANNER), "intrinsics"
+)
+POSE = _camera(
+    "area3d/camera/pose",
+    msgs.PoseStamped,
+    (PERCEPTION, PLANNER),
+    "optical-frame pose of each captured frame in `world`",
+)
+# The right camera of a rectified stereo pair, named as a ROS stereo camera names it
+# (stereo_image_proc: right/image_rect, right/camera_info); the left image is the colour image.
+RIGHT_IMAGE = _camera(
+    "area3d/camera/right/image_rect", msgs.Image, (PERCEPTION,), "right image of the stereo pair"
+)
+RIGHT_CAMERA_INFO = _camera(
+    "area3d/camera/right/camera_info",
+    msgs.CameraInfo,
+    (PERCEPTION,),
+    "right camera's intrinsics, P[3] = Tx = -fx B",
+)
+CAMERA_STATUS = Topic(
+    "area3d/camera/status",
+    msgs.String,
+    SIM_BRIDGE,
+    (MISSION_MANAGER,),
+    depth=qos.FRAME_DEPTH,
+    description="JSON {stamp_ns, ok, reason, rejected} per goal",
+)
+TF = Topic("/tf", msgs.TFMessage, SIM_BRIDGE, depth=TF_DEPTH, description="world -> camera_link")
+TF_STATIC = Topic(
+    "/tf_static",
+    msgs.TFMessage,
+    SIM_BRIDGE,
+    durability=TRANSIENT_LOCAL,
+    depth=1,
+    description="camera_link -> camera_optical_frame (latched)",
+)
+
+# -- perception -----------------------------------------------------------------------------
+PERCEPTION_DEPTH = Topic(
+    "area3d/perception/depth",
+    msgs.Image,
+    PERCEPTION,
+    (PLANNER,),
+    TRANSIENT_LOCAL,
+    qos.FRAME_DEPTH,
+    description="32FC1 metric depth per frame",
+)
+PERCEPTION_CONFIDENCE = Topic(
+    "area3d/perception/confidence",
+    msgs.Image,
+    PERCEPTION,
+    (PLANNER, SEMANTICS),
+    TRANSIENT_LOCAL,
+    qos.FRAME_DEPTH,
+    description="32FC1 per-pixel confidence in [0, 1]",
+)
+PERCEPTION_STATUS = _status(PERCEPTION)
+
+# -- semantics ------------------------------------------------------------------------------
+SEMANTIC_REGIONS = Topic(
+    "area3d/semantics/regions",
+    msgs.String,
+    SEMANTICS,
+    durability=TRANSIENT_LOCAL,
+    depth=1,
+    description="JSON of the parsed VLM regions (latched)",
+)
+SEMANTIC_WEIGHT = Topic(
+    "area3d/semantics/weight",
+    msgs.Image,
+    SEMANTICS,
+    durability=TRANSIENT_LOCAL,
+    depth=SEMANTIC_DEPTH,
+    description="32FC1 weight map W in [0, 1] per frame",
+)
+SEMANTIC_UNCERTAINTY = Topic(
+    "area3d/semantics/uncertainty",
+    msgs.Image,
+    SEMANTICS,
+    (PLANNER,),
+    TRANSIENT_LOCAL,
+    SEMANTIC_DEPTH,
+    description="32FC1 U_sem per frame",
+)
+SEMANTIC_REQUEST = Topic(
+    "area3d/semantics/request",
+    msgs.String,
+    ANYONE,
+    (SEMANTICS,),
+    description="any text: query the VLM again",
+)
+SEMANTICS_STATUS = _status(SEMANTICS)
+
+# -- planner --------------------------------------------------------------------------------
+UNCERTAINTY_GRID = Topic(
+    "area3d/planner/uncertainty_grid",
+    msgs.PointCloud2,
+    PLANNER,
+    durability=TRANSIENT_LOCAL,
+    depth=1,
+    description="x, y, z, uncertainty, geometric, semantic, occupancy (latched)",
+)
+NEXT_VIEWS = Topic(
+    "area3d/planner/next_views", msgs.Path, PLANNER, description="the views of the last plan"
+)
+PLANNER_STATUS = _status(PLANNER)
+NEXT_BEST_VIEW = Service(
+    "area3d/planner/next_best_view",
+    msgs.GetPlan,
+    PLANNER,
+    "start = current pose stamped with the last capture; goal.pose.position.x = views wanted",
+)
+
+#: every topic of the graph, camera first
+TOPICS: tuple[Topic, ...] = (
+    GOAL, COLOR, DEPTH, CAMERA_INFO, POSE, RIGHT_IMAGE, RIGHT_CAMERA_INFO, CAMERA_STATUS, TF,
+    TF_STATIC, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_STATUS, SEMANTIC_REGIONS,
+    SEMANTIC_WEIGHT, SEMANTIC_UNCERTAINTY, SEMANTIC_REQUEST, SEMANTICS_STATUS, UNCERTAINTY_GRID,
+    NEXT_VIEWS, PLANNER_STATUS,
+)  # fmt: skip
+
+
+def read_by(node: str, topics: tuple[Topic, ...] = TOPICS) -> tuple[Topic, ...]:
+    """The topics of `topics` that graph node `node` reads."""
+    return tuple(t for t in topics if node in t.readers)

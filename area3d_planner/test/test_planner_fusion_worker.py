@@ -1,0 +1,137 @@
+"""The planner's fusion worker without ROS: order, backlog, grid throttling, failures, stop."""
+
+import threading
+
+import numpy as np
+
+from area3d_planner.fusion_worker import FusionWorker
+
+TIMEOUT_S = 120.0  # generous: every wait ends as soon as its condition holds
+K = np.eye(3)
+
+
+class Recorder:
+    """What the worker hands back: fused frames (in order) and failures; fusion can be held."""
+
+    def __init__(self, fused_already=()):
+        self.fused, self.done, self.failed = [], [], []
+        self.fused_already = set(fused_already)
+        self.entered, self.release = threading.Event(), threading.Event()
+        self.release.set()
+        self.finished = threading.Event()
+        self.expected = None
+
+    def fuse(self, stamp, frame, K):
+        self.entered.set()
+        assert self.release.wait(TIMEOUT_S)
+        if frame == "bad":
+            raise ValueError("a frame that cannot be fused")
+        self.fused.append(stamp)
+        return stamp not in self.fused_already
+
+    def on_done(self, stamp, fused, publish_grid):
+        self.done.append((stamp, fused, publish_grid))
+        if self.expected is not None and len(self.done) + len(self.failed) >= self.expected:
+            self.finished.set()
+        return True
+
+    def on_failed(self, stamp, exc):
+        self.failed.append((stamp, type(exc).__name__))
+
+
+def worker(recorder, **kwargs):
+    return FusionWorker(recorder.fuse, recorder.on_done, recorder.on_failed, **kwargs)
+
+
+def wait_for(condition) -> bool:
+    done = threading.Event()
+    for _ in range(int(TIMEOUT_S / 0.01)):
+        if condition():
+            return True
+        done.wait(0.01)
+    return condition()
+
+
+def test_frames_are_fused_in_order_and_the_grid_follows_each_while_fusion_keeps_up():
+    rec = Recorder(fused_already={3})
+    fusion = worker(rec, now_ns=lambda: 5_000_000_000)
+    try:
+        for n, stamp in enumerate((1, 2, 3), start=1):
+            assert fusion.submit(stamp, "frame", K)
+            assert wait_for(lambda n=n: len(rec.done) == n)  # each finds no backlog
+    finally:
+        fusion.stop(TIMEOUT_S)
+    assert rec.fused == [1, 2, 3]
+    # 3 had been fused before (a repeat): it changes nothing and publishes no grid
+    assert rec.done == [(1, True, True), (2, True, True), (3, False, False)]
+    assert fusion.last_fused_age_s == (5_000_000_000 - 2) / 1e9  # the last frame really fused
+    assert fusion.last_paired_age_s == (5_000_000_000 - 2) / 1e9
+    assert fusion.last_fusion_s is not None and fusion.dropped == 0
+
+
+def test_while_frames_wait_the_grid_goes_out_once_a_period_and_once_caught_up():
+    rec = Recorder()
+    rec.release.clear()
+    rec.expected = 5
+    fusion = worker(rec, grid_period_s=1e6)
+    try:
+        assert fusion.submit(1, "frame", K)
+        assert rec.entered.wait(TIMEOUT_S)  # frame 1 in flight, the next four wait
+        for stamp in (2, 3, 4, 5):
+            assert fusion.submit(stamp, "frame", K)
+        rec.release.set()
+        assert rec.finished.wait(TIMEOUT_S)
+    finally:
+        fusion.stop(TIMEOUT_S)
+    grids = [publish for _, _, publish in rec.done]
+    # the first grid (none went out yet), none while a backlog waits, the last once caught up
+    assert grids == [True, False, False, False, True]
+
+
+def test_a_full_backlog_drops_the_frame_and_counts_it():
+    rec = Recorder()
+    rec.release.clear()
+    fusion = worker(rec, backlog=2)
+    try:
+        assert fusion.submit(1, "frame", K)
+        assert rec.entered.wait(TIMEOUT_S)  # in flight: the backlog is empty again
+        assert fusion.submit(2, "frame", K) and fusion.submit(3, "frame", K)
+        assert not fusion.submit(4, "frame", K)
+        assert fusion.dropped == 1
+        rec.expected = 3
+        rec.release.set()
+        assert rec.finished.wait(TIMEOUT_S)
+    finally:
+        fusion.stop(TIMEOUT_S)
+    assert rec.fused == [1, 2, 3]
+
+
+def test_a_frame_whose_fusion_raises_is_reported_and_the_next_is_fused():
+    rec = Recorder()
+    rec.expected = 2
+    fusion = worker(rec)
+    try:
+        assert fusion.submit(1, "bad", K) and fusion.submit(2, "frame", K)
+        assert rec.finished.wait(TIMEOUT_S)
+    finally:
+        fusion.stop(TIMEOUT_S)
+    assert rec.failed == [(1, "ValueError")]
+    assert [s for s, *_ in rec.done] == [2]
+
+
+def test_the_worker_ends_when_the_node_has_stopped_and_on_stop():
+    rec = Recorder()
+    stopped = threading.Event()
+
+    def on_done(stamp, fused, publish_grid):
+        stopped.set()
+        return False  # the node's gate is closed
+
+    fusion = FusionWorker(rec.fuse, on_done, rec.on_failed)
+    assert fusion.submit(1, "frame", K)
+    assert stopped.wait(TIMEOUT_S)
+    fusion.stop(TIMEOUT_S)
+    assert not fusion.alive
+    other = worker(Recorder())
+    other.stop(TIMEOUT_S)
+    assert not other.alive

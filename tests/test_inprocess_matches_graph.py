@@ -1,0 +1,73 @@
+"""The in-process path (`area3d bench episode --in-process`) chooses the views `area3d run`
+chooses over the node graph (four node processes), closed loop, same scene, preset and seed: in
+a room, and with depth estimated from a simulated stereo pair (reconstruction from the
+estimate). The object scene with the camera's depth is compared in test_graph_episode.py."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from area3d_bringup.episode_config import EpisodeConfig
+from area3d_bringup.inprocess import run_inprocess_episode
+from area3d_bringup.runner import run_episode
+from area3d_eval.rundir import iter_frames, read_episode, reconstruction_depth
+
+# Poses of the same view over the graph and in process: a view chosen differently is centimetres
+# and degrees away; the same view differs by the quaternion round trips (about 1e-7).
+POSE_TOLERANCE = 1e-4
+SMALL_CAMERA = {
+    "sim_bridge": {"width": 320, "height": 240},
+    "planner": {"width": 320, "height": 240},
+}
+
+
+def _both(tmp_path: Path, scene: str, budget: int, overrides: dict, depth_source: str):
+    config = EpisodeConfig(
+        scene=scene,
+        budget=budget,
+        seed=0,
+        out_dir=tmp_path,
+        run_name="graph",
+        record=False,
+        overrides=overrides,
+        depth_source=depth_source,
+    )
+    graph = run_episode(config)
+    in_process = run_inprocess_episode(
+        scene, "area3d", 0, tmp_path, budget, overrides, "in_process", depth_source
+    )
+    return graph, in_process
+
+
+def _same_views(graph: Path, in_process: Path, budget: int) -> None:
+    a, b = read_episode(graph), read_episode(in_process)
+    assert len(a.views) == budget and a.kinds() == b.kinds()
+    np.testing.assert_allclose(b.poses(), a.poses(), atol=POSE_TOLERANCE)
+
+
+def test_in_a_room_the_in_process_path_chooses_the_graphs_views(tmp_path):
+    graph, in_process = _both(tmp_path, "living_room", 17, SMALL_CAMERA, "sensor")
+    _same_views(graph, in_process, 17)  # 15 initial views, 2 planned
+
+
+def test_with_estimated_stereo_depth_both_paths_choose_the_same_views_and_keep_the_estimate(
+    tmp_path,
+):
+    overrides = {**SMALL_CAMERA, "perception": {"backend": "stereo"}}
+    graph, in_process = _both(tmp_path, "single_object", 6, overrides, "estimated")
+    _same_views(graph, in_process, 6)
+    # the graph's run keeps perception's depth in every frame: the TSDF reconstructs from it,
+    # and it is what perception computes in process (renders of a pose that went through a
+    # quaternion differ in a few pixels, and stereo matching with them)
+    for frame, local in zip(iter_frames(graph), iter_frames(in_process), strict=True):
+        estimate = reconstruction_depth(frame, "estimated")
+        both = np.isfinite(estimate) & np.isfinite(frame.depth)
+        assert both.mean() > 0.3  # the simulated right image was matched
+        rel = np.abs(estimate[both] - frame.depth[both]) / frame.depth[both]
+        assert np.median(rel) < 0.05  # metric stereo depth, not the camera's copied
+        assert not np.array_equal(estimate, frame.depth)
+        assert 0.0 < np.mean(frame.confidence[both]) <= 1.0
+        same = np.isfinite(estimate) & np.isfinite(local.estimated_depth)
+        assert np.mean(np.abs(estimate[same] - local.estimated_depth[same]) < 1e-3) > 0.9
