@@ -26,10 +26,14 @@ RUN_PRESETS: dict[str, dict[str, dict]] = {
         "planner": {"policy": "area3d", "semantic_weight": 0.0},
         "semantics": {"backend": "none"},
     },
-    # the planner takes confidence 1 on whatever depth the perception backend estimates (with
-    # rgbd: what the `uniform` backend gives); perception's output and the reconstruction from it
-    # stay those of every other policy
-    "no_ff": {"planner": {"policy": "area3d", "uniform_confidence": True}},
+    # no feed-forward confidence in planning: the planner takes confidence 1 on whatever depth
+    # the perception backend estimates (with rgbd: what the `uniform` backend gives) and U_sem's
+    # sigma is constant; perception's output and the reconstruction from it stay those of every
+    # other policy
+    "no_ff": {
+        "planner": {"policy": "area3d", "uniform_confidence": True},
+        "semantics": {"sigma_source": "constant"},
+    },
     # no global initial weight: nothing on the voxels no frame has covered (the planner's
     # unobserved_uncertainty) and no gamma on any voxel (planner README, "The ablations")
     "gamma0": {"planner": {"policy": "area3d", "gamma": 0.0, "unobserved_uncertainty": 0.0}},

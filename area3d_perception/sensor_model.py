@@ -633,12 +633,20 @@ def add_depth_noise(
     theta = np.arccos(cos)
     dist = edge_distance(edges, params.edge_radius_px)
 
+    # Every draw covers the whole image, whatever the depth holds: the noise of a pixel depends
+    # on the generator's state and the pixel only, so two renderings that differ in a few edge
+    # pixels (a pose through a quaternion and back) get the same noise everywhere else.
+    axial = rng.standard_normal(h * w, dtype=np.float32)
+    lateral = rng.standard_normal((2, h * w), dtype=np.float32)
+    edge_draw = rng.random(h * w, dtype=np.float32)
+    grazing_draw = rng.random(h * w, dtype=np.float32)
+
     out = clean.copy()
     band = np.flatnonzero(dist.ravel() <= params.edge_radius_px)
     if band.size:
         t = np.minimum(theta.ravel()[band], _MAX_THETA)
         sigma_l = params.lateral_l0_px + params.lateral_l1_px * t / (np.pi / 2 - t)
-        shift = np.rint(rng.standard_normal((2, band.size)) * sigma_l).astype(np.int64)
+        shift = np.rint(lateral[:, band] * sigma_l).astype(np.int64)
         rows = np.clip(band // w + shift[0], 0, h - 1)
         cols = np.clip(band % w + shift[1], 0, w - 1)
         out.ravel()[band] = clean[rows, cols]
@@ -647,7 +655,7 @@ def add_depth_noise(
     _add_axial_noise(
         out.reshape(-1),
         theta.reshape(-1),
-        rng.standard_normal(h * w, dtype=np.float32),
+        axial,
         params.sigma_a,
         params.sigma_b,
         params.sigma_z0,
@@ -658,12 +666,12 @@ def add_depth_noise(
     drop = np.zeros(h * w, dtype=bool)
     on_edge = np.flatnonzero(edges.ravel())
     if on_edge.size and params.edge_dropout > 0:
-        drop[on_edge[rng.random(on_edge.size) < params.edge_dropout]] = True
+        drop[on_edge[edge_draw[on_edge] < params.edge_dropout]] = True
     start, full = np.deg2rad(params.grazing_start_deg), np.deg2rad(params.grazing_full_deg)
     risky = np.flatnonzero(theta.ravel() > start)
     if risky.size:
         p_drop = np.clip((theta.ravel()[risky] - start) / (full - start), 0.0, 1.0)
-        drop[risky[rng.random(risky.size) < p_drop]] = True
+        drop[risky[grazing_draw[risky] < p_drop]] = True
     out.ravel()[drop] = np.nan
     with np.errstate(invalid="ignore"):
         out[~(out > 0) | (out > params.max_range)] = np.nan

@@ -31,13 +31,14 @@ CACHE_WAIT_S = 120.0  # a request waits at most this long for the background reb
 LEVEL_DEFAULTS = {
     # paper: gamma, T; ours: voxel, z-buffer resolution (about half a voxel's angle at the working
     # distance: 1 cm at 0.7 m, 5 cm at 2 m)
-    # and the resolution term (a pixel footprint of 1.8 mm object, 6 mm room on the surface)
+    # and the resolution term (8 x 8 pixels per voxel: a pixel footprint of 1.25 mm at object
+    # level, 6 mm at room level; chosen on the bundled scenes, planner README)
     "object": {
         "voxel_size": 0.01,
         "gamma": 0.01,
         "budget": 25,
         "face_res": 256,
-        "pixels_per_voxel": 16.0,
+        "pixels_per_voxel": 64.0,
     },
     "room": {
         "voxel_size": 0.05,
@@ -197,8 +198,9 @@ class PlannerConfig:
         0.5, "room level: spacing of the lattice of camera positions", "metres", (0.01, 10.0)
     )
     shell_scales: tuple = described(
-        (0.8, 1.0, 1.25),
-        "object level: radii of the candidate shells, times the working distance of the views",
+        (0.7, 0.85, 1.0),
+        "object level: radii of the candidate shells, times the working distance of the initial "
+        "views (no farther: depth from a camera is less precise, and colour coarser, with range)",
         check=_positive,
     )
     fan_deg: float = described(

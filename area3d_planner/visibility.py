@@ -39,7 +39,7 @@ class VisibilityParams:
 
     level: str = "object"  # "object": shells around the region; "room": lattice inside it
     # object level: shells at these multiples of the working distance around the region centre
-    shell_scales: tuple = (0.8, 1.0, 1.25)
+    shell_scales: tuple = (0.7, 0.85, 1.0)
     shell_elevations_deg: tuple = (0.0, 12.0, 25.0, 38.0, 52.0, 66.0, 80.0)
     shell_azimuth_step_deg: float = 15.0  # on the lowest ring; rings above get fewer positions
     fan_deg: float = 20.0  # orientations per shell position: at the centre, and +-fan in yaw/pitch

@@ -87,7 +87,7 @@ PARAMS = (
     MAX_STAMP_AHEAD_PARAM,
     Param(
         "sigma_source",
-        "constant",
+        "confidence",
         "backbone uncertainty sigma in U_sem (weights.SIGMA_SOURCES)",
         choices=SIGMA_SOURCES,
     ),

@@ -271,9 +271,11 @@ def semantic_uncertainty(sigma: np.ndarray, weight: np.ndarray, lam: float = 1.0
     return _modulate(np.ascontiguousarray(sigma), np.ascontiguousarray(weight), np.float32(lam))
 
 
-#: sigma of U_sem = Norm(sigma (1 + lambda W)): "constant" (1: U_sem carries the VLM's weights
-#: alone, independent of the depth backbone, so the no-feed-forward and no-VLM ablations each
-#: remove one thing) or "confidence" (1 - perception confidence, the paper's backbone sigma).
+#: sigma of U_sem = Norm(sigma (1 + lambda W)): "confidence" (1 - perception's confidence, the
+#: paper's backbone uncertainty: the VLM's weights raise what the backbone is unsure of, and a
+#: confidently reconstructed surface carries no semantic uncertainty) or "constant" (1: U_sem
+#: carries the VLM's weights alone; the no_ff preset uses it, so that no confidence reaches the
+#: planner by either field).
 SIGMA_SOURCES = ("constant", "confidence")
 
 

@@ -94,7 +94,10 @@ class SimCamera:
         self.clearance = clearance
         self.depth_noise = bool(depth_noise)
         self.sensor = sensor or RgbdSensorParams(max_range=max_range)
-        self._rng = np.random.default_rng(seed)
+        # one stream for the depth noise, one for the images: neither shifts the other
+        depth_seed, image_seed = np.random.SeedSequence(int(seed)).spawn(2)
+        self._depth_rng = np.random.default_rng(depth_seed)
+        self._image_rng = np.random.default_rng(image_seed)
         self._renderer: RgbdRenderer | None = None
 
     @property
@@ -117,7 +120,7 @@ class SimCamera:
             return Capture(False, check.reason, T)
         rgb, depth = self.renderer.render(T)
         if self.depth_noise:
-            depth = add_depth_noise(depth, self.K, self._rng, self.sensor)
+            depth = add_depth_noise(depth, self.K, self._depth_rng, self.sensor)
         rgb_right = None
         if self.stereo_baseline > 0:
             rgb_right, _ = self.renderer.render(right_from_left(T, self.stereo_baseline))
@@ -127,9 +130,8 @@ class SimCamera:
         return Capture(True, "ok", T, rgb, depth, rgb_right)
 
     def _read_noise(self, rgb: np.ndarray) -> np.ndarray:
-        noise = self._rng.standard_normal(rgb.shape, dtype=np.float32) * np.float32(
-            self.image_noise
-        )
+        noise = self._image_rng.standard_normal(rgb.shape, dtype=np.float32)
+        noise *= np.float32(self.image_noise)
         return np.clip(np.rint(rgb + noise), 0, 255).astype(np.uint8)
 
     def close(self) -> None:

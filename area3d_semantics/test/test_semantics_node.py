@@ -172,11 +172,17 @@ def test_unreachable_vlm_falls_back_and_the_node_keeps_running():
         assert payload["backend"] == "openai" and payload["fallback_used"] == "zeros"
         assert url in payload["error"]
         assert all(not rig.weights[d[0]][0].any() for d in data)
-        # the default sigma is constant (independent of perception): U_sem needs no confidence,
-        # and with zero weights it is Norm(1) = 1 everywhere
+        # the default sigma is perception's: U_sem waits for each frame's confidence, then with
+        # zero weights it is Norm(1 - confidence)
+        assert not rig.usem
+        for stamp, _, _, confidence in data:
+            rig.conf.publish(
+                codecs.image_to_msg(confidence, "32FC1", stamp, "camera_optical_frame")
+            )
         assert rig.spin(lambda: all(d[0] in rig.usem for d in data))
-        for d in data:
-            np.testing.assert_allclose(rig.usem[d[0]][0], 1.0, atol=1e-6)
+        for stamp, _, _, confidence in data:
+            sigma = 1.0 - confidence
+            np.testing.assert_allclose(rig.usem[stamp][0], sigma / sigma.max(), atol=1e-6)
     finally:
         rig.close()
 
