@@ -198,3 +198,87 @@ def test_a_room_mjcf_without_metadata_puts_every_view_inside_the_walls(tmp_path)
     assert np.all(np.abs(eyes[:, 0]) < 3.0) and np.all(np.abs(eyes[:, 1]) < 2.0)
     assert np.all((eyes[:, 2] > 0.3) & (eyes[:, 2] < 2.5))
     assert_views_valid_and_distinct(scene)
+
+
+def test_layout_of_a_shelf_against_a_wall_is_an_object_seen_from_the_open_side():
+    parts = [
+        box([-1.5, 0.0, 0.0], [1.5, 0.1, 2.4]),  # the wall
+        box([-0.6, -0.36, 0.0], [-0.58, -0.01, 1.8]),  # the shelf's sides
+        box([0.58, -0.36, 0.0], [0.6, -0.01, 1.8]),
+        box([-0.58, -0.022, 0.0], [0.58, -0.01, 1.8]),  # its back board: tall, 1.16 m long
+        *[box([-0.58, -0.36, z - 0.02], [0.58, -0.022, z]) for z in (0.1, 0.6, 1.1, 1.8)],
+        box([0.0, -0.2, 0.6], [0.1, -0.1, 0.75]),  # objects on a board and on top
+        box([-0.3, -0.15, 1.8], [-0.2, -0.05, 1.95]),
+    ]
+    lo, hi = np.array([p[0] for p in parts]), np.array([p[1] for p in parts])
+    layout = scene_layout(lo, hi, plane_z=0.0)
+    # the 3 m wall made this a room before; the shelf unit and its objects are the object now
+    assert layout["level"] == "object" and layout["support_z"] == pytest.approx(0.0)
+    assert layout["walls"] == [(1, -1.0, 0.0)] and layout["open_azimuth_deg"] == -90.0
+    assert np.allclose(layout["roi_min"], [-0.6, -0.36, -0.02])
+    assert np.allclose(layout["roi_max"], [0.6, -0.01, 1.97])  # up to 1 cm before the wall
+    assert layout["workspace_max"][1] == pytest.approx(-0.1)  # 10 cm in front of the wall
+    assert layout["workspace_min"][1] < -0.36 - 1.0  # and far out on the open side
+
+
+def test_layout_of_a_counter_in_a_corner_keeps_its_worktop_objects_off_the_walls():
+    parts = [
+        box([-1.2, 0.0, 0.0], [1.2, 0.1, 2.4]),  # north wall
+        box([1.2, -1.8, 0.0], [1.3, 0.1, 2.4]),  # east wall
+        box([0.4, -0.6, 0.0], [1.195, -0.005, 0.85]),  # cabinet
+        box([0.4, -0.63, 0.85], [1.195, -0.005, 0.88]),  # worktop
+        box([0.6, -0.3, 0.88], [0.7, -0.2, 1.0]),  # objects on it
+        box([1.1, -0.1, 0.88], [1.19, -0.05, 1.1]),
+    ]
+    lo, hi = np.array([p[0] for p in parts]), np.array([p[1] for p in parts])
+    layout = scene_layout(lo, hi, plane_z=0.0)
+    assert layout["level"] == "object" and layout["support_z"] == pytest.approx(0.88)
+    assert layout["open_azimuth_deg"] == pytest.approx(-135.0)  # the corner's diagonal
+    assert np.allclose(layout["roi_min"], [0.54, -0.36, 0.86])
+    assert np.allclose(layout["roi_max"], [1.19, -0.01, 1.12])  # the walls' faces stop it
+    assert np.allclose(layout["workspace_max"][:2], [1.1, -0.1])
+
+
+def test_layout_counts_a_backdrop_once_and_a_large_or_walled_in_footprint_stays_a_room():
+    backdrop = box([-0.6, 0.0, 0.0], [0.6, 0.05, 2.0])  # near both edges of a shallow footprint
+    thing = box([-0.1, -0.25, 0.0], [0.1, -0.15, 0.3])
+    lo, hi = np.array([backdrop[0], thing[0]]), np.array([backdrop[1], thing[1]])
+    layout = scene_layout(lo, hi, plane_z=0.0)
+    assert layout["level"] == "object" and layout["walls"] == [(1, -1.0, 0.0)]
+    assert layout["roi_max"][1] == pytest.approx(-0.15)  # the thing, not the backdrop
+    assert layout["workspace_min"][1] < -0.8 and layout["workspace_max"][1] == pytest.approx(-0.1)
+    # one wall, but the furniture in front of it spans more than ROOM_DIAGONAL: a room
+    far = box([1.6, -2.8, 0.0], [2.0, -2.4, 0.8])
+    wall = box([-2.0, 0.0, 0.0], [2.0, 0.1, 2.4])
+    lo, hi = np.array([wall[0], thing[0], far[0]]), np.array([wall[1], thing[1], far[1]])
+    assert scene_layout(lo, hi, plane_z=0.0)["level"] == "room"
+    # walls on three sides enclose a room, however small
+    west, east = box([-1.0, -1.0, 0.0], [-0.9, 0.1, 2.4]), box([0.9, -1.0, 0.0], [1.0, 0.1, 2.4])
+    north = box([-1.0, 0.0, 0.0], [1.0, 0.1, 2.4])
+    lo = np.array([west[0], east[0], north[0], thing[0]])
+    hi = np.array([west[1], east[1], north[1], thing[1]])
+    assert scene_layout(lo, hi, plane_z=0.0)["level"] == "room"
+
+
+@pytest.mark.parametrize("name", ["living_room", "office"])
+def test_bundled_rooms_derive_their_sidecar_room_from_geometry(name):
+    import mujoco
+
+    from sim_bridge.scenes import geometry_boxes
+
+    bundled = load_scene(name)  # from its sidecar
+    model = mujoco.MjModel.from_xml_path(str(bundled.mjcf_path))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    layout = scene_layout(*geometry_boxes(model, data))
+    assert layout["level"] == "room"
+    for key in ("roi_min", "roi_max", "workspace_min", "workspace_max"):
+        assert np.allclose(layout[key], getattr(bundled, key), atol=1e-9), key
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_alcove_room_workspace_is_the_interior_off_the_walls(holdout, seed):
+    scene = holdout[("alcove_room", seed)]
+    # 5 x 4 m interior, walls 2.6 m high: 0.3 m in from the walls, 0.4 to 2.0 m above the floor
+    assert np.allclose(scene.workspace_min, [-2.2, -1.7, 0.4])
+    assert np.allclose(scene.workspace_max, [2.2, 1.7, 2.0])
