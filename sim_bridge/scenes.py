@@ -559,7 +559,8 @@ def _object_views(scene: Scene, layout: dict) -> tuple[np.ndarray, np.ndarray]:
                 f"scene file {str(scene.mjcf_path)!r}: the objects' open side spans "
                 f"{int(ok.sum())} degrees, expected room for views in front of the walls"
             )
-        # the initial arc: centred on the open direction, inside the open run around it
+        # the initial arc: centred on the open direction, at most over the middle half of the
+        # open run around it (its ends stay for the agent to find)
         back = np.flatnonzero(~ok[:180])  # az[179] and az[180] are 0.5 degrees either side
         ahead = np.flatnonzero(~ok[180:])
         run = (
@@ -567,8 +568,8 @@ def _object_views(scene: Scene, layout: dict) -> tuple[np.ndarray, np.ndarray]:
             az[180 + ahead.min() - 1] if len(ahead) else az[-1],
         )
         arc = (
-            max(-DERIVED_ARC_DEG / 2, run[0] - open_az + 5.0),
-            min(DERIVED_ARC_DEG / 2, run[1] - open_az - 5.0),
+            max(-DERIVED_ARC_DEG / 2, (run[0] - open_az) / 2),
+            min(DERIVED_ARC_DEG / 2, (run[1] - open_az) / 2),
         )
         allowed = az[ok]
         held_az = np.concatenate(
