@@ -15,7 +15,8 @@ from sim_bridge.validity import check_pose
 
 
 @pytest.mark.parametrize(
-    ("kind", "level", "budget"), [("tabletop", "object", 7), ("alcove_room", "room", 17)]
+    ("kind", "level", "budget"),
+    [("tabletop", "object", 7), ("alcove_room", "room", 17), ("shelf_wall", "object", 7)],
 )
 def test_a_generated_scene_without_metadata_is_planned_with_the_map_alone(
     tmp_path, kind, level, budget
