@@ -305,7 +305,9 @@ def bench_episode(
         "", "--scenes", help="comma list of names or MJCF paths (default: every bundled scene)"
     ),
     holdout: bool = typer.Option(
-        True, help="also generate and run the hold-out scenes (tabletop, alcove room)"
+        True,
+        help="also generate and run the hold-out scenes (tabletop, alcove room, shelf against a "
+        "wall, thin objects; seed 0 of each)",
     ),
     budget: int = typer.Option(
         None, help="view budget T per episode, O_0 included (default: the paper's, 25 / 40)"

@@ -24,6 +24,7 @@ from area3d_eval.rundir import (
     read_episode,
     read_grid,
     read_metrics,
+    scene_name,
 )
 from area3d_perception.backproject import depth_to_world
 
@@ -70,6 +71,7 @@ class RunRecord:
     episode: Episode
     metrics: dict[str, Any]
     label: str = ""
+    scene: str = ""  # the scene's name in titles and tables (`_scene_names`)
     figures: dict[str, Path] = field(default_factory=dict)
 
 
@@ -93,29 +95,53 @@ def load_runs(run_dirs: Sequence[Path], evaluate_missing: bool = True) -> list[R
             metrics = read_metrics(run_dir)
         episode = read_episode(run_dir)
         records.append(RunRecord(run_dir, episode, metrics))
+    names = _scene_names([r.episode for r in records])
     seen: dict[str, int] = defaultdict(int)
     for r in records:
-        base = f"{r.episode.scene} / {r.episode.policy} / seed {r.episode.seed}"
+        r.scene = names[r.episode.scene]
+        base = f"{r.scene} / {r.episode.policy} / seed {r.episode.seed}"
         seen[base] += 1
         r.label = base if seen[base] == 1 else f"{base} ({r.path.name})"
     return records
 
 
+def _scene_names(episodes: Sequence[Episode]) -> dict[str, str]:
+    """{episode.json "scene": its name in titles and tables}: the bundled name or the MJCF file's
+    stem (`rundir.scene_name`); two scene files of one stem in different folders are told apart by
+    their folder's name ("scene (clutter7_a)"), never by a path."""
+    scenes = sorted({e.scene for e in episodes})
+    stems = defaultdict(list)
+    for scene in scenes:
+        stems[scene_name(scene)].append(scene)
+    names = {}
+    for stem, same in stems.items():
+        for scene in same:
+            names[scene] = stem if len(same) == 1 else f"{stem} ({Path(scene).parent.name})"
+    return names
+
+
 def aggregate(
     run_dirs: Sequence[Path] | Sequence[RunRecord], evaluate_missing: bool = False
 ) -> list[dict[str, Any]]:
-    """Table rows, one per (scene, policy): {"scene", "policy", "runs", METRIC: mean, METRIC_std: std}
-    over the final metrics of its runs (NaN / inf values are left out of the mean; all-undefined
-    gives NaN). Sorted by scene then policy."""
+    """Table rows, one per (scene, policy): {"scene" (episode.json's: a name or an MJCF path),
+    "scene_name" (for titles and tables), "policy", "runs", METRIC: mean, METRIC_std: std} over the
+    final metrics of its runs (NaN / inf values are left out of the mean; all-undefined gives
+    NaN). Sorted by scene then policy."""
     records = [r if isinstance(r, RunRecord) else None for r in run_dirs]
     if any(r is None for r in records):
         records = load_runs([Path(p) for p in run_dirs], evaluate_missing)
     groups: dict[tuple[str, str], list[RunRecord]] = defaultdict(list)
     for r in records:
         groups[(r.episode.scene, r.episode.policy)].append(r)
+    names = _scene_names([r.episode for r in records])
     rows = []
     for (scene, policy), runs in sorted(groups.items()):
-        row: dict[str, Any] = {"scene": scene, "policy": policy, "runs": len(runs)}
+        row: dict[str, Any] = {
+            "scene": scene,
+            "scene_name": names[scene],
+            "policy": policy,
+            "runs": len(runs),
+        }
         for key, *_ in TABLE_METRICS + WHOLE_IMAGE_METRICS:
             values = np.array([_value(r.metrics.get("final", {}).get(key)) for r in runs])
             values = values[np.isfinite(values)]
@@ -138,8 +164,10 @@ def _table(
     rows: list[dict[str, Any]],
     metrics: tuple[tuple[str, str, bool, float, str], ...] = TABLE_METRICS,
 ) -> tuple[list[str], list[str], list[list[str]], list[list[bool]]]:
-    """(scenes, policies, cells[policy][scene x metric], bold[policy][...]) of the paper-style table."""
+    """(scene names, policies, cells[policy][scene x metric], bold[policy][...]) of the
+    paper-style table."""
     scenes = sorted({r["scene"] for r in rows})
+    names = {r["scene"]: r["scene_name"] for r in rows}
     policies = sorted({r["policy"] for r in rows})
     index = {(r["scene"], r["policy"]): r for r in rows}
     cells, bold = [], []
@@ -167,17 +195,17 @@ def _table(
                 )
         cells.append(row_cells)
         bold.append(row_bold)
-    return scenes, policies, cells, bold
+    return [names[s] for s in scenes], policies, cells, bold
 
 
 def _figures(
     records: list[RunRecord], fig_dir: Path
 ) -> tuple[dict[str, dict[str, Path]], Path | None]:
-    """Draw every figure; returns ({scene: {metric: png}}, timing png)."""
+    """Draw every figure; returns ({scene name: {metric: png}}, timing png)."""
     curves: dict[str, dict[str, dict[str, list]]] = defaultdict(lambda: defaultdict(dict))
     by_scene: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     for r in records:
-        by_scene[r.episode.scene][r.episode.policy].append(r.metrics.get("curve", []))
+        by_scene[r.scene][r.episode.policy].append(r.metrics.get("curve", []))
     for scene, policies in by_scene.items():
         for metric in CURVE_METRICS:
             curves[scene][metric] = plots.plot_metric_curves(
@@ -187,7 +215,7 @@ def _figures(
                 title=f"{scene}: {metric}",
             )
     for i, r in enumerate(records):
-        stem = f"run{i:02d}_{_slug(r.episode.scene)}_{_slug(r.episode.policy)}_s{r.episode.seed}"
+        stem = f"run{i:02d}_{_slug(r.scene)}_{_slug(r.episode.policy)}_s{r.episode.seed}"
         points = _scene_points(r)
         roi = _roi(r)
         r.figures["views"] = plots.plot_views(
@@ -299,7 +327,7 @@ def _markdown(
     lines += [
         "",
         f"Runs: {len(records)}. Thresholds tau: "
-        + ", ".join(sorted({f"{r.episode.scene} {r.metrics.get('tau')} m" for r in records}))
+        + ", ".join(sorted({f"{r.scene} {r.metrics.get('tau')} m" for r in records}))
         + ".",
         "",
     ]

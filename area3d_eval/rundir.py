@@ -96,6 +96,11 @@ class Episode:
     depth_source: str = "sensor"
 
     @property
+    def scene_name(self) -> str:
+        """The scene as titles and tables name it (`scene_name`)."""
+        return scene_name(self.scene)
+
+    @property
     def num_initial(self) -> int:
         return sum(1 for v in self.views if v.get("kind") == "initial")
 
@@ -107,6 +112,14 @@ class Episode:
 
     def kinds(self) -> list[str]:
         return [str(v.get("kind", "planned")) for v in self.views]
+
+
+def scene_name(scene: str) -> str:
+    """How titles and tables name the scene of episode.json's "scene" field: a bundled scene by its
+    name, a scene given as an MJCF path by the file's stem (never the path, which stays in
+    episode.json for loading the scene again)."""
+    text = str(scene)
+    return Path(text).stem if "/" in text or text.endswith(".xml") else text
 
 
 def read_episode(run_dir: Path) -> Episode:

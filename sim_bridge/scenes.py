@@ -38,7 +38,13 @@ WALL_MIN_LENGTH = 1.0
 # A wall bounds the footprint on a side when it stands within this distance of that edge.
 WALL_EDGE_TOLERANCE = 0.3
 # Walls on at least this many of the footprint's four sides enclose a room, whatever its size.
+# Walls on fewer sides (a wall, a backdrop, a corner) stand beside an object scene, which is seen
+# from its open side: the ROI stops this far before a wall face, the workspace this far.
 ENCLOSING_SIDES = 3
+WALL_ROI_GAP = 0.01
+WALL_CAMERA_GAP = 0.1
+# The footprint's sides and the inward normal of a wall on each: (axis, sign) into the scene.
+WALL_NORMALS = {"west": (0, 1.0), "east": (0, -1.0), "south": (1, 1.0), "north": (1, -1.0)}
 # A slab (floor, table top, shelf board, ceiling) is a geom at most this thick.
 SLAB_MAX_THICKNESS = 0.12
 # A floor or ceiling slab covers at least this share of the footprint.
@@ -47,11 +53,20 @@ FLOOR_MIN_SHARE = 0.5
 # "large" when its area is at least this share of the largest slab's.
 SUPPORT_MIN_AREA = 0.09
 SUPPORT_SHARE = 0.5
+# Large slabs that overlap in plan (by half the smaller one's area) at least this far apart in
+# height are the boards of one shelf unit, not a table top: the unit stands on the floor.
+SHELF_BOARD_GAP = 0.1
+# A slab is no support when something standing beside it on a lower surface rises more than this
+# above its top (a stool next to a floor lamp): it is one piece of furniture among others.
+SUPPORT_OVERTOP = 0.1
 # Metres of support surface around the objects that belong to the ROI (the bundled scenes' rim).
 ROI_RIM = 0.06
 # Workspace of a derived scene: ROI grown by this margin (objects) or the interior shrunk by it
 # (rooms: the camera stays off the walls), metres.
 DERIVED_MARGIN = {"object": 0.6, "room": 0.3}
+# A tall object region (a shelf unit, a floor lamp): its views stand back this many times its
+# height (a 74 degree vertical field of view spans most of it), and its workspace reaches as far.
+VIEW_HEIGHT_REACH = 0.75
 # Room cameras stay between these heights above the floor (a mobile robot's reach), and this far
 # below the ceiling or the wall tops.
 ROOM_CAMERA_HEIGHT = (0.4, 2.0)
@@ -60,8 +75,8 @@ ROOM_TOP_CLEARANCE = 0.3
 ROOM_ROI_TOP_SLACK = 0.1
 # Derived views keep at least this distance from every surface (more than the pose check asks).
 DERIVED_VIEW_CLEARANCE = {"object": 0.1, "room": 0.4}
-# Initial views of a derived object scene span this arc on the -y side, degrees: the far side
-# stays unseen.
+# Initial views of a derived object scene span this arc on its open side (-y without walls),
+# degrees: the far side stays unseen.
 DERIVED_ARC_DEG = 90.0
 # Room views look this far down, degrees, along the heading with the most free space ahead.
 ROOM_VIEW_PITCH_DEG = (20.0, 12.0, 30.0)
@@ -176,13 +191,14 @@ def scene_to_json(scene: Scene) -> str:
 def derive_scene(path: Path, name: str | None = None) -> Scene:
     """Metadata for an MJCF file that has none, from its geometry (rules in sim_bridge/README.md).
 
-    Fills every `Scene` field: `level` ("room" when the scene is enclosed by walls or its footprint
-    is large, else "object"), `roi_min/max` (object level: the objects on the highest large support
-    surface plus a rim of that surface; room level: the interior inside the walls), workspace
-    (object level: the ROI grown by a margin, above the support; room level: the interior shrunk by
-    a margin, at robot heights), `initial_views` (4 on an arc on the -y side / 15 spread inside the
-    room) and `eval_views` (rings all around / spread inside the room), every view clear of
-    geometry, plus `gamma` and `tau` of the level.
+    Fills every `Scene` field: `level` ("room" when walls enclose the scene on 3 or 4 sides or its
+    footprint, walls beside it left out, is large, else "object"), `roi_min/max` (object level: the
+    objects on the highest large support surface plus a rim of that surface, up to the faces of
+    the walls beside them; room level: the interior inside the walls), workspace (object level: the
+    ROI grown by a margin, above the support, in front of the walls; room level: the interior
+    shrunk by a margin, at robot heights), `initial_views` (4 on an arc on the open side / 15
+    spread inside the room) and `eval_views` (rings all around or over the open side / spread
+    inside the room), every view clear of geometry, plus `gamma` and `tau` of the level.
     """
     scene = Scene(
         name=name or path.stem,
@@ -203,14 +219,11 @@ def derive_scene(path: Path, name: str | None = None) -> Scene:
         raise ValueError(
             f"scene file {str(path)!r}: MuJoCo could not load it: {err}".strip()
         ) from err
-    ids = solid_geom_ids(model)
-    if len(ids) == 0:
+    if len(solid_geom_ids(model)) == 0:
         raise ValueError(
             f"scene file {str(path)!r}: no solid geoms, expected at least one visible geom that is not a plane"
         )
-    boxes = np.array([m.bounds for m in geom_meshes(model, data, ids)])
-    planes = [p[2] for p, n in ground_planes(model, data) if n[2] > 0.9]
-    layout = scene_layout(boxes[:, 0], boxes[:, 1], max(planes) if planes else None)
+    layout = scene_layout(*geometry_boxes(model, data))
     level = layout["level"]
     scene.level = level
     scene.gamma, scene.tau = GAMMA[level], TAU[level]
@@ -224,13 +237,25 @@ def derive_scene(path: Path, name: str | None = None) -> Scene:
     return scene
 
 
+def geometry_boxes(
+    model: mujoco.MjModel, data: mujoco.MjData
+) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """What `scene_layout` reads of a model (`data` after mj_forward): (lo, hi) (G, 3) world
+    bounding boxes of its solid geoms and the height of its highest upward ground plane, if any."""
+    boxes = np.array([m.bounds for m in geom_meshes(model, data, solid_geom_ids(model))])
+    planes = [p[2] for p, n in ground_planes(model, data) if n[2] > 0.9]
+    return boxes[:, 0], boxes[:, 1], max(planes) if planes else None
+
+
 def scene_layout(lo: np.ndarray, hi: np.ndarray, plane_z: float | None = None) -> dict:
     """Level, ROI and workspace of a scene from its solid geoms' world bounding boxes.
 
     lo, hi: (G, 3) corners of each geom's axis-aligned box, metres; plane_z: height of the highest
     upward ground plane, if any. Returns {"level", "floor_z", "roi_min", "roi_max",
-    "workspace_min", "workspace_max", "view_centre" (3,)} plus "support_z" (object level) or
-    "interior_min", "interior_max" (3,) (room level: inside the walls, floor to top).
+    "workspace_min", "workspace_max", "view_centre" (3,)} plus, at object level, "support_z",
+    "walls" ([(axis, inward sign, face coordinate)] of the walls beside the objects) and
+    "open_azimuth_deg" (the side to view them from), or at room level "interior_min",
+    "interior_max" (3,) (inside the walls, floor to top).
     """
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     if lo.ndim != 2 or lo.shape[1:] != (3,) or len(lo) == 0 or hi.shape != lo.shape:
@@ -254,21 +279,54 @@ def scene_layout(lo: np.ndarray, hi: np.ndarray, plane_z: float | None = None) -
     floor_z = max(floors) if floors else float(all_lo[2])
     rest = ~floor_slab
     f_lo, f_hi = lo[rest].min(axis=0), hi[rest].max(axis=0)
-    # Walls: tall, thin across, long along, standing at an edge of the footprint.
+    sides = _wall_sides(lo, hi, rest, floor_z, f_lo, f_hi)
+    if sum(bool(m.any()) for m in sides.values()) >= ENCLOSING_SIDES:
+        return _room_layout(lo, hi, rest, thin, area, sides, floor_z, f_lo, f_hi)
+    # Walls on one or two sides stand beside the objects and are not part of them.
+    walls = np.logical_or.reduce(list(sides.values()))
+    if not (rest & ~walls).any():  # nothing but walls: they are the objects
+        walls[:] = False
+        sides = {side: walls.copy() for side in sides}
+    objects = rest & ~walls
+    diagonal = float(np.linalg.norm(hi[objects, :2].max(axis=0) - lo[objects, :2].min(axis=0)))
+    if diagonal > ROOM_DIAGONAL:
+        return _room_layout(lo, hi, rest, thin, area, sides, floor_z, f_lo, f_hi)
+    return _object_layout(lo, hi, objects, thin, area, floor_z, sides)
+
+
+def _wall_sides(lo, hi, rest, floor_z, f_lo, f_hi) -> dict[str, np.ndarray]:
+    """{side: (G,) bool} the walls bounding the footprint [f_lo, f_hi] on its west (-x), east,
+    south (-y) and north sides: tall, thin across, long along, standing at that edge. A wall
+    near two opposite edges (a backdrop in a shallow scene) bounds the nearer one; a tall panel
+    standing in front of another wall of the same side (a shelf's back board) is not a wall."""
+    size = hi - lo
     tall = hi[:, 2] - np.maximum(lo[:, 2], floor_z) >= WALL_MIN_HEIGHT
     thin_x = rest & tall & (size[:, 0] <= WALL_MAX_THICKNESS) & (size[:, 1] >= WALL_MIN_LENGTH)
     thin_y = rest & tall & (size[:, 1] <= WALL_MAX_THICKNESS) & (size[:, 0] >= WALL_MIN_LENGTH)
-    sides = {
-        "west": thin_x & (lo[:, 0] <= f_lo[0] + WALL_EDGE_TOLERANCE),
-        "east": thin_x & (hi[:, 0] >= f_hi[0] - WALL_EDGE_TOLERANCE),
-        "south": thin_y & (lo[:, 1] <= f_lo[1] + WALL_EDGE_TOLERANCE),
-        "north": thin_y & (hi[:, 1] >= f_hi[1] - WALL_EDGE_TOLERANCE),
+    # distance of each geom's outer face from the footprint's edge on that side
+    gap = {
+        "west": lo[:, 0] - f_lo[0],
+        "east": f_hi[0] - hi[:, 0],
+        "south": lo[:, 1] - f_lo[1],
+        "north": f_hi[1] - hi[:, 1],
     }
-    enclosed = sum(bool(m.any()) for m in sides.values()) >= ENCLOSING_SIDES
-    diagonal = float(np.linalg.norm(f_hi[:2] - f_lo[:2]))
-    if enclosed or diagonal > ROOM_DIAGONAL:
-        return _room_layout(lo, hi, rest, thin, area, sides, floor_z, f_lo, f_hi)
-    return _object_layout(lo, hi, rest, thin, area, floor_z)
+    sides = {
+        "west": thin_x & (gap["west"] <= WALL_EDGE_TOLERANCE),
+        "east": thin_x & (gap["east"] <= WALL_EDGE_TOLERANCE),
+        "south": thin_y & (gap["south"] <= WALL_EDGE_TOLERANCE),
+        "north": thin_y & (gap["north"] <= WALL_EDGE_TOLERANCE),
+    }
+    for a, b in (("west", "east"), ("south", "north")):
+        both = sides[a] & sides[b]
+        sides[a] &= ~(both & (gap[a] > gap[b]))
+        sides[b] &= ~(both & (gap[a] <= gap[b]))
+    for side, (axis, sign) in WALL_NORMALS.items():
+        ids = np.flatnonzero(sides[side])
+        inner = hi[ids, axis] if sign > 0 else -lo[ids, axis]  # inner face, inwards positive
+        outer = lo[ids, axis] if sign > 0 else -hi[ids, axis]  # outer face, inwards positive
+        in_front = (outer[:, None] >= inner[None] - 0.01) & (ids[:, None] != ids[None])
+        sides[side][ids[in_front.any(axis=1)]] = False
+    return sides
 
 
 def _room_layout(lo, hi, rest, thin, area, sides, floor_z, f_lo, f_hi) -> dict:
@@ -319,19 +377,24 @@ def _room_layout(lo, hi, rest, thin, area, sides, floor_z, f_lo, f_hi) -> dict:
     }
 
 
-def _object_layout(lo, hi, rest, thin, area, floor_z) -> dict:
-    slab = rest & thin & (area >= SUPPORT_MIN_AREA) & (lo[:, 2] >= floor_z + SLAB_MAX_THICKNESS)
+def _object_layout(lo, hi, pool, thin, area, floor_z, sides) -> dict:
+    """Object level: the support surface and the objects on it among the `pool` geoms; the walls
+    in `sides` (at most two sides) bound the ROI and the workspace."""
+    slab = pool & thin & (area >= SUPPORT_MIN_AREA) & (lo[:, 2] >= floor_z + SLAB_MAX_THICKNESS)
+    support, support_z = -1, floor_z
     if slab.any():
         large = slab & (area >= SUPPORT_SHARE * area[slab].max())
-        support = int(np.flatnonzero(large)[np.argmax(hi[large, 2])])
-        support_z = float(hi[support, 2])
+        candidates = large & ~_shelf_boards(lo, hi, large) & ~_overtopped(lo, hi, pool, large)
+        if candidates.any():
+            support = int(np.flatnonzero(candidates)[np.argmax(hi[candidates, 2])])
+            support_z = float(hi[support, 2])
+    if support >= 0:
         s_lo, s_hi = lo[support, :2], hi[support, :2]
     else:
-        support, support_z = -1, floor_z
-        s_lo, s_hi = lo[rest, :2].min(axis=0), hi[rest, :2].max(axis=0)
+        s_lo, s_hi = lo[pool, :2].min(axis=0), hi[pool, :2].max(axis=0)
     centre_xy = (lo[:, :2] + hi[:, :2]) / 2
     on_support = (
-        rest
+        pool
         & (lo[:, 2] >= support_z - 0.01)
         & np.all((centre_xy >= s_lo) & (centre_xy <= s_hi), axis=1)
     )
@@ -347,8 +410,27 @@ def _object_layout(lo, hi, rest, thin, area, floor_z) -> dict:
     roi_min = np.array([*roi_lo_xy, support_z - 0.02])
     roi_max = np.array([*roi_hi_xy, max(objects_hi[2], support_z + 0.03) + 0.02])
     margin = DERIVED_MARGIN["object"]
-    ws_lo = np.array([*(roi_min[:2] - margin), max(floor_z + 0.1, support_z + 0.05)])
-    ws_hi = np.array([*(roi_max[:2] + margin), max(roi_max[2] + margin, ws_lo[2] + 0.5)])
+    side_margin = max(margin, VIEW_HEIGHT_REACH * float(roi_max[2] - roi_min[2]))
+    ws_lo = np.array([*(roi_min[:2] - side_margin), max(floor_z + 0.1, support_z + 0.05)])
+    ws_hi = np.array([*(roi_max[:2] + side_margin), max(roi_max[2] + margin, ws_lo[2] + 0.5)])
+    walls = []
+    for side, (axis, sign) in WALL_NORMALS.items():
+        if not sides[side].any():
+            continue
+        face = float(hi[sides[side], axis].max() if sign > 0 else lo[sides[side], axis].min())
+        walls.append((axis, sign, face))
+        if sign > 0:  # the scene is on the +axis side of this wall
+            roi_min[axis] = max(roi_min[axis], face + WALL_ROI_GAP)
+            ws_lo[axis] = max(ws_lo[axis], face + WALL_CAMERA_GAP)
+        else:
+            roi_max[axis] = min(roi_max[axis], face - WALL_ROI_GAP)
+            ws_hi[axis] = min(ws_hi[axis], face - WALL_CAMERA_GAP)
+    if np.any(roi_max <= roi_min) or np.any(ws_hi <= ws_lo):
+        raise ValueError(
+            f"objects {np.round(objects_lo, 3).tolist()}..{np.round(objects_hi, 3).tolist()} "
+            f"beside walls {[(('x', 'y')[a], round(f, 3)) for a, _, f in walls]}: expected the "
+            f"objects and room for a camera {WALL_CAMERA_GAP} m in front of every wall face"
+        )
     top = roi_max[2] - 0.02
     return {
         "level": "object",
@@ -359,9 +441,58 @@ def _object_layout(lo, hi, rest, thin, area, floor_z) -> dict:
         "workspace_min": ws_lo,
         "workspace_max": ws_hi,
         "view_centre": np.array(
-            [*(roi_lo_xy + roi_hi_xy) / 2, support_z + 0.4 * (top - support_z)]
+            [*(roi_min[:2] + roi_max[:2]) / 2, support_z + 0.4 * (top - support_z)]
         ),
+        "walls": walls,
+        "open_azimuth_deg": _open_azimuth(walls),
     }
+
+
+def _shelf_boards(lo, hi, large) -> np.ndarray:
+    """(G,) bool: the `large` slabs that have another large slab above or below them, overlapping
+    in plan by at least half the smaller one's area and at least SHELF_BOARD_GAP apart."""
+    ids = np.flatnonzero(large)
+    overlap = np.prod(
+        np.clip(
+            np.minimum(hi[ids, None, :2], hi[None, ids, :2])
+            - np.maximum(lo[ids, None, :2], lo[None, ids, :2]),
+            0.0,
+            None,
+        ),
+        axis=2,
+    )
+    plan = np.prod(hi[ids, :2] - lo[ids, :2], axis=1)
+    apart = np.maximum(lo[ids, None, 2] - hi[None, ids, 2], lo[None, ids, 2] - hi[ids, None, 2])
+    stacked = (overlap >= 0.5 * np.minimum(plan[:, None], plan[None])) & (apart >= SHELF_BOARD_GAP)
+    out = np.zeros(len(lo), dtype=bool)
+    out[ids] = stacked.any(axis=1)
+    return out
+
+
+def _overtopped(lo, hi, pool, large) -> np.ndarray:
+    """(G,) bool: the `large` slabs beside which a `pool` geom standing lower (its centre outside
+    the slab's plan, its bottom below the slab's top) rises more than SUPPORT_OVERTOP above it."""
+    centre = (lo[:, :2] + hi[:, :2]) / 2
+    out = np.zeros(len(lo), dtype=bool)
+    for i in np.flatnonzero(large):
+        beside = pool & ~np.all((centre >= lo[i, :2]) & (centre <= hi[i, :2]), axis=1)
+        out[i] = bool(
+            np.any(beside & (lo[:, 2] < hi[i, 2] - 0.01) & (hi[:, 2] > hi[i, 2] + SUPPORT_OVERTOP))
+        )
+    return out
+
+
+def _open_azimuth(walls: list[tuple[int, float, float]]) -> float:
+    """Azimuth (degrees from +x towards +y) of the open side of an object scene beside `walls`
+    [(axis, inward sign, face)]: away from the walls (the corner's diagonal for two); -y without
+    walls, and along the walls' faces (-y, else -x) between two opposite walls."""
+    inward = np.zeros(2)
+    for axis, sign, _ in walls:
+        inward[axis] += sign
+    if np.linalg.norm(inward) < 1e-9:
+        axes = {axis for axis, _, _ in walls}
+        inward = np.array([-1.0, 0.0]) if axes == {1} else np.array([0.0, -1.0])
+    return float(np.degrees(np.arctan2(inward[1], inward[0])))
 
 
 def _first_valid(scene: Scene, candidates: np.ndarray, what: str) -> np.ndarray:
@@ -381,11 +512,13 @@ def _first_valid(scene: Scene, candidates: np.ndarray, what: str) -> np.ndarray:
 
 
 def _object_views(scene: Scene, layout: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Initial views on an arc on the -y side, held-out rings all around; each one the nearest
-    free position to its nominal place on the sphere around the ROI."""
+    """Initial views on an arc on the open side, held-out rings all around (beside walls: over
+    the open side only); each one the nearest free position to its nominal place on the sphere
+    around the ROI."""
     centre = layout["view_centre"]
     half_diag = float(np.linalg.norm(scene.roi_max[:2] - scene.roi_min[:2])) / 2
-    reach = max(0.45, 1.1 * half_diag)
+    height = float(scene.roi_max[2] - scene.roi_min[2])
+    reach = max(0.45, 1.1 * half_diag, VIEW_HEIGHT_REACH * height)
     scales = np.array([1.0, 0.9, 1.1, 0.8, 1.2, 0.7, 1.35])
     d_el = np.array([0.0, -8.0, 8.0, 16.0, -16.0, 24.0])
     d_az = np.array([0.0, 6.0, -6.0, 12.0, -12.0])
@@ -404,15 +537,48 @@ def _object_views(scene: Scene, layout: dict) -> tuple[np.ndarray, np.ndarray]:
         return np.stack([look_at(p, centre) for p in _first_valid(scene, eyes, what)])
 
     n0 = INITIAL_VIEWS["object"]
+    open_az = layout.get("open_azimuth_deg", -90.0)
+    walls = layout.get("walls", [])
+    held_el = np.concatenate([np.full(12, 28.0), np.full(6, 55.0)])
+    if not walls:
+        arc = (-DERIVED_ARC_DEG / 2, DERIVED_ARC_DEG / 2)
+        held_az = np.concatenate([np.arange(12) * 30.0 + 10.0, np.arange(6) * 60.0 + 40.0])
+    else:
+        # Azimuths whose held-out eye stands well in front of every wall, from the back round.
+        az = open_az - 179.5 + np.arange(360.0)
+        ring = (reach + 0.05) * np.cos(np.deg2rad(held_el.min()))
+        eye_xy = centre[:2] + ring * np.stack([np.cos(np.deg2rad(az)), np.sin(np.deg2rad(az))], 1)
+        ok = np.ones(len(az), dtype=bool)
+        for axis, sign, face in walls:
+            ok &= sign * (eye_xy[:, axis] - face) >= 2 * WALL_CAMERA_GAP
+        if ok.sum() < 2 * len(held_el):
+            raise ValueError(
+                f"scene file {str(scene.mjcf_path)!r}: the objects' open side spans "
+                f"{int(ok.sum())} degrees, expected room for views in front of the walls"
+            )
+        # the initial arc: centred on the open direction, at most over the middle half of the
+        # open run around it (its ends stay for the agent to find)
+        back = np.flatnonzero(~ok[:180])  # az[179] and az[180] are 0.5 degrees either side
+        ahead = np.flatnonzero(~ok[180:])
+        run = (
+            az[back.max() + 1] if len(back) else az[0],
+            az[180 + ahead.min() - 1] if len(ahead) else az[-1],
+        )
+        arc = (
+            max(-DERIVED_ARC_DEG / 2, (run[0] - open_az) / 2),
+            min(DERIVED_ARC_DEG / 2, (run[1] - open_az) / 2),
+        )
+        allowed = az[ok]
+        held_az = np.concatenate(
+            [allowed[((np.arange(n) + 0.5) * len(allowed) / n).astype(int)] for n in (12, 6)]
+        )
     initial = place(
-        np.linspace(-90 - DERIVED_ARC_DEG / 2, -90 + DERIVED_ARC_DEG / 2, n0),
+        open_az + np.linspace(arc[0], arc[1], n0),
         np.resize(np.array([25.0, 35.0]), n0),
         reach,
         "initial",
     )
-    az = np.concatenate([np.arange(12) * 30.0 + 10.0, np.arange(6) * 60.0 + 40.0])
-    el = np.concatenate([np.full(12, 28.0), np.full(6, 55.0)])
-    return initial, place(az, el, reach + 0.05, "held-out")
+    return initial, place(held_az, held_el, reach + 0.05, "held-out")
 
 
 def _farthest_points(candidates: np.ndarray, taken: np.ndarray, n: int) -> np.ndarray:

@@ -15,7 +15,8 @@ from sim_bridge.validity import check_pose
 
 
 @pytest.mark.parametrize(
-    ("kind", "level", "budget"), [("tabletop", "object", 7), ("alcove_room", "room", 17)]
+    ("kind", "level", "budget"),
+    [("tabletop", "object", 7), ("alcove_room", "room", 17), ("shelf_wall", "object", 7)],
 )
 def test_a_generated_scene_without_metadata_is_planned_with_the_map_alone(
     tmp_path, kind, level, budget
@@ -40,3 +41,5 @@ def test_a_generated_scene_without_metadata_is_planned_with_the_map_alone(
         assert check_pose(scene, T).ok
         assert np.all(T[:3, 3] >= scene.workspace_min) and np.all(T[:3, 3] <= scene.workspace_max)
     assert json.loads((run_dir / "episode.json").read_text())["scene"] == str(path)
+    # named by the file's stem, never by its path
+    assert run_dir.name == f"{path.stem}_area3d_s0" and episode.scene_name == path.stem

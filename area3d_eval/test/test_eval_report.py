@@ -137,6 +137,44 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     assert table[("synthetic_object", "uniform")]["fscore"] == pytest.approx(np.mean(finals))
 
 
+def test_a_scene_given_by_path_is_named_by_its_file_stem_never_by_the_path(tmp_path, scene):
+    scenes_dir = tmp_path / "generated"
+    runs = []
+    for i, (path, policy) in enumerate(
+        [
+            ("kitchen/shelf_wall_s0.xml", "uniform"),
+            ("kitchen/shelf_wall_s0.xml", "area3d"),
+            ("hall/shelf_wall_s0.xml", "uniform"),  # another file of the same stem
+            ("thin/thin_objects_s1.xml", "uniform"),
+        ]
+    ):
+        run = make_run(tmp_path / f"run{i}", scene, policy=policy, budget=1, width=80, height=60)
+        episode = json.loads((run / "episode.json").read_text())
+        episode["scene"] = str(scenes_dir / path)  # as `area3d run --scene PATH` writes it
+        (run / "episode.json").write_text(json.dumps(episode))
+        evaluate_run(run, scene, **SMALL)
+        runs.append(run)
+    rows = aggregate(runs)
+    assert sorted({r["scene_name"] for r in rows}) == [
+        "shelf_wall_s0 (hall)",
+        "shelf_wall_s0 (kitchen)",
+        "thin_objects_s1",
+    ]
+    assert all(r["scene"].startswith(str(scenes_dir)) for r in rows)  # the path stays for loading
+    md_path, html_path = write_report(runs, tmp_path / "report", evaluate_missing=False)
+    md, page = md_path.read_text(), html_path.read_text()
+    for text in (md, page):
+        assert str(tmp_path) not in text and "generated" not in text and ".xml" not in text
+    header = next(line for line in md.splitlines() if line.startswith("| Policy |"))
+    assert "| thin_objects_s1: Comp. ratio" in header
+    assert "| shelf_wall_s0 (kitchen): Comp. ratio" in header
+    assert "### thin_objects_s1 / uniform / seed 0" in md  # the chosen views' titles
+    assert "<h3>thin_objects_s1</h3>" in page  # the curves' section
+    figures = [p.name for p in (tmp_path / "report" / "figures").iterdir()]
+    assert any(name.startswith("curve_thin_objects_s1_") for name in figures)
+    assert not any("generated" in name or "xml" in name for name in figures)
+
+
 def test_held_out_references_are_lit_by_the_scene_lights_not_a_headlight():
     from area3d_eval.evaluate import _sim_renderer
     from sim_bridge.scenes import load_scene

@@ -11,8 +11,10 @@ from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import SCENES_DIR, load_scene, scene_layout
 from sim_bridge.validity import check_pose
 
-HOLDOUT = [("tabletop", 0), ("tabletop", 3), ("alcove_room", 0), ("alcove_room", 1)]
-LEVEL = {"tabletop": "object", "alcove_room": "room"}
+NEW_KINDS = [(kind, seed) for kind in ("shelf_wall", "thin_objects") for seed in (0, 1, 2)]
+HOLDOUT = [("tabletop", 0), ("tabletop", 3), ("alcove_room", 0), ("alcove_room", 1), *NEW_KINDS]
+LEVEL = {"tabletop": "object", "alcove_room": "room", "shelf_wall": "object"}
+LEVEL["thin_objects"] = "object"
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +59,7 @@ def test_holdout_scene_is_derived_from_geometry_at_the_right_level(holdout, kind
     scene = holdout[(kind, seed)]
     assert not list(scene.mjcf_path.parent.glob("*.json"))
     assert scene.name == f"{kind}_s{seed}" and scene.level == LEVEL[kind]
-    assert scene.initial_views.shape == ((4, 4, 4) if kind == "tabletop" else (15, 4, 4))
+    assert scene.initial_views.shape == ((4, 4, 4) if LEVEL[kind] == "object" else (15, 4, 4))
     assert len(scene.eval_views) >= 18
     assert np.all(scene.roi_min < scene.roi_max)
     assert np.all(scene.workspace_min < scene.workspace_max)
@@ -101,11 +103,21 @@ def test_alcove_room_roi_is_the_interior_and_the_camera_stays_inside(holdout, se
     assert np.all(scene.initial_views[:, 2, 2] < 0)  # ... all slightly down
 
 
-@pytest.mark.parametrize(("kind", "seed"), [("tabletop", 0), ("alcove_room", 1)])
+@pytest.mark.parametrize(
+    ("kind", "seed"),
+    [
+        ("tabletop", 0),
+        ("alcove_room", 1),
+        ("shelf_wall", 0),
+        ("shelf_wall", 1),
+        ("thin_objects", 2),
+    ],
+)
 def test_initial_views_see_the_roi(holdout, kind, seed):
     scene = holdout[(kind, seed)]
     for T in scene.initial_views[:2]:
-        assert roi_share_of_depth(scene, T) > (0.4 if kind == "tabletop" else 0.9)
+        # (a tall shelf or a floor lamp is seen from further away, with the floor and walls around)
+        assert roi_share_of_depth(scene, T) > {"tabletop": 0.4, "alcove_room": 0.9}.get(kind, 0.25)
 
 
 @pytest.mark.parametrize("name", ["clutter7_a", "living_room"])
@@ -198,3 +210,179 @@ def test_a_room_mjcf_without_metadata_puts_every_view_inside_the_walls(tmp_path)
     assert np.all(np.abs(eyes[:, 0]) < 3.0) and np.all(np.abs(eyes[:, 1]) < 2.0)
     assert np.all((eyes[:, 2] > 0.3) & (eyes[:, 2] < 2.5))
     assert_views_valid_and_distinct(scene)
+
+
+def geom_boxes(scene):
+    """{name: (lo, hi)} world bounding box of every named solid geom of the scene."""
+    from sim_bridge.geoms import geom_meshes, solid_geom_ids
+
+    model, data = scene.model()
+    ids = solid_geom_ids(model)
+    return {
+        model.geom(int(g)).name or f"geom{int(g)}": m.bounds
+        for g, m in zip(ids, geom_meshes(model, data, ids), strict=True)
+    }
+
+
+def wall_sides(scene, walls):
+    """[(axis, inward sign, face)] of each wall box: the face towards the ROI's centre."""
+    centre = (scene.roi_min + scene.roi_max) / 2
+    out = []
+    for lo, hi in walls:
+        axis = int(np.argmin((hi - lo)[:2]))  # the wall's thin axis
+        sign = 1.0 if centre[axis] > (lo[axis] + hi[axis]) / 2 else -1.0
+        out.append((axis, sign, hi[axis] if sign > 0 else lo[axis]))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_shelf_against_walls_is_seen_from_its_open_side_only(holdout, seed):
+    scene = holdout[("shelf_wall", seed)]
+    boxes = geom_boxes(scene)
+    walls = [boxes[n] for n in ("wall_back", "wall_side") if n in boxes]
+    assert len(walls) == (2 if seed % 2 == 0 else 1)  # even seeds: a corner
+    sides = wall_sides(scene, walls)
+    eyes = {
+        "initial": scene.initial_views[:, :3, 3],
+        "held-out": scene.eval_views[:, :3, 3],
+    }
+    for axis, sign, face in sides:
+        # the ROI stops before the wall face, the workspace stays in front of it
+        assert sign * (scene.roi_min[axis] if sign > 0 else scene.roi_max[axis]) > sign * face
+        ws_near = scene.workspace_min[axis] if sign > 0 else scene.workspace_max[axis]
+        assert sign * (ws_near - face) >= 0.1 - 1e-9
+        for what, points in eyes.items():
+            assert np.all(sign * (points[:, axis] - face) >= 0.1), what  # no view behind a wall
+    for lo, hi in walls:  # no part of a wall is inside the ROI
+        assert np.any((lo > scene.roi_max) | (hi < scene.roi_min))
+    # the shelf, the cabinet and every object on them are inside the ROI (up to the wall gap)
+    for name, (lo, hi) in boxes.items():
+        if not name.startswith("wall"):
+            assert np.all(lo >= scene.roi_min - 0.011) and np.all(hi <= scene.roi_max + 0.011), name
+    # the initial views face the open side: away from the wall, or along the corner's diagonal
+    inward = np.zeros(2)
+    for axis, sign, _ in sides:
+        inward[axis] += sign
+    centre = (scene.roi_min + scene.roi_max)[:2] / 2
+    mean_dir = (eyes["initial"][:, :2] - centre).mean(axis=0)
+    cos = mean_dir @ inward / np.linalg.norm(mean_dir) / np.linalg.norm(inward)
+    assert cos > np.cos(np.deg2rad(20))
+    # the held-out views spread over the open side, wider than the initial arc
+    az = np.arctan2(*(eyes["held-out"][:, :2] - centre).T[::-1])
+    az0 = np.arctan2(inward[1], inward[0])
+    spread = np.ptp(np.angle(np.exp(1j * (az - az0))))
+    assert spread > np.deg2rad(100 if len(walls) == 2 else 150)
+    assert_views_valid_and_distinct(scene)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_thin_objects_are_thin_textureless_and_glossy_and_all_in_the_roi(holdout, seed):
+    import mujoco
+
+    scene = holdout[("thin_objects", seed)]
+    model, _ = scene.model()
+    boxes = geom_boxes(scene)
+    for name, (lo, hi) in boxes.items():
+        assert np.all(lo >= scene.roi_min - 1e-6) and np.all(hi <= scene.roi_max + 1e-6), name
+    legs = [n for n in boxes if n.startswith("stool_leg")]
+    assert len(legs) >= 3
+    for name in legs + ["lamp_pole"]:
+        assert model.geom(name).size[0] <= 0.015  # a thin leg or pole: a radius under 1.5 cm
+    lamp_top = boxes["lamp_pole"][1][2]
+    assert lamp_top > 1.3 and scene.roi_max[2] > lamp_top
+
+    def material(body):
+        return model.mat(int(model.geom_matid[model.body(body).geomadr[0]]))
+
+    shade, bowl = material("lamp_shade"), material("bowl")
+    assert shade.texid[mujoco.mjtTextureRole.mjTEXROLE_RGB] == -1  # a plain shade, no texture
+    assert bowl.texid[mujoco.mjtTextureRole.mjTEXROLE_RGB] == -1 and bowl.specular[0] >= 0.9
+    large = ("screen_panel", "cabinet", "low_table_top")[seed % 3]  # a large plain surface
+    assert np.prod(np.sort(boxes[large][1] - boxes[large][0])[1:]) > 0.15  # m^2, its 2 long sides
+    rgb = mujoco.mjtTextureRole.mjTEXROLE_RGB
+    assert model.mat(int(model.geom_matid[model.geom(large).id])).texid[rgb] == -1
+    assert_views_valid_and_distinct(scene)
+
+
+def test_layout_of_a_shelf_against_a_wall_is_an_object_seen_from_the_open_side():
+    parts = [
+        box([-1.5, 0.0, 0.0], [1.5, 0.1, 2.4]),  # the wall
+        box([-0.6, -0.36, 0.0], [-0.58, -0.01, 1.8]),  # the shelf's sides
+        box([0.58, -0.36, 0.0], [0.6, -0.01, 1.8]),
+        box([-0.58, -0.022, 0.0], [0.58, -0.01, 1.8]),  # its back board: tall, 1.16 m long
+        *[box([-0.58, -0.36, z - 0.02], [0.58, -0.022, z]) for z in (0.1, 0.6, 1.1, 1.8)],
+        box([0.0, -0.2, 0.6], [0.1, -0.1, 0.75]),  # objects on a board and on top
+        box([-0.3, -0.15, 1.8], [-0.2, -0.05, 1.95]),
+    ]
+    lo, hi = np.array([p[0] for p in parts]), np.array([p[1] for p in parts])
+    layout = scene_layout(lo, hi, plane_z=0.0)
+    # the 3 m wall made this a room before; the shelf unit and its objects are the object now
+    assert layout["level"] == "object" and layout["support_z"] == pytest.approx(0.0)
+    assert layout["walls"] == [(1, -1.0, 0.0)] and layout["open_azimuth_deg"] == -90.0
+    assert np.allclose(layout["roi_min"], [-0.6, -0.36, -0.02])
+    assert np.allclose(layout["roi_max"], [0.6, -0.01, 1.97])  # up to 1 cm before the wall
+    assert layout["workspace_max"][1] == pytest.approx(-0.1)  # 10 cm in front of the wall
+    assert layout["workspace_min"][1] < -0.36 - 1.0  # and far out on the open side
+
+
+def test_layout_of_a_counter_in_a_corner_keeps_its_worktop_objects_off_the_walls():
+    parts = [
+        box([-1.2, 0.0, 0.0], [1.2, 0.1, 2.4]),  # north wall
+        box([1.2, -1.8, 0.0], [1.3, 0.1, 2.4]),  # east wall
+        box([0.4, -0.6, 0.0], [1.195, -0.005, 0.85]),  # cabinet
+        box([0.4, -0.63, 0.85], [1.195, -0.005, 0.88]),  # worktop
+        box([0.6, -0.3, 0.88], [0.7, -0.2, 1.0]),  # objects on it
+        box([1.1, -0.1, 0.88], [1.19, -0.05, 1.1]),
+    ]
+    lo, hi = np.array([p[0] for p in parts]), np.array([p[1] for p in parts])
+    layout = scene_layout(lo, hi, plane_z=0.0)
+    assert layout["level"] == "object" and layout["support_z"] == pytest.approx(0.88)
+    assert layout["open_azimuth_deg"] == pytest.approx(-135.0)  # the corner's diagonal
+    assert np.allclose(layout["roi_min"], [0.54, -0.36, 0.86])
+    assert np.allclose(layout["roi_max"], [1.19, -0.01, 1.12])  # the walls' faces stop it
+    assert np.allclose(layout["workspace_max"][:2], [1.1, -0.1])
+
+
+def test_layout_counts_a_backdrop_once_and_a_large_or_walled_in_footprint_stays_a_room():
+    backdrop = box([-0.6, 0.0, 0.0], [0.6, 0.05, 2.0])  # near both edges of a shallow footprint
+    thing = box([-0.1, -0.25, 0.0], [0.1, -0.15, 0.3])
+    lo, hi = np.array([backdrop[0], thing[0]]), np.array([backdrop[1], thing[1]])
+    layout = scene_layout(lo, hi, plane_z=0.0)
+    assert layout["level"] == "object" and layout["walls"] == [(1, -1.0, 0.0)]
+    assert layout["roi_max"][1] == pytest.approx(-0.15)  # the thing, not the backdrop
+    assert layout["workspace_min"][1] < -0.8 and layout["workspace_max"][1] == pytest.approx(-0.1)
+    # one wall, but the furniture in front of it spans more than ROOM_DIAGONAL: a room
+    far = box([1.6, -2.8, 0.0], [2.0, -2.4, 0.8])
+    wall = box([-2.0, 0.0, 0.0], [2.0, 0.1, 2.4])
+    lo, hi = np.array([wall[0], thing[0], far[0]]), np.array([wall[1], thing[1], far[1]])
+    assert scene_layout(lo, hi, plane_z=0.0)["level"] == "room"
+    # walls on three sides enclose a room, however small
+    west, east = box([-1.0, -1.0, 0.0], [-0.9, 0.1, 2.4]), box([0.9, -1.0, 0.0], [1.0, 0.1, 2.4])
+    north = box([-1.0, 0.0, 0.0], [1.0, 0.1, 2.4])
+    lo = np.array([west[0], east[0], north[0], thing[0]])
+    hi = np.array([west[1], east[1], north[1], thing[1]])
+    assert scene_layout(lo, hi, plane_z=0.0)["level"] == "room"
+
+
+@pytest.mark.parametrize("name", ["living_room", "office"])
+def test_bundled_rooms_derive_their_sidecar_room_from_geometry(name):
+    import mujoco
+
+    from sim_bridge.scenes import geometry_boxes
+
+    bundled = load_scene(name)  # from its sidecar
+    model = mujoco.MjModel.from_xml_path(str(bundled.mjcf_path))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    layout = scene_layout(*geometry_boxes(model, data))
+    assert layout["level"] == "room"
+    for key in ("roi_min", "roi_max", "workspace_min", "workspace_max"):
+        assert np.allclose(layout[key], getattr(bundled, key), atol=1e-9), key
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_alcove_room_workspace_is_the_interior_off_the_walls(holdout, seed):
+    scene = holdout[("alcove_room", seed)]
+    # 5 x 4 m interior, walls 2.6 m high: 0.3 m in from the walls, 0.4 to 2.0 m above the floor
+    assert np.allclose(scene.workspace_min, [-2.2, -1.7, 0.4])
+    assert np.allclose(scene.workspace_max, [2.2, 1.7, 2.0])
