@@ -46,7 +46,7 @@ class RunSet:
     load: list[float] = field(default_factory=list)  # 1-min load average, start ... end
     results: dict[str, EpisodeResult] = field(default_factory=dict)  # run name -> result
     failures: list[str] = field(default_factory=list)
-    lost_attempts: int = 0  # attempts left in out_dir/attempts by workers that died
+    lost_attempts: int = 0  # unfinished attempts in out_dir/attempts (dead workers, failures)
 
     def run_dirs(self) -> list[Path]:
         return [self.out_dir / name for name in self.results]
@@ -184,8 +184,9 @@ def _print_table(run: RunSet, console: Console) -> list[dict]:
 
 
 def _print_wall_times(runs: list[RunSet], shape: str, console: Console) -> None:
-    """Wall time per engine, beside each other: the speed-up over the first and its target (as
-    many times faster as there are times more workers)."""
+    """Wall time per engine, beside each other: the speed-up over the fewest workers and its
+    target (as many times faster as there are times more workers). A list such as 2,1 runs the
+    larger count first, so that a load that drifts meanwhile can be told from the speed-up."""
     table = Table(title=f"benchmark wall time, {shape}, on {os.cpu_count()} cores")
     for column in (
         "workers",
@@ -197,7 +198,7 @@ def _print_wall_times(runs: list[RunSet], shape: str, console: Console) -> None:
         "ratio",
     ):
         table.add_column(column)
-    base = runs[0]
+    base = min(runs, key=lambda run: run.workers or 0)
     for run in runs:
         cells = [
             "– (this process)" if run.workers is None else str(run.workers),
@@ -217,7 +218,7 @@ def _print_wall_times(runs: list[RunSet], shape: str, console: Console) -> None:
         console.print(f"{run.workers or 'no'} worker(s): {run.engine}")
     if len(runs) > 1:
         first = base.summaries()
-        for run in runs[1:]:
+        for run in (run for run in runs if run is not base):
             other = run.summaries()
             common = sorted(set(first) & set(other))
             differ = [name for name in common if first[name] != other[name]]
@@ -231,8 +232,9 @@ def _print_wall_times(runs: list[RunSet], shape: str, console: Console) -> None:
     for run in runs:
         if run.lost_attempts:
             console.print(
-                f"{run.lost_attempts} attempt(s) of workers that died mid-episode are kept in "
-                f"{run.out_dir / ATTEMPTS_DIR} (their episodes were run again)"
+                f"{run.lost_attempts} unfinished attempt(s) kept in {run.out_dir / ATTEMPTS_DIR}: "
+                "of workers that died mid-episode (their episodes were run again) or of the "
+                "failed episodes below"
             )
 
 
