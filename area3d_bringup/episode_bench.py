@@ -48,6 +48,10 @@ class RunSet:
     failures: list[str] = field(default_factory=list)
     lost_attempts: int = 0  # unfinished attempts in out_dir/attempts (dead workers, failures)
 
+    def cpu_s(self) -> float:
+        """CPU seconds the episodes took, wherever they ran (see `EpisodeResult.cpu_s`)."""
+        return sum(r.cpu_s for r in self.results.values())
+
     def run_dirs(self) -> list[Path]:
         return [self.out_dir / name for name in self.results]
 
@@ -186,12 +190,16 @@ def _print_table(run: RunSet, console: Console) -> list[dict]:
 def _print_wall_times(runs: list[RunSet], shape: str, console: Console) -> None:
     """Wall time per engine, beside each other: the speed-up over the fewest workers and its
     target (as many times faster as there are times more workers). A list such as 2,1 runs the
-    larger count first, so that a load that drifts meanwhile can be told from the speed-up."""
+    larger count first, so that a load that drifts meanwhile can be told from the speed-up.
+    "cores used" is the episodes' CPU time over the wall time: what the workers got of the
+    machine (on a machine shared with other work, less than the workers could use)."""
     table = Table(title=f"benchmark wall time, {shape}, on {os.cpu_count()} cores")
     for column in (
         "workers",
         "episodes",
         "wall [s]",
+        "CPU [s]",
+        "cores used",
         "load 1 min: start/max/end",
         "speed-up",
         "target",
@@ -204,6 +212,8 @@ def _print_wall_times(runs: list[RunSet], shape: str, console: Console) -> None:
             "– (this process)" if run.workers is None else str(run.workers),
             str(len(run.results)),
             f"{run.wall_s:.1f}",
+            f"{run.cpu_s():.1f}",
+            f"{run.cpu_s() / run.wall_s:.2f}" if run.wall_s > 0 else "–",
             f"{run.load[0]:.1f}/{max(run.load):.1f}/{run.load[-1]:.1f}",
         ]
         if run is base or not base.workers or not run.workers:
@@ -255,7 +265,7 @@ def run_episode_bench(
     """Run the benchmark and print its table. workers: run it on a local cluster of that many
     worker processes, once per count given (the wall times are printed beside each other);
     cluster: a Dask scheduler's address to run it on instead. Neither: in this process.
-    Returns {"rows", "failures", "report", "runs": [{"workers", "engine", "wall_s", "load",
+    Returns {"rows", "failures", "report", "runs": [{"workers", "engine", "wall_s", "cpu_s", "load",
     "lost_attempts", "out_dir", "episodes": {run name: its views and metrics}, "ran_on": {run
     name: host:pid}}]}."""
     from area3d_bringup.episode_cluster import open_engine
@@ -324,6 +334,7 @@ def run_episode_bench(
                 "workers": run.workers,
                 "engine": run.engine,
                 "wall_s": run.wall_s,
+                "cpu_s": run.cpu_s(),
                 "load": run.load,
                 "lost_attempts": run.lost_attempts,
                 "out_dir": run.out_dir,

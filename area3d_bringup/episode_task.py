@@ -18,6 +18,7 @@ import contextlib
 import hashlib
 import json
 import os
+import resource
 import shutil
 import socket
 import time
@@ -95,6 +96,7 @@ class EpisodeResult:
     files: dict[str, bytes] = field(default_factory=dict)
     worker: str = ""
     seconds: float = 0.0
+    cpu_s: float = 0.0  # CPU time the episode and its evaluation took (every thread and child)
     error: str | None = None
     worker_scene: str | None = None  # an MJCF path scene, resolved on the worker
 
@@ -205,7 +207,7 @@ def run_episode_task(task: EpisodeTask, progress: Any = None) -> EpisodeResult:
     from area3d_bringup.inprocess import run_inprocess_episode
     from area3d_eval.evaluate import evaluate_run
 
-    t0 = time.monotonic()
+    t0, cpu0 = time.monotonic(), _cpu_seconds()
     worker = f"{socket.gethostname()}:{os.getpid()}"
     result = EpisodeResult(task, worker=worker)
     attempt = (
@@ -258,7 +260,16 @@ def run_episode_task(task: EpisodeTask, progress: Any = None) -> EpisodeResult:
     except (EpisodeError, ValueError) as err:
         result.error = str(err)
     result.seconds = time.monotonic() - t0
+    result.cpu_s = _cpu_seconds() - cpu0
     return result
+
+
+def _cpu_seconds() -> float:
+    """User and system CPU seconds of this process (all its threads) and of its children that
+    have ended (a graph episode's nodes)."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def materialize(result: EpisodeResult, run_dir: Path) -> Path:
