@@ -127,7 +127,7 @@ def _run_set(
         TimeElapsedColumn(),
     )
     progress = Progress(*columns, console=console)
-    overall = progress.add_task(f"episodes ({engine.description})", total=len(tasks))
+    overall = progress.add_task(f"episodes, {engine.slots} at once", total=len(tasks))
     run.load.append(os.getloadavg()[0])
     t0 = time.monotonic()
     view = Group(progress, _live_table(tasks, run.results))

@@ -180,3 +180,24 @@ def test_a_result_from_another_machine_names_the_scene_as_this_machine_does(tmp_
     written = json.loads((run_dir / "metrics.json").read_text())
     assert written["scene"] == str(here.resolve()) and written["final"] == {"completion": 0.5}
     assert (run_dir / "eval" / "gt_sample.npy").read_bytes() == b"\x93NUMPY"
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--workers", "two"], "workers: got 'two', expected an int >= 1"),
+        (["--workers", "0"], "workers: got '0', expected an int >= 1"),
+        (["--workers", "2", "--cluster", "tcp://127.0.0.1:8786"], "expected one of them"),
+    ],
+)
+def test_the_bench_command_refuses_bad_worker_options_before_running_anything(
+    tmp_path, args, message
+):
+    from typer.testing import CliRunner
+
+    from area3d_bringup.cli import app
+
+    result = CliRunner().invoke(app, ["bench", "episode", "--out", str(tmp_path), *args])
+    assert result.exit_code == 2
+    assert message in " ".join(result.output.split())
+    assert not any(tmp_path.iterdir())  # nothing was started or written
