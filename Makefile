@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) tools/build_interfaces.py --check
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev]"
+	$(PY) -m pip install --quiet -e ".[dev,cluster]"
 	touch $(STAMP)
 
 # Rebuilt when an interface, the build script or the venv's packages change (the script also

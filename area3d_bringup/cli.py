@@ -321,22 +321,48 @@ def bench_episode(
         "sensor",
         help="what the TSDF reconstructs from: sensor (the camera's depth) | estimated (perception's)",
     ),
+    workers: str = typer.Option(
+        "",
+        help="run the episodes in this many worker processes on this machine (a local Dask "
+        "cluster); a comma list such as 1,2 runs them once per count and prints the wall times "
+        "side by side (default: one after another in this process)",
+    ),
+    cluster: str = typer.Option(
+        None,
+        help="run the episodes on the workers of the Dask cluster whose scheduler is at this "
+        "address, e.g. tcp://10.0.0.5:8786 (needs the [cluster] extra on every machine)",
+    ),
 ) -> None:
     """Every policy on every scene with several seeds; prints the table."""
     from area3d_bringup.episode_bench import run_episode_bench
 
-    run_episode_bench(
-        seeds=seeds,
-        policies=policies.split(","),
-        scenes=[s for s in scenes_.split(",") if s],
-        budget=budget,
-        out=out,
-        console=console,
-        in_process=in_process,
-        holdout=holdout,
-        overrides=_overrides(param),
-        depth_source=depth_source,
-    )
+    counts: list[int] = []
+    for text in (w.strip() for w in workers.split(",") if w.strip()):
+        if not text.isdigit() or int(text) < 1:
+            _fail(f"workers: got {text!r}, expected an int >= 1 or a comma list of them (1,2)")
+        counts.append(int(text))
+    if counts and cluster:
+        _fail(
+            f"workers, cluster: got --workers {workers} and --cluster {cluster}, expected one of "
+            "them (a cluster has its own workers)"
+        )
+    try:
+        run_episode_bench(
+            seeds=seeds,
+            policies=policies.split(","),
+            scenes=[s for s in scenes_.split(",") if s],
+            budget=budget,
+            out=out,
+            console=console,
+            in_process=in_process,
+            holdout=holdout,
+            overrides=_overrides(param),
+            depth_source=depth_source,
+            workers=counts or None,
+            cluster=cluster,
+        )
+    except (RuntimeError, ValueError) as err:
+        _fail(str(err))
 
 
 def main() -> None:

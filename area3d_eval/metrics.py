@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from area3d_eval.open3d_loader import import_open3d
-from area3d_eval.render import mesh_arrays, render_mesh
+from area3d_eval.render import canonical_mesh, mesh_arrays, raycasting_scene, render_mesh
 from area3d_msgs_py.errors import InputError
 
 NUM_SURFACE_POINTS = 50_000  # points sampled on each surface; ~0.2 mm spacing on a 10 cm object
@@ -153,11 +153,7 @@ class ReferenceSurface:
         if len(recon) == 0:
             return distance_metrics(recon, self.points, tau, self.tree)
         o3d = import_open3d()
-        surface = o3d.t.geometry.RaycastingScene()
-        surface.add_triangles(
-            o3d.core.Tensor(vertices.astype(np.float32)),
-            o3d.core.Tensor(triangles.astype(np.uint32)),
-        )
+        surface = raycasting_scene(*canonical_mesh(vertices, triangles)[:2])
         gt_to_recon = surface.compute_distance(
             o3d.core.Tensor(self.points.astype(np.float32))
         ).numpy()

@@ -40,6 +40,40 @@ def mesh_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     )
 
 
+def canonical_mesh(
+    vertices: np.ndarray, triangles: np.ndarray, colours: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The same mesh listed in one order whatever order it came in: vertices sorted by position
+    (colours with them), each triangle starting at its smallest vertex index (orientation kept),
+    triangles sorted. Open3D's multi-threaded mesh extraction lists the same surface in a different
+    order from run to run, and a ray-casting tree built from another order can answer a query
+    that lies as near two triangles (a shared edge) with the other one, the result differing in
+    its last bits."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    order = np.lexsort(vertices.T[::-1])
+    rank = np.empty(len(order), dtype=np.int64)
+    rank[order] = np.arange(len(order))
+    tri = rank[triangles].reshape(-1, 3)
+    start = np.argmin(tri, axis=1)
+    tri = tri[np.arange(len(tri))[:, None], (start[:, None] + np.arange(3)) % 3]
+    tri = tri[np.lexsort(tri.T[::-1])]
+    return vertices[order], tri, None if colours is None else np.asarray(colours)[order]
+
+
+def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> Any:
+    """An open3d RaycastingScene of the triangles (pass them `canonical_mesh`'s order), its tree
+    built on one thread: Embree's parallel build gives a different tree from run to run, and with
+    it, rarely, another answer in the last bits (see `canonical_mesh`). Queries use every core."""
+    o3d = import_open3d()
+    scene = o3d.t.geometry.RaycastingScene(nthreads=1)
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(vertices, dtype=np.float32)),
+        o3d.core.Tensor(np.asarray(triangles, dtype=np.uint32)),
+    )
+    return scene
+
+
 def camera_rays(K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> np.ndarray:
     """(H, W, 6) float32 rays [origin, direction] in `world`, one per pixel centre (u + 0.5, v + 0.5).
 
@@ -56,18 +90,13 @@ class MeshRenderer:
     """A mesh loaded once into a RaycastingScene, rendered at many poses."""
 
     def __init__(self, mesh: Any) -> None:
-        o3d = import_open3d()
-        self.vertices, self.triangles, colours = mesh_arrays(mesh)
+        self.vertices, self.triangles, colours = canonical_mesh(*mesh_arrays(mesh))
         if colours is None:
             colours = np.full_like(self.vertices, UNCOLOURED_GREY)
         self.colours = colours
         self.empty = len(self.triangles) == 0
-        self._scene = o3d.t.geometry.RaycastingScene()
         if not self.empty:
-            self._scene.add_triangles(
-                o3d.core.Tensor(self.vertices.astype(np.float32)),
-                o3d.core.Tensor(self.triangles.astype(np.uint32)),
-            )
+            self._scene = raycasting_scene(self.vertices, self.triangles)
 
     def render(
         self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int
