@@ -266,7 +266,7 @@ class MissionManager(Node):
                 self.planner_status = json.loads(msg.data)
             elif topic == GRID_TOPIC:
                 self.latest_grid = cdr
-            elif self.estimates is not None and topic in (
+            if self.estimates is not None and topic in (
                 PERCEPTION_DEPTH_TOPIC,
                 PERCEPTION_CONFIDENCE_TOPIC,
             ):
