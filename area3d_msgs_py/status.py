@@ -1,17 +1,20 @@
-"""A node's status line: JSON in std_msgs/String on area3d/<node>/status, as the planner's.
+"""A node's status line: JSON in std_msgs/String on area3d/<node>/status, as the planner's, and
+the same facts as diagnostic_msgs/DiagnosticArray on /diagnostics (`area3d_msgs_py/diagnostics.py`
+sets the level).
 
 Published a moment after something changed (a frame processed, an input rejected), so a barrage of
 bad messages yields one status line after it rather than one per message, and once a period as a
-heartbeat, so `ros2 topic echo` shows the counters of a quiet node too.
+heartbeat, so `ros2 topic echo` and the diagnostics tools show the counters of a quiet node too.
 """
 
 from __future__ import annotations
 
 import json
+import threading
 from collections.abc import Callable
 from typing import Any
 
-from area3d_msgs_py import msgs, qos
+from area3d_msgs_py import diagnostics, msgs, qos
 
 CHANGE_DELAY_S = 0.05  # a burst of changes within this time yields one status line
 HEARTBEAT_S = 1.0
@@ -23,15 +26,23 @@ def status_topic(node_name: str) -> str:
 
 
 class StatusPublisher:
-    """Publishes `state()` as JSON on the node's status topic after `changed()` and every HEARTBEAT_S."""
+    """Publishes `state()` as JSON on the node's status topic, and as a DiagnosticArray on
+    /diagnostics, after `changed()` and every HEARTBEAT_S."""
 
     def __init__(self, node: Any, topic: str, state: Callable[[], dict]) -> None:
         self._node = node
         self._state = state
         self._pub = node.create_publisher(msgs.String, topic, qos.reliable(50))
+        self._diagnostics = node.create_publisher(
+            diagnostics.DiagnosticArray, diagnostics.DIAGNOSTICS_TOPIC, qos.reliable()
+        )
+        self._name = diagnostics.status_name(node.get_fully_qualified_name())
+        # the state at the last heartbeat: a level compares the counts with it
+        self._lock = threading.Lock()
+        self._last_heartbeat: dict | None = None
         self._soon = node.create_timer(CHANGE_DELAY_S, self._publish_soon)
         self._soon.cancel()
-        node.create_timer(HEARTBEAT_S, self.publish)
+        node.create_timer(HEARTBEAT_S, self._heartbeat)
 
     def changed(self) -> None:
         """Something in the state changed: publish it shortly (repeated calls coalesce)."""
@@ -41,5 +52,20 @@ class StatusPublisher:
         self._soon.cancel()
         self.publish()
 
-    def publish(self) -> None:
-        self._pub.publish(msgs.String(data=json.dumps(self._state())))
+    def _heartbeat(self) -> None:
+        state = self.publish()
+        with self._lock:
+            self._last_heartbeat = state
+
+    def publish(self) -> dict:
+        """Publish the state now (JSON and diagnostics); returns it."""
+        state = self._state()
+        self._pub.publish(msgs.String(data=json.dumps(state)))
+        with self._lock:
+            baseline = self._last_heartbeat
+        status = diagnostics.diagnostic_status(
+            self._name, state, baseline, hardware_id=self._node.get_fully_qualified_name()
+        )
+        stamp = self._node.get_clock().now().nanoseconds
+        self._diagnostics.publish(diagnostics.diagnostic_array(stamp, [status]))
+        return state
