@@ -4,7 +4,8 @@ Subscribes area3d/perception/depth, area3d/perception/confidence, area3d/camera/
 area3d/camera/camera_info (paired by stamp), area3d/semantics/uncertainty. Publishes the latched
 area3d/planner/uncertainty_grid (after every fused frame; during a backlog at most every
 grid_period_s), area3d/planner/status and
-area3d/planner/next_views; serves area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Names are
+area3d/planner/next_views (and their camera frustums on area3d/planner/view_markers); serves
+area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Names are
 relative: `__ns` moves them all. The region of interest and workspace are parameters: the planner
 knows only what a robot knows, never the simulator's scene.
 """
@@ -25,6 +26,7 @@ import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
+from visualization_msgs.msg import MarkerArray
 
 from area3d_msgs_py import codecs, msgs, qos
 from area3d_msgs_py.errors import InputError
@@ -51,6 +53,7 @@ from area3d_perception.frame_sync import StampSync
 from area3d_planner.cloud import grid_to_msg
 from area3d_planner.fusion import GEOMETRIC_RULES, NO_RETURN_RULES
 from area3d_planner.greedy import DECAY_REGIONS
+from area3d_planner.markers import view_markers
 from area3d_planner.policies import POLICIES
 from area3d_planner.server import LEVELS, MODES, NextBestViewServer, PlannerConfig, PlanRequest
 
@@ -62,6 +65,7 @@ SEMANTIC_TOPIC = "area3d/semantics/uncertainty"
 GRID_TOPIC = "area3d/planner/uncertainty_grid"
 STATUS_TOPIC = status_topic("planner")
 VIEWS_TOPIC = "area3d/planner/next_views"
+MARKERS_TOPIC = "area3d/planner/view_markers"
 NBV_SERVICE = "area3d/planner/next_best_view"
 CAMERA_INFO_CACHE = 64
 POSES_PENDING = 2048
@@ -164,6 +168,13 @@ PARAMS = (
         "parts of a frame wait this long for their partners, seconds",
         range=(0.0, 3600.0),
     ),
+    Param(
+        "view_marker_range",
+        0.0,
+        "depth of the camera frustums drawn on view_markers, metres; 0 = a quarter of the "
+        "region of interest's diagonal",
+        range=(0.0, 1000.0),
+    ),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
 )
@@ -199,6 +210,8 @@ class PlannerNode(Node):
         self.latest_K: np.ndarray | None = None
         self.waiting: deque[tuple[int, dict]] = deque(maxlen=MAX_FRAMES_WITHOUT_INFO)
         self.world_frame = p["world_frame"]
+        roi = np.subtract(config.roi_max, config.roi_min)
+        self.marker_range = p["view_marker_range"] or 0.25 * float(np.linalg.norm(roi))
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
         # a rejection is announced by the status that follows requests (created below)
         self.rejections = Rejections(on_count=lambda: self._status_after_request.reset())
@@ -220,6 +233,7 @@ class PlannerNode(Node):
         self.grid_pub = self.create_publisher(msgs.PointCloud2, GRID_TOPIC, qos.latched())
         self.status_pub = self.create_publisher(msgs.String, STATUS_TOPIC, qos.reliable(50))
         self.views_pub = self.create_publisher(msgs.Path, VIEWS_TOPIC, qos.reliable())
+        self.markers_pub = self.create_publisher(MarkerArray, MARKERS_TOPIC, qos.latched())
         frames = MutuallyExclusiveCallbackGroup()
         # perception's and semantics' outputs are transient local (a late match still gets them);
         # the camera's topics are volatile, as a camera driver publishes them
@@ -479,6 +493,12 @@ class PlannerNode(Node):
             ],
         )
         self.views_pub.publish(path)
+        c = self.server.config
+        self.markers_pub.publish(
+            view_markers(
+                poses, self.world_frame, now, c.hfov_deg, c.width, c.height, self.marker_range
+            )
+        )
         self._status_after_request.reset()
         return path
 
