@@ -154,6 +154,9 @@ class EpisodeConfig:
     min_free_mb: float = rundir.MIN_FREE_MB  # the output directory must have this much free
     # capture stamps in ns (None: the runner's ROS clock); tests inject time instead of sleeping
     clock: Callable[[], int] | None = None
+    # serve every topic on a Foxglove WebSocket on this port (None: no live view)
+    foxglove_port: int | None = None
+    foxglove_address: str = "127.0.0.1"  # this machine only unless told otherwise
 
 
 def paper_budget(level: str) -> int:
@@ -680,6 +683,10 @@ def run_episode(
     recorder = BagRecorder(rundir.bag_path(run_dir)) if config.record else None
     t0 = time.monotonic()
     local = [spec for spec in specs if config.nodes is None or spec.name in config.nodes]
+    if config.foxglove_port is not None:
+        from area3d_bringup.foxglove_bridge import bridge_spec
+
+        local.append(bridge_spec(config.foxglove_port, config.foxglove_address))
     launcher = Launcher(
         local,
         run_dir,
