@@ -244,6 +244,36 @@ def node(
 
 
 @app.command()
+def rviz(
+    scene: str = typer.Option(None, help="the camera's scene (default: the parameters')"),
+    params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
+    param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
+    out: Path = typer.Option(Path("area3d.rviz"), help="where to write the configuration"),
+    namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
+    start: bool = typer.Option(False, help="then start rviz2 with it (a sourced ROS 2)"),
+) -> None:
+    """Write the RViz configuration of a launch: the grid's boxes the size of its voxels."""
+    from area3d_bringup.launch_description import build_graph, load_parameters
+    from area3d_bringup.rviz import write_config
+
+    overrides = _overrides(param)
+    if scene:
+        overrides.setdefault("sim_bridge", {})["scene"] = scene
+    specs = build_graph(load_parameters(params), overrides)
+    voxel = write_config(out, next(s for s in specs if s.name == "planner").parameters)
+    command = ["rviz2", "-d", str(out)]
+    if namespace:
+        command += ["--ros-args", "-r", f"__ns:={namespace}"]
+    print(f"wrote {out} (grid boxes {voxel:g} m)\n{' '.join(command)}")
+    if start:
+        import shutil
+
+        if shutil.which("rviz2") is None:
+            _fail("rviz2: not found, expected a sourced ROS 2 (source /opt/ros/jazzy/setup.bash)")
+        os.execvp("rviz2", command)
+
+
+@app.command()
 def scenes() -> None:
     """List the bundled scenes."""
     from sim_bridge.scenes import list_scenes, load_scene
