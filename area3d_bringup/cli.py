@@ -293,6 +293,7 @@ BENCHES = {
     "semantics": "area3d_semantics.bench",
     "planner": "area3d_bringup.planner_bench",
     "eval": "area3d_eval.bench",
+    "foxglove": "area3d_bringup.foxglove_bench",
 }
 
 

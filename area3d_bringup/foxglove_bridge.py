@@ -33,6 +33,7 @@ from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.lifecycle import exit_process, run_node
 from area3d_msgs_py.msgdef import message_definition
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
+from area3d_msgs_py.status import StatusPublisher, status_topic
 
 NODE_NAME = "foxglove_bridge"
 MODULE = "area3d_bringup.foxglove_bridge"
@@ -113,7 +114,7 @@ class FoxgloveBridgeNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         p = declare_parameters(self, PARAMS)
         report_unknown_parameters(self)
-        self.topics: dict[str, Forwarded] = {}
+        self.topics: dict[str, Forwarded] = {}  # by topic, each forwarded while a client wants it
         self.skipped: set[tuple[str, str]] = set()  # (topic, type) that cannot be forwarded
         self.live = foxglove.Context()  # channels of this server only
         try:
@@ -132,6 +133,8 @@ class FoxgloveBridgeNode(Node):
                 "pick another with --foxglove PORT",
             ) from None
         self.url = url(p["address"], self.server.port)
+        self.callback_cpu_ns = 0
+        self.status = StatusPublisher(self, status_topic(NODE_NAME), self._status)
         self.create_timer(p["discovery_period_s"], self.discover)
         self.create_timer(FOLLOW_PERIOD_S, self.follow_clients)
         self.get_logger().info(f"Foxglove live view on {self.url} (open it in Foxglove)")
@@ -189,16 +192,31 @@ class FoxgloveBridgeNode(Node):
                 self.destroy_subscription(forwarded.subscription)
                 forwarded.subscription = None
 
-    @staticmethod
-    def _forwarder(forwarded: Forwarded):
+    def _forwarder(self, forwarded: Forwarded):
         log = forwarded.channel.log
 
         def forward(data: bytes) -> None:
+            t0 = time.thread_time_ns()
             log(data, log_time=time.time_ns())
+            self.callback_cpu_ns += time.thread_time_ns() - t0
             forwarded.messages += 1
             forwarded.bytes += len(data)
 
         return forward
+
+    def _status(self) -> dict:
+        return {
+            "node": NODE_NAME,
+            "url": self.url,
+            "topics_advertised": len(self.topics),
+            "topics_forwarded": sorted(t for t, f in self.topics.items() if f.subscription),
+            "messages_forwarded": sum(f.messages for f in self.topics.values()),
+            "bytes_forwarded": sum(f.bytes for f in self.topics.values()),
+            # CPU time of the callbacks handing messages to the server (the server's own threads
+            # copy them to each client's socket)
+            "callback_cpu_s": round(self.callback_cpu_ns / 1e9, 6),
+            "not_forwarded": sorted(topic for topic, _ in self.skipped),
+        }
 
     def destroy_node(self) -> None:
         self.server.stop()

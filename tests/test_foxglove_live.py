@@ -195,8 +195,14 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
 
     # diagnostics: every node's facts with its level
     statuses = [s for d in received["/diagnostics"] for s in d["status"]]
-    assert {"perception: status", "semantics: status"} <= {s["name"] for s in statuses}
-    assert all(s["level"] in (0, 1, 2) and "rejected.total" in s["values"] for s in statuses)
+    names = {"perception: status", "semantics: status", "foxglove_bridge: status"}
+    assert names <= {s["name"] for s in statuses}
+    assert all(s["level"] in (0, 1, 2) for s in statuses)
+    assert all(
+        "rejected.total" in s["values"] for s in statuses if s["name"] != "foxglove_bridge: status"
+    )
+    bridge = [s["values"] for s in statuses if s["name"] == "foxglove_bridge: status"]
+    assert int(bridge[-1]["messages_forwarded"]) > 0
     if "/tf" in TOPICS:
         transforms = [t for m in received["/tf"] for t in m["transforms"]]
         assert any(t["child"] == "camera_link" for t in transforms)
