@@ -136,15 +136,27 @@ function run() {
   const known = new Map(); // channel id -> { topic, schemaName, reader }
   const subscriptions = new Map(); // subscription id -> the channel's entry
   const missing = () => [...counts].filter(([, n]) => n < opts.count).map(([t]) => t);
+  let socket = null;
+  let finished = false;
   const finish = (code) => {
+    if (finished) return;
+    finished = true;
     print({ done: true, missing: missing(), counts: Object.fromEntries(counts) });
-    process.exit(code);
+    // close the connection as a client should, then exit (at once if the server is gone)
+    if (socket && socket.readyState === WebSocket.OPEN) {
+      socket.once("close", () => process.exit(code));
+      socket.close(1000);
+      setTimeout(() => process.exit(code), 1000);
+    } else {
+      process.exit(code);
+    }
   };
   setTimeout(() => finish(1), opts.timeout * 1000);
   process.on("SIGTERM", () => finish(missing().length ? 1 : 0));
 
   const connect = () => {
     const ws = new WebSocket(opts.url, [SUBPROTOCOL]);
+    socket = ws;
     ws.on("error", () => {}); // a refused connection is retried below
     ws.on("close", () => {
       if (!connected) setTimeout(connect, 200);
@@ -179,7 +191,7 @@ function run() {
     });
     client.on("message", ({ subscriptionId, timestamp, data }) => {
       const sub = subscriptions.get(subscriptionId);
-      if (!sub) return;
+      if (!sub || finished) return;
       const received_ms = performance.timeOrigin + performance.now();
       const msg = sub.reader.readMessage(data);
       print({
