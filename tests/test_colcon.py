@@ -25,7 +25,7 @@ PACKAGES = (
 ROS_PACKAGES = {
     "rclpy", "builtin_interfaces", "std_msgs", "geometry_msgs", "sensor_msgs", "nav_msgs",
     "diagnostic_msgs", "visualization_msgs", "rcl_interfaces", "tf2_msgs", "ament_index_python",
-    "launch", "launch_ros",
+    "launch", "launch_ros", "area3d_interfaces",  # the last: this repository's interfaces (CMake)
 }  # fmt: skip
 # Python imports -> rosdep keys (ros/rosdistro rosdep/python.yaml; "-pip" where Ubuntu 24.04 has
 # no package); None: no rosdep key exists, pip installs it from the root pyproject.toml.
