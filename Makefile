@@ -10,11 +10,19 @@ INTERFACE_SOURCES := $(shell find area3d_interfaces third_party/tf2_msgs -type f
 
 .PHONY: install run test lint bench clean
 
-$(STAMP): pyproject.toml
+# Foxglove's own WebSocket client, for the live-view test (versions locked in its package-lock.json)
+FOXGLOVE_CLIENT := tests/foxglove_client
+
+$(STAMP): pyproject.toml $(FOXGLOVE_CLIENT)/package-lock.json
 	$(PYTHON) tools/build_interfaces.py --check
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev,cluster]"
+	$(PY) -m pip install --quiet -e ".[ros,dev,cluster]"
+	@if command -v npm >/dev/null 2>&1; then \
+		npm ci --prefix $(FOXGLOVE_CLIENT) --no-audit --no-fund --loglevel=error; \
+	else \
+		echo "npm not found: the Foxglove client test will be skipped (install Node.js to run it)"; \
+	fi
 	touch $(STAMP)
 
 # Rebuilt when an interface, the build script or the venv's packages change (the script also
@@ -34,4 +42,4 @@ lint: install
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) runs build *.egg-info
+	rm -rf $(VENV) runs build *.egg-info $(FOXGLOVE_CLIENT)/node_modules

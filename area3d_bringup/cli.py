@@ -23,6 +23,9 @@ app.add_typer(bench_app, name="bench")
 console = Console(stderr=True)
 
 PARAM_HELP = "NODE.NAME=VALUE parameter override, repeatable (e.g. planner.eta=0.3)"
+FOXGLOVE_HELP = "serve every topic on a Foxglove WebSocket on PORT (alone: 8765), for Foxglove"
+FOXGLOVE_ADDRESS_HELP = "address the Foxglove WebSocket listens on (0.0.0.0: every interface)"
+DEFAULT_FOXGLOVE_PORT = 8765  # area3d_bringup/foxglove_bridge.py: DEFAULT_PORT
 
 
 def _overrides(params: list[str]) -> dict[str, dict]:
@@ -85,6 +88,8 @@ def run(
     min_free_mb: float = typer.Option(
         None, help="refuse to start with less free space in --out, MiB (default: 1024)"
     ),
+    foxglove: int = typer.Option(None, "--foxglove", metavar="[PORT]", help=FOXGLOVE_HELP),
+    foxglove_address: str = typer.Option("127.0.0.1", help=FOXGLOVE_ADDRESS_HELP),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
     from area3d_bringup.episode_config import EpisodeConfig, EpisodeError
@@ -107,6 +112,8 @@ def run(
         respawn=respawn,
         respawn_delay_s=respawn_delay,
         respawn_max_retries=respawn_retries,
+        foxglove_port=foxglove,
+        foxglove_address=foxglove_address,
         **({} if min_free_mb is None else {"min_free_mb": min_free_mb}),
     )
     columns = (
@@ -118,6 +125,12 @@ def run(
     discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
     graph_domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or "free"
     console.print(f"graph on ROS_DOMAIN_ID={graph_domain}, discovery {discovery} (rclpy, Fast DDS)")
+    if foxglove is not None:
+        from area3d_bringup.foxglove_bridge import url
+
+        console.print(
+            f"Foxglove live view on {url(foxglove_address, foxglove)} (open it in Foxglove)"
+        )
     try:
         with Progress(*columns, console=console) as progress:
             run_dir = run_episode(config, resume=resume, progress=progress)
@@ -167,6 +180,8 @@ def launch(
     respawn: bool = typer.Option(False, help="restart a node that dies instead of stopping all"),
     respawn_delay: float = typer.Option(1.0, help="seconds before a dead node is restarted"),
     respawn_retries: int = typer.Option(3, help="restarts allowed per node"),
+    foxglove: int = typer.Option(None, "--foxglove", metavar="[PORT]", help=FOXGLOVE_HELP),
+    foxglove_address: str = typer.Option("127.0.0.1", help=FOXGLOVE_ADDRESS_HELP),
 ) -> None:
     """Start the node graph and keep it running (Ctrl-C stops every node)."""
     import faulthandler
@@ -187,6 +202,10 @@ def launch(
     if unknown:
         _fail(f"nodes: got {unknown}, expected names from {[spec.name for spec in specs]}")
     specs = [spec for spec in specs if not names or spec.name in names]
+    if foxglove is not None:
+        from area3d_bringup.foxglove_bridge import bridge_spec
+
+        specs.append(bridge_spec(foxglove, foxglove_address))
     with tempfile.TemporaryDirectory(prefix="area3d-launch-") as workdir:
         launcher = Launcher(
             specs,
@@ -228,6 +247,36 @@ def node(
 
 
 @app.command()
+def rviz(
+    scene: str = typer.Option(None, help="the camera's scene (default: the parameters')"),
+    params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
+    param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
+    out: Path = typer.Option(Path("area3d.rviz"), help="where to write the configuration"),
+    namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
+    start: bool = typer.Option(False, help="then start rviz2 with it (a sourced ROS 2)"),
+) -> None:
+    """Write the RViz configuration of a launch: the grid's boxes the size of its voxels."""
+    from area3d_bringup.launch_description import build_graph, load_parameters
+    from area3d_bringup.rviz import write_config
+
+    overrides = _overrides(param)
+    if scene:
+        overrides.setdefault("sim_bridge", {})["scene"] = scene
+    specs = build_graph(load_parameters(params), overrides)
+    voxel = write_config(out, next(s for s in specs if s.name == "planner").parameters)
+    command = ["rviz2", "-d", str(out)]
+    if namespace:
+        command += ["--ros-args", "-r", f"__ns:={namespace}"]
+    print(f"wrote {out} (grid boxes {voxel:g} m)\n{' '.join(command)}")
+    if start:
+        import shutil
+
+        if shutil.which("rviz2") is None:
+            _fail("rviz2: not found, expected a sourced ROS 2 (source /opt/ros/jazzy/setup.bash)")
+        os.execvp("rviz2", command)
+
+
+@app.command()
 def scenes() -> None:
     """List the bundled scenes."""
     from sim_bridge.scenes import list_scenes, load_scene
@@ -248,6 +297,7 @@ BENCHES = {
     "semantics": "area3d_semantics.bench",
     "planner": "area3d_bringup.planner_bench",
     "eval": "area3d_eval.bench",
+    "foxglove": "area3d_bringup.foxglove_bench",
 }
 
 
@@ -365,8 +415,18 @@ def bench_episode(
         _fail(str(err))
 
 
+def with_foxglove_port(args: list[str]) -> list[str]:
+    """`--foxglove` without a port (last, or before another option) means the default port."""
+    out: list[str] = []
+    for i, arg in enumerate(args):
+        out.append(arg)
+        if arg == "--foxglove" and (i + 1 == len(args) or args[i + 1].startswith("-")):
+            out.append(str(DEFAULT_FOXGLOVE_PORT))
+    return out
+
+
 def main() -> None:
-    app(prog_name="area3d")
+    app(args=with_foxglove_port(sys.argv[1:]), prog_name="area3d")
 
 
 if __name__ == "__main__":

@@ -48,6 +48,9 @@ class EpisodeConfig:
     min_free_mb: float = rundir.MIN_FREE_MB  # the output directory must have this much free
     # capture stamps in ns (None: the runner's ROS clock); tests inject time instead of sleeping
     clock: Callable[[], int] | None = None
+    # serve every topic on a Foxglove WebSocket on this port (None: no live view)
+    foxglove_port: int | None = None
+    foxglove_address: str = "127.0.0.1"  # this machine only unless told otherwise
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that cannot run."""

@@ -222,6 +222,10 @@ class _Episode:
         self.recorder = BagRecorder(rundir.bag_path(self.run_dir)) if config.record else None
         t0 = time.monotonic()
         local = [spec for spec in self.specs if config.nodes is None or spec.name in config.nodes]
+        if config.foxglove_port is not None:
+            from area3d_bringup.foxglove_bridge import bridge_spec
+
+            local.append(bridge_spec(config.foxglove_port, config.foxglove_address))
         self.launcher = Launcher(
             local,
             self.run_dir,

@@ -13,6 +13,7 @@ if __name__ == "__main__":
             ("share/area3d_bringup", ["package.xml"]),
             ("share/area3d_bringup/config", ["config/area3d.yaml"]),
             ("share/area3d_bringup/launch", ["launch/area3d.launch.py"]),
+            ("share/area3d_bringup/rviz", ["rviz/area3d.rviz"]),
         ],
         install_requires=["setuptools"],
         zip_safe=True,

@@ -1,17 +1,19 @@
-"""A node process's life: configure the middleware, start rclpy, build the node, spin until Ctrl-C
-or shutdown, and tear everything down quietly; the one `main` body every AREA3D node shares."""
+"""A node process's life: configure the middleware, start rclpy, build the node, forward Python
+`logging` to its ROS log, spin until Ctrl-C or shutdown, and tear everything down quietly; the one
+`main` body every AREA3D node shares."""
 
 from __future__ import annotations
 
 import ctypes
 import faulthandler
+import logging
 import os
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
@@ -77,6 +79,54 @@ class PublishGate:
             self._open = False
 
 
+class RosLogHandler(logging.Handler):
+    """Python `logging` records -> the node's ROS logger, so what our modules log (the semantics
+    backends' retries, a parser's skipped lines, a library's warnings) reaches /rosout and the
+    node's console log with the node's name: logger `area3d_semantics.backends` of node
+    `semantics` logs as `semantics.area3d_semantics.backends`."""
+
+    def __init__(self, ros_logger: Any) -> None:
+        super().__init__()
+        self._ros_logger = ros_logger
+        self._children: dict[str, Any] = {}
+        self._lock_children = threading.Lock()
+
+    def _child(self, name: str) -> Any:
+        with self._lock_children:
+            child = self._children.get(name)
+            if child is None:
+                child = self._children[name] = self._ros_logger.get_child(name)
+            return child
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            logger = self._child(record.name) if record.name != "root" else self._ros_logger
+            message = self.format(record)
+            if record.levelno >= logging.CRITICAL:
+                logger.fatal(message)
+            elif record.levelno >= logging.ERROR:
+                logger.error(message)
+            elif record.levelno >= logging.WARNING:
+                logger.warning(message)
+            elif record.levelno >= logging.INFO:
+                logger.info(message)
+            else:
+                logger.debug(message)
+        except Exception:  # noqa: BLE001 - logging must never end the node
+            self.handleError(record)
+
+
+def forward_python_logging(node: Node) -> RosLogHandler:
+    """Install a RosLogHandler for `node` on the root logger, at the node's log level (rclpy's
+    severities share Python's numbers: DEBUG 10 ... FATAL 50; `--ros-args --log-level debug`
+    applies to both). Returns the handler, for `logging.getLogger().removeHandler`."""
+    handler = RosLogHandler(node.get_logger())
+    root = logging.getLogger()
+    root.addHandler(handler)
+    root.setLevel(int(node.get_logger().get_effective_level()))
+    return handler
+
+
 def _mallopt(parameter: int, value: int, env_var: str) -> bool:
     """glibc's mallopt(parameter, value), unless the user set `env_var` (glibc's own environment
     setting for it) or the C library is not glibc; True if done."""
@@ -132,6 +182,7 @@ def run_node(
     node: Node | None = None
     spinner: Executor | None = None
     signalled = False
+    log_handler: logging.Handler | None = None
     try:
         spinner = executor()  # first: a Ctrl-C while the node is built finds it whole
         try:
@@ -139,6 +190,7 @@ def run_node(
         except startup_errors as exc:
             rclpy.logging.get_logger(name).fatal(f"cannot start: {exc}")
             return 1
+        log_handler = forward_python_logging(node)
         spinner.add_node(node)
         spinner.spin()
         signalled = True  # spin returns only once the context is shut down: a signal
@@ -149,6 +201,8 @@ def run_node(
             raise
         signalled = True  # the context was shut down under the executor's wait: a signal
     finally:
+        if log_handler is not None:
+            logging.getLogger().removeHandler(log_handler)
         if on_stop is not None and node is not None:
             on_stop(node)
         if signalled:

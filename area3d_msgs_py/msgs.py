@@ -17,6 +17,7 @@ import importlib
 from typing import Any
 
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import (
     Point,
     Pose,
@@ -32,6 +33,7 @@ from nav_msgs.srv import GetPlan
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField, RegionOfInterest
 from std_msgs.msg import Header, String
+from visualization_msgs.msg import Marker, MarkerArray
 
 from area3d_msgs_py.errors import InputError
 
@@ -50,7 +52,8 @@ GetPlan_Request = GetPlan.Request
 GetPlan_Response = GetPlan.Response
 
 __all__ = [
-    "CameraInfo", "GetPlan", "GetPlan_Request", "GetPlan_Response", "HardRegion",
+    "CameraInfo", "DiagnosticArray", "DiagnosticStatus", "KeyValue", "Marker", "MarkerArray",
+    "GetPlan", "GetPlan_Request", "GetPlan_Response", "HardRegion",
     "HardRegionArray", "Header", "Image", "NextBestView", "Odometry", "Path", "Point",
     "PointCloud2", "PointField", "Pose", "PoseArray", "PoseStamped", "Quaternion",
     "RegionOfInterest", "String", "TFMessage", "Time", "Transform", "TransformStamped", "Vector3",

@@ -209,6 +209,14 @@ UNCERTAINTY_GRID = Topic(
 NEXT_VIEWS = Topic(
     "area3d/planner/next_views", msgs.Path, PLANNER, description="the views of the last plan"
 )
+VIEW_MARKERS = Topic(
+    "area3d/planner/view_markers",
+    msgs.MarkerArray,
+    PLANNER,
+    durability=TRANSIENT_LOCAL,
+    depth=1,
+    description="camera frustums of the last plan's views, coloured by order (latched)",
+)
 PLANNER_STATUS = _status(PLANNER)
 NEXT_BEST_VIEW = Service(
     "area3d/planner/next_best_view",
@@ -217,12 +225,22 @@ NEXT_BEST_VIEW = Service(
     "start = current pose stamped with the last capture; goal.pose.position.x = views wanted",
 )
 
+# -- every node -----------------------------------------------------------------------------
+DIAGNOSTICS = Topic(
+    "/diagnostics",
+    msgs.DiagnosticArray,
+    ANYONE,
+    description="each node's status as diagnostic_msgs (1 Hz and after a change)",
+)
+FOXGLOVE_BRIDGE = "foxglove_bridge"  # `--foxglove`: the live view's node (not in graph.py)
+FOXGLOVE_STATUS = _status(FOXGLOVE_BRIDGE)
+
 #: every topic of the graph, camera first
 TOPICS: tuple[Topic, ...] = (
     GOAL, COLOR, DEPTH, CAMERA_INFO, POSE, RIGHT_IMAGE, RIGHT_CAMERA_INFO, CAMERA_STATUS, TF,
     TF_STATIC, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_STATUS, SEMANTIC_REGIONS,
     SEMANTIC_WEIGHT, SEMANTIC_UNCERTAINTY, SEMANTIC_REQUEST, SEMANTICS_STATUS, UNCERTAINTY_GRID,
-    NEXT_VIEWS, PLANNER_STATUS,
+    NEXT_VIEWS, VIEW_MARKERS, PLANNER_STATUS, DIAGNOSTICS,
 )  # fmt: skip
 
 

@@ -4,7 +4,8 @@ Subscribes area3d/perception/depth, area3d/perception/confidence, area3d/camera/
 area3d/camera/camera_info (paired by stamp), area3d/semantics/uncertainty. Publishes the latched
 area3d/planner/uncertainty_grid (after every fused frame; during a backlog at most every
 grid_period_s), area3d/planner/status and
-area3d/planner/next_views; serves area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Topics:
+area3d/planner/next_views (and their camera frustums on area3d/planner/view_markers); serves
+area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Topics:
 `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all. The region of interest and workspace are parameters: the planner
 knows only what a robot knows, never the simulator's scene.
 """
@@ -47,6 +48,7 @@ from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.frame_sync import CameraInfoCache, HeldFrames, StampSync
 from area3d_planner.cloud import grid_to_msg
 from area3d_planner.fusion_worker import FusionWorker
+from area3d_planner.markers import view_markers
 from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
 
 CAMERA_INFO_CACHE = 64
@@ -107,6 +109,13 @@ PARAMS = (
         "parts of a frame wait this long for their partners, seconds",
         range=(0.0, 3600.0),
     ),
+    Param(
+        "view_marker_range",
+        0.0,
+        "depth of the camera frustums drawn on view_markers, metres; 0 = a quarter of the "
+        "region of interest's diagonal",
+        range=(0.0, 1000.0),
+    ),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
 )
@@ -141,6 +150,8 @@ class PlannerNode(Node):
         self.camera_info = CameraInfoCache(CAMERA_INFO_CACHE)  # stamp -> K
         self.waiting = HeldFrames(MAX_FRAMES_WITHOUT_INFO)
         self.world_frame = p["world_frame"]
+        roi = np.subtract(config.roi_max, config.roi_min)
+        self.marker_range = p["view_marker_range"] or 0.25 * float(np.linalg.norm(roi))
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
         # The status goes out after every fused frame and rebuild, and a moment after a request's
         # answer (never just before it: a client that also listens to the status, a mission
@@ -158,9 +169,9 @@ class PlannerNode(Node):
             now_ns=self._now_ns,
         )
 
-        self.grid_pub, self.views_pub = (
+        self.grid_pub, self.views_pub, self.markers_pub = (
             self.create_publisher(topic.msg_type, topic.name, topic.qos())
-            for topic in (topics.UNCERTAINTY_GRID, topics.NEXT_VIEWS)
+            for topic in (topics.UNCERTAINTY_GRID, topics.NEXT_VIEWS, topics.VIEW_MARKERS)
         )
         frames = MutuallyExclusiveCallbackGroup()
         for topic, callback, depth in (
@@ -359,6 +370,12 @@ class PlannerNode(Node):
             ],
         )
         self.views_pub.publish(path)
+        c = self.server.config
+        self.markers_pub.publish(
+            view_markers(
+                poses, self.world_frame, now, c.hfov_deg, c.width, c.height, self.marker_range
+            )
+        )
         self.status.changed()
         return path
 
