@@ -83,10 +83,8 @@ def _phase(
 
 
 def measure(frames: int = 150) -> dict:
-    from area3d_bringup.foxglove_bridge import NODE_NAME
-    from area3d_msgs_py import codecs, msgs, qos
+    from area3d_msgs_py import codecs, msgs, qos, topics
     from area3d_msgs_py.probe import Probe
-    from area3d_msgs_py import topics
 
     port = _free_port()
     bridge = subprocess.Popen(

@@ -28,12 +28,11 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from area3d_bringup.launch_description import NodeSpec
-from area3d_msgs_py import msgs
+from area3d_msgs_py import msgs, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.lifecycle import exit_process, run_node
 from area3d_msgs_py.msgdef import message_definition
 from area3d_msgs_py.parameters import Param, declare_parameters, report_unknown_parameters
-from area3d_msgs_py import topics
 from area3d_msgs_py.status import StatusPublisher
 
 NODE_NAME = topics.FOXGLOVE_BRIDGE

@@ -23,7 +23,6 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-
 from area3d_msgs_py import codecs
 from area3d_msgs_py.msgs import DiagnosticArray, DiagnosticStatus, KeyValue
 
