@@ -17,10 +17,12 @@ from pathlib import Path
 
 import yaml
 
-GRID_TOPIC = "area3d/planner/uncertainty_grid"
-VIEWS_TOPIC = "area3d/planner/next_views"
-MARKERS_TOPIC = "area3d/planner/view_markers"
-IMAGE_TOPIC = "area3d/camera/color/image_raw"
+from area3d_msgs_py import topics
+
+GRID_TOPIC = topics.UNCERTAINTY_GRID.name
+VIEWS_TOPIC = topics.NEXT_VIEWS.name
+MARKERS_TOPIC = topics.VIEW_MARKERS.name
+IMAGE_TOPIC = topics.COLOR.name
 
 
 def installed_config() -> Path:

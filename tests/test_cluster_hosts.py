@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from area3d_bringup.episode_task import holdout_digest
+from sim_bridge.holdout_scenes import HOLDOUT_WRITERS
 
 
 def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -96,7 +97,8 @@ def test_the_benchmark_runs_on_the_worker_of_another_host(two_hosts, tmp_path):
     assert "failed" not in output
     (client_root,) = (client_dir / "runs").iterdir()
     worker_root = worker_dir / "runs" / client_root.name  # the same relative path, elsewhere
-    names = ["single_object_uniform_s0", "tabletop_s0_uniform_s0", "alcove_room_s0_uniform_s0"]
+    kinds = [f"{kind}_s0" for kind in HOLDOUT_WRITERS]  # every generated hold-out kind
+    names = ["single_object_uniform_s0", *(f"{kind}_uniform_s0" for kind in kinds)]
     for name in names:
         # the client has the results; the frames stay on the worker
         assert (client_root / name / "metrics.json").is_file()
@@ -107,10 +109,10 @@ def test_the_benchmark_runs_on_the_worker_of_another_host(two_hosts, tmp_path):
         assert mine["final"] == theirs["final"]
     # the worker wrote the hold-out scenes itself, file for file as the client did, and the
     # client's table names them by its own copy
-    for kind in ("tabletop_s0", "alcove_room_s0"):
+    for kind in kinds:
         here, there = client_root / "holdout" / kind, worker_root / "holdout" / kind
         assert holdout_digest(here) == holdout_digest(there)
         episode = json.loads((client_root / f"{kind}_uniform_s0" / "episode.json").read_text())
         assert episode["scene"] == str((here / f"{kind}.xml").resolve())
     assert (client_root / "report" / "report.html").is_file()
-    assert "3 scenes x 1 policies x 1 seeds" in output
+    assert f"{1 + len(kinds)} scenes x 1 policies x 1 seeds" in output

@@ -47,8 +47,18 @@ ROSDEP_KEYS: dict[str, str | None] = {
     "foxglove": None,
     "libusb_package": None,
 }
-# optional backends, imported only when selected (the `ml` extra, or not on PyPI at all)
-OPTIONAL = {"torch", "transformers", "vggt", "depth_anything_3", "gsplat", "lpips"}
+# optional backends, imported only when selected (the `ml` extra, or not on PyPI at all), and the
+# benchmark's engine for several processes or machines (the `cluster` extra)
+OPTIONAL = {
+    "torch",
+    "transformers",
+    "vggt",
+    "depth_anything_3",
+    "gsplat",
+    "lpips",
+    "dask",
+    "distributed",
+}
 # declared without an import: `ros2 launch` itself
 RUNTIME_ONLY = {"area3d_bringup": {"ros2launch"}}
 

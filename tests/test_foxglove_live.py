@@ -34,7 +34,7 @@ pytestmark = pytest.mark.skipif(
     NODE is None, reason="Node.js is not installed: Foxglove's client runs on it"
 )
 
-GRID_FIELDS = ["x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy"]
+GRID_FIELDS = ["x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy", "hard"]
 TOPICS = {
     "/area3d/camera/color/image_raw": "sensor_msgs/msg/Image",
     "/area3d/camera/depth/image_raw": "sensor_msgs/msg/Image",

@@ -76,7 +76,8 @@ def test_with_estimated_stereo_depth_both_paths_choose_the_same_views_and_keep_t
         assert not np.array_equal(estimate, frame.depth)
         assert 0.0 < np.mean(frame.confidence[both]) <= 1.0
         same = np.isfinite(estimate) & np.isfinite(local.estimated_depth)
-        # the same matcher on the same images up to those edge pixels (semi-global matching
-        # carries a difference along its paths, so not every pixel agrees)
+        # the same matcher on near-identical images: the renderings differ at a few edge
+        # pixels, and the camera's noise where the graph's camera drew it for a goal sent twice;
+        # semi-global matching carries a difference along its paths
         diff = np.abs(estimate[same] - local.estimated_depth[same])
-        assert np.median(diff) < 1e-3 and np.mean(diff < 1e-3) > 0.6
+        assert np.median(diff) < 5e-3 and np.mean(diff < 5e-3) > 0.5

@@ -13,8 +13,7 @@ import yaml
 
 from area3d_bringup.launch_description import build_graph, load_parameters
 from area3d_bringup.rviz import config_text, grid_voxel_size, installed_config
-from area3d_planner import node as planner_node
-from sim_bridge import node as camera_node
+from area3d_msgs_py import topics
 
 PACKAGE = Path(__file__).resolve().parents[1]
 
@@ -53,10 +52,10 @@ def test_the_config_is_installed_with_the_package_by_pip_and_colcon():
 def test_topics_are_relative_names_the_graph_publishes_with_matching_durability():
     displays = _displays(installed_config().read_text())
     expected = {
-        "Uncertainty grid": (planner_node.GRID_TOPIC, "Transient Local"),
-        "Planned views": (planner_node.MARKERS_TOPIC, "Transient Local"),
-        "Next views": (planner_node.VIEWS_TOPIC, "Volatile"),
-        "Camera": (camera_node.COLOR_TOPIC, "Volatile"),
+        "Uncertainty grid": (topics.UNCERTAINTY_GRID.name, "Transient Local"),
+        "Planned views": (topics.VIEW_MARKERS.name, "Transient Local"),
+        "Next views": (topics.NEXT_VIEWS.name, "Volatile"),
+        "Camera": (topics.COLOR.name, "Volatile"),
     }
     for name, (topic, durability) in expected.items():
         assert displays[name]["Topic"]["Value"] == topic and not topic.startswith("/")
