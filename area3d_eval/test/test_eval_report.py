@@ -24,10 +24,11 @@ def scene():
     return SyntheticScene(subdivisions=3)
 
 
-def test_default_checkpoints_cover_initial_views_every_fourth_and_the_last():
-    assert default_checkpoints(29, 4) == [4, 8, 12, 16, 20, 24, 28, 29]
-    assert default_checkpoints(50, 15)[:3] == [4, 8, 12] and 15 in default_checkpoints(50, 15)
-    assert default_checkpoints(3, 4) == [3]
+def test_default_checkpoints_cover_initial_views_every_fourth_60_percent_and_the_last():
+    assert default_checkpoints(29, 4) == [4, 8, 12, 16, 17, 20, 24, 28, 29]
+    assert default_checkpoints(25, 4) == [4, 8, 12, 15, 16, 20, 24, 25]
+    assert default_checkpoints(40, 15) == [4, 8, 12, 15, 16, 20, 24, 28, 32, 36, 40]
+    assert default_checkpoints(3, 4) == [2, 3]
 
 
 def test_the_ground_truth_mesh_rendered_at_eval_views_scores_perfectly(scene):
@@ -46,7 +47,7 @@ def test_evaluate_run_writes_metrics_after_each_checkpoint(tmp_path, scene):
     )
     result = evaluate_run(run, scene, **SMALL)
     written = json.loads((run / "metrics.json").read_text())
-    assert [row["num_views"] for row in written["curve"]] == [4, 8, 9]
+    assert [row["num_views"] for row in written["curve"]] == [4, 5, 8, 9]  # 5: 60 % of 9
     assert written["final"]["num_views"] == 9 and written["policy"] == "random"
     assert (run / "eval" / "reconstruction.ply").is_file() and (
         run / "eval" / "gt_sample.npy"
