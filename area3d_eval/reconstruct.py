@@ -27,9 +27,13 @@ from area3d_perception.backproject import depth_to_world
 
 BLOCK_RESOLUTION = 8  # voxels per block edge (Open3D's default)
 INITIAL_BLOCK_COUNT = 20_000  # hash map capacity to start with; it grows on demand
-# Voxels whose summed weight (confidence) is below this are left out of the mesh: every voxel a
-# measurement reached counts, however unsure (pixels with confidence 0 add nothing).
-MIN_WEIGHT = 1e-3
+# Voxels whose summed weight (confidence) is below this are left out of the mesh: a surface needs
+# one observation with confidence 0.3 (below it a measurement is not trusted: a depth edge of the
+# camera's sensor model is 0.2) or several poorer ones. With every voxel any measurement reached
+# (1e-3), stray estimates of single stereo frames stayed in the mesh: on single_object, 25 views of
+# stereo depth, accuracy 17.7 mm and region PSNR 17.4 dB; with 0.3, 4.4 mm and 21.5 dB at the same
+# completion (0.870).
+MIN_WEIGHT = 0.3
 
 
 @dataclass(frozen=True)
