@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from area3d_msgs_py import codecs
-from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
 from area3d_planner.cloud import grid_to_cloud
@@ -19,6 +18,7 @@ from area3d_planner.hard_regions import (
     hard_regions,
     points_hard_regions,
 )
+from area3d_planner.test.conftest import WALL_DIRECTIONS, WALL_K, banded_wall_view
 
 LOWER = np.array([-1.0, 0.0, 2.0])
 VOXEL = 0.1
@@ -73,37 +73,12 @@ def test_bad_inputs_name_the_field():
         hard_regions(np.zeros((1, 3), int), np.zeros(3), 0.0, [3], [1])
 
 
-K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])  # 64x48 image, 90 degree hfov
-WALL_X = 0.625
-# five distinct directions onto the wall: straight on, 50 degrees left, right, above and below
-DIRECTIONS = ((0.0, 0.0), (50.0, 0.0), (-50.0, 0.0), (0.0, 50.0), (0.0, -50.0))
-
-
-def banded_wall_view(azimuth_deg: float, elevation_deg: float):
-    """A view of the wall x = WALL_X from (azimuth, elevation) about (WALL_X, 0.5, 0.5), 0.525 m
-    away: its depth, a confidence of 0.2 on two bands of the wall (world y in [0.15, 0.3] and
-    [0.7, 0.85], z in [0.3, 0.7]) and 0.9 elsewhere, wherever it is seen from; the pose."""
-    target = np.array([WALL_X, 0.5, 0.5])
-    a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
-    eye = target - 0.525 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
-    T = look_at(eye, target)
-    v, u = np.mgrid[0:48, 0:64]
-    rays = np.stack([(u + 0.5 - 32) / 32, (v + 0.5 - 24) / 32, np.ones((48, 64))], -1)
-    world = rays @ T[:3, :3].T
-    t = (WALL_X - eye[0]) / world[..., 0]  # distance along each ray to the plane, as optical z
-    depth = np.where(t > 0, t, np.nan).astype(np.float32)
-    y, z = eye[1] + t * world[..., 1], eye[2] + t * world[..., 2]
-    bands = ((y > 0.15) & (y < 0.3)) | ((y > 0.7) & (y < 0.85))
-    low = bands & (z > 0.3) & (z < 0.7)
-    return depth, np.where(low, 0.2, 0.9).astype(np.float32), T
-
-
 def test_a_fused_wall_with_two_bands_no_direction_resolves_has_two_hard_regions():
     spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.05)
     grid = FusedGrid(spec, np.zeros(3), np.ones(3), gamma=0.0)
-    for azimuth, elevation in DIRECTIONS:
+    for azimuth, elevation in WALL_DIRECTIONS:
         depth, confidence, T = banded_wall_view(azimuth, elevation)
-        grid.integrate_depth(depth, confidence, K, T, stride=1)
+        grid.integrate_depth(depth, confidence, WALL_K, T, stride=1)
     cloud = grid_to_cloud(grid)
     regions = cloud_hard_regions(cloud, grid)
     # each band: 3 voxels (y) x 8 voxels (z) of the wall's voxel layer (x in [0.6, 0.65])
