@@ -228,6 +228,7 @@ class PlannerNode(Node):
             **self.server.status(),
             "parts_dropped_unpaired": self.dropped,
             "frames_dropped_backlog": self.fusion.dropped,
+            "frames_dropped_without_camera_info": self.waiting.dropped,
             "hard_regions": self.hard_regions,
             "fusion_failures": self.fusion_failures,
             # a worker thread that ended before the node stopped (diagnostics: ERROR)
