@@ -8,6 +8,12 @@ client (`tests/foxglove_client`, on Node.js). Measured with no client attached a
 - publish-to-client latency p50 / p95 (the stamp set at publish to the client's receipt);
 - the graph reader's publish-to-receive latency p50 / p95, so the cost to the graph shows.
 
+Then the whole graph's closed-loop step: `area3d run` episodes (single_object, 640x480, closed
+loop) without the bridge, with the bridge and no client, and with the bridge and one client
+subscribed to every topic of the graph; per planned view the time from the previous frame's
+capture to the next view's answer (`plan`: the request waits for that frame to be fused) and to
+its frame (`step` = plan + capture), p50 / p95 over the planned views.
+
 Without Node.js the client figures are skipped (said so in the table).
 """
 
@@ -34,6 +40,12 @@ CLIENT = Path(__file__).resolve().parents[1] / "tests" / "foxglove_client" / "cl
 TARGET_CPU_MS = 2.0
 TARGET_CLIENT_P95_MS = 50.0
 TARGET_GRAPH_RATIO = 1.5
+# the closed loop: a Foxglove user watching every topic does not slow the robot's next view
+TARGET_STEP_RATIO = 1.2
+EPISODE_SCENE = "single_object"
+EPISODE_BUDGET = 16  # 4 initial + 12 planned views per episode
+EPISODE_TIMEOUT_S = 900.0
+LOOP_PHASES = ("no bridge", "bridge, no client", "bridge + client")
 
 
 def _cpu_s(pid: int) -> float:
@@ -172,7 +184,77 @@ def measure(frames: int = 150) -> dict:
     return results
 
 
-def run_bench(frames: int = 150) -> dict:
+def _graph_topics() -> list[str]:
+    """Every topic of the graph, absolute (what a Foxglove user with every panel open reads)."""
+    from area3d_msgs_py import topics
+
+    return [t.name if t.name.startswith("/") else f"/{t.name}" for t in topics.TOPICS]
+
+
+def closed_loop(phase: str, budget: int, out: Path) -> dict:
+    """One `area3d run` episode in `phase` (LOOP_PHASES); the planned views' plan and step times
+    (seconds) and, with a client, the messages it decoded."""
+    command = [sys.executable, "-m", "area3d_bringup.cli", "run", "--scene", EPISODE_SCENE]
+    command += ["--budget", str(budget), "--out", str(out), "--no-evaluate", "--no-record"]
+    port = _free_port()
+    if phase != "no bridge":
+        command += ["--foxglove", str(port)]
+    run = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    client = None
+    decoded = [0]
+    node = shutil.which("node")
+    if phase == "bridge + client" and node is not None:
+        client = subprocess.Popen(
+            [node, str(CLIENT), "--url", f"ws://localhost:{port}", "--topics"]
+            + [",".join(_graph_topics()), "--count", "1", "--stay", "1"]
+            + ["--timeout", str(EPISODE_TIMEOUT_S)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+
+        def count() -> None:
+            for line in client.stdout:  # read as it comes: an unread pipe would block the client
+                decoded[0] += line.startswith('{"topic"')
+
+        threading.Thread(target=count, daemon=True).start()
+    try:
+        _, err = run.communicate(timeout=EPISODE_TIMEOUT_S)
+    finally:
+        if run.poll() is None:
+            run.kill()
+        if client is not None:
+            client.send_signal(signal.SIGTERM)
+            try:
+                client.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                client.kill()
+    if run.returncode != 0:
+        raise RuntimeError(f"area3d run ({phase}) failed: {err[-2000:]}")
+    run_dir = max((p for p in out.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime)
+    views = json.loads((run_dir / "episode.json").read_text())["views"]
+    planned = [v["stage_times_s"] for v in views if v["kind"] == "planned"]
+    return {
+        "plan_s": [t["plan"] for t in planned],
+        "step_s": [t["plan"] + t["capture"] for t in planned],
+        "client_messages": decoded[0] if client is not None else None,
+    }
+
+
+def measure_closed_loop(budget: int = EPISODE_BUDGET) -> dict:
+    """`closed_loop` in every phase, in a temporary directory."""
+    import tempfile
+
+    results = {}
+    with tempfile.TemporaryDirectory(prefix="area3d_foxglove_bench_") as tmp:
+        for i, phase in enumerate(LOOP_PHASES):
+            if phase == "bridge + client" and shutil.which("node") is None:
+                continue
+            results[phase] = closed_loop(phase, budget, Path(tmp) / str(i))
+    return results
+
+
+def run_bench(frames: int = 150, budget: int = EPISODE_BUDGET) -> dict:
     from rich.console import Console
     from rich.table import Table
 
@@ -182,6 +264,7 @@ def run_bench(frames: int = 150) -> dict:
     with middleware.DomainLease() as lease:
         os.environ["ROS_DOMAIN_ID"] = str(lease.domain_id)
         results = measure(frames)
+        loop = measure_closed_loop(budget)
     table = Table(
         title=f"Foxglove live view: 640x480 32FC1 (1.2 MB) at {RATE_HZ:g} Hz, {frames} frames"
     )
@@ -237,4 +320,29 @@ def run_bench(frames: int = 150) -> dict:
             f"{ratio / TARGET_GRAPH_RATIO:.2f}",
         )
     Console().print(table)
+    steps = Table(
+        title=f"Closed-loop step over the graph: {EPISODE_SCENE} 640x480, {budget} views "
+        f"({budget - 4} planned), one episode per row"
+    )
+    for column in ("graph", "plan p50 / p95", "step p50 / p95", "target", "ratio"):
+        steps.add_column(column, justify="right")
+    base = loop["no bridge"]
+    for phase, figures in loop.items():
+        plan = _percentiles([1e3 * t for t in figures["plan_s"]])
+        step = _percentiles([1e3 * t for t in figures["step_s"]])
+        label = phase
+        if figures["client_messages"] is not None:
+            label += f" ({figures['client_messages']} messages decoded)"
+        ratio = step[0] / _percentiles([1e3 * t for t in base["step_s"]])[0]
+        steps.add_row(
+            label,
+            f"{plan[0]:.0f} / {plan[1]:.0f} ms",
+            f"{step[0]:.0f} / {step[1]:.0f} ms",
+            "" if phase == "no bridge" else f"p50 < {TARGET_STEP_RATIO:g}x without",
+            "" if phase == "no bridge" else f"{ratio / TARGET_STEP_RATIO:.2f}",
+        )
+    if "bridge + client" not in loop:
+        steps.add_row("bridge + client", "skipped: Node.js missing", "", "", "")
+    Console().print(steps)
+    results["closed_loop"] = loop
     return results

@@ -293,17 +293,26 @@ class MissionManager(Node):
 
     # -- episode steps (main thread) --------------------------------------------------------
     def wait_for_readers(self, timeout_s: float) -> list[str]:
-        """Wait until the camera topics have their graph readers; the topics still short of them."""
-        pubs = self.runner_pubs
+        """Wait until the camera topics have their graph readers; the topics still short of them.
+        A topic has them once each graph node that reads it has a reader discovery lists, and
+        the runner's writer has matched every listed reader: a reader of another program (a
+        Foxglove client through the bridge, `ros2 topic echo`) never stands in for a graph node
+        that has not subscribed yet, whose goal or frame would then be lost."""
         deadline = time.monotonic() + timeout_s
         while True:
-            short = [
-                k for k, pub in pubs.items() if pub.get_subscription_count() < EXPECTED_READERS[k]
-            ]
+            short = [key for key in self.runner_pubs if not self._has_graph_readers(key)]
             if not short or time.monotonic() > deadline:
                 return short
             self.alive_check()
             time.sleep(0.05)
+
+    def _has_graph_readers(self, key: str) -> bool:
+        pub = self.runner_pubs[key]
+        infos = self.get_subscriptions_info_by_topic(pub.topic_name)
+        readers = {info.node_name for info in infos}
+        return set(RUNNER_TOPICS[key].readers) <= readers and pub.get_subscription_count() >= max(
+            EXPECTED_READERS[key], len(infos)
+        )
 
     def capture(
         self, T_world_cam: np.ndarray, timeout_s: float, stamp: int | None = None

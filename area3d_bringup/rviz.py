@@ -1,5 +1,5 @@
 """The RViz configuration of the graph: the uncertainty grid as boxes the size of its voxels, the
-planned views' frustums and path, the camera image and TF.
+planned views' frustums and path, the hard regions as boxes, the camera image and TF.
 
 Topic names are relative (`area3d/planner/uncertainty_grid`), so RViz resolves them in its own
 namespace: `rviz2 -d area3d.rviz --ros-args -r __ns:=/robot1` shows the graph launched under
@@ -18,10 +18,12 @@ from pathlib import Path
 import yaml
 
 from area3d_msgs_py import topics
+from area3d_planner.markers import HARD_REGIONS_NS, VIEWS_NS
 
 GRID_TOPIC = topics.UNCERTAINTY_GRID.name
 VIEWS_TOPIC = topics.NEXT_VIEWS.name
 MARKERS_TOPIC = topics.VIEW_MARKERS.name
+HARD_REGIONS_TOPIC = topics.HARD_REGION_MARKERS.name
 IMAGE_TOPIC = topics.COLOR.name
 
 
@@ -94,7 +96,14 @@ def rviz_config(voxel_size: float, world_frame: str = "world") -> dict:
             "Name": "Planned views",
             "Enabled": True,
             "Topic": _topic(MARKERS_TOPIC, "Transient Local", 10),
-            "Namespaces": {"planned_views": True, "hard_regions": True},
+            "Namespaces": {VIEWS_NS: True},
+        },
+        {
+            "Class": "rviz_default_plugins/MarkerArray",
+            "Name": "Hard regions",
+            "Enabled": True,
+            "Topic": _topic(HARD_REGIONS_TOPIC, "Transient Local", 10),
+            "Namespaces": {HARD_REGIONS_NS: True},
         },
         {
             "Class": "rviz_default_plugins/Path",

@@ -27,6 +27,7 @@ from area3d_eval.rundir import (
     scene_name,
 )
 from area3d_perception.backproject import depth_to_world
+from area3d_planner.hard_regions import grid_voxel_size, points_hard_regions
 
 # (key in metrics.json, column title, higher is better, scale for display, format). PSNR and SSIM
 # are the region's (pixels where the ground truth sees the ROI): the whole-image figures also score
@@ -73,6 +74,7 @@ class RunRecord:
     label: str = ""
     scene: str = ""  # the scene's name in titles and tables (`_scene_names`)
     figures: dict[str, Path] = field(default_factory=dict)
+    hard_regions: str = ""  # the final grid's hard regions, in a sentence (`hard_region_text`)
 
 
 def _value(v: Any) -> float:
@@ -234,9 +236,31 @@ def _figures(
         )
         if slices is not None:
             r.figures["uncertainty"] = slices
+        r.hard_regions = hard_region_text(read_grid(r.path / GRID_FINAL_FILE))
     timings = {r.label: r.episode.timings_s for r in records if r.episode.timings_s}
     timing_png = plots.plot_timings(timings, fig_dir / "timings.png") if timings else None
     return curves, timing_png
+
+
+def hard_region_text(grid: dict[str, np.ndarray] | None) -> str:
+    """What the camera could not resolve, in a sentence: the hard regions of a saved grid (its
+    `hard` field grouped as the planner groups them, `area3d_planner.hard_regions`), the hard
+    voxels they hold and where the largest is; "" for a grid without a `hard` field."""
+    if grid is None or "hard" not in grid:
+        return ""
+    xyz = np.stack([np.asarray(grid[axis], np.float64) for axis in "xyz"], axis=1)
+    hard = np.asarray(grid["hard"]) > 0
+    voxel = grid_voxel_size(xyz)
+    if not hard.any() or voxel is None:
+        return "Hard regions in the final grid: none (every observed surface was resolved)."
+    regions = points_hard_regions(xyz[hard], np.asarray(grid["uncertainty"])[hard], voxel)
+    largest = regions[0]
+    centre = ", ".join(f"{c:.2f}" for c in largest["centroid"])
+    return (
+        f"Hard regions in the final grid: {len(regions)} ({int(hard.sum())} hard voxels of "
+        f"{voxel * 100:g} cm; the largest, {int(largest['voxel_count'])} voxels, around "
+        f"({centre}) m)."
+    )
 
 
 def _scene_points(r: RunRecord) -> np.ndarray:
@@ -351,6 +375,8 @@ def _markdown(
             f"![uncertainty]({_rel(r.figures['uncertainty'], out_dir)})",
             "",
         ]
+        if r.hard_regions:
+            lines += [r.hard_regions, ""]
     if not with_grids:
         lines += ["No run saved its uncertainty grid (grid_initial.npz / grid_final.npz).", ""]
     lines += ["## Time per stage", ""]
@@ -430,6 +456,8 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
         parts.append(
             f"<h3>{e(r.label)}</h3><img src='{e(_rel(r.figures['uncertainty'], out_dir))}' alt='uncertainty'>"
         )
+        if r.hard_regions:
+            parts.append(f"<p>{e(r.hard_regions)}</p>")
     if not with_grids:
         parts.append(
             "<p>No run saved its uncertainty grid (grid_initial.npz / grid_final.npz).</p>"

@@ -26,18 +26,21 @@ HEARTBEAT_S = 1.0
 class StatusPublisher:
     """Publishes `state()` as JSON on `topic` and as a DiagnosticArray on /diagnostics shortly
     after `changed()`; the diagnostics every HEARTBEAT_S too, the JSON line every `heartbeat_s`
-    seconds unless it is None."""
+    seconds unless it is None. `topic` None: the diagnostics only (a node whose status topic
+    says something else, as the camera's per-goal line)."""
 
     def __init__(
         self,
         node: Any,
-        topic: Topic,
+        topic: Topic | None,
         state: Callable[[], dict],
         heartbeat_s: float | None = HEARTBEAT_S,
     ) -> None:
         self._node = node
         self._state = state
-        self._pub = node.create_publisher(msgs.String, topic.name, topic.qos())
+        self._pub = (
+            None if topic is None else node.create_publisher(msgs.String, topic.name, topic.qos())
+        )
         self._diagnostics = node.create_publisher(
             diagnostics.DiagnosticArray, diagnostics.DIAGNOSTICS_TOPIC, qos.reliable()
         )
@@ -45,7 +48,7 @@ class StatusPublisher:
         # the state at the last heartbeat: a level compares the counts with it
         self._lock = threading.Lock()
         self._last_heartbeat: dict | None = None
-        self._json_heartbeat = heartbeat_s is not None
+        self._json_heartbeat = heartbeat_s is not None and self._pub is not None
         self._soon = node.create_timer(CHANGE_DELAY_S, self._publish_soon)
         self._soon.cancel()
         node.create_timer(HEARTBEAT_S, self._heartbeat)
@@ -69,7 +72,8 @@ class StatusPublisher:
     def publish(self) -> dict:
         """Publish the state now (JSON and diagnostics); returns it."""
         state = self._state()
-        self._pub.publish(msgs.String(data=json.dumps(state)))
+        if self._pub is not None:
+            self._pub.publish(msgs.String(data=json.dumps(state)))
         self._publish_diagnostics(state)
         return state
 

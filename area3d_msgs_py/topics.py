@@ -217,6 +217,22 @@ VIEW_MARKERS = Topic(
     depth=1,
     description="camera frustums of the last plan's views, coloured by order (latched)",
 )
+HARD_REGIONS = Topic(
+    "area3d/planner/hard_regions",
+    msgs.HardRegionArray,
+    PLANNER,
+    durability=TRANSIENT_LOCAL,
+    depth=1,
+    description="what no view is expected to resolve, as regions, largest first (latched)",
+)
+HARD_REGION_MARKERS = Topic(
+    "area3d/planner/hard_region_markers",
+    msgs.MarkerArray,
+    PLANNER,
+    durability=TRANSIENT_LOCAL,
+    depth=1,
+    description="the hard regions as translucent boxes (latched)",
+)
 PLANNER_STATUS = _status(PLANNER)
 NEXT_BEST_VIEW = Service(
     "area3d/planner/next_best_view",
@@ -240,7 +256,8 @@ TOPICS: tuple[Topic, ...] = (
     GOAL, COLOR, DEPTH, CAMERA_INFO, POSE, RIGHT_IMAGE, RIGHT_CAMERA_INFO, CAMERA_STATUS, TF,
     TF_STATIC, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_STATUS, SEMANTIC_REGIONS,
     SEMANTIC_WEIGHT, SEMANTIC_UNCERTAINTY, SEMANTIC_REQUEST, SEMANTICS_STATUS, UNCERTAINTY_GRID,
-    NEXT_VIEWS, VIEW_MARKERS, PLANNER_STATUS, DIAGNOSTICS, FOXGLOVE_STATUS,
+    NEXT_VIEWS, VIEW_MARKERS, HARD_REGIONS, HARD_REGION_MARKERS, PLANNER_STATUS, DIAGNOSTICS,
+    FOXGLOVE_STATUS,
 )  # fmt: skip
 
 

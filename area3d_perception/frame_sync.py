@@ -124,15 +124,18 @@ class StampSync:
 
 class HeldFrames:
     """Whole frames held until the camera info they need has arrived: a frame's topics arrive in
-    any order, camera info included. Beyond `capacity` frames the oldest is dropped."""
+    any order, camera info included. Beyond `capacity` frames the oldest is dropped (counted in
+    `dropped`)."""
 
     def __init__(self, capacity: int) -> None:
         self._held: deque[tuple[int, Any]] = deque(maxlen=capacity)
+        self.dropped = 0  # frames dropped: `capacity` newer ones were held
 
     def hold(self, stamp_ns: int, frame: Any, info_topic: str) -> str | None:
         """Hold a whole frame; for the first one held since the last release, the warning to log
         (None otherwise: said once, not per frame)."""
         first = not self._held
+        self.dropped += len(self._held) == self._held.maxlen
         self._held.append((stamp_ns, frame))
         return (
             f"no camera_info on {info_topic} yet; holding frames until it arrives"

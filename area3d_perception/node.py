@@ -9,6 +9,7 @@ stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__n
 from __future__ import annotations
 
 import dataclasses
+import traceback
 from collections.abc import Sequence
 from typing import Any
 
@@ -99,6 +100,10 @@ class PerceptionNode(Node):
         self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
         self.last_frame_age_s: float | None = None  # age of the last frame published, seconds
+        # the backend's last failure (a feed-forward model or the stereo matcher raised), until
+        # a frame succeeds; the frames it failed on are dropped
+        self.backend_error: str | None = None
+        self.frames_dropped_backend = 0
 
         self.pub_depth = self._publisher(topics.PERCEPTION_DEPTH)
         self.pub_conf = self._publisher(topics.PERCEPTION_CONFIDENCE)
@@ -135,6 +140,9 @@ class PerceptionNode(Node):
             else round(self.last_frame_age_s, 4),
             "frames_waiting_for_camera_info": len(self.waiting),
             "parts_dropped_unpaired": self.dropped,
+            "frames_dropped_without_camera_info": self.waiting.dropped,
+            "frames_dropped_backend_failure": self.frames_dropped_backend,
+            "backend_error": self.backend_error,
             "rejected": self.rejections.snapshot(),
         }
 
@@ -228,6 +236,16 @@ class PerceptionNode(Node):
         except InputError as exc:
             reject(self, self.rejections, f"{FRAME} at stamp {stamp}", exc, topic=FRAME)
             return
+        except Exception as exc:  # the backend failed on a good frame: dropped, and said so
+            self.backend_error = f"{exc.__class__.__name__}: {exc}"
+            self.frames_dropped_backend += 1
+            self.get_logger().error(
+                f"frame at stamp {stamp}: {self.estimator.backend} backend failed, frame "
+                f"dropped:\n{traceback.format_exc()}"
+            )
+            self.status.changed()
+            return
+        self.backend_error = None
         for note in result.notes:
             self.get_logger().warning(f"frame at stamp {stamp}: {note}")
         self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))

@@ -55,6 +55,7 @@ class FusionWorker:
         # fused, seconds: where a frame's age comes from
         self.last_paired_age_s: float | None = None
         self.last_fused_age_s: float | None = None
+        self.stopping = False  # stop() was called: the thread ends on purpose
         self._thread = threading.Thread(target=self._loop, name=WORKER_NAME, daemon=True)
         self._thread.start()
 
@@ -70,6 +71,7 @@ class FusionWorker:
     def stop(self, timeout_s: float) -> None:
         """Stop after the frame in flight (frames still queued are not fused); wait up to
         `timeout_s` for it."""
+        self.stopping = True
         if not self._thread.is_alive():
             return
         try:

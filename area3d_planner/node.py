@@ -4,7 +4,9 @@ Subscribes area3d/perception/depth, area3d/perception/confidence, area3d/camera/
 area3d/camera/camera_info (paired by stamp), area3d/semantics/uncertainty. Publishes the latched
 area3d/planner/uncertainty_grid (after every fused frame; during a backlog at most every
 grid_period_s), area3d/planner/status and
-area3d/planner/next_views (and their camera frustums on area3d/planner/view_markers); serves
+area3d/planner/next_views (and their camera frustums on area3d/planner/view_markers), and with
+every grid the latched area3d/planner/hard_regions (HardRegionArray) and their boxes on
+area3d/planner/hard_region_markers; serves
 area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Topics:
 `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all. The region of interest and workspace are parameters: the planner
 knows only what a robot knows, never the simulator's scene.
@@ -46,9 +48,10 @@ from area3d_msgs_py.parameters import (
 )
 from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.frame_sync import CameraInfoCache, HeldFrames, StampSync
-from area3d_planner.cloud import grid_to_msg
+from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.fusion_worker import FusionWorker
-from area3d_planner.markers import view_markers
+from area3d_planner.hard_regions import cloud_hard_regions
+from area3d_planner.markers import hard_region_markers, view_markers
 from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
 
 CAMERA_INFO_CACHE = 64
@@ -116,6 +119,12 @@ PARAMS = (
         "region of interest's diagonal",
         range=(0.0, 1000.0),
     ),
+    Param(
+        "hard_regions_max",
+        100,
+        "hard regions published at most, the largest (the status counts them all), regions",
+        range=(0, 100000),
+    ),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
 )
@@ -153,6 +162,10 @@ class PlannerNode(Node):
         roi = np.subtract(config.roi_max, config.roi_min)
         self.marker_range = p["view_marker_range"] or 0.25 * float(np.linalg.norm(roi))
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
+        self.hard_regions_max = p["hard_regions_max"]
+        self.hard_regions = 0  # hard regions in the last grid published
+        self.fusion_failures = 0  # frames whose fusion raised (not bad input: that is rejected)
+        self.rebuild_failures_logged = 0
         # The status goes out after every fused frame and rebuild, and a moment after a request's
         # answer (never just before it: a client that also listens to the status, a mission
         # manager, would otherwise see the answer late: measured 0.1-1.3 s round trips instead of
@@ -169,10 +182,13 @@ class PlannerNode(Node):
             now_ns=self._now_ns,
         )
 
-        self.grid_pub, self.views_pub, self.markers_pub = (
+        self.grid_pub, self.views_pub, self.markers_pub, self.hard_pub, self.hard_markers_pub = (
             self.create_publisher(topic.msg_type, topic.name, topic.qos())
-            for topic in (topics.UNCERTAINTY_GRID, topics.NEXT_VIEWS, topics.VIEW_MARKERS)
-        )
+            for topic in (
+                topics.UNCERTAINTY_GRID, topics.NEXT_VIEWS, topics.VIEW_MARKERS,
+                topics.HARD_REGIONS, topics.HARD_REGION_MARKERS,
+            )
+        )  # fmt: skip
         frames = MutuallyExclusiveCallbackGroup()
         for topic, callback, depth in (
             (topics.PERCEPTION_DEPTH, lambda m: self._part("depth", m), None),
@@ -212,6 +228,14 @@ class PlannerNode(Node):
             **self.server.status(),
             "parts_dropped_unpaired": self.dropped,
             "frames_dropped_backlog": self.fusion.dropped,
+            "frames_dropped_without_camera_info": self.waiting.dropped,
+            "hard_regions": self.hard_regions,
+            "fusion_failures": self.fusion_failures,
+            # a worker thread that ended before the node stopped (diagnostics: ERROR)
+            "workers": {
+                "fusion": self.fusion.alive or self.fusion.stopping,
+                **({"rebuild": self.server.worker_alive} if self.server.background else {}),
+            },
             **{
                 key: None if value is None else round(value, 4)
                 for key, value in (
@@ -229,6 +253,12 @@ class PlannerNode(Node):
     def _on_refresh(self) -> None:
         with self.gate as running:  # called by the rebuild worker too
             if running:
+                if self.server.rebuild_failures > self.rebuild_failures_logged:
+                    self.rebuild_failures_logged = self.server.rebuild_failures
+                    self.get_logger().error(
+                        f"mask rebuild failed ({self.server.last_rebuild_error}); the next "
+                        "frame or request rebuilds them"
+                    )
                 self.status.publish()
 
     def stop(self) -> None:
@@ -311,7 +341,10 @@ class PlannerNode(Node):
             return
         trace = "".join(traceback.format_exception(exc))
         self.get_logger().error(f"frame at stamp {stamp}: fusion failed, frame dropped:\n{trace}")
-        self.rejections.count(depth_topic, "exception")
+        self.fusion_failures += 1
+        with self.gate as running:  # the fusion worker's thread
+            if running:
+                self.status.publish()
 
     def _on_semantic(self, msg) -> None:
         stamp = self._stamp(msg)
@@ -321,7 +354,17 @@ class PlannerNode(Node):
             self._publish_state(stamp)
 
     def _publish_state(self, stamp_ns: int) -> None:
-        self.grid_pub.publish(grid_to_msg(self.server.grid, stamp_ns, "world"))
+        """The grid, its hard regions (boxes too) and the status, stamped with the last frame."""
+        grid = self.server.grid
+        cloud = grid_to_cloud(grid)
+        self.grid_pub.publish(codecs.pointcloud_to_msg(cloud, stamp_ns, self.world_frame))
+        regions = cloud_hard_regions(cloud, grid)
+        self.hard_regions = len(regions)
+        shown = regions[: self.hard_regions_max]
+        self.hard_pub.publish(codecs.hard_regions_to_msg(shown, stamp_ns, self.world_frame))
+        self.hard_markers_pub.publish(
+            hard_region_markers(shown["centroid"], shown["extent"], self.world_frame, stamp_ns)
+        )
         self.status.publish()
 
     def _on_request(self, request: msgs.GetPlan_Request, response: msgs.GetPlan_Response):

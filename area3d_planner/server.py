@@ -497,6 +497,8 @@ class NextBestViewServer:
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
         self.refresh_count = 0  # background rebuilds run so far
+        self.rebuild_failures = 0  # background rebuilds that raised (the request path rebuilds)
+        self.last_rebuild_error = ""
         self.worker_tid: int | None = None  # the rebuild worker's thread id (Linux)
         self._worker: threading.Thread | None = None
         if self.background:
@@ -652,8 +654,9 @@ class NextBestViewServer:
                 evidence = self.grid.view_evidence()
             try:
                 built = self.context.build(occupancy, kinds, evidence)
-            except Exception:  # noqa: BLE001 - the request path rebuilds and reports it
+            except Exception as exc:  # noqa: BLE001 - the request path rebuilds and reports it
                 built = None
+                self._rebuild_failed(exc)
             with self._refreshed:
                 if built is None:
                     self.context.invalidate()
@@ -662,8 +665,9 @@ class NextBestViewServer:
                     if self.policy.relevant is not None and version == self._map_version:
                         try:  # the field of the current evidence, ready for the next request
                             self.context.policy_field(self.policy)
-                        except Exception:  # noqa: BLE001 - reported by the request path
+                        except Exception as exc:  # noqa: BLE001 - reported by the request path
                             self.context.invalidate_fields()
+                            self._rebuild_failed(exc)
                 self._cache_version = version
                 self._cache_stamp = stamp
                 self.refresh_count += 1
@@ -673,6 +677,15 @@ class NextBestViewServer:
                     self.on_refresh()
                 except Exception:  # noqa: BLE001 - a failing listener must not stop the refresh
                     pass
+
+    def _rebuild_failed(self, exc: Exception) -> None:
+        self.rebuild_failures += 1
+        self.last_rebuild_error = f"{exc.__class__.__name__}: {exc}"
+
+    @property
+    def worker_alive(self) -> bool:
+        """The background rebuild worker runs, or was stopped by `close` (False: it died)."""
+        return self._worker is None or self._worker.is_alive() or self._closed
 
     # ------------------------------------------------------------------ planning
     def remaining_budget(self) -> int:
@@ -692,6 +705,8 @@ class NextBestViewServer:
             "committed_views": self.committed,
             "remaining_budget": self.remaining_budget(),
             "hard_voxels": int(self.grid.hard().sum()),
+            "rebuild_failures": self.rebuild_failures,
+            "last_rebuild_error": self.last_rebuild_error,
             "cache_ready": self.cache_ready(),
             "last_request_s": self.last_request_s,
         }

@@ -116,6 +116,10 @@ class SemanticsNode(Node):
         self.backend, problem = backend_from_parameters(p)
         if problem:
             log.error(problem)
+        # why the configured analyser is not in use (for the whole run), and why the last
+        # analysis fell back: either is a failed backend (diagnostics: ERROR)
+        self.backend_problem = problem
+        self.analysis_error: str | None = None
 
         self.views = ViewCollector(require_depth=self.require_depth)
         self.weights: dict[int, np.ndarray] = {}  # stamp -> weight map of the latest analysis
@@ -167,6 +171,9 @@ class SemanticsNode(Node):
                 "views_complete": len(self.views.complete),
                 "analyses": self.analyses,
                 "usem_published": len(self.published_usem),
+                "backend_error": self.backend_problem or self.analysis_error,
+                "analysis_failures": self.worker.failures,
+                "workers": {"analysis": self.worker.healthy},
                 "rejected": self.rejections.snapshot(),
             }
 
@@ -242,6 +249,8 @@ class SemanticsNode(Node):
             log.warning(
                 f"{self.backend.name} answer not used ({analysis.error}); fell back to {analysis.fallback_used}"
             )
+        with self._lock:
+            self.analysis_error = analysis.error if analysis.fallback_used else None
         self._publish(analysis, views)
 
     def _publish(self, analysis: Analysis, views: list) -> None:

@@ -30,6 +30,8 @@ class AnalysisWorker:
         self._thread: threading.Thread | None = None
         self._pending = False
         self.runs = 0  # analyses finished
+        self.failures = 0  # analyses that raised (each ended its thread)
+        self.healthy = True  # False from an analysis that raised until one finishes
 
     @property
     def busy(self) -> bool:
@@ -73,6 +75,8 @@ class AnalysisWorker:
             finally:  # an analysis that raised ends the worker; the next submit starts a new one
                 with self._lock:
                     self.runs += 1
+                    self.failures += not finished
+                    self.healthy = finished
                     again = finished and self._pending
                     self._pending = False
                     if not again:

@@ -29,7 +29,8 @@ R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 @dataclass
 class Capture:
     """One handled goal. rgb (H, W, 3) uint8, depth (H, W) float32 metres; None when not ok.
-    rgb_right (H, W, 3) uint8: the right image of the rectified stereo pair (None without stereo)."""
+    rgb_right (H, W, 3) uint8: the right image of the rectified stereo pair (None without stereo).
+    refusal: why the pose was refused, in a word (`validity.PoseCheck.kind`; "" when ok)."""
 
     ok: bool
     reason: str
@@ -37,6 +38,7 @@ class Capture:
     rgb: np.ndarray | None = None
     depth: np.ndarray | None = None
     rgb_right: np.ndarray | None = None
+    refusal: str = ""
 
 
 def right_from_left(T_world_cam: np.ndarray, baseline: float) -> np.ndarray:
@@ -117,7 +119,7 @@ class SimCamera:
         check = check_pose(self.scene, T_world_cam, self.clearance)
         T = np.asarray(T_world_cam, dtype=np.float64)
         if not check.ok:
-            return Capture(False, check.reason, T)
+            return Capture(False, check.reason, T, refusal=check.kind)
         rgb, depth = self.renderer.render(T)
         if self.depth_noise:
             depth = add_depth_noise(depth, self.K, self._depth_rng, self.sensor)

@@ -2,7 +2,8 @@
 
 Subscribes area3d/camera/goal_pose (PoseStamped, optical frame in `world`); publishes color,
 depth, camera_info, the capture pose, a status line per goal and, where `tf2_msgs` imports, TF
-(world -> camera_link -> camera_optical_frame). Topics: `area3d_msgs_py/topics.py`; names are
+(world -> camera_link -> camera_optical_frame); its counters (captures, refused goals by reason,
+frames waiting for their readers) as diagnostics on /diagnostics. Topics: `area3d_msgs_py/topics.py`; names are
 relative: `__ns` moves them all.
 """
 
@@ -11,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Sequence
 from typing import Any
 
@@ -30,6 +31,7 @@ from area3d_msgs_py.parameters import (
     params_of,
     report_unknown_parameters,
 )
+from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.sensor_model import RgbdSensorParams
 from sim_bridge.camera import (
     R_LINK_OPTICAL,
@@ -55,6 +57,7 @@ READER_TOPICS = {
     "right": topics.RIGHT_IMAGE,
     "right_camera_info": topics.RIGHT_CAMERA_INFO,
 }
+BAD_GOAL = "bad_goal"  # a goal message refused before its pose is checked (rejected input)
 # While the first frame waits for its readers, they are looked for this often, seconds.
 READERS_POLL_S = 0.01
 
@@ -170,7 +173,11 @@ class SimBridgeNode(Node):
         self._readers_timer = self.create_timer(READERS_POLL_S, self._release_when_read)
         self._readers_timer.cancel()
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        self.rejections = Rejections()  # malformed goals, reported in every status line
+        self.captures = 0
+        self.refused: Counter[str] = Counter()  # goals refused, by `validity` kind or bad_goal
+        self.diagnostics = StatusPublisher(self, None, self._diagnostic_state)
+        # malformed goals, reported in every status line
+        self.rejections = Rejections(on_count=self.diagnostics.changed)
         goal = topics.GOAL
         self.create_subscription(
             goal.msg_type,
@@ -214,11 +221,11 @@ class SimBridgeNode(Node):
             T = codecs.pose_to_matrix(msg.pose)
         except InputError as exc:
             self.rejections.count(topics.GOAL.name, exc.field)
-            self._refuse(stamp_ns, f"{topics.GOAL.name}: {exc}")
+            self._refuse(stamp_ns, f"{topics.GOAL.name}: {exc}", BAD_GOAL)
             return
         capture = self.camera.capture(T)
         if not capture.ok:
-            self._refuse(stamp_ns, capture.reason)
+            self._refuse(stamp_ns, capture.reason, capture.refusal)
             return
         if self.readers_matched:
             self._publish(stamp_ns, capture)
@@ -281,6 +288,21 @@ class SimBridgeNode(Node):
                 )
             )
         self._status(stamp_ns, True, "ok")
+        self.captures += 1
+        self.diagnostics.changed()
+
+    def _diagnostic_state(self) -> dict:
+        """The camera's counters, for /diagnostics."""
+        waiting = not self.readers_matched and bool(self.held)
+        return {
+            "node": "sim_bridge",
+            "captures": self.captures,
+            "goals_refused": {"total": sum(self.refused.values()), "by_reason": dict(self.refused)},
+            "frames_held_for_readers": len(self.held),
+            "readers_matched": self.readers_matched,
+            "readers_missing": self._missing_readers() if waiting else {},
+            "rejected": self.rejections.snapshot(),
+        }
 
     def _missing_readers(self) -> dict[str, list[str]]:
         """{topic: nodes not matched yet} over the frame topics; a node counts once this node has
@@ -295,9 +317,11 @@ class SimBridgeNode(Node):
                 missing[pub.topic_name] = sorted(lacking)
         return missing
 
-    def _refuse(self, stamp_ns: int, reason: str) -> None:
+    def _refuse(self, stamp_ns: int, reason: str, kind: str) -> None:
         self.get_logger().warning(f"goal at stamp {stamp_ns} refused: {reason}")
+        self.refused[kind] += 1
         self._status(stamp_ns, False, reason)
+        self.diagnostics.changed()
 
     def _status(self, stamp_ns: int, ok: bool, reason: str) -> None:
         self.pub_status.publish(

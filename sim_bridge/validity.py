@@ -41,10 +41,19 @@ class Scene(Protocol):
     def model(self) -> tuple[mujoco.MjModel, mujoco.MjData]: ...
 
 
+# Why a pose is refused, in a word (the camera's status counts refusals by these).
+INVALID_POSE, OUTSIDE_WORKSPACE, INSIDE_GEOMETRY, TOO_CLOSE = (
+    "invalid_pose", "outside_workspace", "inside_geometry", "too_close"
+)  # fmt: skip
+
+
 @dataclass(frozen=True)
 class PoseCheck:
+    """ok, or why not: `reason` in words, `kind` one of the refusal kinds above ("" when ok)."""
+
     ok: bool
     reason: str
+    kind: str = ""
 
 
 class _Collider:
@@ -135,31 +144,36 @@ def check_pose(scene: Scene, T_world_cam: np.ndarray, clearance: float = CLEARAN
     """Validate a (4, 4) optical-frame pose in `world`; `reason` says what is wrong when not ok."""
     T = np.asarray(T_world_cam, dtype=np.float64)
     if T.shape != (4, 4):
-        return PoseCheck(False, f"pose shape {T.shape}, expected (4, 4)")
+        return PoseCheck(False, f"pose shape {T.shape}, expected (4, 4)", INVALID_POSE)
     if not np.all(np.isfinite(T)):
-        return PoseCheck(False, "pose has non-finite entries")
+        return PoseCheck(False, "pose has non-finite entries", INVALID_POSE)
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
-        return PoseCheck(False, f"last row {T[3].tolist()}, expected [0, 0, 0, 1]")
+        return PoseCheck(False, f"last row {T[3].tolist()}, expected [0, 0, 0, 1]", INVALID_POSE)
     R = T[:3, :3]
     err = float(np.abs(R.T @ R - np.eye(3)).max())
     if err > ROTATION_TOL or np.linalg.det(R) < 0:
         return PoseCheck(
             False,
             f"rotation is not orthonormal with det +1 (|R^T R - I| = {err:.2e}, det = {np.linalg.det(R):.3f})",
+            INVALID_POSE,
         )
     p = T[:3, 3]
     if np.any(p < scene.workspace_min) or np.any(p > scene.workspace_max):
         return PoseCheck(
             False,
             f"position {np.round(p, 3).tolist()} outside the workspace {np.round(scene.workspace_min, 3).tolist()}..{np.round(scene.workspace_max, 3).tolist()}",
+            OUTSIDE_WORKSPACE,
         )
     collider = _collider(scene)
     if collider.inside_solid(p[None])[0]:
-        return PoseCheck(False, f"position {np.round(p, 3).tolist()} is inside scene geometry")
+        return PoseCheck(
+            False, f"position {np.round(p, 3).tolist()} is inside scene geometry", INSIDE_GEOMETRY
+        )
     if not collider.clear(p[None], clearance)[0]:
         dist, _ = collider.tree.query(p)
         return PoseCheck(
             False,
             f"position {np.round(p, 3).tolist()} is {dist:.3f} m from scene geometry, closer than the clearance {clearance} m",
+            TOO_CLOSE,
         )
     return PoseCheck(True, "ok")

@@ -43,10 +43,12 @@ TOPICS = {
     "/area3d/planner/uncertainty_grid": "sensor_msgs/msg/PointCloud2",
     "/area3d/planner/next_views": "nav_msgs/msg/Path",
     "/area3d/planner/view_markers": "visualization_msgs/msg/MarkerArray",
+    "/area3d/planner/hard_regions": "area3d_interfaces/msg/HardRegionArray",
+    "/area3d/planner/hard_region_markers": "visualization_msgs/msg/MarkerArray",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+    "/tf": "tf2_msgs/msg/TFMessage",
+    "/tf_static": "tf2_msgs/msg/TFMessage",
 }
-if msgs.TFMessage is not None:  # TF is published where tf2_msgs imports (a sourced ROS 2)
-    TOPICS["/tf"] = "tf2_msgs/msg/TFMessage"
 
 
 def free_port() -> int:
@@ -56,10 +58,12 @@ def free_port() -> int:
 
 
 def client(
-    port: int, topics: list[str], count: int, timeout_s: float, stay: bool = False
+    port: int, topics: list[str], count: int, timeout_s: float, stay: bool = False, stdout=None
 ) -> subprocess.Popen:
     """Foxglove's client on `topics`: it exits 0 once each gave `count` messages (with `stay`:
-    at SIGTERM, if they had by then), printing one JSON line per message."""
+    at SIGTERM, if they had by then), printing one JSON line per message to a pipe, or to the
+    file `stdout` (a pipe nobody reads while the client runs blocks it once 64 KB are written:
+    it then stops reading its socket, and the bridge drops what it cannot send)."""
     if not (CLIENT_DIR / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
         pytest.fail(
             f"Foxglove's client is not installed: run `make install` (npm ci in {CLIENT_DIR})"
@@ -71,7 +75,7 @@ def client(
             *("--url", f"ws://localhost:{port}", "--topics", ",".join(topics)),
             *("--count", str(count), "--timeout", str(timeout_s), "--stay", str(int(stay))),
         ],
-        stdout=subprocess.PIPE,
+        stdout=subprocess.PIPE if stdout is None else stdout,
         stderr=subprocess.PIPE,
         text=True,
     )
@@ -100,11 +104,14 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
         text=True,
     )
     # the viewer watches the whole episode, then is told to stop
-    viewer = client(port, list(TOPICS), count=1, timeout_s=2 * TIMEOUT_S, stay=True)
+    viewer_log = tmp_path / "viewer.jsonl"
+    with viewer_log.open("w") as log:
+        viewer = client(port, list(TOPICS), count=1, timeout_s=2 * TIMEOUT_S, stay=True, stdout=log)
     try:
         run_out, run_err = run.communicate(timeout=TIMEOUT_S)
         viewer.send_signal(signal.SIGTERM)
-        out, err = viewer.communicate(timeout=60)
+        _, err = viewer.communicate(timeout=60)
+        out = viewer_log.read_text()
     finally:
         for process in (viewer, run):
             if process.poll() is None:
@@ -113,7 +120,7 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
     assert viewer.returncode == 0, f"client: {events[-1:]} {err[-2000:]}\nrun: {run_err[-3000:]}"
     assert run.returncode == 0, run_err[-3000:]
     assert f"Foxglove live view on ws://localhost:{port}" in run_err
-    run_dir = next(tmp_path.iterdir())
+    run_dir = next(p for p in tmp_path.iterdir() if p.is_dir())
     assert "[foxglove_bridge]" in (run_dir / "nodes.log").read_text()
     assert events[0] == {"connected": f"ws://localhost:{port}", "protocol": "foxglove.sdk.v1"}
 
@@ -195,7 +202,10 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
 
     # diagnostics: every node's facts with its level
     statuses = [s for d in received["/diagnostics"] for s in d["status"]]
-    names = {"perception: status", "semantics: status", "foxglove_bridge: status"}
+    names = {
+        "sim_bridge: status", "perception: status", "semantics: status", "planner: status",
+        "foxglove_bridge: status",
+    }  # fmt: skip
     assert names <= {s["name"] for s in statuses}
     assert all(s["level"] in (0, 1, 2) for s in statuses)
     assert all(
@@ -203,9 +213,58 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
     )
     bridge = [s["values"] for s in statuses if s["name"] == "foxglove_bridge: status"]
     assert int(bridge[-1]["messages_forwarded"]) > 0
-    if "/tf" in TOPICS:
-        transforms = [t for m in received["/tf"] for t in m["transforms"]]
-        assert any(t["child"] == "camera_link" for t in transforms)
+    planner_facts = [s["values"] for s in statuses if s["name"] == "planner: status"]
+    assert all("hard_regions" in v and "workers.fusion" in v for v in planner_facts)
+
+    # TF: the camera's link at every capture, its optical frame under it (latched)
+    transforms = [t for m in received["/tf"] for t in m["transforms"]]
+    links = [t for t in transforms if (t["parent"], t["child"]) == ("world", "camera_link")]
+    assert len(links) >= 1
+    for link in links:
+        assert np.linalg.norm(link["rotation"]) == pytest.approx(1.0, abs=1e-9)
+    static = [t for m in received["/tf_static"] for t in m["transforms"]]
+    assert ("camera_link", "camera_optical_frame") in {(t["parent"], t["child"]) for t in static}
+
+    # hard regions: every region set holds exactly the hard voxels of the grid of its stamp,
+    # largest first, and its boxes are drawn where the regions are
+    # (a semantic map fused for an earlier frame publishes the grid again with that frame's stamp,
+    # so a stamp can come with more than one grid: the regions are those of one of them)
+    hard_sums: dict[str, set] = {}
+    for grid in received["/area3d/planner/uncertainty_grid"]:
+        hard_sums.setdefault(grid["stamp_ns"], set()).add(grid["fields"]["hard"]["sum"])
+    paired = 0
+    for regions in received["/area3d/planner/hard_regions"]:
+        assert regions["frame_id"] == "world"
+        counts = [r["voxel_count"] for r in regions["regions"]]
+        assert counts == sorted(counts, reverse=True) and all(n >= 1 for n in counts)
+        for region in regions["regions"]:
+            assert all(e > 0 for e in region["extent"]) and region["direction_count"] >= 3
+            assert 0.0 < region["mean_uncertainty"] <= 2.01  # G + S sqrt(G) + gamma
+        sums = hard_sums.get(regions["stamp_ns"])
+        if sums is not None and len(counts) < 100:  # under the published cap
+            assert sum(counts) in sums
+            paired += 1
+    assert paired >= 1, "no hard-region message with the grid of its stamp"
+    region_sets: dict[str, list] = {}
+    for regions in received["/area3d/planner/hard_regions"]:
+        region_sets.setdefault(regions["stamp_ns"], []).append(regions["regions"])
+
+    def drawn(cubes: list, regions: list) -> bool:
+        return len(cubes) == len(regions) and all(
+            cube["position"] == pytest.approx(region["centroid"])
+            and cube["scale"] == pytest.approx(region["extent"])
+            for cube, region in zip(cubes, regions, strict=True)
+        )
+
+    boxes_paired = 0
+    for boxes in received["/area3d/planner/hard_region_markers"]:
+        assert boxes["markers"][0]["action"] == 3  # DELETEALL
+        cubes = [m for m in boxes["markers"] if m["type"] == 1]
+        assert all(m["ns"] == "hard_regions" and m["frame_id"] == "world" for m in cubes)
+        if boxes["stamp_ns"] in region_sets:
+            assert any(drawn(cubes, regions) for regions in region_sets[boxes["stamp_ns"]])
+            boxes_paired += 1
+    assert boxes_paired >= 1
 
 
 def _pose_msg(values: list[float]):

@@ -14,6 +14,7 @@ import yaml
 from area3d_bringup.launch_description import build_graph, load_parameters
 from area3d_bringup.rviz import config_text, grid_voxel_size, installed_config
 from area3d_msgs_py import topics
+from area3d_planner.markers import HARD_REGIONS_NS, VIEWS_NS
 
 PACKAGE = Path(__file__).resolve().parents[1]
 
@@ -54,13 +55,17 @@ def test_topics_are_relative_names_the_graph_publishes_with_matching_durability(
     expected = {
         "Uncertainty grid": (topics.UNCERTAINTY_GRID.name, "Transient Local"),
         "Planned views": (topics.VIEW_MARKERS.name, "Transient Local"),
+        "Hard regions": (topics.HARD_REGION_MARKERS.name, "Transient Local"),
         "Next views": (topics.NEXT_VIEWS.name, "Volatile"),
         "Camera": (topics.COLOR.name, "Volatile"),
     }
     for name, (topic, durability) in expected.items():
         assert displays[name]["Topic"]["Value"] == topic and not topic.startswith("/")
         assert displays[name]["Topic"]["Durability Policy"] == durability
-    assert displays["Planned views"]["Class"] == "rviz_default_plugins/MarkerArray"
+    # each marker display shows the namespace the planner draws its markers in (markers.py)
+    for name, namespace in (("Planned views", VIEWS_NS), ("Hard regions", HARD_REGIONS_NS)):
+        assert displays[name]["Class"] == "rviz_default_plugins/MarkerArray"
+        assert displays[name]["Namespaces"] == {namespace: True}
     grid = displays["Uncertainty grid"]
     assert (grid["Style"], grid["Channel Name"]) == ("Boxes", "uncertainty")
 

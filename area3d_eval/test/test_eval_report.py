@@ -85,7 +85,12 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
             runs.append(run)
     x, y, z = (a.ravel() for a in np.meshgrid(*[np.linspace(-0.2, 0.2, 6)] * 3, indexing="ij"))
     u = np.exp(-(x**2 + y**2) * 20)
-    for name, scale in (("grid_initial.npz", 1.0), ("grid_final.npz", 0.3)):
+    # the final grid's hard voxels: two neighbours at one corner, one at the opposite corner
+    hard = np.zeros_like(u)
+    corner = (x == x.min()) & (y == y.min())
+    hard[corner & (z <= np.unique(z)[1])] = 1.0
+    hard[(x == x.max()) & (y == y.max()) & (z == z.max())] = 1.0
+    for name, scale, flags in (("grid_initial.npz", 1.0, 0 * u), ("grid_final.npz", 0.3, hard)):
         np.savez(
             runs[0] / name,
             x=x,
@@ -95,6 +100,7 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
             geometric=u,
             semantic=u,
             occupancy=0 * u,
+            hard=flags,
         )
 
     md_path, html_path = write_report(runs, tmp_path / "report", evaluate_missing=False)
@@ -130,6 +136,10 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     for link in links:
         assert (md_path.parent / link).is_file(), link
     assert any("uncertainty" in link for link in links)
+    # the final grid's hard regions, in the run's text: 2 regions of 3 voxels (8 cm apart)
+    sentence = "Hard regions in the final grid: 2 (3 hard voxels of 8 cm; the largest, 2 voxels"
+    assert sentence in md and sentence in page
+    assert "around (-0.20, -0.20, -0.16) m)" in md
 
     table = {(r["scene"], r["policy"]): r for r in aggregate(runs)}
     assert (

@@ -108,6 +108,7 @@ def test_frames_without_camera_info_are_held_in_order_and_the_oldest_go_beyond_c
     assert held.hold(3, "c", "area3d/camera/camera_info") is None
     assert len(held) == 2
     assert held.release() == [(2, "b"), (3, "c")]  # the oldest went beyond capacity
+    assert held.dropped == 1  # and is counted (the nodes' status)
     assert len(held) == 0 and held.release() == []
     assert held.hold(4, "d", "info") is not None  # a new wait is said again
 

@@ -1,4 +1,5 @@
-"""The perception node in-process: pairing, publishing and bad input, callbacks called directly."""
+"""The perception node in-process: pairing, publishing, bad input and a failing backend in its
+status, callbacks called directly."""
 
 import numpy as np
 import pytest
@@ -6,6 +7,7 @@ import rclpy
 from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs
+from area3d_msgs_py.diagnostics import ERROR, OK, WARN, assess
 from area3d_msgs_py.guard import guarded
 from area3d_msgs_py.topics import (
     CAMERA_INFO,
@@ -17,7 +19,9 @@ from area3d_msgs_py.topics import (
     RIGHT_CAMERA_INFO,
     RIGHT_IMAGE,
 )
-from area3d_perception.node import PerceptionNode
+from area3d_perception.estimator import FrameEstimator
+from area3d_perception.feedforward import FeedForwardOutput
+from area3d_perception.node import MAX_FRAMES_WITHOUT_INFO, PerceptionNode
 
 COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, POSE_TOPIC = (
     COLOR.name,
@@ -281,3 +285,52 @@ def test_bad_stereo_input_is_refused_with_a_reason_and_the_node_goes_on(right_kw
     send_frame(node, 2 * S, rgb=left)  # a good pair afterwards is processed
     stamps = [codecs.stamp_to_ns(m.header.stamp) for m in node.pubs[OUT_DEPTH_TOPIC].sent]
     assert 2 * S in stamps
+
+
+class FailingModel:
+    """A feed-forward model that raises at its first call (a GPU out of memory), then predicts a
+    constant depth of 2 model units with confidence 3."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def predict_views(self, images):
+        self.calls += 1
+        if self.calls == 1:
+            raise RuntimeError("CUDA out of memory")
+        n = len(images)
+        return FeedForwardOutput(
+            [np.full((H, W), 2.0, np.float32)] * n, [np.full((H, W), 3.0, np.float32)] * n, None
+        )
+
+
+def test_a_backend_that_fails_is_an_error_in_the_status_until_a_frame_succeeds():
+    node = FakeNode()
+    model = FailingModel()
+    node.node.estimator = FrameEstimator("vggt", model_factory=lambda checkpoint, device: model)
+    before = node.node._status()
+    assert assess(before, before).level == OK and before["backend_error"] is None
+    send_frame(node, 1 * S)
+    failed = node.node._status()
+    assert node.pubs[OUT_DEPTH_TOPIC].sent == []  # the frame is dropped ...
+    assert failed["frames_dropped_backend_failure"] == 1  # ... counted ...
+    assert any("vggt backend failed" in m for level, m in node.log.lines if level == "error")
+    result = assess(failed, before)  # ... and the node's level is ERROR, naming the failure
+    assert result.level == ERROR and "backend failed: RuntimeError: CUDA out of memory" in (
+        result.message
+    )
+    send_frame(node, 2 * S)  # the next frame succeeds: no failed backend any more
+    assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
+    recovered = node.node._status()
+    assert recovered["backend_error"] is None
+    assert assess(recovered, before).level == WARN  # the dropped frame, within its period
+    assert assess(recovered, failed).level == OK  # and OK once that period has passed
+
+
+def test_frames_beyond_the_wait_for_camera_info_are_counted_as_dropped():
+    node = FakeNode()
+    for k in range(MAX_FRAMES_WITHOUT_INFO + 2):
+        send_frame(node, (k + 1) * S, info=False)
+    status = node.node._status()
+    assert status["frames_waiting_for_camera_info"] == MAX_FRAMES_WITHOUT_INFO
+    assert status["frames_dropped_without_camera_info"] == 2

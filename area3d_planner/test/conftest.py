@@ -38,3 +38,39 @@ def pocket_interior() -> np.ndarray:
     m = np.zeros(spec.shape, bool)
     m[8:12, 8:12, 8:12] = True
     return m.ravel()
+
+
+# A 64x48 camera with a 90 degree horizontal field of view.
+WALL_K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
+# five distinct directions onto a wall: straight on, 50 degrees left, right, above and below
+WALL_DIRECTIONS = ((0.0, 0.0), (50.0, 0.0), (-50.0, 0.0), (0.0, 50.0), (0.0, -50.0))
+
+
+def banded_wall_view(
+    azimuth_deg: float,
+    elevation_deg: float,
+    wall_x: float = 0.625,
+    bands_y: tuple = ((0.15, 0.3), (0.7, 0.85)),
+    band_z: tuple = (0.3, 0.7),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A view of the wall x = wall_x from (azimuth, elevation) about (wall_x, 0.5, 0.5), 0.525 m
+    away, with `WALL_K`: its depth (H, W) float32, a confidence of 0.2 on the bands of the wall
+    (world y in each of `bands_y`, z in `band_z`) and 0.9 elsewhere, wherever it is seen from,
+    and the pose T_world_cam (4, 4)."""
+    from area3d_msgs_py.camera_pose import look_at
+
+    target = np.array([wall_x, 0.5, 0.5])
+    a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
+    eye = target - 0.525 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
+    T = look_at(eye, target)
+    v, u = np.mgrid[0:48, 0:64]
+    rays = np.stack([(u + 0.5 - 32) / 32, (v + 0.5 - 24) / 32, np.ones((48, 64))], -1)
+    world = rays @ T[:3, :3].T
+    t = (wall_x - eye[0]) / world[..., 0]  # distance along each ray to the plane, as optical z
+    depth = np.where(t > 0, t, np.nan).astype(np.float32)
+    y, z = eye[1] + t * world[..., 1], eye[2] + t * world[..., 2]
+    bands = np.zeros(depth.shape, bool)
+    for low, high in bands_y:
+        bands |= (y > low) & (y < high)
+    bands &= (z > band_z[0]) & (z < band_z[1])
+    return depth, np.where(bands, 0.2, 0.9).astype(np.float32), T

@@ -1,10 +1,13 @@
 """The semantics node over rclpy (in-process, real topics): one query with the initial views,
-regions JSON, one weight map and one U_sem per frame with the frame's stamp, re-query on request."""
+regions JSON, one weight map and one U_sem per frame with the frame's stamp, re-query on request;
+its diagnostics go ERROR while the VLM fails and back to OK once it answers."""
 
 import json
 import socket
 import threading
 import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +16,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs, qos, topics
+from area3d_msgs_py.diagnostics import DIAGNOSTICS_TOPIC, ERROR, OK
 from area3d_semantics.node import SemanticsNode
 from area3d_semantics.weights import semantic_uncertainty, sigma_from_confidence
 
@@ -29,7 +33,13 @@ class Rig:
         overrides = [Parameter(k, value=v) for k, v in parameters.items()]
         self.semantics = SemanticsNode(context=self.context, parameter_overrides=overrides)
         self.peer = rclpy.create_node("feeder", context=self.context)
-        self.regions, self.weights, self.usem = [], {}, {}
+        self.regions, self.weights, self.usem, self.diagnostics = [], {}, {}, []
+        self.peer.create_subscription(
+            msgs.DiagnosticArray,
+            DIAGNOSTICS_TOPIC,
+            lambda m: self.diagnostics.extend(s for s in m.status if s.name == "semantics: status"),
+            qos.reliable(100),
+        )
         self.peer.create_subscription(
             msgs.String,
             topics.SEMANTIC_REGIONS.name,
@@ -226,5 +236,112 @@ def test_requests_arriving_while_a_query_runs_are_answered_by_one_more_query():
         assert len(rig.regions) == 3 and held.calls == 2
         last = json.loads(rig.regions[-1].data)
         assert [img["stamp_ns"] for img in last["images"]] == [d[0] for d in data]
+    finally:
+        rig.close()
+
+
+class VLMServer:
+    """An OpenAI-compatible chat-completions server on 127.0.0.1:`port` that answers `answer`."""
+
+    def __init__(self, port: int, answer: str):
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args):
+                pass
+
+            def do_POST(self):
+                self.rfile.read(int(self.headers["Content-Length"]))
+                message = {"role": "assistant", "content": answer}
+                body = json.dumps({"choices": [{"index": 0, "message": message}]}).encode()
+                self.send_response(200)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", port), Handler)
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def test_a_vlm_that_fails_is_an_error_on_diagnostics_until_it_answers_again():
+    port = closed_port()
+    url = f"http://127.0.0.1:{port}/v1"
+    rig = Rig(
+        {
+            "num_initial_views": 4,
+            "backend": "openai",
+            "base_url": url,
+            "retries": 0,
+            "fallback": "zeros",
+        }
+    )
+    server = None
+
+    def levels(since: int = 0) -> list[int]:
+        return [int.from_bytes(s.level, "little") for s in rig.diagnostics[since:]]
+
+    try:
+        assert rig.spin(lambda: OK in levels()), "no OK status before the first query"
+        data = frames(4)
+        for stamp, image, depth, _ in data:
+            rig.frame(stamp, image, depth)
+        assert rig.spin(lambda: rig.regions and ERROR in levels()), "no ERROR after the fallback"
+        error = next(s for s in rig.diagnostics if s.level == ERROR.to_bytes(1, "little"))
+        assert error.message.startswith("backend failed: ") and url in error.message
+        values = {kv.key: kv.value for kv in error.values}
+        assert url in values["backend_error"] and values["workers.analysis"] == "true"
+        # it stays an error while the VLM's answer is not used (heartbeats, not only the change)
+        seen = len(rig.diagnostics)
+        assert rig.spin(lambda: len(rig.diagnostics) >= seen + 2)
+        assert set(levels(seen)) == {ERROR}
+        # the server comes back on its address; a re-query uses its answer: OK again
+        answer = (Path(__file__).parent / "corpus" / "01_internvl3_strict.txt").read_text()
+        server = VLMServer(port, answer)
+        seen = len(rig.diagnostics)
+        rig.request.publish(msgs.String(data="again"))
+        assert rig.spin(lambda: len(rig.regions) >= 2)
+        assert json.loads(rig.regions[-1].data)["fallback_used"] is None
+        assert rig.spin(lambda: OK in levels(seen)), "no OK once the VLM answered"
+        ok = [s for s in rig.diagnostics[seen:] if s.level == OK.to_bytes(1, "little")][-1]
+        assert {kv.key: kv.value for kv in ok.values}["backend_error"] == ""
+    finally:
+        rig.close()
+        if server is not None:
+            server.close()
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_an_analysis_that_raises_is_an_error_and_the_next_one_restarts_the_worker():
+    rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
+    try:
+        data = frames(2)
+        for stamp, image, depth, _ in data:
+            rig.frame(stamp, image, depth)
+        assert rig.spin(lambda: len(rig.regions) == 1)
+        publish = rig.semantics._publish_analysis
+        rig.semantics._publish_analysis = lambda *a: (_ for _ in ()).throw(RuntimeError("bug"))
+        rig.request.publish(msgs.String(data="again"))
+        assert rig.spin(lambda: rig.semantics.worker.failures == 1)
+        assert rig.spin(
+            lambda: any(
+                s.level == ERROR.to_bytes(1, "little") and "analysis_failures +1" in s.message
+                for s in rig.diagnostics
+            )
+        )
+        dead = [s for s in rig.diagnostics if s.level == ERROR.to_bytes(1, "little")][-1]
+        assert {kv.key: kv.value for kv in dead.values}["workers.analysis"] == "false"
+        # the next request runs on a new worker thread, which finishes: healthy, and OK again
+        rig.semantics._publish_analysis = publish
+        seen = len(rig.diagnostics)
+        rig.request.publish(msgs.String(data="once more"))
+        assert rig.spin(lambda: len(rig.regions) == 2)
+        assert rig.spin(
+            lambda: any(s.level == OK.to_bytes(1, "little") for s in rig.diagnostics[seen:])
+        )
+        assert rig.semantics.worker.healthy
     finally:
         rig.close()

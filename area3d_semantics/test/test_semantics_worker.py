@@ -71,8 +71,10 @@ def test_an_analysis_that_raises_frees_the_worker_for_the_next_request():
         worker = AnalysisWorker(analyse, lambda: [1])
         worker.submit([1], "broken")
         assert worker.join(TIMEOUT_S)
+        assert (worker.failures, worker.healthy) == (1, False)  # the status says so
         assert worker.submit([1], "request")  # started at once: nothing is stuck
         assert worker.join(TIMEOUT_S)
+        assert (worker.failures, worker.healthy) == (1, True)
     finally:
         threading.excepthook = previous
     assert calls == ["broken", "request"]

@@ -177,7 +177,7 @@ def _check_frame(got: dict, stamp: int, scene, T: np.ndarray) -> None:
 
 
 def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
-    from area3d_msgs_py import codecs, msgs, topics
+    from area3d_msgs_py import codecs, msgs, qos, topics
     from area3d_msgs_py.probe import Probe
 
     proc = _start_node()
@@ -195,6 +195,7 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
         got["tf_static"] = probe.listen(
             msgs.TFMessage, topics.TF_STATIC.name, topics.TF_STATIC.qos()
         )
+    diagnostics = probe.listen(msgs.DiagnosticArray, "/diagnostics", qos.reliable(100))
     goal_pub = probe.publisher(topics.GOAL.msg_type, topics.GOAL.name, topics.GOAL.qos())
     scene = load_scene("single_object")
     T = scene.initial_views[2]
@@ -237,6 +238,30 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
         assert refused[1]["ok"] is False and "geometry" in refused[1]["reason"]
         assert proc.poll() is None  # still running after bad input
         _check_frame(got, stamp_ok, scene, T)
+
+        # the camera's counters on /diagnostics: its captures, the refusals by reason, and a
+        # warning for the malformed goal (a rejected input)
+        def counters() -> dict:
+            last = [s for a in list(diagnostics) for s in a.status if s.name.startswith("sim_")]
+            return {kv.key: kv.value for kv in last[-1].values} if last else {}
+
+        assert probe.wait_for(
+            lambda: counters().get("goals_refused.by_reason.inside_geometry") == "1", TIMEOUT_S
+        )
+        facts = counters()
+        # (the first goal is sent again until its status arrives: each capture has an ok status)
+        captured = sum(s["ok"] for s in statuses())
+        assert captured >= 1 and facts["captures"] == str(captured)
+        assert facts["goals_refused.total"] == "2"
+        assert facts["goals_refused.by_reason.bad_goal"] == "1"
+        assert facts["rejected.by_field.orientation"] == "1"
+        assert facts["readers_matched"] == "true" and facts["frames_held_for_readers"] == "0"
+        assert any(
+            "1 inputs rejected" in s.message
+            for a in list(diagnostics)
+            for s in a.status
+            if s.name == "sim_bridge: status"
+        )
     finally:
         probe.close()
         output = _stop_node(proc)
@@ -294,6 +319,10 @@ def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
             msgs.PoseStamped(header=codecs.header(10, "world"), pose=codecs.matrix_to_pose(T))
         )
         assert wait_for(lambda: len(node.held) == 1)  # captured, held for its reader
+        waiting = node._diagnostic_state()  # what /diagnostics says meanwhile
+        assert waiting["frames_held_for_readers"] == 1 and not waiting["readers_matched"]
+        assert waiting["readers_missing"][f"/{topics.COLOR.name}"] == ["late_reader"]
+        assert waiting["captures"] == 0
         bad = msgs.PoseStamped(header=codecs.header(11, "world"), pose=codecs.matrix_to_pose(T))
         bad.pose.orientation.w = 3.0
         goals.publish(bad)
@@ -306,6 +335,9 @@ def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
         executor.add_node(late)
         assert wait_for(lambda: answered(10) and len(frames) == 4)
         assert answered(10)[0]["ok"] and not node.held
+        done = node._diagnostic_state()
+        assert done["captures"] == 1 and done["readers_missing"] == {}
+        assert done["goals_refused"] == {"total": 1, "by_reason": {"bad_goal": 1}}
     finally:
         executor.shutdown()
         context.try_shutdown()

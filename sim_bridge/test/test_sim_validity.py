@@ -29,7 +29,7 @@ def test_a_pose_inside_an_object_is_refused(scene):
     centre = data.xpos[model.body("obj1").id]  # the settled blob, origin at its base centre
     T = pose_at(centre + [0, 0, 0.06])
     check = check_pose(scene, T)
-    assert not check.ok and "geometry" in check.reason
+    assert not check.ok and "geometry" in check.reason and check.kind == "inside_geometry"
 
 
 def test_a_pose_inside_the_room_furniture_is_refused():
@@ -43,14 +43,14 @@ def test_clearance_to_the_table_top_is_enforced(scene):
     corner = np.array([0.42, 0.27, TABLE_TOP])  # table corner, away from every object
     assert check_pose(scene, pose_at(corner + [0, 0, 0.06]), clearance=0.05).ok
     refused = check_pose(scene, pose_at(corner + [0, 0, 0.06]), clearance=0.08)
-    assert not refused.ok and "clearance" in refused.reason
+    assert not refused.ok and "clearance" in refused.reason and refused.kind == "too_close"
     assert check_pose(scene, pose_at(corner + [0, 0, 0.09]), clearance=0.08).ok
 
 
 def test_outside_the_workspace_is_refused(scene):
     p = scene.workspace_max + [0.1, 0.0, 0.0]
     check = check_pose(scene, pose_at(p))
-    assert not check.ok and "workspace" in check.reason
+    assert not check.ok and "workspace" in check.reason and check.kind == "outside_workspace"
 
 
 def test_non_orthonormal_and_mirrored_rotations_are_refused(scene):
@@ -66,7 +66,7 @@ def test_non_finite_poses_are_refused(scene):
     T = scene.initial_views[0].copy()
     T[1, 3] = np.nan
     check = check_pose(scene, T)
-    assert not check.ok and "finite" in check.reason
+    assert not check.ok and "finite" in check.reason and check.kind == "invalid_pose"
     assert not check_pose(scene, np.eye(3)).ok
 
 

@@ -100,8 +100,20 @@ const SUMMARIES = {
     stamp_ns: msg.markers.length ? stampNs(msg.markers[0].header.stamp) : null,
     markers: msg.markers.map((m) => ({
       ns: m.ns, id: m.id, type: m.type, action: m.action, frame_id: m.header.frame_id,
+      position: [m.pose.position.x, m.pose.position.y, m.pose.position.z],
+      scale: [m.scale.x, m.scale.y, m.scale.z],
       points: m.points.map((p) => [p.x, p.y, p.z]),
       color: [m.color.r, m.color.g, m.color.b, m.color.a],
+    })),
+  }),
+  "area3d_interfaces/msg/HardRegionArray": (msg) => ({
+    stamp_ns: stampNs(msg.header.stamp),
+    frame_id: msg.header.frame_id,
+    regions: msg.regions.map((r) => ({
+      centroid: [r.centroid.x, r.centroid.y, r.centroid.z],
+      extent: [r.extent.x, r.extent.y, r.extent.z],
+      voxel_count: r.voxel_count, direction_count: r.direction_count,
+      mean_uncertainty: r.mean_uncertainty,
     })),
   }),
   "diagnostic_msgs/msg/DiagnosticArray": (msg) => ({

@@ -1,0 +1,232 @@
+"""The planner node over rclpy (in-process, real topics): the hard regions of the fused map on
+area3d/planner/hard_regions and as boxes, counted in the status; its diagnostics go ERROR when a
+mask rebuild or a frame's fusion fails, or its fusion worker dies, and back to OK by the rules."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.parameter import Parameter
+
+from area3d_msgs_py import codecs, msgs, qos, topics
+from area3d_msgs_py.diagnostics import DIAGNOSTICS_TOPIC, ERROR, OK
+from area3d_planner.node import PlannerNode
+from area3d_planner.test.conftest import WALL_DIRECTIONS, WALL_K, banded_wall_view
+
+TIMEOUT_S = 120.0  # generous: a loaded machine is slow (every wait ends once its condition holds)
+OPTICAL = "camera_optical_frame"
+# The planner's grid over the unit cube at 5 cm starts half a voxel below the region's corner
+# (server.PlannerConfig.grid_spec): voxel centres at multiples of 5 cm. The wall x = 0.65 lies
+# mid-voxel; its two bands of low confidence cover 3 x 9 voxel centres each.
+WALL_X = 0.65
+BANDS_Y = ((0.125, 0.275), (0.725, 0.875))
+BAND_Z = (0.275, 0.725)
+PARAMETERS = {
+    "roi_min": [0.0, 0.0, 0.0],
+    "roi_max": [1.0, 1.0, 1.0],
+    "workspace_min": [-1.0, -1.0, -1.0],
+    "workspace_max": [2.0, 2.0, 2.0],
+    "voxel_size": 0.05,
+}
+
+
+class Rig:
+    """The planner under test and a peer node that feeds frames and records the outputs."""
+
+    def __init__(self, parameters: dict):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        overrides = [Parameter(k, value=v) for k, v in {**PARAMETERS, **parameters}.items()]
+        self.planner = PlannerNode(context=self.context, parameter_overrides=overrides)
+        self.peer = rclpy.create_node("feeder", context=self.context)
+        self.regions, self.boxes, self.status, self.diagnostics = [], [], [], []
+        for topic, into in (
+            (topics.HARD_REGIONS, self.regions),
+            (topics.HARD_REGION_MARKERS, self.boxes),
+        ):
+            self.peer.create_subscription(topic.msg_type, topic.name, into.append, topic.qos())
+        self.peer.create_subscription(
+            msgs.String,
+            topics.PLANNER_STATUS.name,
+            lambda m: self.status.append(json.loads(m.data)),
+            topics.PLANNER_STATUS.qos(),
+        )
+        self.peer.create_subscription(
+            msgs.DiagnosticArray,
+            DIAGNOSTICS_TOPIC,
+            lambda m: self.diagnostics.extend(s for s in m.status if s.name == "planner: status"),
+            qos.reliable(100),
+        )
+        self.pubs = {
+            key: self.peer.create_publisher(topic.msg_type, topic.name, topic.qos())
+            for key, topic in (
+                ("depth", topics.PERCEPTION_DEPTH),
+                ("confidence", topics.PERCEPTION_CONFIDENCE),
+                ("pose", topics.POSE),
+                ("info", topics.CAMERA_INFO),
+            )
+        }
+        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.executor.add_node(self.planner)
+        self.executor.add_node(self.peer)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        assert self.wait(lambda: all(p.get_subscription_count() >= 1 for p in self.pubs.values()))
+
+    @staticmethod
+    def wait(done, timeout_s: float = TIMEOUT_S) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not done() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return bool(done())
+
+    def frame(self, stamp: int, depth: np.ndarray, confidence: np.ndarray, T: np.ndarray) -> None:
+        h, w = depth.shape
+        self.pubs["info"].publish(codecs.intrinsics_to_camera_info(WALL_K, w, h, stamp, OPTICAL))
+        self.pubs["pose"].publish(
+            msgs.PoseStamped(header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T))
+        )
+        self.pubs["depth"].publish(codecs.image_to_msg(depth, "32FC1", stamp, OPTICAL))
+        self.pubs["confidence"].publish(codecs.image_to_msg(confidence, "32FC1", stamp, OPTICAL))
+
+    def wall(self, first_stamp: int, directions=WALL_DIRECTIONS) -> list[int]:
+        """The banded wall from each direction; the stamps."""
+        stamps = []
+        for i, (azimuth, elevation) in enumerate(directions):
+            depth, confidence, T = banded_wall_view(azimuth, elevation, WALL_X, BANDS_Y, BAND_Z)
+            stamps.append(first_stamp + i * 1_000_000)
+            self.frame(stamps[-1], depth, confidence, T)
+        return stamps
+
+    def fused(self, count: int) -> bool:
+        return self.wait(lambda: self.status and self.status[-1]["frames_fused"] >= count)
+
+    def levels(self) -> list[int]:
+        return [int.from_bytes(s.level, "little") for s in list(self.diagnostics)]
+
+    def close(self):
+        self.planner.stop()
+        self.executor.shutdown()
+        self.thread.join(2)
+        self.peer.destroy_node()
+        self.planner.destroy_node()
+        self.context.try_shutdown()
+
+
+@pytest.fixture
+def rig(request):
+    made: list[Rig] = []
+
+    def make(**parameters) -> Rig:
+        made.append(Rig(parameters))
+        return made[-1]
+
+    yield make
+    for r in made:
+        r.close()
+
+
+def test_the_hard_regions_of_the_fused_map_are_published_drawn_and_counted(rig):
+    r = rig(eager_cache=False)
+    stamps = r.wall(1_000_000_000)
+    assert r.wait(
+        lambda: r.regions and codecs.stamp_to_ns(r.regions[-1].header.stamp) == stamps[-1]
+    )
+    message = r.regions[-1]
+    assert message.header.frame_id == "world"
+    regions = codecs.msg_to_hard_regions(message)
+    # the two bands no direction resolved: 3 x 9 voxels each, on the wall's voxel layer
+    assert list(regions["voxel_count"]) == [27, 27]
+    by_y = regions[np.argsort(regions["centroid"][:, 1])]
+    np.testing.assert_allclose(by_y["centroid"], [[0.65, 0.2, 0.5], [0.65, 0.8, 0.5]], atol=1e-9)
+    np.testing.assert_allclose(by_y["extent"], [[0.05, 0.15, 0.45]] * 2, atol=1e-9)
+    assert np.all(regions["direction_count"] >= 3)
+    assert np.all((regions["mean_uncertainty"] > 0) & (regions["mean_uncertainty"] <= 1))
+    # the same regions as boxes, after a DELETEALL of the namespace
+    assert r.wait(lambda: r.boxes and len(r.boxes[-1].markers) == 3)
+    markers = r.boxes[-1].markers
+    assert markers[0].action == msgs.Marker.DELETEALL
+    for marker, region in zip(markers[1:], regions, strict=True):
+        assert marker.type == msgs.Marker.CUBE and marker.header.frame_id == "world"
+        p, s = marker.pose.position, marker.scale
+        np.testing.assert_allclose([p.x, p.y, p.z], region["centroid"])
+        np.testing.assert_allclose([s.x, s.y, s.z], region["extent"])
+    # counted in the status, beside the hard voxels they hold
+    assert r.fused(len(stamps))
+    assert r.wait(lambda: r.status[-1]["hard_regions"] == 2)
+    assert r.status[-1]["hard_voxels"] == 54
+
+
+def test_at_most_hard_regions_max_are_published_and_all_are_counted(rig):
+    r = rig(eager_cache=False, hard_regions_max=1)
+    stamps = r.wall(2_000_000_000)
+    assert r.wait(
+        lambda: r.regions and codecs.stamp_to_ns(r.regions[-1].header.stamp) == stamps[-1]
+    )
+    assert len(r.regions[-1].regions) == 1 and r.regions[-1].regions[0].voxel_count == 27
+    assert r.fused(len(stamps)) and r.wait(lambda: r.status[-1]["hard_regions"] == 2)
+
+
+def test_a_failed_mask_rebuild_is_an_error_on_diagnostics_then_ok_again(rig):
+    r = rig(eager_cache=True, refresh_interval_s=0.0)
+    build = r.planner.server.context.build
+    calls = []
+
+    def failing_once(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("out of memory building masks")
+        return build(*args, **kwargs)
+
+    r.planner.server.context.build = failing_once
+    assert r.wait(lambda: OK in r.levels()), "no OK status before the failure"
+    r.wall(3_000_000_000, WALL_DIRECTIONS[:1])
+    assert r.wait(lambda: ERROR in r.levels()), "no ERROR after the failed rebuild"
+    error = next(s for s in r.diagnostics if int.from_bytes(s.level, "little") == ERROR)
+    assert "rebuild_failures +1" in error.message
+    values = {kv.key: kv.value for kv in error.values}
+    assert values["rebuild_failures"] == "1"
+    assert "out of memory building masks" in values["last_rebuild_error"]
+    assert values["workers.rebuild"] == "true" and values["workers.fusion"] == "true"
+    # the worker keeps going: the next frame's rebuild succeeds, and the level returns to OK
+    seen = len(r.diagnostics)
+    r.wall(3_100_000_000, WALL_DIRECTIONS[1:2])
+    assert r.wait(lambda: OK in r.levels()[seen:]), "no OK after the rebuild recovered"
+    assert r.wait(lambda: len(calls) >= 2 and r.status[-1]["cache_ready"])
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_failed_fusion_is_an_error_and_a_dead_fusion_worker_stays_one(rig):
+    r = rig(eager_cache=False)
+    add_frame = r.planner.server.add_frame
+
+    def failing_once(stamp, *args):
+        if stamp == 4_000_000_000:
+            raise RuntimeError("numba kernel crashed")
+        return add_frame(stamp, *args)
+
+    r.planner.server.add_frame = failing_once
+    r.wall(4_000_000_000, WALL_DIRECTIONS[:1])
+    assert r.wait(lambda: ERROR in r.levels()), "no ERROR after the failed fusion"
+    error = next(s for s in r.diagnostics if int.from_bytes(s.level, "little") == ERROR)
+    assert "fusion_failures +1" in error.message
+    # the frames after it are fused, and a period later the level is OK again
+    seen = len(r.diagnostics)
+    r.wall(4_100_000_000, WALL_DIRECTIONS[1:2])
+    assert r.fused(1)
+    assert r.wait(lambda: OK in r.levels()[seen:])
+    # a fusion worker whose thread ends (its publishing raised) is an error until the node stops
+    r.planner._publish_state = lambda stamp: (_ for _ in ()).throw(RuntimeError("encoder bug"))
+    r.wall(4_200_000_000, WALL_DIRECTIONS[2:3])
+    assert r.wait(lambda: not r.planner.fusion.alive)
+    seen = len(r.diagnostics)
+    assert r.wait(lambda: len(r.diagnostics) >= seen + 2)
+    dead = r.diagnostics[seen:]
+    assert all(int.from_bytes(s.level, "little") == ERROR for s in dead)
+    assert all("worker fusion died" in s.message for s in dead)
