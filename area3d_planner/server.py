@@ -741,6 +741,7 @@ class NextBestViewServer:
             "committed_views": self.committed,
             "remaining_budget": self.remaining_budget(),
             "hard_voxels": int(self.grid.hard().sum()),
+            "camera": dict(zip(("hfov_deg", "width", "height"), self.camera(), strict=True)),
             "cache_ready": self.cache_ready(),
             "last_request_s": self.last_request_s,
         }

@@ -178,6 +178,9 @@ def test_the_graph_plans_for_a_robot_driver_and_odometry_it_has_never_seen(tmp_p
         status = json.loads(mission.status[-1].data)
         assert status["frames_fused"] == budget and status["frames_dropped_no_pose"] == {}
         assert status["rejected"]["total"] == 0
+        # the candidate views were planned for the driver's camera, from its CameraInfo
+        assert status["camera"]["width"] == 848 and status["camera"]["height"] == 480
+        assert abs(status["camera"]["hfov_deg"] - 87.0) < 1e-6
     finally:
         probe.close()
         codes = launcher.stop()
