@@ -161,7 +161,9 @@ TF_STATIC = Topic(
     SIM_BRIDGE,
     (PERCEPTION, PLANNER),
     durability=TRANSIENT_LOCAL,
-    depth=1,
+    # a robot has several static broadcasters, each latching its own: a reader keeps them all
+    # (tf2's static listener: 100)
+    depth=TF_DEPTH,
     description="camera_link -> camera_optical_frame (latched)",
 )
 # A robot's odometry: the camera pose comes from it and the camera's mount with
