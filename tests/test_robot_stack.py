@@ -6,10 +6,11 @@ driving its odometry there.
 
 The driver's topics are its own (remapped onto ours), best effort, bgr8 and 16UC1 millimetres at
 848x480 with an 87 degree field of view, images stamped independently of a 50 Hz odometry in
-`odom`, the camera mounted by /tf_static. The graph runs with `world_frame: odom`,
-`pose_source: odometry`, `camera_qos: sensor_data` and the mount from /tf_static; the grid must
-build in `odom`, and every view NextBestView returns must be in `odom`, inside the workspace and
-aimed at the region."""
+`odom`, the camera mounted by /tf_static. The graph runs as the README tells a robot's user to
+start it: the bundled `robot_odometry.yaml` (`world_frame: odom`, `pose_source: odometry`,
+`camera_qos: sensor_data`, the mount from /tf_static) with the region and workspace of the scene,
+and the README's remappings; the grid must build in `odom`, and every view NextBestView returns must
+be in `odom`, inside the workspace and aimed at the region."""
 
 from __future__ import annotations
 
@@ -21,7 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from area3d_bringup.launch_description import NodeSpec, scene_parameters
+from area3d_bringup.launch_description import (
+    GRAPH_NODES,
+    build_graph,
+    default_params_file,
+    load_parameters,
+    scene_parameters,
+)
 from area3d_bringup.launcher import Launcher
 from area3d_msgs_py import codecs, msgs, qos, topics
 from area3d_msgs_py.probe import Probe
@@ -37,13 +44,7 @@ REMAPS = {
     topics.CAMERA_INFO.name: "/camera/camera/color/camera_info",
     topics.ODOMETRY.name: "/odom",
 }
-ROBOT = {
-    "world_frame": "odom",
-    "camera_qos": "sensor_data",
-    "pose_source": "odometry",
-    "body_frame": "base_link",
-    "camera_mount": "tf_static",
-}
+ROBOT_PARAMS = default_params_file().parent / "robot_odometry.yaml"
 
 
 def _aimed_at(T: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_range: float) -> bool:
@@ -104,19 +105,17 @@ def test_the_graph_plans_for_a_robot_driver_and_odometry_it_has_never_seen(tmp_p
     scene = load_scene("single_object")
     region = scene_parameters(scene.name)["planner"]
     budget = len(scene.initial_views) + PLANNED
-    specs = [
-        NodeSpec("perception", "area3d_perception.node", dict(ROBOT)),
-        NodeSpec(
-            "semantics",
-            "area3d_semantics.node",
-            {"camera_qos": "sensor_data", "num_initial_views": len(scene.initial_views)},
-        ),
-        NodeSpec(
-            "planner",
-            "area3d_planner.node",
-            {**region, **ROBOT, "mode": "closed_loop", "budget": budget, "sync_timeout_s": 60.0},
-        ),
-    ]
+    specs = build_graph(
+        load_parameters(ROBOT_PARAMS),
+        {
+            "planner": {**region, "budget": budget, "sync_timeout_s": 60.0},
+            "semantics": {"num_initial_views": len(scene.initial_views)},
+        },
+        nodes=tuple((n, m) for n, m in GRAPH_NODES if n != "sim_bridge"),
+    )
+    assert {spec.name: spec.parameters["world_frame"] for spec in specs if spec.name != "semantics"} == {
+        "perception": "odom", "planner": "odom",
+    }  # fmt: skip
     remaps = [arg for ours, theirs in REMAPS.items() for arg in ("-r", f"{ours}:={theirs}")]
     lines: list[str] = []
     launcher = Launcher(specs, tmp_path, log_sink=lines.append, ros_args=remaps)
@@ -193,3 +192,19 @@ def test_the_graph_plans_for_a_robot_driver_and_odometry_it_has_never_seen(tmp_p
     assert all(code == 0 for code in codes.values()), (codes, lines[-20:])
     assert "Traceback" not in output, output[-3000:]
     assert not any("Traceback" in line for line in lines), lines[-40:]
+
+
+def test_the_readme_and_the_parameter_file_give_these_remappings_and_a_bad_one_is_refused():
+    """What the README tells a robot's user to run is what the test above runs."""
+    from typer.testing import CliRunner
+
+    from area3d_bringup.cli import app
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    example = ROBOT_PARAMS.read_text()
+    for ours, theirs in REMAPS.items():
+        assert f"-r {ours}:={theirs}" in readme and f"-r {ours}:={theirs}" in example
+    assert "--params area3d_bringup/config/robot_odometry.yaml" in readme
+    result = CliRunner().invoke(app, ["launch", "-r", "area3d/odom=/odom"])
+    assert result.exit_code != 0
+    assert "--remap: got 'area3d/odom=/odom', expected FROM:=TO" in result.output
