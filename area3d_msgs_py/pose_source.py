@@ -99,13 +99,13 @@ class PoseSourceConfig:
         "tf / odometry: a sample moving faster than this from the previous one of its edge is "
         "refused as a jump (0 = not checked: a simulated camera jumps from view to view)",
         "m/s",
-        (0.0, 1e6),
+        (0.0, 1000.0),
     )
     pose_max_angular_speed: float = described(
         0.0,
         "tf / odometry: the same for rotation (0 = not checked)",
         "rad/s",
-        (0.0, 1e6),
+        (0.0, 1000.0),
     )
     body_frame: str = described(
         "base_link", "odometry: the child_frame_id of the odometry, the body the camera is on"
