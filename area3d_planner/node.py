@@ -358,7 +358,6 @@ class PlannerNode(Node):
     def _on_request(self, request: msgs.GetPlan_Request, response: msgs.GetPlan_Response):
         """nav_msgs/GetPlan: `start` the current pose, `goal.pose.position.x` how many views;
         an empty plan when there is none (the reason in the log)."""
-        now = self._now_ns()
         try:
             try:
                 start = codecs.pose_to_matrix(request.start.pose)
@@ -369,20 +368,10 @@ class PlannerNode(Node):
                 start = None
             count = int(round(request.goal.pose.position.x))
             stamp = codecs.stamp_to_ns(request.start.header.stamp)
-            plan = self._serve("next_best_view", PlanRequest(start, stamp, count))
-            poses = plan.poses
+            _, response.plan = self._serve("next_best_view", PlanRequest(start, stamp, count))
         except Exception as exc:  # an empty plan, and the node keeps serving
             self.get_logger().error(f"next_best_view: request failed: {exc}")
-            poses = []
-        response.plan = msgs.Path(
-            header=codecs.header(now, self.world_frame),
-            poses=[
-                msgs.PoseStamped(
-                    header=codecs.header(now, self.world_frame), pose=codecs.matrix_to_pose(T)
-                )
-                for T in poses
-            ],
-        )
+            response.plan = self._path([], self._now_ns())
         return response
 
     def _on_select_views(self, request, response):
@@ -395,7 +384,7 @@ class PlannerNode(Node):
                 raise InputError(
                     "current.header.frame_id", asked.frame_id, f"{self.world_frame!r} (world_frame)"
                 )
-            plan = self._serve(
+            plan, _ = self._serve(
                 "select_views", PlanRequest(asked.current, asked.stamp_ns, asked.count, asked.mode)
             )
         except InputError as exc:
@@ -412,8 +401,17 @@ class PlannerNode(Node):
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _serve(self, service: str, request: PlanRequest) -> Plan:
-        """Wait for the request's frame, plan, publish the views and their markers."""
+    def _path(self, poses: list, stamp_ns: int) -> msgs.Path:
+        """The views as nav_msgs/Path in world_frame."""
+        header = codecs.header(stamp_ns, self.world_frame)
+        return msgs.Path(
+            header=header,
+            poses=[msgs.PoseStamped(header=header, pose=codecs.matrix_to_pose(T)) for T in poses],
+        )
+
+    def _serve(self, service: str, request: PlanRequest) -> tuple[Plan, msgs.Path]:
+        """Wait for the request's frame, plan, publish the views (the Path returned) and their
+        markers."""
         log = self.get_logger()
         sync_timeout_s = self.get_parameter("sync_timeout_s").value
         t0 = time.perf_counter()
@@ -432,17 +430,8 @@ class PlannerNode(Node):
         if plan.reason:
             log.warning(f"{service}: {plan.reason}")
         now = self._now_ns()
-        self.views_pub.publish(
-            msgs.Path(
-                header=codecs.header(now, self.world_frame),
-                poses=[
-                    msgs.PoseStamped(
-                        header=codecs.header(now, self.world_frame), pose=codecs.matrix_to_pose(T)
-                    )
-                    for T in plan.poses
-                ],
-            )
-        )
+        path = self._path(plan.poses, now)
+        self.views_pub.publish(path)
         hfov_deg, width, height = self.server.camera()
         self.markers_pub.publish(
             view_markers(
@@ -450,7 +439,7 @@ class PlannerNode(Node):
             )
         )
         self.status.changed()
-        return plan
+        return plan, path
 
 
 def config_from_parameters(p: dict) -> PlannerConfig:
