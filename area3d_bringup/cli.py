@@ -182,8 +182,18 @@ def launch(
     respawn_retries: int = typer.Option(3, help="restarts allowed per node"),
     foxglove: int = typer.Option(None, "--foxglove", metavar="[PORT]", help=FOXGLOVE_HELP),
     foxglove_address: str = typer.Option("127.0.0.1", help=FOXGLOVE_ADDRESS_HELP),
+    remap: list[str] = typer.Option(
+        [],
+        "--remap",
+        "-r",
+        help="FROM:=TO remapping for every node, e.g. area3d/odom:=/odom (a driver's topics)",
+    ),
 ) -> None:
     """Start the node graph and keep it running (Ctrl-C stops every node)."""
+    for rule in remap:
+        source, sep, target = rule.partition(":=")
+        if not (sep and source and target):
+            _fail(f"--remap: got {rule!r}, expected FROM:=TO, e.g. area3d/odom:=/odom")
     import faulthandler
     import signal
     import tempfile
@@ -215,6 +225,7 @@ def launch(
             respawn=respawn,
             respawn_delay_s=respawn_delay,
             respawn_max_retries=respawn_retries,
+            ros_args=[arg for rule in remap for arg in ("-r", rule)],
         )
         launcher.start()
         console.print(f"started {', '.join(s.name for s in specs)}; Ctrl-C stops them")

@@ -26,7 +26,8 @@ from area3d_msgs_py import codecs, msgs, qos, topics
 from area3d_msgs_py.topics import Topic
 
 NAME = topics.MISSION_MANAGER
-TF_TYPE = "tf2_msgs/msg/TFMessage"  # written to the bag even where tf2_msgs does not import
+# The simulated camera's fixed frame: goals, replayed poses and requests are in it.
+WORLD_FRAME = "world"
 #: the topics the mission manager writes and graph nodes read: the goals, and the camera's
 #: topics onto which saved frames are replayed
 RUNNER_TOPICS: dict[str, Topic] = {
@@ -132,11 +133,10 @@ class MissionManager(Node):
             self._listen(RUNNER_TOPICS[key], None, self._on_part(key))
         for topic, depth in GRAPH_OUTPUTS.items():
             self._listen(topic, depth, self._on_output(topic))
-        self.tf_from_graph = msgs.TFMessage is not None
-        if self.tf_from_graph:
-            self._listen(topics.TF, None, None)
-            self._listen(topics.TF_STATIC, None, None)
-        self.client = self.create_client(topics.NEXT_BEST_VIEW.srv_type, topics.NEXT_BEST_VIEW.name)
+        self._listen(topics.TF, None, None)  # the graph's TF, recorded as the camera sent it
+        self._listen(topics.TF_STATIC, None, None)
+        self.plan_message = ""  # why the planner's last answer had no view
+        self.client = self.create_client(topics.SELECT_VIEWS.srv_type, topics.SELECT_VIEWS.name)
 
     # -- callbacks (executor thread) ---------------------------------------------------------
     def _on_match(self, key: str) -> PublisherEventCallbacks:
@@ -173,8 +173,6 @@ class MissionManager(Node):
         def handle(msg: Any, cdr: bytes) -> None:
             stamp = codecs.stamp_to_ns(msg.header.stamp)
             self._parts.setdefault(stamp, {})[key] = msg
-            if key == "pose" and not self.tf_from_graph:
-                self._record_tf(stamp, codecs.pose_to_matrix(msg.pose))
 
         return handle
 
@@ -196,17 +194,6 @@ class MissionManager(Node):
                 self.latest_grid = cdr
 
         return handle
-
-    def _record_tf(self, stamp_ns: int, T_world_opt: np.ndarray) -> None:
-        """TF as sim_bridge would publish it, written to the bag (tf2_msgs does not import here)."""
-        from area3d_bringup.tf_bag import static_tf_cdr, tf_cdr
-
-        if self.recorder is None:
-            return
-        tf, tf_static = topics.TF.name, topics.TF_STATIC.name
-        if not self.recorder.counts.get(tf_static):
-            self.recorder.write(tf_static, TF_TYPE, stamp_ns, static_tf_cdr(stamp_ns))
-        self.recorder.write(tf, TF_TYPE, stamp_ns, tf_cdr(stamp_ns, T_world_opt))
 
     # -- restarts -----------------------------------------------------------------------------
     def respawns(self) -> dict[str, int]:
@@ -328,7 +315,7 @@ class MissionManager(Node):
         matched the runner's readers (then some parts of the frame arrive, others never)."""
         stamp = self.clock() if stamp is None else stamp
         goal = msgs.PoseStamped(
-            header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T_world_cam)
+            header=codecs.header(stamp, WORLD_FRAME), pose=codecs.matrix_to_pose(T_world_cam)
         )
         self.record(
             self.resolve_topic_name(topics.GOAL.name), topics.GOAL.type_name, stamp,
@@ -376,7 +363,7 @@ class MissionManager(Node):
         pubs["info"].publish(codecs.intrinsics_to_camera_info(frame.K, w, h, *header_args))
         pubs["pose"].publish(
             msgs.PoseStamped(
-                header=codecs.header(frame.stamp_ns, "world"),
+                header=codecs.header(frame.stamp_ns, WORLD_FRAME),
                 pose=codecs.matrix_to_pose(frame.T_world_cam),
             )
         )
@@ -464,19 +451,12 @@ class MissionManager(Node):
         return self.wait_until(lambda: int(self.planner_status.get(key, 0)) >= count, timeout_s)
 
     def plan(self, current: Frame, count: int, timeout_s: float) -> list[np.ndarray]:
-        """Ask the planner for `count` views (0 = what the budget allows) from the current pose."""
-        request = msgs.GetPlan_Request(
-            start=msgs.PoseStamped(
-                header=codecs.header(current.stamp_ns, "world"),
-                pose=codecs.matrix_to_pose(current.T_world_cam),
-            ),
-            goal=msgs.PoseStamped(
-                header=codecs.header(current.stamp_ns, "world"),
-                pose=codecs.matrix_to_pose(np.eye(4)),
-            ),
-            tolerance=0.0,
+        """Ask the planner for `count` views (0 = what the budget allows) from the current pose
+        (area3d_interfaces/NextBestView); none, with the planner's reason in `plan_message`,
+        when it has none."""
+        request = codecs.view_request_to_msg(
+            int(count), current.T_world_cam, current.stamp_ns, WORLD_FRAME
         )
-        request.goal.pose.position.x = float(count)
         future = self.client.call_async(request)
         done = threading.Event()
         future.add_done_callback(lambda _: done.set())
@@ -491,7 +471,8 @@ class MissionManager(Node):
             if time.monotonic() > deadline:
                 self.client.remove_pending_request(future)
                 raise TimeoutError(
-                    f"no answer from {topics.NEXT_BEST_VIEW.name} within {timeout_s:.0f} s"
+                    f"no answer from {topics.SELECT_VIEWS.name} within {timeout_s:.0f} s"
                 )
-        response = future.result()
-        return [codecs.pose_to_matrix(p.pose) for p in response.plan.poses]
+        answer = codecs.msg_to_view_answer(future.result())
+        self.plan_message = answer.message
+        return list(answer.views) if answer.success else []

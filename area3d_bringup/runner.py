@@ -296,7 +296,7 @@ class _Episode:
             self.launcher.check()
             if time.monotonic() > deadline:
                 raise EpisodeError(
-                    f"the planner service {topics.NEXT_BEST_VIEW.name} did not appear within "
+                    f"the planner service {topics.SELECT_VIEWS.name} did not appear within "
                     f"{config.startup_timeout_s:.0f} s"
                 )
         short = manager.wait_for_readers(config.startup_timeout_s)
@@ -388,7 +388,8 @@ class _Episode:
             self.launcher.check()
             if not poses:
                 self.log(
-                    f"the planner returned no view with {to_plan - planned} left; stopping early"
+                    f"the planner returned no view with {to_plan - planned} left "
+                    f"({manager.plan_message}); stopping early"
                 )
                 return
             for T in poses[: to_plan - planned]:

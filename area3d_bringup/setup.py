@@ -11,7 +11,7 @@ if __name__ == "__main__":
         data_files=[
             ("share/ament_index/resource_index/packages", ["resource/area3d_bringup"]),
             ("share/area3d_bringup", ["package.xml"]),
-            ("share/area3d_bringup/config", ["config/area3d.yaml"]),
+            ("share/area3d_bringup/config", ["config/area3d.yaml", "config/robot_odometry.yaml"]),
             ("share/area3d_bringup/launch", ["launch/area3d.launch.py"]),
             ("share/area3d_bringup/rviz", ["rviz/area3d.rviz"]),
         ],

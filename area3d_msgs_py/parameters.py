@@ -32,6 +32,7 @@ from rclpy.parameter import Parameter
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.inputs import MAX_STAMP_AHEAD_S
 from area3d_msgs_py.param_fields import description_of, is_described
+from area3d_msgs_py.qos import CAMERA_QOS_CHOICES
 
 #: declared by rclpy itself on every node
 BUILTIN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
@@ -118,7 +119,19 @@ MAX_STAMP_AHEAD_PARAM = Param(
     "inputs stamped further ahead of this node's clock are refused, seconds",
     range=(0.0, 86400.0),
 )
-WORLD_FRAME_PARAM = Param("world_frame", "world", "frame_id every camera pose must be expressed in")
+WORLD_FRAME_PARAM = Param(
+    "world_frame",
+    "world",
+    "the fixed frame: every camera pose in and every output out is expressed in it (REP 105: "
+    "map or odom on a robot)",
+)
+CAMERA_QOS_PARAM = Param(
+    "camera_qos",
+    "reliable",
+    "QoS of the camera's topics and the odometry: reliable (our camera, a bag) or sensor_data "
+    "(best effort: a driver that publishes with the sensor-data profile)",
+    choices=CAMERA_QOS_CHOICES,
+)
 
 
 def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""The graph's topics and its service, in one table: name, type, QoS, who writes and who reads.
+"""The graph's topics and services, in one table: name, type, QoS, who writes and who reads.
 
 Names are relative (a namespace moves the whole graph; `/tf` and `/tf_static` stay global, as
 ROS 2 has them). The nodes, the mission manager (`area3d run`) and the benchmarks take names, types
@@ -8,10 +8,13 @@ reader of the docs; the independent test clients (tests/clients) keep their own 
 purpose, as an outside ROS 2 program would.
 
 QoS: reliable keep-last everywhere; `Topic.qos` gives a topic's profile, with another history
-depth where a reader needs a deeper queue than the writer keeps. The camera's stream
-(`Topic.camera`) is volatile, as a camera driver publishes it; the per-frame outputs one graph
-node computes for another are transient local on both sides, so a reader whose discovery
-finishes late still gets the first frames (volatile readers such as RViz match either way).
+depth where a reader needs a deeper queue than the writer keeps. The camera's stream and the
+odometry (`Topic.camera`: what a robot's drivers publish) are volatile, as a driver publishes
+them, and a graph node reads them with the QoS its `camera_qos` parameter chooses
+(`Topic.reader_qos`: reliable, or best effort for drivers that publish with the sensor-data
+profile); the per-frame outputs one graph node computes for another are transient local on both
+sides, so a reader whose discovery finishes late still gets the first frames (volatile readers
+such as RViz match either way).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from area3d_msgs_py import msgs, qos
 SIM_BRIDGE, PERCEPTION, SEMANTICS, PLANNER = "sim_bridge", "perception", "semantics", "planner"
 MISSION_MANAGER = "mission_manager"  # `area3d run`, or a robot's own mission manager
 ANYONE = "anyone"  # no particular writer: any program may publish it
+ROBOT = "robot"  # the robot's own drivers (its odometry, its TF tree)
 
 VOLATILE, TRANSIENT_LOCAL = "volatile", "transient_local"
 # The semantic maps of the initial views (15 at room level) can go out in one burst.
@@ -37,10 +41,11 @@ TF_DEPTH = 100
 @dataclass(frozen=True)
 class Topic:
     """One topic of the graph. `readers`: the graph nodes that subscribe to it (anyone else may);
-    `camera`: part of the camera's stream (the inputs a real camera driver provides)."""
+    `camera`: an input a robot's drivers provide (the camera's stream, the odometry), read with
+    the node's `camera_qos`."""
 
     name: str  # relative, e.g. "area3d/camera/pose"
-    msg_type: Any  # the generated message class (None where it does not import: tf2_msgs)
+    msg_type: Any  # the generated message class
     writer: str
     readers: tuple[str, ...] = ()
     durability: str = VOLATILE
@@ -56,6 +61,13 @@ class Topic:
             return qos.latched(depth)
         return qos.reliable(depth)
 
+    def reader_qos(self, camera_qos: str = "reliable", depth: int | None = None) -> QoSProfile:
+        """The profile a graph node subscribes with: the topic's (`qos`), or for a driver's
+        input (`camera`) the node's `camera_qos` choice (`qos.camera_input`)."""
+        if not self.camera:
+            return self.qos(depth)
+        return qos.camera_input(camera_qos, self.depth if depth is None else int(depth))
+
     @property
     def type_name(self) -> str:
         """The ROS type name, e.g. "sensor_msgs/msg/Image"."""
@@ -64,6 +76,8 @@ class Topic:
 
 @dataclass(frozen=True)
 class Service:
+    """One service of the graph: its relative name, type and the node that serves it."""
+
     name: str
     srv_type: Any
     server: str
@@ -131,14 +145,37 @@ CAMERA_STATUS = Topic(
     depth=qos.FRAME_DEPTH,
     description="JSON {stamp_ns, ok, reason, rejected} per goal",
 )
-TF = Topic("/tf", msgs.TFMessage, SIM_BRIDGE, depth=TF_DEPTH, description="world -> camera_link")
+# TF: sim_bridge's camera (world -> camera_link -> camera_optical_frame), or a robot's tree; read
+# by perception and the planner with `pose_source: tf` (/tf_static also with `odometry`)
+TF = Topic(
+    "/tf",
+    msgs.TFMessage,
+    SIM_BRIDGE,
+    (PERCEPTION, PLANNER),
+    depth=TF_DEPTH,
+    description="world -> camera_link at each captured frame",
+)
 TF_STATIC = Topic(
     "/tf_static",
     msgs.TFMessage,
     SIM_BRIDGE,
+    (PERCEPTION, PLANNER),
     durability=TRANSIENT_LOCAL,
-    depth=1,
+    # a robot has several static broadcasters, each latching its own: a reader keeps them all
+    # (tf2's static listener: 100)
+    depth=TF_DEPTH,
     description="camera_link -> camera_optical_frame (latched)",
+)
+# A robot's odometry: the camera pose comes from it and the camera's mount with
+# `pose_source: odometry` (REP 105: header.frame_id the odometry frame, child_frame_id the body).
+ODOMETRY = Topic(
+    "area3d/odom",
+    msgs.Odometry,
+    ROBOT,
+    (PERCEPTION, PLANNER),
+    depth=qos.FRAME_DEPTH,
+    camera=True,
+    description="nav_msgs/Odometry of the body the camera is mounted on",
 )
 
 # -- perception -----------------------------------------------------------------------------
@@ -234,11 +271,19 @@ HARD_REGION_MARKERS = Topic(
     description="the hard regions as translucent boxes (latched)",
 )
 PLANNER_STATUS = _status(PLANNER)
+SELECT_VIEWS = Service(
+    "area3d/planner/select_views",
+    msgs.NextBestView,
+    PLANNER,
+    "count, mode, current pose stamped with the last capture -> success, message, views "
+    "(best first, in world_frame), gains",
+)
 NEXT_BEST_VIEW = Service(
     "area3d/planner/next_best_view",
     msgs.GetPlan,
     PLANNER,
-    "start = current pose stamped with the last capture; goal.pose.position.x = views wanted",
+    "start = current pose stamped with the last capture; goal.pose.position.x = views wanted "
+    "(for tools with the standard types only)",
 )
 
 # -- every node -----------------------------------------------------------------------------
@@ -254,11 +299,15 @@ FOXGLOVE_STATUS = _status(FOXGLOVE_BRIDGE)
 #: every topic of the graph, camera first
 TOPICS: tuple[Topic, ...] = (
     GOAL, COLOR, DEPTH, CAMERA_INFO, POSE, RIGHT_IMAGE, RIGHT_CAMERA_INFO, CAMERA_STATUS, TF,
-    TF_STATIC, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_STATUS, SEMANTIC_REGIONS,
+    TF_STATIC, ODOMETRY, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_STATUS, SEMANTIC_REGIONS,
     SEMANTIC_WEIGHT, SEMANTIC_UNCERTAINTY, SEMANTIC_REQUEST, SEMANTICS_STATUS, UNCERTAINTY_GRID,
     NEXT_VIEWS, VIEW_MARKERS, HARD_REGIONS, HARD_REGION_MARKERS, PLANNER_STATUS, DIAGNOSTICS,
     FOXGLOVE_STATUS,
 )  # fmt: skip
+
+
+#: every service of the graph
+SERVICES: tuple[Service, ...] = (SELECT_VIEWS, NEXT_BEST_VIEW)
 
 
 def read_by(node: str, topics: tuple[Topic, ...] = TOPICS) -> tuple[Topic, ...]:

@@ -1,9 +1,10 @@
 """The perception node: captured frames in, metric depth + confidence in [0, 1] out.
 
-Subscribes the camera's color, depth, camera info and optical-frame pose (with the `stereo`
-backend also the right image and right camera info of a rectified pair), pairs them by stamp
-(`StampSync`), runs `FrameEstimator` and publishes depth and confidence with the source frame's
-stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
+Subscribes the camera's color, depth and camera info (with the `stereo` backend also the right
+image and right camera info of a rectified pair) with the QoS `camera_qos` chooses, pairs them by
+stamp (`StampSync`), takes each frame's camera pose from its `pose_source` (the pose topic, paired
+by stamp; or TF or odometry, interpolated: `area3d_msgs_py/pose_inputs.py`), runs `FrameEstimator`
+and publishes depth and confidence with the source frame's stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from area3d_msgs_py.inputs import (
 )
 from area3d_msgs_py.lifecycle import exit_process, run_node
 from area3d_msgs_py.parameters import (
+    CAMERA_QOS_PARAM,
     MAX_STAMP_AHEAD_PARAM,
     WORLD_FRAME_PARAM,
     Param,
@@ -35,6 +37,8 @@ from area3d_msgs_py.parameters import (
     params_of,
     report_unknown_parameters,
 )
+from area3d_msgs_py.pose_inputs import PoseInputs
+from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
 from area3d_perception.frame_sync import MAX_AGE_NS, HeldFrames, StampSync
@@ -70,6 +74,8 @@ PARAMS = (
     ),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
+    CAMERA_QOS_PARAM,
+    *params_of(PoseSourceConfig),
     *params_of(RgbdSensorParams, "sensor."),
     # the camera's range is sensor.max_range
     *params_of(StereoParams, "stereo.", skip=("max_range",)),
@@ -86,7 +92,12 @@ class PerceptionNode(Node):
         self.use_depth = p["use_depth"]
         self.stereo = p["backend"] == "stereo"
         self.estimator = estimator_from_parameters(p)
-        keys = ("color", "depth", "pose") if self.use_depth else ("color", "pose")
+        pose_config = PoseSourceConfig(
+            **{f.name: p[f.name] for f in dataclasses.fields(PoseSourceConfig)}
+        )
+        pose_topic = pose_config.pose_source == "topic"  # else TF or odometry (self.poses)
+        keys = ("color", "depth") if self.use_depth else ("color",)
+        keys += ("pose",) if pose_topic else ()
         if self.stereo:
             keys += ("right",)
         self.sync = StampSync(keys, max_age_ns=int(p["sync_max_age_s"] * 1e9))
@@ -107,11 +118,15 @@ class PerceptionNode(Node):
 
         self.pub_depth = self._publisher(topics.PERCEPTION_DEPTH)
         self.pub_conf = self._publisher(topics.PERCEPTION_CONFIDENCE)
-        inputs = [
-            (topics.COLOR, self.on_color),
-            (topics.CAMERA_INFO, self.on_camera_info),
-            (topics.POSE, self.on_pose),
-        ]
+        self.poses = None
+        if not pose_topic:
+            self.poses = PoseInputs(
+                self, pose_config, self.world_frame, self.max_stamp_ahead_s, p["camera_qos"],
+                self.rejections, self._posed, self.status.changed,
+            )  # fmt: skip
+        inputs = [(topics.COLOR, self.on_color), (topics.CAMERA_INFO, self.on_camera_info)]
+        if pose_topic:
+            inputs.append((topics.POSE, self.on_pose))
         if self.use_depth:
             inputs.append((topics.DEPTH, self.on_depth))
         if self.stereo:
@@ -124,9 +139,12 @@ class PerceptionNode(Node):
                 topic.msg_type,
                 topic.name,
                 guarded(self, callback, topic.name, self.rejections),
-                topic.qos(),
+                topic.reader_qos(p["camera_qos"]),
             )
-        self.get_logger().info(f"backend={p['backend']} use_depth={self.use_depth}")
+        self.get_logger().info(
+            f"backend={p['backend']} use_depth={self.use_depth} "
+            f"pose_source={pose_config.pose_source} camera_qos={p['camera_qos']}"
+        )
 
     def _publisher(self, topic: topics.Topic) -> Any:
         return self.create_publisher(topic.msg_type, topic.name, topic.qos())
@@ -143,6 +161,7 @@ class PerceptionNode(Node):
             "frames_dropped_without_camera_info": self.waiting.dropped,
             "frames_dropped_backend_failure": self.frames_dropped_backend,
             "backend_error": self.backend_error,
+            **({} if self.poses is None else self.poses.status()),
             "rejected": self.rejections.snapshot(),
         }
 
@@ -197,6 +216,15 @@ class PerceptionNode(Node):
             )
         if parts is None:
             return
+        if self.poses is not None:  # the pose at the frame's stamp, now or once it has arrived
+            self.poses.submit(stamp, parts["color"][1], parts)
+            return
+        self._complete(stamp, parts)
+
+    def _posed(self, stamp: int, parts: dict, T_world_cam: Any) -> None:
+        self._complete(stamp, {**parts, "pose": (T_world_cam, self.world_frame)})
+
+    def _complete(self, stamp: int, parts: dict) -> None:
         if not self._ready():
             missing = topics.CAMERA_INFO if self.camera is None else topics.RIGHT_CAMERA_INFO
             warning = self.waiting.hold(stamp, parts, missing.name)

@@ -1,15 +1,17 @@
 """The planner node: fuses perception (+ semantics) frames and serves next-best-view requests.
 
-Subscribes area3d/perception/depth, area3d/perception/confidence, area3d/camera/pose and
-area3d/camera/camera_info (paired by stamp), area3d/semantics/uncertainty. Publishes the latched
-area3d/planner/uncertainty_grid (after every fused frame; during a backlog at most every
-grid_period_s), area3d/planner/status and
-area3d/planner/next_views (and their camera frustums on area3d/planner/view_markers), and with
-every grid the latched area3d/planner/hard_regions (HardRegionArray) and their boxes on
-area3d/planner/hard_region_markers; serves
-area3d/planner/next_best_view (nav_msgs/srv/GetPlan). Topics:
-`area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all. The region of interest and workspace are parameters: the planner
-knows only what a robot knows, never the simulator's scene.
+Subscribes area3d/perception/depth, area3d/perception/confidence, area3d/camera/camera_info
+and the camera pose of its `pose_source` (area3d/camera/pose paired by stamp, or TF or odometry
+interpolated to the frame's stamp: `area3d_msgs_py/pose_inputs.py`), area3d/semantics/uncertainty.
+Publishes, in `world_frame`, the latched area3d/planner/uncertainty_grid (after every fused frame;
+during a backlog at most every grid_period_s) and with every grid the latched
+area3d/planner/hard_regions (HardRegionArray) and their boxes on area3d/planner/hard_region_markers,
+area3d/planner/status and area3d/planner/next_views (and their camera frustums on
+area3d/planner/view_markers); serves area3d/planner/select_views
+(area3d_interfaces/srv/NextBestView) and area3d/planner/next_best_view (nav_msgs/srv/GetPlan).
+Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all. The region of
+interest and workspace are parameters: the planner knows only what a robot knows, never the
+simulator's scene; the candidate views' camera is the one whose frames it fuses.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from area3d_msgs_py.inputs import (
 )
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
+    CAMERA_QOS_PARAM,
     MAX_STAMP_AHEAD_PARAM,
     WORLD_FRAME_PARAM,
     Param,
@@ -46,13 +49,15 @@ from area3d_msgs_py.parameters import (
     params_of,
     report_unknown_parameters,
 )
+from area3d_msgs_py.pose_inputs import PoseInputs
+from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.frame_sync import CameraInfoCache, HeldFrames, StampSync
 from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.fusion_worker import FusionWorker
 from area3d_planner.hard_regions import cloud_hard_regions
 from area3d_planner.markers import hard_region_markers, view_markers
-from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+from area3d_planner.server import NextBestViewServer, Plan, PlannerConfig, PlanRequest
 
 CAMERA_INFO_CACHE = 64
 POSES_PENDING = 2048
@@ -127,6 +132,8 @@ PARAMS = (
     ),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
+    CAMERA_QOS_PARAM,
+    *params_of(PoseSourceConfig),
 )
 
 
@@ -149,8 +156,10 @@ class PlannerNode(Node):
             mask_lag_s=p["mask_lag_s"],
             rebuild_nice=p["rebuild_nice"],
         )
+        pose_config = PoseSourceConfig(**{f.name: p[f.name] for f in fields(PoseSourceConfig)})
+        pose_topic = pose_config.pose_source == "topic"  # else TF or odometry (self.poses)
         self.sync = StampSync(
-            ("depth", "confidence", "pose"),
+            ("depth", "confidence", "pose") if pose_topic else ("depth", "confidence"),
             max_age_ns=int(p["sync_max_age_s"] * 1e9),
             # the camera's poses arrive ahead of perception's images, which trail by the
             # perception backlog: a minute of poses at 30 Hz may wait (they are small)
@@ -190,32 +199,44 @@ class PlannerNode(Node):
             )
         )  # fmt: skip
         frames = MutuallyExclusiveCallbackGroup()
-        for topic, callback, depth in (
+        self.poses = None
+        if not pose_topic:
+            self.poses = PoseInputs(
+                self, pose_config, self.world_frame, self.max_stamp_ahead_s, p["camera_qos"],
+                self.rejections, self._posed, self.status.changed, callback_group=frames,
+            )  # fmt: skip
+        inputs = [
             (topics.PERCEPTION_DEPTH, lambda m: self._part("depth", m), None),
             (topics.PERCEPTION_CONFIDENCE, lambda m: self._part("confidence", m), None),
             # the camera's small per-frame messages queue deep: they run ahead of perception's
             # images, and a reader queue that overflows loses the frame for good
-            (topics.POSE, lambda m: self._part("pose", m), POSES_PENDING),
             (topics.CAMERA_INFO, self._on_camera_info, POSES_PENDING),
             (topics.SEMANTIC_UNCERTAINTY, self._on_semantic, qos.FRAME_DEPTH),
-        ):
+        ]
+        if pose_topic:
+            inputs.append((topics.POSE, lambda m: self._part("pose", m), POSES_PENDING))
+        for topic, callback, depth in inputs:
             self.create_subscription(
                 topic.msg_type,
                 topic.name,
                 guarded(self, callback, topic.name, self.rejections),
-                topic.qos(depth),
+                topic.reader_qos(p["camera_qos"], depth),
                 callback_group=frames,
             )
-        service = topics.NEXT_BEST_VIEW
-        self.create_service(
-            service.srv_type,
-            service.name,
-            self._on_request,
-            callback_group=MutuallyExclusiveCallbackGroup(),
-        )
+        for service, handler in (
+            (topics.SELECT_VIEWS, self._on_select_views),
+            (topics.NEXT_BEST_VIEW, self._on_request),
+        ):  # one group each: a request waits for its frame while the other service answers
+            self.create_service(
+                service.srv_type,
+                service.name,
+                handler,
+                callback_group=MutuallyExclusiveCallbackGroup(),
+            )
         self.get_logger().info(
             f"planner ready: policy={config.policy} mode={config.mode} "
-            f"voxels={self.server.grid.spec.num_voxels}"
+            f"voxels={self.server.grid.spec.num_voxels} world_frame={self.world_frame} "
+            f"pose_source={pose_config.pose_source}"
         )
 
     def destroy_node(self) -> None:
@@ -244,6 +265,7 @@ class PlannerNode(Node):
                     ("last_fusion_s", self.fusion.last_fusion_s),
                 )
             },
+            **({} if self.poses is None else self.poses.status()),
             "rejected": self.rejections.snapshot(),
         }
 
@@ -296,6 +318,15 @@ class PlannerNode(Node):
             )
         if frame is None:
             return
+        if self.poses is not None:  # the pose at the frame's stamp, now or once it has arrived
+            self.poses.submit(stamp, msg.header.frame_id, frame)
+            return
+        self._with_camera_info(stamp, frame)
+
+    def _posed(self, stamp: int, frame: dict, T_world_cam: np.ndarray) -> None:
+        self._with_camera_info(stamp, {**frame, "pose": T_world_cam})
+
+    def _with_camera_info(self, stamp: int, frame: dict) -> None:
         K = self.camera_info.get(stamp)
         if K is None:
             warning = self.waiting.hold(stamp, frame, topics.CAMERA_INFO.name)
@@ -368,59 +399,90 @@ class PlannerNode(Node):
         self.status.publish()
 
     def _on_request(self, request: msgs.GetPlan_Request, response: msgs.GetPlan_Response):
+        """nav_msgs/GetPlan: `start` the current pose, `goal.pose.position.x` how many views;
+        an empty plan when there is none (the reason in the log)."""
         try:
-            response.plan = self._plan(request)
+            try:
+                start = codecs.pose_to_matrix(request.start.pose)
+            except ValueError as exc:
+                self.get_logger().warning(
+                    f"next_best_view: start pose rejected ({exc}); planning without a start"
+                )
+                start = None
+            count = int(round(request.goal.pose.position.x))
+            stamp = codecs.stamp_to_ns(request.start.header.stamp)
+            _, response.plan = self._serve("next_best_view", PlanRequest(start, stamp, count))
         except Exception as exc:  # an empty plan, and the node keeps serving
             self.get_logger().error(f"next_best_view: request failed: {exc}")
-            response.plan = msgs.Path(header=codecs.header(self._now_ns(), "world"))
+            response.plan = self._path([], self._now_ns())
         return response
+
+    def _on_select_views(self, request, response):
+        """area3d_interfaces/NextBestView: the views with their gains, or success false with the
+        reason (no frame yet, budget spent, degenerate workspace, a bad request, ...)."""
+        service = topics.SELECT_VIEWS.name
+        try:
+            asked = codecs.msg_to_view_request(request)
+            if asked.frame_id != self.world_frame:
+                raise InputError(
+                    "current.header.frame_id", asked.frame_id, f"{self.world_frame!r} (world_frame)"
+                )
+            plan, _ = self._serve(
+                "select_views", PlanRequest(asked.current, asked.stamp_ns, asked.count, asked.mode)
+            )
+        except InputError as exc:
+            plan = Plan([], [], f"request rejected: {exc}")
+            self.get_logger().warning(f"{service}: {plan.reason}")
+        except Exception as exc:  # a refusal, and the node keeps serving
+            plan = Plan([], [], f"request failed: {type(exc).__name__}: {exc}")
+            self.get_logger().error(f"{service}: {plan.reason}")
+        stamp = codecs.stamp_to_ns(request.current.header.stamp) or self._now_ns()
+        if plan.reason:
+            return codecs.view_refusal_to_msg(plan.reason, stamp, self.world_frame)
+        return codecs.view_answer_to_msg(np.array(plan.poses), plan.gains, stamp, self.world_frame)
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _plan(self, request: msgs.GetPlan_Request) -> msgs.Path:
+    def _path(self, poses: list, stamp_ns: int) -> msgs.Path:
+        """The views as nav_msgs/Path in world_frame."""
+        header = codecs.header(stamp_ns, self.world_frame)
+        return msgs.Path(
+            header=header,
+            poses=[msgs.PoseStamped(header=header, pose=codecs.matrix_to_pose(T)) for T in poses],
+        )
+
+    def _serve(self, service: str, request: PlanRequest) -> tuple[Plan, msgs.Path]:
+        """Wait for the request's frame, plan, publish the views (the Path returned) and their
+        markers."""
         log = self.get_logger()
         sync_timeout_s = self.get_parameter("sync_timeout_s").value
-        stamp = codecs.stamp_to_ns(request.start.header.stamp)
-        try:
-            start = codecs.pose_to_matrix(request.start.pose)
-        except ValueError as exc:
-            log.warning(f"next_best_view: start pose rejected ({exc}); planning without a start")
-            start = None
         t0 = time.perf_counter()
-        if not self.server.wait_fused(stamp, sync_timeout_s):
+        if not self.server.wait_fused(request.stamp_ns, sync_timeout_s):
             log.warning(
-                f"next_best_view: frame {stamp} not fused after {sync_timeout_s} s; planning with what is fused"
+                f"{service}: frame {request.stamp_ns} not fused after {sync_timeout_s} s; "
+                "planning with what is fused"
             )
         t1 = time.perf_counter()
-        poses, reason = self.server.plan(
-            PlanRequest(start, stamp, int(round(request.goal.pose.position.x)))
-        )
+        plan = self.server.plan_views(request)
         # where the last request's time went, in the status (a mission manager's latency budget)
         self.server.last_request_s = {
             "wait_fused": round(t1 - t0, 4),
             **{k: round(v, 4) for k, v in self.server.last_plan_s.items()},
         }
-        if reason:
-            log.warning(f"next_best_view: {reason}")
+        if plan.reason:
+            log.warning(f"{service}: {plan.reason}")
         now = self._now_ns()
-        hdr = codecs.header(now, "world")
-        path = msgs.Path(
-            header=hdr,
-            poses=[
-                msgs.PoseStamped(header=codecs.header(now, "world"), pose=codecs.matrix_to_pose(T))
-                for T in poses
-            ],
-        )
+        path = self._path(plan.poses, now)
         self.views_pub.publish(path)
-        c = self.server.config
+        hfov_deg, width, height = self.server.camera()
         self.markers_pub.publish(
             view_markers(
-                poses, self.world_frame, now, c.hfov_deg, c.width, c.height, self.marker_range
+                plan.poses, self.world_frame, now, hfov_deg, width, height, self.marker_range
             )
         )
         self.status.changed()
-        return path
+        return plan, path
 
 
 def config_from_parameters(p: dict) -> PlannerConfig:

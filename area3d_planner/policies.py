@@ -36,6 +36,32 @@ from area3d_planner.visibility import (
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 
 
+@dataclass(frozen=True)
+class SelectedViews:
+    """A policy's choice: `poses` (4x4 T_world_cam, optical frame) best first, and `gains`, the
+    predicted gain of each: the utility the greedy selection committed it with (the mask-weighted
+    uncertainty it sees, times the range prior, plus the distance prior), before the committed
+    view is turned to the centroid of what it sees. 0 for the policies that predict none (uniform,
+    random)."""
+
+    poses: list = field(default_factory=list)
+    gains: list = field(default_factory=list)
+
+    @classmethod
+    def unscored(cls, poses: list) -> SelectedViews:
+        return cls(list(poses), [0.0] * len(poses))
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def split(self, n: int) -> tuple[SelectedViews, SelectedViews]:
+        """(the first `n` views, the rest), each with its gains."""
+        return (
+            SelectedViews(self.poses[:n], self.gains[:n]),
+            SelectedViews(self.poses[n:], self.gains[n:]),
+        )
+
+
 @dataclass
 class PlanningContext:
     """Everything a policy needs. Caches are built on first use and reused until `invalidate()`.
@@ -257,7 +283,8 @@ class PlanningContext:
 
 
 class Policy:
-    """Interface: `select_views(context, budget) -> list of (4, 4) T_world_cam`.
+    """Interface: `select_views(context, budget) -> SelectedViews` (at most `budget` poses, each a
+    (4, 4) T_world_cam, with their predicted gains).
 
     A `sequential` policy does not look at the fused field: it plans its whole view sequence once
     and the server hands the views out in order, so closed-loop requests continue the sequence
@@ -271,7 +298,7 @@ class Policy:
     # selects outside its lock, so frames go on being fused meanwhile
     map_free = False
 
-    def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
+    def select_views(self, context: PlanningContext, budget: int) -> SelectedViews:
         raise NotImplementedError
 
 
@@ -298,16 +325,17 @@ class GreedyFieldPolicy(Policy):
             cache, U, budget, context.greedy, context.start_position, gain, excluded=taken
         )
 
-    def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
+    def select_views(self, context: PlanningContext, budget: int) -> SelectedViews:
         cache = context.cache(self.relevant)
         U = context.policy_field(self)
-        views = self.selection(context, budget).views
+        selection = self.selection(context, budget)
+        views = selection.views
         if context.aim_views:
             poses = [aim_at_uncertainty(cache, v, U) for v in views]
         else:
             poses = [cache.view_pose(v) for v in views]
         context.commit(cache, views, poses)
-        return poses
+        return SelectedViews(poses, [float(u) for u in selection.utilities])
 
 
 def aim_at_uncertainty(cache: VisibilityCache, view: int, U: np.ndarray) -> np.ndarray:
@@ -362,10 +390,10 @@ class UniformPolicy(Policy):
     name = "uniform"
     sequential = True
 
-    def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
+    def select_views(self, context: PlanningContext, budget: int) -> SelectedViews:
         n = int(budget)
         if n <= 0:
-            return []
+            return SelectedViews()
         g = context.grid
         c = 0.5 * (g.roi_lo + g.roi_hi)
         lo, hi = np.asarray(context.workspace_lo, float), np.asarray(context.workspace_hi, float)
@@ -390,7 +418,7 @@ class UniformPolicy(Policy):
                     continue
                 p = seeds[int(np.argmin(np.linalg.norm(seeds - p, axis=1)))]
             poses.append(look_at(p, c))
-        return poses
+        return SelectedViews.unscored(poses)
 
 
 class VLMNaivePolicy(GreedyFieldPolicy):
@@ -408,7 +436,7 @@ class VLMNaivePolicy(GreedyFieldPolicy):
         s[context.grid.occupancy() == FREE] = 0.0
         return s
 
-    def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
+    def select_views(self, context: PlanningContext, budget: int) -> SelectedViews:
         if not np.any(context.policy_field(self) > 0):
             return UniformPolicy().select_views(context, budget)
         return super().select_views(context, budget)
@@ -421,10 +449,10 @@ class RandomPolicy(Policy):
     name = "random"
     sequential = True
 
-    def select_views(self, context: PlanningContext, budget: int) -> list[np.ndarray]:
+    def select_views(self, context: PlanningContext, budget: int) -> SelectedViews:
         seeds, rotations = context.candidates()
         if seeds.size == 0:
-            return []
+            return SelectedViews()
         g = context.grid
         nb = rotations.shape[1]
         o = np.repeat(seeds, nb, axis=0)
@@ -447,7 +475,7 @@ class RandomPolicy(Policy):
             T[:3, :3] = rotations[s, b]
             T[:3, 3] = seeds[s]
             poses.append(T)
-        return poses
+        return SelectedViews.unscored(poses)
 
 
 POLICIES: dict[str, type[Policy]] = {

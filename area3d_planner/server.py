@@ -11,7 +11,8 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,11 +21,14 @@ from area3d_msgs_py.param_fields import described
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, NO_RETURN_RULES, FusedGrid
 from area3d_planner.greedy import DECAY_REGIONS, GreedyParams
-from area3d_planner.policies import POLICIES, PlanningContext, make_policy
+from area3d_planner.policies import POLICIES, PlanningContext, SelectedViews, make_policy
 from area3d_planner.visibility import VisibilityParams
 
 MODES = ("batch", "closed_loop")
 CACHE_WAIT_S = 120.0  # a request waits at most this long for the background rebuild of the masks
+# A camera's field of view within this of the planner's (degrees) is the same camera: the
+# intrinsics of a 90 degree camera, fx = (W / 2) / tan(45 deg), give back 90 to within 1e-13.
+CAMERA_FOV_EPS = 1e-6
 
 
 # Where the paper distinguishes object level and scene (room) level.
@@ -243,14 +247,24 @@ class PlannerConfig:
         (0.0, 1.0),
     )
     hfov_deg: float = described(
-        90.0, "horizontal field of view of the candidate views (paper: 90)", "degrees", (1.0, 179.0)
+        90.0,
+        "horizontal field of view of the candidate views (paper: 90) until a frame is fused; "
+        "then the camera's, from its CameraInfo (2 atan(width / 2 fx))",
+        "degrees",
+        (1.0, 179.0),
     )
     max_range: float = described(
         5.0, "sensing range of the candidate views and of fusion (paper: 5)", "metres",
         (0.01, 1000.0),
     )  # fmt: skip
-    width: int = described(640, "image width of the candidate views", "pixels", (8, 8192))
-    height: int = described(480, "image height of the candidate views", "pixels", (8, 8192))
+    width: int = described(
+        640, "image width of the candidate views until a frame is fused (then the camera's)",
+        "pixels", (8, 8192),
+    )  # fmt: skip
+    height: int = described(
+        480, "image height of the candidate views until a frame is fused (then the camera's)",
+        "pixels", (8, 8192),
+    )  # fmt: skip
     w_dist: float = described(
         0.0,
         "distance prior: a candidate's score falls by this much per metre from the current pose "
@@ -375,11 +389,22 @@ class PlannerConfig:
 @dataclass
 class PlanRequest:
     """A next-best-view request: current camera pose, the stamp of the last captured frame
-    (0 = do not wait), and how many views (0 = all that the remaining budget allows)."""
+    (0 = do not wait), how many views (0 = all that the remaining budget allows in batch mode,
+    one in closed loop) and the mode ("" = the planner's `mode`)."""
 
     start: np.ndarray | None
     stamp_ns: int = 0
     num_views: int = 0
+    mode: str = ""
+
+
+class Plan(NamedTuple):
+    """A request's answer: poses (T_world_cam, optical frame) best first, the predicted gain of
+    each (`SelectedViews`), and the reason when there are none ("" when all is well)."""
+
+    poses: list
+    gains: list
+    reason: str
 
 
 @dataclass
@@ -417,7 +442,7 @@ class NextBestViewServer:
     committed: int = field(init=False, default=0)
     initial_frames: int | None = field(init=False, default=None)
     last_fused_stamp: int = field(init=False, default=0)
-    _sequence: list | None = field(
+    _sequence: SelectedViews | None = field(
         init=False, default=None
     )  # a sequential policy's remaining views
     # seconds the last plan spent waiting for the masks and selecting views; the node adds the
@@ -544,6 +569,7 @@ class NextBestViewServer:
         with self._lock:
             if int(stamp_ns) in self._fused_stamps:  # the same stamp, fused meanwhile
                 return False
+            self._adopt_camera(K, np.shape(depth))
             self.grid.apply_depth(observation)
             self._frames[int(stamp_ns)] = _Frame(
                 np.asarray(depth, np.float32), np.asarray(K, float), np.asarray(T, float)
@@ -567,6 +593,29 @@ class NextBestViewServer:
             self._fused.notify_all()
             self._refreshed.notify_all()
             return True
+
+    def camera(self) -> tuple[float, int, int]:
+        """(horizontal field of view in degrees, width, height) of the candidate views: the
+        camera's, once a frame has been fused (`_adopt_camera`), the hfov_deg, width and height
+        parameters before."""
+        v = self.context.visibility
+        return v.hfov_deg, v.width, v.height
+
+    def _adopt_camera(self, K: np.ndarray, shape: tuple) -> None:
+        """Plan candidate views for the camera that took the frames: its size and its horizontal
+        field of view 2 atan(W / 2 fx) (lock held). The frustum is taken as symmetric with square
+        pixels: the vertical field of view follows from the aspect ratio (fy = fx) and the
+        principal point is the image centre, whatever cx, cy and fy say. A change replaces the
+        candidates and masks (rebuilt with the next frame's); the same camera changes nothing."""
+        height, width = int(shape[0]), int(shape[1])
+        hfov_deg = float(np.degrees(2.0 * np.arctan(0.5 * width / float(K[0][0]))))
+        v = self.context.visibility
+        if (width, height) == (v.width, v.height) and abs(hfov_deg - v.hfov_deg) < CAMERA_FOV_EPS:
+            return
+        camera = replace(v, hfov_deg=hfov_deg, width=width, height=height)
+        camera.validate()
+        self.context.visibility = camera
+        self.context.invalidate()
 
     def add_semantic(self, stamp_ns: int, u_sem: np.ndarray) -> bool:
         """Fuse U_sem (H, W) with the depth and pose of the same stamp; held back (bounded) until
@@ -707,15 +756,23 @@ class NextBestViewServer:
             "hard_voxels": int(self.grid.hard().sum()),
             "rebuild_failures": self.rebuild_failures,
             "last_rebuild_error": self.last_rebuild_error,
+            "camera": dict(zip(("hfov_deg", "width", "height"), self.camera(), strict=True)),
             "cache_ready": self.cache_ready(),
             "last_request_s": self.last_request_s,
         }
 
     def plan(self, request: PlanRequest) -> tuple[list[np.ndarray], str]:
-        """Poses (T_world_cam, optical frame) for the request, and a reason ("" when all is well).
+        """(poses, reason) of `plan_views` (without the gains)."""
+        plan = self.plan_views(request)
+        return plan.poses, plan.reason
+
+    def plan_views(self, request: PlanRequest) -> Plan:
+        """Poses (T_world_cam, optical frame) for the request, their predicted gains, and a reason
+        ("" when all is well).
 
         Empty plan when: no frame fused yet, the budget is spent, the request asks for more views
-        than there are candidates, no valid candidate seed, a non-finite field or a bad start pose.
+        than there are candidates, no valid candidate seed, a non-finite field, a bad start pose
+        or an unknown mode.
 
         Plans run one at a time. A policy that selects from a snapshot (`Policy.map_free`: AREA3D
         and the other greedy fields) does so outside the map's lock, so frames arriving meanwhile
@@ -727,11 +784,11 @@ class NextBestViewServer:
             with self._lock:
                 checked = self._check_request(request)
                 if isinstance(checked, str):
-                    return [], checked
+                    return Plan([], [], checked)
                 want, remaining = checked
                 t0 = time.perf_counter()
                 if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
-                    return [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
+                    return Plan([], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s")
                 t1 = time.perf_counter()
                 self.last_plan_s = {"wait_cache": t1 - t0}
                 if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
@@ -742,39 +799,41 @@ class NextBestViewServer:
                 try:
                     seeds, rotations = self.context.candidates()
                     if seeds.shape[0] == 0:
-                        return (
+                        return Plan(
+                            [],
                             [],
                             "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
                         )
                     candidates = seeds.shape[0] * rotations.shape[1]
                     if want > candidates:
-                        return (
+                        return Plan(
+                            [],
                             [],
                             f"num_views: got {want}, expected at most the {candidates} candidate views",
                         )
                     if self.policy.sequential:
                         if self._sequence is None:  # planned once, handed out in order
                             self._sequence = self.policy.select_views(self.context, remaining)
-                        poses, self._sequence = self._sequence[:want], self._sequence[want:]
+                        views, self._sequence = self._sequence.split(want)
                     elif self.policy.map_free:
                         snapshot = self.context.snapshot(self.policy)
                     else:
-                        poses = self.policy.select_views(self.context, want)
+                        views = self.policy.select_views(self.context, want)
                 except InputError as exc:
-                    return [], str(exc)
+                    return Plan([], [], str(exc))
             if snapshot is not None:  # the selection itself: fusion goes on meanwhile
                 try:
-                    poses = self.policy.select_views(snapshot, want)
+                    views = self.policy.select_views(snapshot, want)
                 except InputError as exc:
-                    return [], str(exc)
+                    return Plan([], [], str(exc))
             with self._lock:
                 if snapshot is not None:
                     self.context.adopt(snapshot)
                 self.last_plan_s["select"] = time.perf_counter() - t1
-                if not poses:
-                    return [], "no candidate view sees the region of interest"
-                self.committed += len(poses)
-                return poses, ""
+                if not views.poses:
+                    return Plan([], [], "no candidate view sees the region of interest")
+                self.committed += len(views.poses)
+                return Plan(list(views.poses), list(views.gains), "")
 
     def _check_request(self, request: PlanRequest) -> tuple[int, int] | str:
         """(views wanted, remaining budget) for a request, or the reason it gets no plan (lock
@@ -794,11 +853,14 @@ class NextBestViewServer:
         if self.initial_frames is None:
             self.initial_frames = self.grid.frames
             self.context.initial_views = self.initial_frames
+        mode = request.mode or self.config.mode
+        if mode not in MODES:
+            return f"mode: got {mode!r}, expected one of {', '.join(MODES)} (empty: the planner's)"
         remaining = self.remaining_budget()
         if remaining == 0:
             return f"budget: all {self.budget} views are spent"
         # 0: batch plans the whole remaining budget at once, closed loop the next best view only
-        want = num or (remaining if self.config.mode == "batch" else 1)
+        want = num or (remaining if mode == "batch" else 1)
         if want > remaining:
             return f"num_views: got {num}, expected at most the remaining budget {remaining}"
         for name, arr in (("geometric", self.grid.conf_sum), ("semantic", self.grid.sem_sum)):

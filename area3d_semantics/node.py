@@ -1,6 +1,6 @@
 """The semantics node: one VLM query with the initial views -> regions, weight maps, U_sem.
 
-Subscribes color, depth and perception confidence; once the first num_initial_views frames are in,
+Subscribes color, depth (with the QoS `camera_qos` chooses) and perception confidence; once the first num_initial_views frames are in,
 asks the backend once with all of them (on a worker thread, so callbacks keep running), publishes
 the regions as JSON, one weight map per frame and, as each frame's confidence arrives, its U_sem.
 Any message on the request topic re-runs the query on the frames collected so far. Topics:
@@ -30,6 +30,7 @@ from area3d_msgs_py.inputs import (
 )
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
+    CAMERA_QOS_PARAM,
     MAX_STAMP_AHEAD_PARAM,
     Param,
     declare_parameters,
@@ -85,6 +86,7 @@ PARAMS = (
     ),
     Param("require_depth", True, "a view needs its depth before it is analysed"),
     MAX_STAMP_AHEAD_PARAM,
+    CAMERA_QOS_PARAM,
     Param(
         "sigma_source",
         "confidence",
@@ -148,7 +150,7 @@ class SemanticsNode(Node):
                 topic.msg_type,
                 topic.name,
                 guarded(self, callback, topic.name, self.rejections),
-                topic.qos(depth),
+                topic.reader_qos(p["camera_qos"], depth),
             )
         log.info(
             f"backend={self.backend.name} fallback={self.fallback} "

@@ -1,9 +1,10 @@
 """sim_bridge node: a simulated RGB-D camera that captures a frame at every goal pose it is sent.
 
 Subscribes area3d/camera/goal_pose (PoseStamped, optical frame in `world`); publishes color,
-depth, camera_info, the capture pose, a status line per goal and, where `tf2_msgs` imports, TF
-(world -> camera_link -> camera_optical_frame); its counters (captures, refused goals by reason,
-frames waiting for their readers) as diagnostics on /diagnostics. Topics: `area3d_msgs_py/topics.py`; names are
+depth, camera_info, the capture pose, a status line per goal, TF (/tf world -> camera_link at each
+frame's stamp, /tf_static camera_link -> camera_optical_frame) and its counters (captures, refused
+goals by reason, frames waiting for their readers) as diagnostics on /diagnostics. Topics:
+`area3d_msgs_py/topics.py`; names are
 relative: `__ns` moves them all.
 """
 
@@ -145,25 +146,15 @@ class SimBridgeNode(Node):
         if p["stereo"]:
             self.pub_right = self._publisher(topics.RIGHT_IMAGE)
             self.pub_right_info = self._publisher(topics.RIGHT_CAMERA_INFO)
-        self.pub_tf = self.pub_tf_static = None
-        if msgs.TFMessage is not None:
-            self.pub_tf = self._publisher(topics.TF)
-            self.pub_tf_static = self._publisher(topics.TF_STATIC)
-            T_link_opt = np.eye(4)
-            T_link_opt[:3, :3] = R_LINK_OPTICAL
-            static = [_transform(T_link_opt, self._now_ns(), LINK_FRAME, OPTICAL_FRAME)]
-            if p["stereo"]:
-                T_right = right_from_left(np.eye(4), p["stereo_baseline"])
-                static.append(
-                    _transform(T_right, self._now_ns(), OPTICAL_FRAME, RIGHT_OPTICAL_FRAME)
-                )
-            self.pub_tf_static.publish(msgs.TFMessage(transforms=static))
-        else:
-            self.get_logger().info(
-                "tf2_msgs does not import (it is not on PyPI; source a ROS 2 install for it): "
-                f"no {topics.TF.name} / {topics.TF_STATIC.name}; the camera pose is on "
-                f"{topics.POSE.name}"
-            )
+        self.pub_tf = self._publisher(topics.TF)
+        self.pub_tf_static = self._publisher(topics.TF_STATIC)
+        T_link_opt = np.eye(4)
+        T_link_opt[:3, :3] = R_LINK_OPTICAL
+        static = [_transform(T_link_opt, self._now_ns(), LINK_FRAME, OPTICAL_FRAME)]
+        if p["stereo"]:
+            T_right = right_from_left(np.eye(4), p["stereo_baseline"])
+            static.append(_transform(T_right, self._now_ns(), OPTICAL_FRAME, RIGHT_OPTICAL_FRAME))
+        self.pub_tf_static.publish(msgs.TFMessage(transforms=static))
         self.required_readers = self._required_readers(p)
         self.readers_matched = False
         # Frames captured before their readers matched, published in order once they have
@@ -281,12 +272,11 @@ class SimBridgeNode(Node):
                 header=codecs.header(stamp_ns, WORLD_FRAME), pose=codecs.matrix_to_pose(T)
             )
         )
-        if self.pub_tf is not None:
-            self.pub_tf.publish(
-                msgs.TFMessage(
-                    transforms=[_transform(link_from_optical(T), stamp_ns, WORLD_FRAME, LINK_FRAME)]
-                )
+        self.pub_tf.publish(
+            msgs.TFMessage(
+                transforms=[_transform(link_from_optical(T), stamp_ns, WORLD_FRAME, LINK_FRAME)]
             )
+        )
         self._status(stamp_ns, True, "ok")
         self.captures += 1
         self.diagnostics.changed()

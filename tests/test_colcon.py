@@ -189,7 +189,8 @@ def test_the_launch_file_starts_the_graphs_nodes_with_the_installed_parameter_fi
         (params,) = node["parameters"]
         assert params.args == ("params_file",) and node["namespace"].args == ("namespace",)
     # colcon installs that parameter file, and it configures exactly the graph's nodes
-    assert ("share/area3d_bringup/config", ["config/area3d.yaml"]) in _data_files("area3d_bringup")
+    config = ("share/area3d_bringup/config", ["config/area3d.yaml", "config/robot_odometry.yaml"])
+    assert config in _data_files("area3d_bringup")
     sections = yaml.safe_load((ROOT / "area3d_bringup" / "config" / "area3d.yaml").read_text())
     assert set(sections) == {g.name for g in NODES}
 

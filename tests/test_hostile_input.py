@@ -152,3 +152,116 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
     assert graph.wait_for(
         lambda: _last_status(status["planner"]).get("last_fused_stamp_ns") == stamp + 1
     ), (_last_status(status["planner"]), graph.lines[-30:])
+
+
+def test_bad_poses_and_transforms_are_rejected_by_field_and_frames_without_a_pose_dropped_by_cause(
+    graph_factory,  # noqa: F811
+):
+    """Perception takes the camera pose from TF, the planner from odometry (jumps checked): a
+    non-unit quaternion, a NaN, a jump, a stamp from the future, a second parent, a frame its own
+    parent are each rejected with a line naming the message's field; a frame whose transform comes
+    too late, or never, is dropped and counted by cause, never fused with a wrong pose; and both
+    nodes go on with the next valid frame."""
+    pose_wait = {"pose_wait_s": 2.0, "pose_max_linear_speed": 10.0, "pose_max_angular_speed": 20.0}
+    graph = graph_factory(
+        ("perception", "planner"),
+        {
+            "perception": {"pose_source": "tf", **pose_wait},
+            "planner": {
+                "width": W, "height": H, "sync_timeout_s": 30.0, "world_frame": "odom",
+                "pose_source": "odometry", "camera_mount": "parameters", **pose_wait,
+            },
+        },
+    )  # fmt: skip
+    status = {node: [] for node in ("perception", "planner")}
+    for node in status:
+        graph.node.create_subscription(msgs.String, STATUS[node], status[node].append, qos.frames())
+    graph.start()
+    readers = {
+        "/tf": 1, "/tf_static": 1, "/area3d/odom": 1, "/area3d/camera/camera_info": 2,
+        "/area3d/camera/color/image_raw": 1, "/area3d/camera/depth/image_raw": 1,
+        "/area3d/perception/depth": 1, "/area3d/perception/confidence": 1,
+    }  # fmt: skip
+    client = subprocess.run(
+        [sys.executable, str(CLIENT), json.dumps({"width": W, "height": H, "readers": readers, "poses": True})],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )  # fmt: skip
+    assert client.returncode == 0, client.stderr[-2000:]
+    answer = json.loads(client.stdout.strip().splitlines()[-1])
+    sent, drops = answer["sent"], answer["drops"]
+    reader_of = {"/tf": "perception", "/tf_static": "perception", "/area3d/odom": "planner"}
+    assert {case["topic"] for case in sent} == set(reader_of)
+    for node in status:
+        mine = [case for case in sent if reader_of[case["topic"]] == node]
+        by_topic = Counter(
+            c["topic"] if c["topic"] in ("/tf", "/tf_static") else c["topic"].lstrip("/")
+            for c in mine
+        )
+        by_field = Counter(c["field"] for c in mine)
+
+        def settled(n=node, t=by_topic, d=drops[node]):
+            last = _last_status(status[n])
+            return last.get("rejected", {}).get("by_topic") == dict(t) and (
+                last.get("frames_dropped_no_pose") == d
+            )
+
+        assert graph.wait_for(settled), (
+            node,
+            dict(by_topic),
+            _last_status(status[node]),
+            graph.lines[-30:],
+        )
+        last = _last_status(status[node])
+        assert last["rejected"]["by_field"] == dict(by_field), node
+        assert last["frames_waiting_for_pose"] == 0
+    assert _last_status(status["perception"])["frames_published"] == 0  # none with a wrong pose
+    assert _last_status(status["planner"])["frames_fused"] == 0
+    for case in sent:  # one warning line per case, naming the topic and the field
+        topic, field = case["topic"].lstrip("/"), case["field"]
+        assert any(
+            topic in line and f"{field}: got" in line for line in graph.lines if "WARN" in line
+        ), case
+    for node, causes in drops.items():  # each cause logged once, with its reason
+        for cause in causes:
+            said = [
+                line
+                for line in graph.lines
+                if f"no camera pose ({cause})" in line and f"[{node}]" in line
+            ]
+            assert len(said) == 1, (node, cause, graph.lines[-30:])
+
+    # ... and both go on: a valid frame with its transforms is perceived, then fused and planned
+    rgb, depth, K, T = _frame()
+    pubs = _camera_publishers(graph)
+    tf = graph.probe.publisher(msgs.TFMessage, "/tf", qos.reliable(100))
+    odometry = graph.probe.publisher(msgs.Odometry, "area3d/odom")
+    perceived = graph.listen(msgs.Image, "area3d/perception/depth", qos.graph_frames())
+    assert graph.wait_for(
+        lambda: tf.get_subscription_count() >= 1 and odometry.get_subscription_count() >= 1
+    )
+    stamp = codecs.stamp_to_ns(graph.node.get_clock().now().to_msg())
+    # the optical frame looking along x of its parent: the client's camera_link -> optical mount
+    # and the planner's default mount on the body alike
+    mount = codecs.pose_to_matrix(
+        msgs.Pose(orientation=msgs.Quaternion(x=-0.5, y=0.5, z=-0.5, w=0.5))
+    )
+    link = body = T @ np.linalg.inv(mount)
+    for t in (stamp - 5_000_000, stamp + 5_000_000):
+        tf.publish(codecs.transforms_to_tf_message([("world", "camera_link", t, link)]))
+        message = msgs.Odometry(header=codecs.header(t, "odom"), child_frame_id="base_link")
+        message.pose.pose = codecs.matrix_to_pose(body)
+        odometry.publish(message)
+    _publish_frame(graph, pubs, stamp, rgb, depth, K, T)
+    assert graph.wait_for(
+        lambda: any(codecs.stamp_to_ns(m.header.stamp) == stamp for m in perceived)
+    ), graph.lines[-30:]
+    assert graph.wait_for(
+        lambda: _last_status(status["planner"]).get("last_fused_stamp_ns") == stamp
+    ), graph.lines[-30:]
+    request = codecs.view_request_to_msg(1, T, stamp, "odom")
+    answer = codecs.msg_to_view_answer(
+        graph.probe.call(msgs.NextBestView, "area3d/planner/select_views", request, 120)
+    )
+    assert answer.success and answer.frame_id == "odom" and len(answer.views) == 1, answer.message

@@ -22,7 +22,7 @@ def _readme_names() -> set[str]:
 
 def test_the_readme_documents_exactly_the_topics_of_the_table():
     table = {t.name if t.name.startswith("/") else f"/{t.name}" for t in topics.TOPICS}
-    assert _readme_names() == table | {f"/{topics.NEXT_BEST_VIEW.name}"}
+    assert _readme_names() == table | {f"/{service.name}" for service in topics.SERVICES}
 
 
 def test_the_graph_nodes_read_what_the_mission_manager_waits_for():
@@ -41,8 +41,17 @@ def test_the_graph_nodes_read_what_the_mission_manager_waits_for():
 def test_every_topic_has_a_writer_a_type_and_a_qos():
     for topic in topics.TOPICS:
         assert topic.writer and topic.qos().depth >= 1, topic.name
-        assert topic.msg_type is not None or topic.name in ("/tf", "/tf_static")
+        assert topic.msg_type is not None and topic.type_name, topic.name
     assert [t.name for t in topics.read_by("planner")] == [
-        "area3d/camera/camera_info", "area3d/camera/pose", "area3d/perception/depth",
-        "area3d/perception/confidence", "area3d/semantics/uncertainty",
+        "area3d/camera/camera_info", "area3d/camera/pose", "/tf", "/tf_static", "area3d/odom",
+        "area3d/perception/depth", "area3d/perception/confidence", "area3d/semantics/uncertainty",
+    ]  # fmt: skip
+    # what a robot's drivers publish is read with the node's camera_qos
+    assert {t.name for t in topics.TOPICS if t.camera} == {
+        "area3d/camera/color/image_raw", "area3d/camera/depth/image_raw",
+        "area3d/camera/camera_info", "area3d/camera/pose", "area3d/camera/right/image_rect",
+        "area3d/camera/right/camera_info", "area3d/odom",
+    }  # fmt: skip
+    assert [(s.name, s.server) for s in topics.SERVICES] == [
+        ("area3d/planner/select_views", "planner"), ("area3d/planner/next_best_view", "planner"),
     ]  # fmt: skip

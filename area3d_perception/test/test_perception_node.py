@@ -334,3 +334,73 @@ def test_frames_beyond_the_wait_for_camera_info_are_counted_as_dropped():
     status = node.node._status()
     assert status["frames_waiting_for_camera_info"] == MAX_FRAMES_WITHOUT_INFO
     assert status["frames_dropped_without_camera_info"] == 2
+
+
+def tf_message(*edges):
+    """tf2_msgs/TFMessage of (parent, child, stamp_ns, 4x4) edges."""
+    from area3d_msgs_py.transforms import StampedTransform
+
+    return codecs.transforms_to_tf_message([StampedTransform(*e) for e in edges])
+
+
+def test_with_pose_source_tf_a_frame_takes_its_pose_from_tf_at_its_stamp():
+    """world -> camera_link interpolated to the image's stamp, composed with the latched
+    camera_link -> optical frame; a frame whose TF has not arrived waits for it, and one whose
+    TF never comes is dropped after pose_wait_s, counted by cause and logged once."""
+    node = FakeNode({"pose_source": "tf", "pose_wait_s": 0.0})
+    assert POSE_TOPIC not in node.node.sync.keys and node.node.poses is not None
+    optical = np.eye(4)
+    optical[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]
+    a, b = np.eye(4), np.eye(4)
+    a[:3, 3], b[:3, 3] = [0.0, 0.0, 1.0], [0.2, 0.0, 1.0]
+    node.node.poses._on_tf(tf_message(("camera_link", FRAME, 0, optical)), static=True)
+    node.node.poses._on_tf(tf_message(("world", "camera_link", 5 * S, a)), static=False)
+    send_frame(node, 5 * S + S // 4, order=("color", "depth"))  # 1/4 of the way to the next
+    assert node.pubs[OUT_DEPTH_TOPIC].sent == []  # waits for the transform after its stamp
+    node.node.poses._on_tf(tf_message(("world", "camera_link", 6 * S, b)), static=False)
+    (depth_msg,) = node.pubs[OUT_DEPTH_TOPIC].sent
+    assert codecs.stamp_to_ns(depth_msg.header.stamp) == 5 * S + S // 4
+    status = node.node._status()
+    assert status["frames_published"] == 1 and status["frames_dropped_no_pose"] == {}
+    # a frame after the newest transform that never comes: dropped (pose_wait_s 0) and counted
+    send_frame(node, 7 * S, order=("color", "depth"))
+    send_frame(node, 8 * S, order=("color", "depth"))
+    node.node.poses.release()
+    status = node.node._status()
+    assert status["frames_published"] == 1
+    assert status["frames_dropped_no_pose"] == {"in_future": 2}
+    logged = [w for w in node.log.warnings() if "no camera pose" in w]
+    assert len(logged) == 1 and "in_future" in logged[0] and "not arrived yet" in logged[0]
+
+
+def test_with_pose_source_tf_the_pose_is_the_interpolated_transform(monkeypatch):
+    node = FakeNode({"pose_source": "tf"})
+    given = []
+    process = node.node.estimator.process
+    monkeypatch.setattr(
+        node.node.estimator,
+        "process",
+        lambda rgb, depth, K_, T, **kw: given.append(T) or process(rgb, depth, K_, T, **kw),
+    )
+    a, b = np.eye(4), np.eye(4)
+    a[:3, 3], b[:3, 3] = [0.0, 0.0, 1.0], [0.2, 0.0, 1.0]
+    node.node.poses._on_tf(
+        tf_message(("world", FRAME, 5 * S, a), ("world", FRAME, 6 * S, b)), False
+    )
+    send_frame(node, 5 * S + S // 4, order=("color", "depth"))
+    (T,) = given
+    np.testing.assert_allclose(T[:3, 3], [0.05, 0.0, 1.0], atol=1e-12)
+
+
+def test_a_bad_transform_is_refused_by_index_and_field_and_its_neighbours_are_kept():
+    node = FakeNode({"pose_source": "tf"})
+    bad = np.eye(4)
+    good = np.eye(4)
+    message = tf_message(("world", FRAME, 5 * S, good), ("world", "other", 5 * S, bad))
+    message.transforms[1].transform.rotation.w = 2.0  # norm 2
+    node.node.poses._on_tf(message, static=False)
+    (warning,) = node.log.warnings()
+    assert "/tf at stamp" in warning and "transforms[1].transform.rotation: got" in warning
+    assert node.node.rejections.snapshot()["by_field"] == {"transforms[1].transform.rotation": 1}
+    send_frame(node, 5 * S, order=("color", "depth"))
+    assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1  # the good transform of that message held

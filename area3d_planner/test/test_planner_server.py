@@ -438,3 +438,58 @@ def test_the_background_rebuild_runs_at_the_niceness_asked_for():
         assert base == os.getpriority(os.PRIO_PROCESS, threading.get_native_id())  # only it
     finally:
         srv.close()
+
+
+def test_a_plan_carries_the_greedy_utility_of_each_view_without_changing_the_views():
+    """Gains are the utilities the greedy selection committed the views with (best first), and
+    asking for them chooses the same views as a plan without them."""
+    with_gains, without = NextBestViewServer(config()), NextBestViewServer(config())
+    for srv in (with_gains, without):
+        srv.add_frame(1, *frame())
+    start = frame()[3]
+    expected = with_gains.policy.selection(with_gains.context, 3)
+    assert isinstance(expected.utilities[0], float)
+    plan = with_gains.plan_views(PlanRequest(start, 1, 3))
+    poses, reason = without.plan(PlanRequest(start, 1, 3))
+    assert plan.reason == reason == "" and len(plan.poses) == len(plan.gains) == 3
+    np.testing.assert_array_equal(np.array(plan.poses), np.array(poses))
+    assert plan.gains == expected.utilities  # the selection on the same map and candidates
+    assert plan.gains[0] > 0 and plan.gains == sorted(plan.gains, reverse=True)
+
+
+@pytest.mark.parametrize("policy", ["uniform", "random"])
+def test_policies_without_a_gain_model_report_zero_gains(policy):
+    srv = NextBestViewServer(config(policy=policy, budget=10))
+    srv.add_frame(1, *frame())
+    plan = srv.plan_views(PlanRequest(None, 1, 2))
+    assert plan.reason == "" and plan.gains == [0.0, 0.0]
+
+
+def test_a_request_may_name_its_mode_and_a_bad_one_is_refused_by_name():
+    srv = NextBestViewServer(config(budget=6, mode="batch"))
+    srv.add_frame(1, *frame())
+    plan = srv.plan_views(PlanRequest(None, 1, 0, mode="closed_loop"))
+    assert plan.reason == "" and len(plan.poses) == 1  # closed loop: one view for count 0
+    plan = srv.plan_views(PlanRequest(None, 1, 0, mode="sideways"))
+    assert plan.poses == [] and plan.reason.startswith("mode: got 'sideways'")
+    plan = srv.plan_views(PlanRequest(None, 1, 0))
+    assert plan.reason == "" and len(plan.poses) == 4  # the planner's batch: the rest
+
+
+def test_candidate_views_take_the_camera_of_the_fused_frames():
+    """The frustum and resolution come from the frames' intrinsics (any size and field of view);
+    a camera equal to the parameters changes nothing."""
+    srv = NextBestViewServer(config(width=64, height=48, hfov_deg=90.0))
+    visibility = srv.context.visibility
+    srv.add_frame(1, *frame())  # K: fx 32 over 64 pixels, 90 degrees: the parameters' camera
+    assert srv.context.visibility is visibility and srv.camera() == (90.0, 64, 48)
+    wide = np.array([[424 / np.tan(np.radians(43.5)), 0, 424], [0, 400.0, 240], [0, 0, 1]])
+    depth = np.full((480, 848), 0.525, np.float32)
+    srv.add_frame(2, depth, np.full_like(depth, 0.8), wide, frame()[3])
+    hfov, width, height = srv.camera()
+    assert (width, height) == (848, 480) and hfov == pytest.approx(87.0, abs=1e-9)
+    v = srv.context.visibility
+    assert v.tan_y == pytest.approx(np.tan(np.radians(43.5)) * 480 / 848)  # fy taken as fx
+    poses, reason = srv.plan(PlanRequest(None, 2, 1))
+    assert reason == "" and len(poses) == 1
+    assert srv.context.cache().params.hfov_deg == pytest.approx(87.0)

@@ -138,7 +138,7 @@ def _stop_node(proc: subprocess.Popen) -> str:
 
 def _check_frame(got: dict, stamp: int, scene, T: np.ndarray) -> None:
     """The frame published for `stamp` is the scene rendered at T, with its intrinsics and TF."""
-    from area3d_msgs_py import codecs, msgs
+    from area3d_msgs_py import codecs
 
     def of_stamp(key):
         return next(m for m in got[key] if codecs.stamp_to_ns(m.header.stamp) == stamp)
@@ -167,13 +167,22 @@ def _check_frame(got: dict, stamp: int, scene, T: np.ndarray) -> None:
     K, width, height = codecs.camera_info_to_intrinsics(info)
     assert (width, height) == (160, 120) and np.allclose(K, renderer.K)
     assert np.allclose(codecs.pose_to_matrix(pose.pose), T, atol=1e-6)
-    if msgs.TFMessage is not None:
-        tf = next(m for m in got["tf"] if codecs.stamp_to_ns(m.transforms[0].header.stamp) == stamp)
-        static = got["tf_static"][-1].transforms[0]
-        composed = codecs.transform_to_matrix(
-            tf.transforms[0].transform
-        ) @ codecs.transform_to_matrix(static.transform)
-        assert np.allclose(composed, T, atol=1e-6)
+    # TF: world -> camera_link at the frame's stamp, composed with the static camera_link ->
+    # camera_optical_frame, is the optical frame's pose
+    tf = next(m for m in got["tf"] if codecs.stamp_to_ns(m.transforms[0].header.stamp) == stamp)
+    static = got["tf_static"][-1].transforms[0]
+    assert (tf.transforms[0].header.frame_id, tf.transforms[0].child_frame_id) == (
+        "world",
+        "camera_link",
+    )
+    assert (static.header.frame_id, static.child_frame_id) == (
+        "camera_link",
+        "camera_optical_frame",
+    )
+    composed = codecs.transform_to_matrix(tf.transforms[0].transform) @ codecs.transform_to_matrix(
+        static.transform
+    )
+    assert np.allclose(composed, T, atol=1e-6)
 
 
 def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
@@ -190,12 +199,9 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
         "pose": topics.POSE,
     }
     got = {key: probe.listen(t.msg_type, t.name, t.qos()) for key, t in keys.items()}
-    if msgs.TFMessage is not None:
-        got["tf"] = probe.listen(msgs.TFMessage, topics.TF.name, topics.TF.qos())
-        got["tf_static"] = probe.listen(
-            msgs.TFMessage, topics.TF_STATIC.name, topics.TF_STATIC.qos()
-        )
     diagnostics = probe.listen(msgs.DiagnosticArray, "/diagnostics", qos.reliable(100))
+    got["tf"] = probe.listen(msgs.TFMessage, topics.TF.name, topics.TF.qos())
+    got["tf_static"] = probe.listen(msgs.TFMessage, topics.TF_STATIC.name, topics.TF_STATIC.qos())
     goal_pub = probe.publisher(topics.GOAL.msg_type, topics.GOAL.name, topics.GOAL.qos())
     scene = load_scene("single_object")
     T = scene.initial_views[2]
@@ -267,8 +273,6 @@ def test_node_publishes_a_frame_per_valid_goal_and_a_status_per_goal():
         output = _stop_node(proc)
     assert proc.returncode == 0, output  # a quiet, prompt exit on SIGINT
     assert "Traceback" not in output
-    if msgs.TFMessage is None:  # said once, in the log
-        assert output.count("tf2_msgs does not import") == 1
 
 
 def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
@@ -342,26 +346,3 @@ def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
         executor.shutdown()
         context.try_shutdown()
         spinner.join(10)
-
-
-def test_tf_in_the_bag_composes_to_the_optical_frame_pose():
-    """Without tf2_msgs the runner writes TF into the bag; world -> camera_link composed with
-    camera_link -> camera_optical_frame is the camera's optical-frame pose."""
-    from rosbags.typesys import Stores, get_typestore
-
-    from area3d_bringup.tf_bag import static_tf_cdr, tf_cdr
-    from area3d_msgs_py import codecs
-
-    store = get_typestore(Stores.ROS2_JAZZY)
-    T = load_scene("single_object").initial_views[1]
-    link = store.deserialize_cdr(tf_cdr(5, T), "tf2_msgs/msg/TFMessage").transforms[0]
-    static = store.deserialize_cdr(static_tf_cdr(5), "tf2_msgs/msg/TFMessage").transforms[0]
-    assert (link.header.frame_id, link.child_frame_id) == ("world", "camera_link")
-    assert (static.header.frame_id, static.child_frame_id) == (
-        "camera_link",
-        "camera_optical_frame",
-    )
-    composed = codecs.transform_to_matrix(link.transform) @ codecs.transform_to_matrix(
-        static.transform
-    )
-    assert np.allclose(composed, T, atol=1e-6)

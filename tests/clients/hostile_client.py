@@ -7,6 +7,12 @@ only the documented topic names and types (README, "The graph").
 It waits until each topic has the given number of readers, publishes every case once, waits for
 the last one to be acknowledged and prints one JSON line: the cases it sent, each with its topic,
 its name and the field a node should name when it rejects it.
+
+With `"poses": true` it feeds the camera pose's other sources instead, for nodes that take it
+from TF (`pose_source: tf`, world frame `world`) or odometry (`pose_source: odometry`, world frame
+`odom`, body `base_link`, jumps checked): bad transforms on /tf and /tf_static and bad odometry on
+/area3d/odom (each rejected by field), and whole frames whose pose is late or never comes (each
+dropped by cause: `"drops"` in the JSON line says which node drops which).
 """
 
 import json
@@ -15,10 +21,12 @@ import time
 
 import numpy as np
 import rclpy
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
+from nav_msgs.msg import Odometry
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
+from tf2_msgs.msg import TFMessage
 
 TIMEOUT_S = 60.0
 VOLATILE = QoSProfile(
@@ -43,6 +51,9 @@ P_DEPTH = "/area3d/perception/depth"
 P_CONF = "/area3d/perception/confidence"
 S_USEM = "/area3d/semantics/uncertainty"
 S_REQUEST = "/area3d/semantics/request"
+TF = "/tf"
+TF_STATIC = "/tf_static"
+ODOM = "/area3d/odom"
 TOPICS = {
     COLOR: (Image, VOLATILE),
     DEPTH: (Image, VOLATILE),
@@ -53,6 +64,9 @@ TOPICS = {
     P_CONF: (Image, TRANSIENT),
     S_USEM: (Image, TRANSIENT),
     S_REQUEST: (String, VOLATILE),
+    TF: (TFMessage, VOLATILE),
+    TF_STATIC: (TFMessage, TRANSIENT),
+    ODOM: (Odometry, VOLATILE),
 }
 YEAR_NS = 365 * 24 * 3600 * 1_000_000_000
 HUGE = 8192  # an 8k x 8k rgb8 image: 201 MB
@@ -153,6 +167,79 @@ def cases(now, w, h):
     )  # fmt: skip
 
 
+def edge(ns, parent="world", child="camera_link", t=(0.0, -0.7, 0.4), q=(0.0, 0.0, 0.0, 1.0)):
+    msg = TransformStamped()
+    set_stamp(msg.header, ns, parent)
+    msg.child_frame_id = child
+    tr, rot = msg.transform.translation, msg.transform.rotation
+    tr.x, tr.y, tr.z = map(float, t)
+    rot.x, rot.y, rot.z, rot.w = map(float, q)
+    return msg
+
+
+def odometry(ns, p=(0.0, -0.7, 0.4), q=(0.0, 0.0, 0.0, 1.0), frame_id="odom", child="base_link"):
+    msg = Odometry()
+    set_stamp(msg.header, ns, frame_id)
+    msg.child_frame_id = child
+    msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = map(float, p)
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = map(float, q)
+    return msg
+
+
+# camera_link -> its optical frame (z forward, x right, y down)
+OPTICAL_Q = (-0.5, 0.5, -0.5, 0.5)
+
+
+def pose_cases(now, w, h):
+    """(topic, case, message, field) for the pose sources: each valid message first (not a case:
+    field None), then the malformed ones, in the order they are sent."""
+    rgb = np.full((h, w, 3), 128, np.uint8)
+    depth = np.full((h, w), 0.6, np.float32)
+    conf = np.full((h, w), 0.5, np.float32)
+    t0 = now - 1_000_000_000  # the valid samples: a second ago, 10 ms apart
+    t1 = t0 + 10_000_000
+    later = t1 + 10_000_000
+    future = now + YEAR_NS
+    static = TFMessage(
+        transforms=[edge(t0, "camera_link", "camera_optical_frame", (0, 0, 0), OPTICAL_Q)]
+    )
+    two = TFMessage(transforms=[edge(later), edge(later, "world", "other", q=(0.0, 0.0, 2.0, 0.0))])
+    yield from (
+        (TF_STATIC, "the camera's mount", static, None),
+        (TF, "world -> camera_link", TFMessage(transforms=[edge(t0)]), None),
+        (TF, "world -> camera_link, 10 ms later", TFMessage(transforms=[edge(t1)]), None),
+        (TF, "non-unit quaternion (norm 2)", TFMessage(transforms=[edge(later, q=(0, 0, 0, 2.0))]), "transforms[0].transform.rotation"),
+        (TF, "NaN translation", TFMessage(transforms=[edge(later, t=(float("nan"), 0, 0))]), "transforms[0].transform.translation"),
+        (TF, "a jump: 50 m in 10 ms", TFMessage(transforms=[edge(later, t=(50.0, 0, 0.4))]), "transforms[0].transform.translation"),
+        (TF, "stamp a year ahead", TFMessage(transforms=[edge(future)]), "transforms[0].header.stamp"),
+        (TF, "a second parent for camera_link", TFMessage(transforms=[edge(later, parent="map")]), "transforms[0].header.frame_id"),
+        (TF, "a frame its own parent", TFMessage(transforms=[edge(later, "world", "world")]), "transforms[0].child_frame_id"),
+        (TF, "the second transform of a message bad", two, "transforms[1].transform.rotation"),
+        (TF_STATIC, "zero quaternion", TFMessage(transforms=[edge(t0, "camera_link", "lens", q=(0, 0, 0, 0))]), "transforms[0].transform.rotation"),
+        (ODOM, "odometry", odometry(t0), None),
+        (ODOM, "odometry, 10 ms later", odometry(t1), None),
+        (ODOM, "non-unit quaternion (norm 2)", odometry(later, q=(0, 0, 0, 2.0)), "pose.pose.orientation"),
+        (ODOM, "NaN position", odometry(later, p=(float("nan"), 0, 0)), "pose.pose.position"),
+        (ODOM, "a jump: 50 m in 10 ms", odometry(later, p=(50.0, 0, 0.4)), "pose.pose.position"),
+        (ODOM, "stamp a year ahead", odometry(future), "header.stamp"),
+        (ODOM, "frame_id 'map' instead of 'odom'", odometry(later, frame_id="map"), "header.frame_id"),
+        (ODOM, "child_frame_id of another body", odometry(later, child="arm_link"), "child_frame_id"),
+        # whole frames whose pose never comes: after every transform (late), of an unknown frame
+        (INFO, "camera info", camera_info(now, w, h), None),
+        (COLOR, "a frame after the last transform", image(now, rgb, "rgb8"), None),
+        (DEPTH, "... its depth", image(now, depth, "32FC1"), None),
+        (COLOR, "a frame in a frame no transform names", image(now, rgb, "rgb8", "nowhere"), None),
+        (DEPTH, "... its depth", image(now, depth, "32FC1", "nowhere"), None),
+        (P_DEPTH, "perception's depth after the last odometry", image(now, depth, "32FC1"), None),
+        (P_CONF, "... its confidence", image(now, conf, "32FC1"), None),
+    )  # fmt: skip
+
+
+#: node -> {cause: frames} the pose cases make a node drop (pose_source tf / odometry)
+POSE_DROPS = {"perception": {"in_future": 1, "no_transform": 1}, "planner": {"in_future": 1}}
+
+
 def main(config):
     rclpy.init()
     node = rclpy.create_node("hostile_client")
@@ -165,16 +252,22 @@ def main(config):
             time.sleep(0.02)
     now = time.time_ns()
     sent = []
-    for topic, case, msg, field in cases(now, config["width"], config["height"]):
+    poses = config.get("poses", False)
+    for topic, case, msg, field in (pose_cases if poses else cases)(
+        now, config["width"], config["height"]
+    ):
         if topic in config.get("readers", {}):
             pubs[topic].publish(msg)
-            sent.append({"topic": topic, "case": case, "field": field})
+            if field is not None:
+                sent.append({"topic": topic, "case": case, "field": field})
+            if poses:  # in order: each transform before the next (they come on three topics)
+                pubs[topic].wait_for_all_acked(rclpy.duration.Duration(seconds=TIMEOUT_S))
     # a 1 MB re-query request is well formed (any text re-queries): sent, not counted as rejected
     if S_REQUEST in config.get("readers", {}):
         pubs[S_REQUEST].publish(String(data="x" * 1_000_000))
     for pub in pubs.values():  # every reader has every sample before this process goes
         pub.wait_for_all_acked(rclpy.duration.Duration(seconds=TIMEOUT_S))
-    print(json.dumps({"sent": sent}), flush=True)
+    print(json.dumps({"sent": sent, "drops": POSE_DROPS if poses else {}}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
 
