@@ -96,8 +96,8 @@ def bench_grid(
     )
     t0 = time.perf_counter()
     _, caches = context.build(occ, ("roi_not_free",))
-    cache = caches["roi_not_free"]
     t_cache = time.perf_counter() - t0
+    cache = caches["roi_not_free"].bind(context.evidence())  # scored as the planner scores
     U = grid.fused()
     gp = GreedyParams()
     t0 = time.perf_counter()

@@ -271,9 +271,8 @@ def lazy_greedy(
     out.evaluations += cache.num_views
     p = cache.params
     views, utilities, evaluations = lazy_select(
-        cache.indptr,
-        cache.voxel_ids,
-        cache.weights,
+        cache.masks,
+        cache.evidence.kernel_args(),
         U,
         bound,
         excluded,

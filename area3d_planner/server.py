@@ -649,9 +649,8 @@ class NextBestViewServer:
                 version = self._map_version
                 stamp = self.last_fused_stamp
                 occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
-                evidence = self.grid.view_evidence()
             try:
-                built = self.context.build(occupancy, kinds, evidence)
+                built = self.context.build(occupancy, kinds)
             except Exception:  # noqa: BLE001 - the request path rebuilds and reports it
                 built = None
             with self._refreshed:
@@ -662,6 +661,7 @@ class NextBestViewServer:
                     if self.policy.relevant is not None and version == self._map_version:
                         try:  # the field of the current evidence, ready for the next request
                             self.context.policy_field(self.policy)
+                            self.context.evidence()
                         except Exception:  # noqa: BLE001 - reported by the request path
                             self.context.invalidate_fields()
                 self._cache_version = version

@@ -14,6 +14,7 @@ weighted by the share of a full observation the view's resolution gives it.
 
 from __future__ import annotations
 
+import copy
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -25,8 +26,13 @@ from scipy.spatial import cKDTree
 from area3d_msgs_py.camera_pose import look_rotation
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
-from area3d_planner.fusion import DIRECTION_BINS
-from area3d_planner.masks import score_all_views, score_view_list, score_views
+from area3d_planner.fusion import DIRECTION_BINS, RANGE_BIN
+from area3d_planner.masks import (
+    score_all_views,
+    score_view_list,
+    score_views,
+    view_weights,
+)
 from area3d_planner.zbuffer import in_frustum, new_zbuffer, seed_view_masks
 
 CHUNKS_PER_THREAD = 8  # seed chunks per worker thread when building masks (load balance)
@@ -121,6 +127,12 @@ class VisibilityParams:
     def focal(self) -> float:
         """Focal length in pixels of the candidate views' camera."""
         return 0.5 * self.width / self.tan_x
+
+
+def range_bin_dtype(max_range: float) -> type:
+    """The integer type of the masks' range bins (`fusion.RANGE_BIN` metres each) up to
+    max_range: uint8 up to 25.5 m, else uint16."""
+    return np.uint8 if max_range / RANGE_BIN < np.iinfo(np.uint8).max else np.uint16
 
 
 def _direction(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
@@ -250,13 +262,58 @@ def free_side_normals(spec: GridSpec, occupancy: np.ndarray, ids: np.ndarray) ->
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
+@dataclass(frozen=True)
+class ViewEvidence:
+    """What the fused frames say about a view's worth beyond its geometry, applied to each mask
+    entry when views are scored (`masks.entry_weight`): the depth backend's confidence by range
+    relative to its best, and a share for voxels already observed from the view's direction.
+
+    directions: (N,) uint32, the `fusion.DIRECTION_BINS` each voxel was observed from
+    (`FusedGrid.directions`; empty: none yet); profile: (R,) float64 per `fusion.RANGE_BIN` of
+    optical depth (`FusedGrid.range_profile`; ones: no preference); repeat_gain: what a voxel seen
+    again from a direction it was observed from counts (`VisibilityParams.repeat_gain`).
+    """
+
+    directions: np.ndarray
+    profile: np.ndarray
+    repeat_gain: float
+
+    @classmethod
+    def none(cls) -> ViewEvidence:
+        """No evidence: every range as good as the best, every direction new."""
+        return cls(np.zeros(0, np.uint32), np.ones(1), 1.0)
+
+    @classmethod
+    def of_grid(
+        cls, evidence: tuple[np.ndarray, tuple[np.ndarray, float]], params: VisibilityParams
+    ) -> ViewEvidence:
+        """From `FusedGrid.view_evidence()` ((directions, (profile, bin width))) and the
+        parameters that say which of it counts (`range_profile`, `repeat_gain`)."""
+        directions, (profile, width) = evidence
+        if not np.isclose(width, RANGE_BIN):
+            raise InputError("range profile bin", width, f"{RANGE_BIN} m (fusion.RANGE_BIN)")
+        return cls(
+            np.ascontiguousarray(directions, np.uint32),
+            np.ascontiguousarray(profile if params.range_profile else np.ones(1), np.float64),
+            float(params.repeat_gain),
+        )
+
+    def kernel_args(self) -> tuple:
+        return (self.directions, self.profile, float(self.repeat_gain))
+
+
 class VisibilityCache:
     """Cached visibility masks of every candidate view (seed s, orientation b), view index s * B + b.
 
     seeds: (S, 3) camera centres; rotations: (S, B, 3, 3) R_world_cam of their views.
     CSR layout: the mask of view v is voxel_ids[indptr[v]:indptr[v+1]] (int32 flat voxel index)
-    with weights (float32, the share of a full observation the view gives the voxel). Scoring a
-    view against a field U (N,) is the dot product sum_i w_i U[id_i].
+    with weights (float32, the share of a full observation the view's resolution gives the voxel),
+    range_bins (the `fusion.RANGE_BIN` of its optical depth) and direction_bins (uint8, the
+    `fusion.DIRECTION_BINS` row of the direction from the voxel to the camera): geometry only.
+    The evidence of the fused frames (`ViewEvidence`, see `bind`) weighs each entry when views are
+    scored: scoring a view against a field U (N,) is sum_k w_k U[id_k], w_k the entry's weight
+    times the range profile at its bin, times repeat_gain where the voxel was observed from its
+    direction bin already.
     record_ids (int32) / record_centres ((K, 3) metres): the voxels the masks may hold (for the
     frustum decay).
     """
@@ -271,6 +328,9 @@ class VisibilityCache:
         weights: np.ndarray,
         record_ids: np.ndarray,
         params: VisibilityParams,
+        range_bins: np.ndarray | None = None,
+        direction_bins: np.ndarray | None = None,
+        evidence: ViewEvidence | None = None,
     ) -> None:
         self.spec = spec
         self.seeds = seeds
@@ -279,9 +339,14 @@ class VisibilityCache:
         self.indptr = indptr
         self.voxel_ids = voxel_ids
         self.weights = weights
+        self.range_bins = np.zeros(voxel_ids.size, np.uint8) if range_bins is None else range_bins
+        self.direction_bins = (
+            np.zeros(voxel_ids.size, np.uint8) if direction_bins is None else direction_bins
+        )
         self.record_ids = record_ids
         self.record_centres = spec.centers_of(record_ids)
         self.params = params
+        self.evidence = evidence or ViewEvidence.none()
 
     @property
     def num_seeds(self) -> int:
@@ -295,6 +360,17 @@ class VisibilityCache:
     def num_views(self) -> int:
         return self.num_seeds * self.num_bins
 
+    @property
+    def masks(self) -> tuple:
+        """(indptr, voxel_ids, weights, range_bins, direction_bins): the kernels' mask set."""
+        return (self.indptr, self.voxel_ids, self.weights, self.range_bins, self.direction_bins)
+
+    def bind(self, evidence: ViewEvidence | None) -> VisibilityCache:
+        """The same masks scored under `evidence` (a shallow copy: the arrays are shared)."""
+        bound = copy.copy(self)
+        bound.evidence = evidence or ViewEvidence.none()
+        return bound
+
     @classmethod
     def build(
         cls,
@@ -306,8 +382,6 @@ class VisibilityCache:
         relevant: np.ndarray | None = None,
         threads: int | None = None,
         occluders: np.ndarray | None = None,
-        range_profile: tuple[np.ndarray, float] | None = None,
-        directions: np.ndarray | None = None,
     ) -> VisibilityCache:
         """Dense masks of every (seed, orientation) view: every relevant voxel visible from the
         seed (cube-map z-buffer of the occupied voxels) and inside the view's frustum.
@@ -316,12 +390,8 @@ class VisibilityCache:
         (S, B, 3, 3) or (B, 3, 3) shared by every seed. relevant: (N,) bool, the voxels recorded
         (default: every voxel that is not known free). occluders: (N,) bool, the voxels splatted
         into the z-buffer (default: the occupied ones). threads: worker threads (default: CPU
-        count); the result does not depend on it. range_profile: (profile (R,) float, bin metres),
-        the depth backend's confidence by range relative to its best (`FusedGrid.range_profile`),
-        a factor of each voxel's weight (None: 1 at every range). directions: (N,) uint32, the
-        `fusion.DIRECTION_BINS` each voxel was observed from (`FusedGrid.directions`): a view
-        from a direction a voxel was already observed from weighs it by params.repeat_gain
-        (None: every direction is new).
+        count); the result does not depend on it. The masks depend on this geometry alone; the
+        evidence of the frames weighs them when views are scored (`bind`).
         """
         params = params or VisibilityParams()
         params.validate()
@@ -355,12 +425,7 @@ class VisibilityCache:
         chunks = np.array_split(np.arange(seeds.shape[0]), max(1, n_chunks))
         scratch = threading.local()
         tol = 0.7 * spec.voxel_size  # the surface layer counts, one voxel behind it does not
-        profile, profile_bin = range_profile or (np.ones(1), params.max_range)
-        profile = np.ascontiguousarray(profile, np.float64)
-        if directions is None:
-            record_dirs = np.zeros(record_ids.size, np.uint32)
-        else:
-            record_dirs = np.ascontiguousarray(np.asarray(directions, np.uint32)[record_ids])
+        bin_template = np.zeros(0, range_bin_dtype(params.max_range))
 
         def run(idx: np.ndarray):
             if not hasattr(scratch, "zbuf"):
@@ -382,11 +447,9 @@ class VisibilityCache:
                 tol,
                 scratch.zbuf,
                 scratch.dirty,
-                profile,
-                float(profile_bin),
-                record_dirs,
+                RANGE_BIN,
                 DIRECTION_BINS,
-                float(params.repeat_gain),
+                bin_template,
             )
 
         if seeds.shape[0] == 0:
@@ -399,31 +462,52 @@ class VisibilityCache:
         nnz = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
         indptr = np.zeros(nnz.size + 1, np.int64)
         np.cumsum(nnz, out=indptr[1:])
-        voxel_ids = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int32)
-        weights = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0, np.float32)
-        return cls(spec, seeds, rotations, indptr, voxel_ids, weights, record_ids, params)
+
+        def joined(i: int, dtype) -> np.ndarray:
+            return np.concatenate([p[i] for p in parts]) if parts else np.zeros(0, dtype)
+
+        return cls(
+            spec,
+            seeds,
+            rotations,
+            indptr,
+            joined(1, np.int32),
+            joined(2, np.float32),
+            record_ids,
+            params,
+            joined(3, bin_template.dtype),
+            joined(4, np.uint8),
+        )
 
     def score(self, field: np.ndarray) -> np.ndarray:
-        """(num_views,) float64 mask-weighted utility of every view under field U (N,)."""
+        """(num_views,) float64 mask-weighted utility of every view under field U (N,) and the
+        bound evidence."""
         return score_all_views(
-            self.indptr, self.voxel_ids, self.weights, np.asarray(field, np.float64)
+            self.masks, self.evidence.kernel_args(), np.asarray(field, np.float64)
         )
 
     def score_seed(self, field: np.ndarray, seed: int) -> np.ndarray:
         """(num_bins,) float64 utilities of one seed's views (same sums as `score`)."""
         b = self.num_bins
-        return score_views(self.indptr, self.voxel_ids, self.weights, field, seed * b, seed * b + b)
+        field = np.asarray(field, np.float64)
+        return score_views(self.masks, self.evidence.kernel_args(), field, seed * b, seed * b + b)
 
     def score_views(self, field: np.ndarray, views: np.ndarray) -> np.ndarray:
         """(len(views),) float64 utilities of the given views (the same sums as `score`)."""
         return score_view_list(
-            self.indptr, self.voxel_ids, self.weights, field, np.asarray(views, np.int64)
+            self.masks,
+            self.evidence.kernel_args(),
+            np.asarray(field, np.float64),
+            np.asarray(views, np.int64),
         )
 
     def mask(self, view: int) -> tuple[np.ndarray, np.ndarray]:
-        """(voxel ids int32, weights float32) of one view."""
+        """(voxel ids int32, weights float64) of one view, each weight under the bound evidence
+        (`masks.entry_weight`)."""
         lo, hi = self.indptr[view], self.indptr[view + 1]
-        return self.voxel_ids[lo:hi], self.weights[lo:hi]
+        return self.voxel_ids[lo:hi], view_weights(
+            self.masks, self.evidence.kernel_args(), int(view)
+        )
 
     def view_pose(self, view: int) -> np.ndarray:
         """(4, 4) T_world_cam of a view (optical frame)."""

@@ -138,6 +138,18 @@ def visible_from(origin, centres, zbuf, voxel_size, tol, max_range, out):
     return count
 
 
+@njit(cache=True, nogil=True, inline="always")
+def direction_bin(direction_bins, dx, dy, dz):
+    """Index of the row of direction_bins (D, 3) nearest the direction (dx, dy, dz) (the first of
+    equals): the bin `fusion.direction_bits` gives the same direction."""
+    best, bin_of = -2.0, 0
+    for d in range(direction_bins.shape[0]):
+        dot = direction_bins[d, 0] * dx + direction_bins[d, 1] * dy + direction_bins[d, 2] * dz
+        if dot > best:
+            best, bin_of = dot, d
+    return bin_of
+
+
 @njit(cache=True, nogil=True)
 def seed_view_masks(
     seeds,
@@ -156,13 +168,11 @@ def seed_view_masks(
     tol,
     zbuf,
     dirty,
-    range_profile,
     range_bin,
-    voxel_directions,
     direction_bins,
-    repeat_gain,
+    bin_template,
 ):
-    """Visibility masks of every view at every seed, as CSR rows.
+    """Visibility masks of every view at every seed, as CSR rows, from geometry alone.
 
     seeds: (S, 3) camera centres; rotations: (S, B, 3, 3) R_world_cam of each seed's B views;
     occ_centres: (M, 3) occupied voxel centres (the occluders); centres: (N, 3) centres of the
@@ -172,14 +182,13 @@ def seed_view_masks(
     resolution allows: min(1, (focal * voxel_size / z)^2 * cos / pixels_per_voxel), i.e. the
     pixels its surface covers over the pixels a voxel needs; cos is the cosine between the
     voxel's normal (N, 3) (unit, towards free space; zero = unknown, cos taken as 1) and the
-    direction to the camera, so a surface seen at a grazing angle counts little; and times
-    range_profile[z // range_bin] (the last entry beyond its end): the confidence the depth
-    backend reaches at that range, relative to its best (ones: no preference); and times
-    repeat_gain where the voxel was already observed from the seed's direction: bit b of
-    voxel_directions[k] (N,) uint32 set, b the row of direction_bins (D, 3) nearest the direction
-    from the voxel to the seed (a second look along the same line repeats the same errors).
+    direction to the camera, so a surface seen at a grazing angle counts little. Each entry also
+    keeps what the evidence weighs it by when views are scored (`masks.score_view`): its range
+    bin z // range_bin (capped at the largest value of bin_template's dtype, whose dtype the bins
+    take) and the row of direction_bins (D, 3) nearest the direction from the voxel to the seed.
     zbuf: (6, n, n) float32 scratch, all inf, with its dirty (6, 4) int64 rectangles (see
-    `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32, weights float32).
+    `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32,
+    weights float32, range bins, direction bins uint8).
     """
     n_seeds = seeds.shape[0]
     n_views = rotations.shape[1]
@@ -187,39 +196,31 @@ def seed_view_masks(
     cap = 1 << 16
     out_ids = np.empty(cap, np.int32)
     out_w = np.empty(cap, np.float32)
+    out_r = np.empty(cap, bin_template.dtype)
+    out_d = np.empty(cap, np.uint8)
     total = 0
     visible = np.empty(centres.shape[0], np.int64)
-    repeat = np.empty(centres.shape[0], np.float64)
+    to_seed = np.empty(centres.shape[0], np.uint8)
     fs2 = (focal * voxel_size) ** 2
-    n_profile = range_profile.shape[0] - 1
+    max_bin = np.iinfo(bin_template.dtype).max
     for s in range(n_seeds):
         o = seeds[s]
         fill_zbuffer(o, occ_centres, voxel_size, max_range, zbuf, dirty)
         n_vis = visible_from(o, centres, zbuf, voxel_size, tol, max_range, visible)
         for q in range(n_vis):
             k = visible[q]
-            repeat[q] = 1.0
-            if voxel_directions[k] != 0:
-                best, bin_of = -2.0, 0
-                for d in range(direction_bins.shape[0]):
-                    dot = direction_bins[d, 0] * (o[0] - centres[k, 0])
-                    dot += direction_bins[d, 1] * (o[1] - centres[k, 1])
-                    dot += direction_bins[d, 2] * (o[2] - centres[k, 2])
-                    if dot > best:
-                        best, bin_of = dot, d
-                if (voxel_directions[k] >> np.uint32(bin_of)) & np.uint32(1):
-                    repeat[q] = repeat_gain
+            to_seed[q] = direction_bin(
+                direction_bins, o[0] - centres[k, 0], o[1] - centres[k, 1], o[2] - centres[k, 2]
+            )
         for b in range(n_views):
             R = rotations[s, b]
             if total + n_vis > cap:
                 while total + n_vis > cap:
                     cap *= 2
-                grown_ids = np.empty(cap, np.int32)
-                grown_w = np.empty(cap, np.float32)
-                grown_ids[:total] = out_ids[:total]
-                grown_w[:total] = out_w[:total]
-                out_ids = grown_ids
-                out_w = grown_w
+                out_ids = _grown(out_ids, total, cap)
+                out_w = _grown(out_w, total, cap)
+                out_r = _grown(out_r, total, cap)
+                out_d = _grown(out_d, total, cap)
             count = 0
             for q in range(n_vis):
                 k = visible[q]
@@ -244,12 +245,26 @@ def seed_view_masks(
                     if cos <= 0.0:
                         continue
                 out_ids[total + count] = ids[k]
-                share = min(1.0, fs2 * cos / (z * z) / pixels_per_voxel) * repeat[q]
-                out_w[total + count] = share * range_profile[min(int(z / range_bin), n_profile)]
+                out_w[total + count] = min(1.0, fs2 * cos / (z * z) / pixels_per_voxel)
+                out_r[total + count] = min(int(z / range_bin), max_bin)
+                out_d[total + count] = to_seed[q]
                 count += 1
             nnz[s * n_views + b] = count
             total += count
-    return nnz, out_ids[:total].copy(), out_w[:total].copy()
+    return (
+        nnz,
+        out_ids[:total].copy(),
+        out_w[:total].copy(),
+        out_r[:total].copy(),
+        out_d[:total].copy(),
+    )
+
+
+@njit(cache=True, nogil=True)
+def _grown(a, used, cap):
+    out = np.empty(cap, a.dtype)
+    out[:used] = a[:used]
+    return out
 
 
 @njit(cache=True)
