@@ -65,10 +65,13 @@ class PlanningContext:
     _caches: dict = field(default_factory=dict)
     _fields: dict = field(default_factory=dict)
     _evidence: ViewEvidence | None = None
+    _previous: dict = field(default_factory=dict)  # caches the next build brings up to date
 
     def invalidate(self) -> None:
-        """Forget candidates, visibility masks and fields (the occupancy changed)."""
+        """Forget candidates, visibility masks and fields (the occupancy changed); the next
+        build of the masks updates the ones forgotten (`VisibilityCache.update`)."""
         self._candidates = None
+        self._previous.update(self._caches)
         self._caches.clear()
         self._fields.clear()
         self._evidence = None
@@ -116,6 +119,7 @@ class PlanningContext:
             _caches=caches,
             _fields=fields,
             _evidence=self.evidence() if policy.relevant is not None else None,
+            _previous={},
         )
 
     def adopt(self, snapshot: PlanningContext) -> None:
@@ -197,6 +201,9 @@ class PlanningContext:
             # everything not carved hides what is behind it: only its boundary can be seen
             occluders = self.grid.boundary(occupancy)
             relevant = relevant & occluders
+        base = self._caches.get(kind) or self._previous.pop(kind, None)
+        if base is not None:  # what the map changed since, re-examined only where it shows
+            return base.update(occupancy, seeds, rotations, relevant, occluders=occluders)
         return VisibilityCache.build(
             self.grid.spec,
             occupancy,
@@ -205,6 +212,7 @@ class PlanningContext:
             self.visibility,
             relevant=relevant,
             occluders=occluders,
+            incremental=True,
         )
 
     def install(self, candidates: tuple, caches: dict) -> None:

@@ -19,7 +19,7 @@ from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, NO_RETURN_RULES, FusedGrid
-from area3d_planner.greedy import DECAY_REGIONS, GreedyParams
+from area3d_planner.greedy import DECAY_REGIONS, GreedyParams, warm_up_kernels
 from area3d_planner.policies import POLICIES, PlanningContext, make_policy
 from area3d_planner.visibility import VisibilityParams
 
@@ -635,6 +635,8 @@ class NextBestViewServer:
             base = os.getpriority(os.PRIO_PROCESS, self.worker_tid)
             os.setpriority(os.PRIO_PROCESS, self.worker_tid, min(19, base + self.rebuild_nice))
         kinds = () if self.policy.relevant is None else (self.policy.relevant,)
+        if kinds:
+            warm_up_kernels()  # loading the compiled kernels takes 0.1-0.3 s: not at a request
         while True:
             with self._refreshed:
                 while not self._closed:

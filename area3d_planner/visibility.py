@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 from area3d_msgs_py.camera_pose import look_rotation
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
+from area3d_planner import incremental
 from area3d_planner.fusion import DIRECTION_BINS, RANGE_BIN
 from area3d_planner.masks import (
     score_all_views,
@@ -347,6 +348,10 @@ class VisibilityCache:
         self.record_centres = spec.centers_of(record_ids)
         self.params = params
         self.evidence = evidence or ViewEvidence.none()
+        self._state: incremental.State | None = None  # what `update` starts from
+        # how it was made: positions built in full / updated, what changed (`incremental`)
+        self.report: dict = {}
+        self._state_lock = threading.Lock()
 
     @property
     def num_seeds(self) -> int:
@@ -369,6 +374,8 @@ class VisibilityCache:
         """The same masks scored under `evidence` (a shallow copy: the arrays are shared)."""
         bound = copy.copy(self)
         bound.evidence = evidence or ViewEvidence.none()
+        bound._state = None  # updates start from the cache itself, not its bound copies
+        bound._state_lock = threading.Lock()
         return bound
 
     @classmethod
@@ -382,6 +389,7 @@ class VisibilityCache:
         relevant: np.ndarray | None = None,
         threads: int | None = None,
         occluders: np.ndarray | None = None,
+        incremental: bool = False,
     ) -> VisibilityCache:
         """Dense masks of every (seed, orientation) view: every relevant voxel visible from the
         seed (cube-map z-buffer of the occupied voxels) and inside the view's frustum.
@@ -391,93 +399,40 @@ class VisibilityCache:
         (default: every voxel that is not known free). occluders: (N,) bool, the voxels splatted
         into the z-buffer (default: the occupied ones). threads: worker threads (default: CPU
         count); the result does not depend on it. The masks depend on this geometry alone; the
-        evidence of the frames weighs them when views are scored (`bind`).
+        evidence of the frames weighs them when views are scored (`bind`). incremental: keep
+        each position's z-buffer (cropped to what its splats wrote: 4 bytes a pixel) for `update`.
         """
         params = params or VisibilityParams()
         params.validate()
-        occupancy = np.ascontiguousarray(occupancy, dtype=np.int8)
-        if occupancy.shape != (spec.num_voxels,):
-            raise InputError(
-                "occupancy", occupancy.shape, f"({spec.num_voxels},) int8 flat occupancy"
-            )
-        seeds = np.ascontiguousarray(np.asarray(seeds, dtype=np.float64).reshape(-1, 3))
-        rotations = np.asarray(rotations, np.float64)
-        if rotations.ndim == 3:
-            rotations = np.broadcast_to(rotations, (seeds.shape[0], *rotations.shape))
-        rotations = np.ascontiguousarray(rotations)
-        if rotations.shape[:1] != seeds.shape[:1] or rotations.shape[2:] != (3, 3):
-            raise InputError(
-                "rotations", rotations.shape, f"({seeds.shape[0]}, B, 3, 3) view rotations"
-            )
-        if relevant is None:
-            relevant = occupancy != 0
-        record_ids = np.flatnonzero(relevant).astype(np.int32)
-        centres = spec.centers_of(record_ids)
-        if params.incidence:
-            normals = free_side_normals(spec, occupancy, record_ids)
-        else:
-            normals = np.zeros((record_ids.size, 3))
-        if occluders is None:
-            occluders = occupancy == 1
-        occ_centres = spec.centers_of(np.flatnonzero(occluders))
-        threads = max(1, min(threads or os.cpu_count() or 1, max(1, seeds.shape[0])))
-        n_chunks = min(seeds.shape[0], threads * CHUNKS_PER_THREAD) if threads > 1 else 1
-        chunks = np.array_split(np.arange(seeds.shape[0]), max(1, n_chunks))
-        scratch = threading.local()
-        tol = 0.7 * spec.voxel_size  # the surface layer counts, one voxel behind it does not
-        bin_template = np.zeros(0, range_bin_dtype(params.max_range))
+        geometry = _Geometry.of(spec, params, occupancy, seeds, rotations, relevant, occluders)
+        return _assemble(cls, geometry, None, threads, incremental)
 
-        def run(idx: np.ndarray):
-            if not hasattr(scratch, "zbuf"):
-                scratch.zbuf, scratch.dirty = new_zbuffer(params.face_res)
-            return seed_view_masks(
-                np.ascontiguousarray(seeds[idx]),
-                np.ascontiguousarray(rotations[idx]),
-                occ_centres,
-                centres,
-                record_ids,
-                normals,
-                spec.voxel_size,
-                params.max_range,
-                params.near,
-                params.tan_x,
-                params.tan_y,
-                params.focal,
-                params.pixels_per_voxel,
-                tol,
-                scratch.zbuf,
-                scratch.dirty,
-                RANGE_BIN,
-                DIRECTION_BINS,
-                bin_template,
-            )
-
-        if seeds.shape[0] == 0:
-            parts = []
-        elif threads == 1:
-            parts = [run(chunks[0])]
-        else:
-            with ThreadPoolExecutor(max_workers=threads) as pool:
-                parts = list(pool.map(run, chunks))
-        nnz = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
-        indptr = np.zeros(nnz.size + 1, np.int64)
-        np.cumsum(nnz, out=indptr[1:])
-
-        def joined(i: int, dtype) -> np.ndarray:
-            return np.concatenate([p[i] for p in parts]) if parts else np.zeros(0, dtype)
-
-        return cls(
-            spec,
-            seeds,
-            rotations,
-            indptr,
-            joined(1, np.int32),
-            joined(2, np.float32),
-            record_ids,
-            params,
-            joined(3, bin_template.dtype),
-            joined(4, np.uint8),
+    def update(
+        self,
+        occupancy: np.ndarray,
+        seeds: np.ndarray,
+        rotations: np.ndarray,
+        relevant: np.ndarray | None = None,
+        threads: int | None = None,
+        occluders: np.ndarray | None = None,
+    ) -> VisibilityCache:
+        """The cache of a changed map (arguments as `build`'s, with this cache's grid and
+        parameters), equal to a full build's entry by entry, made incrementally
+        (`incremental.py`): a position that stays a candidate keeps its masks where the change
+        does not show from it and is re-examined only where it does; new positions are built in
+        full. The z-buffers move to the new cache: this one's next update is a full build, and
+        so is the update of a cache built without `incremental`."""
+        geometry = _Geometry.of(
+            self.spec, self.params, occupancy, seeds, rotations, relevant, occluders
         )
+        return _assemble(type(self), geometry, self._take_state(self), threads, True)
+
+    @staticmethod
+    def _take_state(cache: VisibilityCache) -> tuple | None:
+        """(the cache, its incremental state) once; None after (or without one)."""
+        with cache._state_lock:
+            state, cache._state = cache._state, None
+        return None if state is None else (cache, state)
 
     def score(self, field: np.ndarray) -> np.ndarray:
         """(num_views,) float64 mask-weighted utility of every view under field U (N,) and the
@@ -530,3 +485,202 @@ class VisibilityCache:
             p.tan_y,
         )
         return self.record_ids[inside]
+
+
+@dataclass
+class _Geometry:
+    """What a build reads of the map, checked and prepared."""
+
+    spec: GridSpec
+    params: VisibilityParams
+    occupancy: np.ndarray  # (N,) int8
+    seeds: np.ndarray  # (S, 3)
+    rotations: np.ndarray  # (S, B, 3, 3)
+    record_ids: np.ndarray  # (K,) int32 ascending
+    centres: np.ndarray  # (K, 3)
+    normals: np.ndarray  # (K, 3)
+    occluders: np.ndarray  # (N,) bool
+
+    @classmethod
+    def of(
+        cls,
+        spec: GridSpec,
+        params: VisibilityParams,
+        occupancy: np.ndarray,
+        seeds: np.ndarray,
+        rotations: np.ndarray,
+        relevant: np.ndarray | None,
+        occluders: np.ndarray | None,
+    ) -> _Geometry:
+        occupancy = np.ascontiguousarray(occupancy, dtype=np.int8)
+        if occupancy.shape != (spec.num_voxels,):
+            raise InputError(
+                "occupancy", occupancy.shape, f"({spec.num_voxels},) int8 flat occupancy"
+            )
+        seeds = np.ascontiguousarray(np.asarray(seeds, dtype=np.float64).reshape(-1, 3))
+        rotations = np.asarray(rotations, np.float64)
+        if rotations.ndim == 3:
+            rotations = np.broadcast_to(rotations, (seeds.shape[0], *rotations.shape))
+        rotations = np.ascontiguousarray(rotations)
+        if rotations.shape[:1] != seeds.shape[:1] or rotations.shape[2:] != (3, 3):
+            raise InputError(
+                "rotations", rotations.shape, f"({seeds.shape[0]}, B, 3, 3) view rotations"
+            )
+        if relevant is None:
+            relevant = occupancy != 0
+        record_ids = np.flatnonzero(relevant).astype(np.int32)
+        if params.incidence:
+            normals = free_side_normals(spec, occupancy, record_ids)
+        else:
+            normals = np.zeros((record_ids.size, 3))
+        if occluders is None:
+            occluders = occupancy == 1
+        return cls(
+            spec,
+            params,
+            occupancy,
+            seeds,
+            rotations,
+            record_ids,
+            spec.centers_of(record_ids),
+            normals,
+            np.asarray(occluders, bool),
+        )
+
+    @property
+    def tol(self) -> float:
+        return 0.7 * self.spec.voxel_size  # the surface layer counts, one behind it does not
+
+    @property
+    def bin_template(self) -> np.ndarray:
+        return np.zeros(0, range_bin_dtype(self.params.max_range))
+
+
+def _match(g: _Geometry, previous: tuple | None) -> np.ndarray:
+    """(S,) int64: the position of each candidate of `g` in the previous cache (same centre and
+    view rotations, bit for bit), -1 for a new one (or without a compatible previous cache)."""
+    match = np.full(g.seeds.shape[0], -1, np.int64)
+    if previous is None:
+        return match
+    old = previous[0]
+    if old.params != g.params or old.spec != g.spec or old.num_bins != g.rotations.shape[1]:
+        return match
+    where = {
+        seed.tobytes() + rot.tobytes(): i
+        for i, (seed, rot) in enumerate(zip(old.seeds, old.rotations, strict=True))
+    }
+    for s, (seed, rot) in enumerate(zip(g.seeds, g.rotations, strict=True)):
+        match[s] = where.get(seed.tobytes() + rot.tobytes(), -1)
+    return match
+
+
+def _chunks(positions: np.ndarray, count: int) -> list[np.ndarray]:
+    return [c for c in np.array_split(positions, max(1, min(count, positions.size))) if c.size]
+
+
+def _assemble(
+    cls: type, g: _Geometry, previous: tuple | None, threads: int | None, keep: bool
+) -> VisibilityCache:
+    """Masks of every candidate view of `g`: built in full, or updated from `previous` (a cache
+    and its `incremental.State`) for the positions it holds too; with `keep`, the new cache
+    keeps its z-buffers for the next update."""
+    params, spec = g.params, g.spec
+    n_seeds, n_views = g.seeds.shape[0], g.rotations.shape[1]
+    match = _match(g, previous)
+    fresh, kept = np.flatnonzero(match < 0), np.flatnonzero(match >= 0)
+    change = incremental.Change(g, *previous, match) if kept.size else None
+    threads = max(1, min(threads or os.cpu_count() or 1, max(1, n_seeds)))
+    per_share = (threads * CHUNKS_PER_THREAD if threads > 1 else 1) / max(1, n_seeds)
+    tasks = [("full", c) for c in _chunks(fresh, round(per_share * fresh.size))]
+    if change is not None and not change.nothing:
+        tasks += [("update", c) for c in _chunks(kept, round(per_share * kept.size))]
+    occ_centres = spec.centers_of(np.flatnonzero(g.occluders)) if fresh.size else None
+    scratch = threading.local()
+
+    def run(task: tuple) -> tuple:
+        kind, idx = task
+        if kind == "update":
+            if not hasattr(scratch, "update"):
+                scratch.update = incremental.new_scratch(params.face_res, spec.num_voxels)
+            return kind, idx, change.run(idx, scratch.update)
+        if not hasattr(scratch, "zbuf"):
+            scratch.zbuf, scratch.dirty = new_zbuffer(params.face_res)
+        return (
+            kind,
+            idx,
+            seed_view_masks(
+                np.ascontiguousarray(g.seeds[idx]),
+                np.ascontiguousarray(g.rotations[idx]),
+                occ_centres,
+                g.centres,
+                g.record_ids,
+                g.normals,
+                spec.voxel_size,
+                params.max_range,
+                params.near,
+                params.tan_x,
+                params.tan_y,
+                params.focal,
+                params.pixels_per_voxel,
+                g.tol,
+                scratch.zbuf,
+                scratch.dirty,
+                RANGE_BIN,
+                DIRECTION_BINS,
+                g.bin_template,
+                keep,
+            ),
+        )
+
+    if threads == 1 or len(tasks) <= 1:
+        results = [run(t) for t in tasks]
+    else:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            results = list(pool.map(run, tasks))
+    # each position's masks, and its buffer
+    pieces: list = [None] * n_seeds
+    buffers = incremental.Buffers.empty(n_seeds, params.face_res)
+    if change is not None:
+        buffers.take(kept, change.buffers, match[kept])
+    for kind, idx, out in results:
+        if kind == "update":
+            for s, piece in zip(idx, out, strict=True):
+                pieces[s] = piece
+            continue
+        nnz, ids, w, rb, db, (data, rects, offsets) = out
+        if keep:
+            buffers.add(idx, data, rects, offsets, g.rotations[idx], params)
+        counts = nnz.reshape(idx.size, n_views)
+        ends = np.cumsum(counts.sum(axis=1))
+        for q, s in enumerate(idx):
+            a, e = ends[q] - counts[q].sum(), ends[q]
+            pieces[s] = (counts[q], ids[a:e], w[a:e], rb[a:e], db[a:e])
+    for s in kept:
+        if pieces[s] is None:  # nothing it sees changed: its masks as they were
+            pieces[s] = change.old_piece(match[s])
+    columns = [
+        np.concatenate([p[i] for p in pieces]) if pieces else np.zeros(0, dtype)
+        for i, dtype in enumerate((np.int64, np.int32, np.float32, g.bin_template.dtype, np.uint8))
+    ]
+    indptr = np.zeros(columns[0].size + 1, np.int64)
+    np.cumsum(columns[0], out=indptr[1:])
+    cache = cls(
+        spec,
+        g.seeds,
+        g.rotations,
+        indptr,
+        columns[1],
+        columns[2],
+        g.record_ids,
+        params,
+        columns[3],
+        columns[4],
+    )
+    if keep:
+        cache._state = incremental.State(buffers.compacted(), g.occluders, g.normals)
+    cache.report = {"positions": n_seeds, "built": int(fresh.size), "updated": int(kept.size)}
+    if change is not None:
+        cache.report |= change.counts | dict(
+            zip(incremental.STAT_NAMES, change.stats.tolist(), strict=True)
+        )
+    return cache
