@@ -302,6 +302,7 @@ def update_seeds(
     arena_of,
     zrect,
     zoff,
+    theirs,
     cells,
     maxima,
     old_start,
@@ -323,11 +324,12 @@ def update_seeds(
 
     seeds (S, 3), rotations (S, B, 3, 3): the positions and their views; their buffers: data
     arenas[arena_of[s]], crops zrect[s] (6, 4), offsets zoff[s] (6,) (see
-    `zbuffer.seed_view_masks`), updated in place with the largest value of each tile, maxima
-    (S, 6, nt, nt) float32 (`tile_maxima`); cells (S, 6, nt, nt) uint64 the views a
-    direction in each tile may be in (`view_cells`). Their masks before: old_masks = (ids,
-    weights, range bins, direction bins), view b of position s at old_start[s] +
-    sum(old_counts[s, :b]), old_counts[s, b] entries.
+    `zbuffer.seed_view_masks`), updated in place. Position s was theirs[s] in the cache
+    updated, whose arrays by position are: the largest value of each tile, maxima (S', 6, nt,
+    nt) float32 (`tile_maxima`, updated in place); the views a direction in each tile may be in,
+    cells (S', 6, nt, nt) uint64 (`view_cells`); its masks, old_masks = (ids, weights, range
+    bins, direction bins), view b of position t at old_start[t] + sum(old_counts[t, :b]),
+    old_counts[t, b] entries.
 
     Voxel sets come brick by brick (`brick_index`: centres in brick order, ptr, lo, hi, ...):
     added / removed: the occluders that joined / left the map; occluders: those of the map now;
@@ -409,7 +411,7 @@ def update_seeds(
             outcome[s] = GROW
             continue
         # the farthest value of each tile: a voxel farther than that cannot change it
-        tile_before[:] = maxima[s]
+        tile_before[:] = maxima[theirs[s]]
         tile_max[:] = tile_before
         # A. an occluder that left resets the pixels where it was the nearest
         n_touched = 0
@@ -612,7 +614,9 @@ def update_seeds(
                 for ti in range(nt):
                     for tj in range(nt):
                         if changed_lo[f, ti, tj] <= changed_hi[f, ti, tj]:
-                            maxima[s, f, ti, tj] = _one_tile_max(data, rect, offset, f, ti, tj, n)
+                            maxima[theirs[s], f, ti, tj] = _one_tile_max(
+                                data, rect, offset, f, ti, tj, n
+                            )
             changed_lo[:] = np.inf
             changed_hi[:] = -np.inf
         if nd == 0:
@@ -639,7 +643,7 @@ def update_seeds(
             dx, dy, dz = c[0] - o[0], c[1] - o[1], c[2] - o[2]
             to_seed[e] = direction_bin(direction_bins, -dx, -dy, -dz)
             f, i, j = _pixel_of(o, c, n)
-            bits = cells[s, f, i // TILE, j // TILE]
+            bits = cells[theirs[s], f, i // TILE, j // TILE]
             for b in range(n_views):
                 if b < 64 and not (bits >> np.uint64(b)) & np.uint64(1):
                     continue
@@ -651,9 +655,9 @@ def update_seeds(
                     m = ins_count[b]
                     ins_e[b, m], ins_w[b, m], ins_r[b, m] = e, w, rb
                     ins_count[b] = m + 1
-        start = old_start[s]
+        start = old_start[theirs[s]]
         for b in range(n_views):
-            n_old, n_in = old_counts[s, b], ins_count[b]
+            n_old, n_in = old_counts[theirs[s], b], ins_count[b]
             if total + n_old + n_in > cap:
                 while total + n_old + n_in > cap:
                     cap *= 2
@@ -738,8 +742,13 @@ class Buffers:
         base = len(self.arenas)
         self.arenas.extend(other.arenas)
         self.arena_of[positions] = other.arena_of[theirs] + base
+        same = positions.size == self.arena_of.size == other.arena_of.size
+        same = same and np.array_equal(positions, theirs)
         for name in ("rects", "offsets", "maxima", "cells"):
-            getattr(self, name)[positions] = getattr(other, name)[theirs]
+            if same:  # the same positions in the same order: their arrays as they are
+                setattr(self, name, getattr(other, name))
+            else:
+                getattr(self, name)[positions] = getattr(other, name)[theirs]
 
     def add(self, positions, data, rects, offsets, rotations, params) -> None:
         """Positions `positions` hold the buffers in data (their crops rects, offsets), of
@@ -881,21 +890,20 @@ class Change:
 
     def _kernel(self, idx, arenas, arena_of, rects, offsets, scratch) -> tuple:
         theirs = self.match[idx]
-        b = self.buffers
-        maxima = b.maxima[theirs]
         old_entries = int(self.old_counts[theirs].sum())
         cap = old_entries + old_entries // 4 + (1 << 16)
-        out = update_seeds(
+        return update_seeds(
             np.ascontiguousarray(self.g.seeds[idx]),
             np.ascontiguousarray(self.g.rotations[idx]),
             arenas,
             arena_of,
             rects,
             offsets,
-            b.cells[theirs],
-            maxima,
-            self.old_start[theirs],
-            self.old_counts[theirs],
+            theirs,
+            self.buffers.cells,
+            self.buffers.maxima,
+            self.old_start,
+            self.old_counts,
             self.old_masks,
             self.added,
             self.removed,
@@ -914,9 +922,6 @@ class Change:
                 np.empty(cap, np.uint8),
             ),
         )
-        ok = out[0] != GROW
-        b.maxima[theirs[ok]] = maxima[ok]
-        return out
 
     def run(self, idx: np.ndarray, scratch: tuple) -> list:
         """The new masks of positions idx (new indices, all kept), each (counts (B,), ids,

@@ -497,6 +497,8 @@ class NextBestViewServer:
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
         self.refresh_count = 0  # background rebuilds run so far
+        # the last background rebuild: its seconds and what it did (`VisibilityCache.report`)
+        self.last_rebuild: dict = {}
         self.worker_tid: int | None = None  # the rebuild worker's thread id (Linux)
         self._worker: threading.Thread | None = None
         if self.background:
@@ -651,10 +653,12 @@ class NextBestViewServer:
                 version = self._map_version
                 stamp = self.last_fused_stamp
                 occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
+            started = time.perf_counter()
             try:
                 built = self.context.build(occupancy, kinds)
             except Exception:  # noqa: BLE001 - the request path rebuilds and reports it
                 built = None
+            rebuild_s = time.perf_counter() - started
             with self._refreshed:
                 if built is None:
                     self.context.invalidate()
@@ -669,6 +673,9 @@ class NextBestViewServer:
                 self._cache_version = version
                 self._cache_stamp = stamp
                 self.refresh_count += 1
+                reports = [cache.report for cache in built[1].values()] if built else []
+                self.last_rebuild = {"seconds": rebuild_s, "version": version}
+                self.last_rebuild |= reports[0] if reports else {}
                 self._refreshed.notify_all()
             if self.on_refresh is not None:
                 try:
