@@ -367,7 +367,7 @@ def update_seeds(
     counts = np.zeros((n_seeds, n_views), np.int64)
     total = 0
     ins_e = np.empty((n_views, 1024), np.int64)  # per view, the dirty voxels it gets ...
-    ins_w = np.empty((n_views, 1024), np.float32)  # ... their weights ...
+    ins_w = np.empty((n_views, 1024), np.float64)  # ... their weights ...
     ins_r = np.empty((n_views, 1024), np.int64)  # ... and range bins
     ins_count = np.zeros(n_views, np.int64)
     d_q = np.empty(16, np.int64)  # dirty voxels: record position (-1: left the record) ...
@@ -631,7 +631,7 @@ def update_seeds(
         if nd > ins_e.shape[1]:
             size = 2 * nd
             ins_e = np.empty((n_views, size), np.int64)
-            ins_w = np.empty((n_views, size), np.float32)
+            ins_w = np.empty((n_views, size), np.float64)
             ins_r = np.empty((n_views, size), np.int64)
         ins_count[:] = 0
         to_seed = np.zeros(nd, np.uint8)
@@ -917,7 +917,7 @@ class Change:
             scratch,
             (
                 np.empty(cap, np.int32),
-                np.empty(cap, np.float32),
+                np.empty(cap, np.float64),
                 np.empty(cap, self.g.bin_template.dtype),
                 np.empty(cap, np.uint8),
             ),

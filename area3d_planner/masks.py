@@ -3,7 +3,7 @@ decaying the field on one view's mask.
 
 A mask set is the tuple `masks = (indptr, ids, weights, range_bins, direction_bins)`: the entries of
 view v are k in indptr[v]:indptr[v+1], voxel ids[k] (int32) with its geometric weight weights[k]
-(float32, the share of a full observation the view's resolution gives it), the range bin of its
+(float64, the share of a full observation the view's resolution gives it), the range bin of its
 optical depth (`fusion.RANGE_BIN` metres each) and the `fusion.DIRECTION_BINS` row of the direction
 from the voxel to the camera (uint8). The evidence the fused frames give, `evidence = (directions,
 profile, repeat_gain)`, weighs each entry when a view is scored, so the masks depend on the map's
@@ -21,15 +21,18 @@ from numba import njit, prange
 
 @njit(cache=True, nogil=True, inline="always")
 def entry_weight(masks, evidence, k):
-    """Weight of mask entry k under the evidence: weights[k] * profile[range bin] * (repeat_gain
-    where the voxel was already observed from the entry's direction bin)."""
+    """Weight of mask entry k under the evidence: float32(weights[k] * (repeat_gain where the voxel
+    was already observed from the entry's direction bin) * profile[range bin]), multiplied in
+    float64 in this order and rounded once to float32: bit for bit the weight a mask built with
+    the evidence held (the product of the same factors, stored as float32), so views score and
+    are aimed exactly as they were then."""
     ids, weights, range_bins, direction_bins = masks[1], masks[2], masks[3], masks[4]
     directions, profile, repeat_gain = evidence
-    w = np.float64(weights[k]) * profile[min(np.int64(range_bins[k]), profile.shape[0] - 1)]
+    w = weights[k]
     if directions.shape[0] > 0:
         if (directions[ids[k]] >> np.uint32(direction_bins[k])) & np.uint32(1):
             w *= repeat_gain
-    return w
+    return np.float32(w * profile[min(np.int64(range_bins[k]), profile.shape[0] - 1)])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -40,7 +43,7 @@ def score_view(masks, evidence, field, view):
     indptr, ids = masks[0], masks[1]
     acc = 0.0
     for k in range(indptr[view], indptr[view + 1]):
-        acc += entry_weight(masks, evidence, k) * field[ids[k]]
+        acc += np.float64(entry_weight(masks, evidence, k)) * field[ids[k]]
     return acc
 
 
@@ -74,9 +77,9 @@ def score_all_views(masks, evidence, field):
 
 @njit(cache=True, nogil=True)
 def view_weights(masks, evidence, view):
-    """(entries,) float64 `entry_weight` of one view's entries."""
+    """(entries,) float32 `entry_weight` of one view's entries."""
     lo, hi = masks[0][view], masks[0][view + 1]
-    out = np.empty(hi - lo)
+    out = np.empty(hi - lo, np.float32)
     for k in range(lo, hi):
         out[k - lo] = entry_weight(masks, evidence, k)
     return out

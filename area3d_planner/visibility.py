@@ -308,13 +308,14 @@ class VisibilityCache:
 
     seeds: (S, 3) camera centres; rotations: (S, B, 3, 3) R_world_cam of their views.
     CSR layout: the mask of view v is voxel_ids[indptr[v]:indptr[v+1]] (int32 flat voxel index)
-    with weights (float32, the share of a full observation the view's resolution gives the voxel),
+    with weights (float64, the share of a full observation the view's resolution gives the voxel),
     range_bins (the `fusion.RANGE_BIN` of its optical depth) and direction_bins (uint8, the
     `fusion.DIRECTION_BINS` row of the direction from the voxel to the camera): geometry only.
     The evidence of the fused frames (`ViewEvidence`, see `bind`) weighs each entry when views are
     scored: scoring a view against a field U (N,) is sum_k w_k U[id_k], w_k the entry's weight
-    times the range profile at its bin, times repeat_gain where the voxel was observed from its
-    direction bin already.
+    times repeat_gain where the voxel was observed from its direction bin already, times the
+    range profile at its bin, rounded to float32 (`masks.entry_weight`: the weights a build with
+    the evidence baked in stored, bit for bit; hence float64 geometric weights).
     record_ids (int32) / record_centres ((K, 3) metres): the voxels the masks may hold (for the
     frustum decay).
     """
@@ -457,7 +458,7 @@ class VisibilityCache:
         )
 
     def mask(self, view: int) -> tuple[np.ndarray, np.ndarray]:
-        """(voxel ids int32, weights float64) of one view, each weight under the bound evidence
+        """(voxel ids int32, weights float32) of one view, each weight under the bound evidence
         (`masks.entry_weight`)."""
         lo, hi = self.indptr[view], self.indptr[view + 1]
         return self.voxel_ids[lo:hi], view_weights(
@@ -660,7 +661,7 @@ def _assemble(
             pieces[s] = change.old_piece(match[s])
     columns = [
         np.concatenate([p[i] for p in pieces]) if pieces else np.zeros(0, dtype)
-        for i, dtype in enumerate((np.int64, np.int32, np.float32, g.bin_template.dtype, np.uint8))
+        for i, dtype in enumerate((np.int64, np.int32, np.float64, g.bin_template.dtype, np.uint8))
     ]
     indptr = np.zeros(columns[0].size + 1, np.int64)
     np.cumsum(columns[0], out=indptr[1:])

@@ -233,7 +233,7 @@ def seed_view_masks(
     take) and the row of direction_bins (D, 3) nearest the direction from the voxel to the seed.
     zbuf: (6, n, n) float32 scratch, all inf, with its dirty (6, 4) int64 rectangles (see
     `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32,
-    weights float32, range bins, direction bins uint8, buffers): with keep_buffers, buffers =
+    weights float64, range bins, direction bins uint8, buffers): with keep_buffers, buffers =
     (data float32, rects (S, 6, 4) int64, offsets (S, 6) int64), each seed's z-buffer cropped
     to the rectangles its splats wrote (face f: rows i0..i1, columns j0..j1 of rects[s, f], row
     by row from data[offsets[s, f]]; none where i1 < i0), what an incremental update starts from.
@@ -243,7 +243,7 @@ def seed_view_masks(
     nnz = np.zeros(n_seeds * n_views, np.int64)
     cap = 1 << 16
     out_ids = np.empty(cap, np.int32)
-    out_w = np.empty(cap, np.float32)
+    out_w = np.empty(cap, np.float64)
     out_r = np.empty(cap, bin_template.dtype)
     out_d = np.empty(cap, np.uint8)
     total = 0
