@@ -6,6 +6,9 @@ when sim_bridge can render, and a synthetic room-like grid of 10^6 voxels.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import subprocess
 import time
 
 import numpy as np
@@ -96,8 +99,8 @@ def bench_grid(
     )
     t0 = time.perf_counter()
     _, caches = context.build(occ, ("roi_not_free",))
-    cache = caches["roi_not_free"]
     t_cache = time.perf_counter() - t0
+    cache = caches["roi_not_free"].bind(context.evidence())  # scored as the planner scores
     U = grid.fused()
     gp = GreedyParams()
     t0 = time.perf_counter()
@@ -129,14 +132,42 @@ def _planner_overrides(scene) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in planner_region(scene).items()}
 
 
-CLOSED_LOOP_TARGET_S = {"object": 0.3, "room": 1.0}  # frame captured -> next view answered, p95
+CLOSED_LOOP_TARGET_S = {"object": 0.08, "room": 0.3}  # frame captured -> next view answered, p95
+LOADED_BURNERS = (
+    2  # busy processes beside the loaded run (`yes > /dev/null`: load about 4 on 2 cores)
+)
 
 
-def bench_closed_loop(scene_name: str, steps: int = 12) -> dict:
+@contextlib.contextmanager
+def _burners(count: int):
+    """`count` processes that keep a core busy each (`yes > /dev/null`) while the block runs."""
+    procs = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(count)]
+    try:
+        yield
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+
+
+def _full_rebuild_s(context, occupancy: np.ndarray) -> float:
+    """Seconds the planner's rebuild of candidates and masks takes from nothing (no masks to
+    update) for an occupancy snapshot."""
+    from dataclasses import replace
+
+    fresh = replace(context, _caches={}, _previous={}, _fields={}, _evidence=None)
+    t0 = time.perf_counter()
+    fresh.build(occupancy, ("roi_not_free",))
+    return time.perf_counter() - t0
+
+
+def bench_closed_loop(scene_name: str, steps: int = 12, burners: int = 0) -> dict:
     """Closed loop in one process, as the nodes run it: after the initial views, each step takes
     the frame captured at the last planned view through the sensor model's confidence, fusion, the
-    background rebuild of candidates and masks, and one next-best-view request; the latency is
-    from the rendered frame to the answer (rendering itself excluded)."""
+    background rebuild of candidates and masks (incremental), and one next-best-view request; the
+    latency is from the rendered frame to the answer (rendering itself excluded). Beside it, each
+    step's rebuild from nothing on the same map (not in the latency), and with `burners` busy
+    processes running (`_burners`), the load average over the run."""
     from area3d_perception.sensor_model import rgbd_confidence
     from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
     from sim_bridge.render import RgbdRenderer
@@ -146,7 +177,7 @@ def bench_closed_loop(scene_name: str, steps: int = 12) -> dict:
     config = PlannerConfig(**{**_planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
     server = NextBestViewServer(config, background=True)
     renderer = RgbdRenderer(scene)
-    latencies = []
+    latencies, incremental, full, updated, changed = [], [], [], [], []
     try:
         stamp = 0
         for T in scene.initial_views:
@@ -154,16 +185,24 @@ def bench_closed_loop(scene_name: str, steps: int = 12) -> dict:
             _, depth = renderer.render(T)
             server.add_frame(stamp, depth, rgbd_confidence(depth, renderer.K), renderer.K, T)
         poses, reason = server.plan(PlanRequest(T, stamp, 1))
-        for _ in range(steps):
-            if reason:
-                raise RuntimeError(reason)
-            T = poses[0]
-            _, depth = renderer.render(T)
-            t0 = time.perf_counter()
-            stamp += 1
-            server.add_frame(stamp, depth, rgbd_confidence(depth, renderer.K), renderer.K, T)
-            poses, reason = server.plan(PlanRequest(T, stamp, 1))
-            latencies.append(time.perf_counter() - t0)
+        with _burners(burners):
+            time.sleep(2.0 if burners else 0.0)  # the busy processes get going
+            for _ in range(steps):
+                if reason:
+                    raise RuntimeError(reason)
+                T = poses[0]
+                _, depth = renderer.render(T)
+                t0 = time.perf_counter()
+                stamp += 1
+                server.add_frame(stamp, depth, rgbd_confidence(depth, renderer.K), renderer.K, T)
+                poses, reason = server.plan(PlanRequest(T, stamp, 1))
+                latencies.append(time.perf_counter() - t0)
+                rebuild = dict(server.last_rebuild)
+                incremental.append(rebuild["seconds"])
+                updated.append(rebuild.get("updated", 0) / max(1, rebuild["positions"]))
+                changed.append(rebuild.get("positions_changed", 0) / max(1, rebuild["positions"]))
+                full.append(_full_rebuild_s(server.context, server.grid.occupancy()))
+            load = os.getloadavg()[0]
     finally:
         renderer.close()
         server.close()
@@ -172,8 +211,16 @@ def bench_closed_loop(scene_name: str, steps: int = 12) -> dict:
         "level": scene.level,
         "voxels": server.grid.spec.num_voxels,
         "steps": len(latencies),
+        "burners": burners,
+        "load": load,
         "p50_s": float(np.percentile(lat, 50)),
         "p95_s": float(np.percentile(lat, 95)),
+        "rebuild_p50_s": float(np.percentile(incremental, 50)),
+        "rebuild_p95_s": float(np.percentile(incremental, 95)),
+        "full_rebuild_p50_s": float(np.percentile(full, 50)),
+        "full_rebuild_p95_s": float(np.percentile(full, 95)),
+        "positions_updated": float(np.mean(updated)),
+        "positions_changed": float(np.mean(changed)),
     }
 
 
@@ -299,10 +346,12 @@ def run_bench(
             results["service:single_object"] = {"error": f"{type(exc).__name__}: {exc}"}
     if service and not synthetic_only:
         for name in ("single_object", "living_room"):
-            try:
-                results[f"closed_loop:{name}"] = bench_closed_loop(name)
-            except Exception as exc:  # no renderer
-                results[f"closed_loop:{name}"] = {"error": f"{type(exc).__name__}: {exc}"}
+            for burners, label in ((0, "quiet"), (LOADED_BURNERS, "loaded")):
+                key = f"closed_loop:{name} ({label})"
+                try:
+                    results[key] = bench_closed_loop(name, burners=burners)
+                except Exception as exc:  # no renderer
+                    results[key] = {"error": f"{type(exc).__name__}: {exc}"}
     if not synthetic_only:
         for name in ("clutter7_a", "living_room"):
             try:
@@ -344,7 +393,13 @@ def _print(results: dict, views: int) -> None:
             continue
         if name.startswith("closed_loop"):
             target = CLOSED_LOOP_TARGET_S[r["level"]]
-            table.add_row(name, "voxels / steps", f"{r['voxels']} / {r['steps']}", "", "")
+            table.add_row(
+                name,
+                "voxels / steps / busy processes / load (1 min)",
+                f"{r['voxels']} / {r['steps']} / {r['burners']} / {r['load']:.1f}",
+                "",
+                "",
+            )
             table.add_row(name, "frame -> next view p50", f"{r['p50_s'] * 1e3:.0f} ms", "", "")
             table.add_row(
                 name,
@@ -352,6 +407,27 @@ def _print(results: dict, views: int) -> None:
                 f"{r['p95_s'] * 1e3:.0f} ms",
                 f"< {target * 1e3:.0f} ms",
                 f"{r['p95_s'] / target:.2f}",
+            )
+            table.add_row(
+                name,
+                "rebuild per frame p50 / p95: incremental",
+                f"{r['rebuild_p50_s'] * 1e3:.0f} / {r['rebuild_p95_s'] * 1e3:.0f} ms",
+                "",
+                "",
+            )
+            table.add_row(
+                name,
+                "rebuild per frame p50 / p95: from nothing",
+                f"{r['full_rebuild_p50_s'] * 1e3:.0f} / {r['full_rebuild_p95_s'] * 1e3:.0f} ms",
+                "",
+                f"{r['full_rebuild_p50_s'] / max(r['rebuild_p50_s'], 1e-9):.1f}x",
+            )
+            table.add_row(
+                name,
+                "positions updated / of them changed",
+                f"{r['positions_updated']:.0%} / {r['positions_changed']:.0%}",
+                "",
+                "",
             )
             continue
         if name.startswith("visibility"):

@@ -17,9 +17,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
+from area3d_perception.grid import GridSpec
 from area3d_planner.lazy import lazy_select
 from area3d_planner.masks import decay_view
-from area3d_planner.visibility import VisibilityCache
+from area3d_planner.visibility import VisibilityCache, VisibilityParams, orientation_bins
 
 DECAY_REGIONS = ("frustum", "visible")
 
@@ -271,9 +272,8 @@ def lazy_greedy(
     out.evaluations += cache.num_views
     p = cache.params
     views, utilities, evaluations = lazy_select(
-        cache.indptr,
-        cache.voxel_ids,
-        cache.weights,
+        cache.masks,
+        cache.evidence.kernel_args(),
         U,
         bound,
         excluded,
@@ -297,3 +297,21 @@ def lazy_greedy(
     out.utilities = [float(u) for u in utilities]
     out.evaluations += int(evaluations)
     return out
+
+
+def warm_up_kernels() -> None:
+    """Load the compiled kernels of a visibility build and update, the scoring and the lazy
+    greedy loop (from numba's cache: 0.1-0.3 s each the first time in a process) on a tiny
+    map, so that the first request does not wait for them."""
+    spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.25)
+    occupancy = np.zeros(spec.num_voxels, np.int8)
+    occupancy[: spec.num_voxels // 2] = 1
+    params = VisibilityParams(level="room", face_res=16, yaw_bins=2, pitch_bins=1)
+    seeds = np.array([[0.5, 0.5, 0.9]])
+    rotations = orientation_bins(params)[1]
+    cache = VisibilityCache.build(spec, occupancy, seeds, rotations, params, incremental=True)
+    occupancy[:4] = 0
+    cache = cache.update(occupancy, seeds, rotations)
+    cache.score(np.ones(spec.num_voxels))
+    cache.score_views(np.ones(spec.num_voxels), np.arange(cache.num_views))
+    lazy_greedy(cache, np.ones(spec.num_voxels), 1)

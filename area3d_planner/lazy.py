@@ -55,9 +55,8 @@ def _pop(keys, seeds, size):
 
 @njit(cache=True)
 def lazy_select(
-    indptr,
-    ids,
-    weights,
+    masks,
+    evidence,
     field,
     bound,
     excluded,
@@ -77,7 +76,8 @@ def lazy_select(
     nms_radius,
     nms_angle_deg,
 ):
-    """Lazy greedy over views s * B + b. field (N,) is decayed in place; bound (S, B) holds each
+    """Lazy greedy over views s * B + b of the mask set `masks` scored under `evidence` (see
+    `masks.py`; fixed during the selection, so scores only fall). field (N,) is decayed in place; bound (S, B) holds each
     view's initial utility (-inf where excluded) and is updated in place; excluded (S, B) bool
     likewise. keep = 1 - eta; decay_frustum: decay every recorded voxel in the committed view's
     frustum (else its mask). Returns (views, utilities, single-view evaluations)."""
@@ -108,7 +108,7 @@ def lazy_select(
         stale_on_top = False
         for b in range(n_bins):
             if not fresh[s, b] and bound[s, b] >= next_key and bound[s, b] > -np.inf:
-                bound[s, b] = score_view(indptr, ids, weights, field, s * n_bins + b) * gain[s]
+                bound[s, b] = score_view(masks, evidence, field, s * n_bins + b) * gain[s]
                 bound[s, b] += prior[s]
                 fresh[s, b] = True
                 evaluations += 1
@@ -139,6 +139,7 @@ def lazy_select(
                 if inside[k]:
                     field[record_ids[k]] *= keep
         else:
+            indptr, ids = masks[0], masks[1]
             for k in range(indptr[v], indptr[v + 1]):
                 field[ids[k]] *= keep
         # light NMS: views at seeds within nms_radius looking within nms_angle_deg of it

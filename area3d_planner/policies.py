@@ -24,6 +24,7 @@ from area3d_planner.greedy import (
     taken_views,
 )
 from area3d_planner.visibility import (
+    ViewEvidence,
     VisibilityCache,
     VisibilityParams,
     lattice_positions,
@@ -89,16 +90,30 @@ class PlanningContext:
     _candidates: tuple | None = None
     _caches: dict = field(default_factory=dict)
     _fields: dict = field(default_factory=dict)
+    _evidence: ViewEvidence | None = None
+    _previous: dict = field(default_factory=dict)  # caches the next build brings up to date
 
     def invalidate(self) -> None:
-        """Forget candidates, visibility masks and fields (the occupancy changed)."""
+        """Forget candidates, visibility masks and fields (the occupancy changed); the next
+        build of the masks updates the ones forgotten (`VisibilityCache.update`)."""
         self._candidates = None
+        self._previous.update(self._caches)
         self._caches.clear()
         self._fields.clear()
+        self._evidence = None
 
     def invalidate_fields(self) -> None:
-        """Forget the memoised utility fields only (new evidence, masks still current)."""
+        """Forget the memoised utility fields and view evidence only (new evidence, masks still
+        current)."""
         self._fields.clear()
+        self._evidence = None
+
+    def evidence(self) -> ViewEvidence:
+        """What the fused frames weigh each mask entry by when views are scored (the grid's
+        direction bits and range profile, `ViewEvidence`), memoised until the next frame."""
+        if self._evidence is None:
+            self._evidence = ViewEvidence.of_grid(self.grid.view_evidence(), self.visibility)
+        return self._evidence
 
     def policy_field(self, policy: GreedyFieldPolicy) -> np.ndarray:
         """(N,) utility field of `policy` (memoised until the next invalidation, read only), with
@@ -118,7 +133,7 @@ class PlanningContext:
         caches = {}
         fields = {}
         if policy.relevant is not None:
-            caches[policy.relevant] = self.cache(policy.relevant)
+            caches[policy.relevant] = self._cache(policy.relevant)
             self.policy_field(policy)
             fields[policy.name] = self._fields[policy.name]
         return replace(
@@ -129,6 +144,8 @@ class PlanningContext:
             _candidates=self.candidates(),
             _caches=caches,
             _fields=fields,
+            _evidence=self.evidence() if policy.relevant is not None else None,
+            _previous={},
         )
 
     def adopt(self, snapshot: PlanningContext) -> None:
@@ -192,24 +209,17 @@ class PlanningContext:
         _, rotations = orientation_bins(p)
         return points, np.broadcast_to(rotations, (points.shape[0], *rotations.shape)).copy()
 
-    def build(
-        self, occupancy: np.ndarray, kinds: tuple = (), evidence: tuple | None = None
-    ) -> tuple[tuple, dict]:
+    def build(self, occupancy: np.ndarray, kinds: tuple = ()) -> tuple[tuple, dict]:
         """Candidate views and the visibility caches named in `kinds` (see `cache`) for an
-        occupancy snapshot (N,) int8 and the grid's `view_evidence()` taken with it (None: read
-        now), without touching the context: ((seeds, rotations), caches)."""
+        occupancy snapshot (N,) int8, without touching the context: ((seeds, rotations),
+        caches). The masks depend on the occupancy alone (the evidence weighs them when views
+        are scored, `evidence`)."""
         candidates = self.candidate_views(occupancy)
-        evidence = evidence or self.grid.view_evidence()
-        caches = {kind: self._build_cache(kind, occupancy, *candidates, evidence) for kind in kinds}
+        caches = {kind: self._build_cache(kind, occupancy, *candidates) for kind in kinds}
         return candidates, caches
 
     def _build_cache(
-        self,
-        kind: str,
-        occupancy: np.ndarray,
-        seeds: np.ndarray,
-        rotations: np.ndarray,
-        evidence: tuple | None = None,
+        self, kind: str, occupancy: np.ndarray, seeds: np.ndarray, rotations: np.ndarray
     ) -> VisibilityCache:
         occluders = None
         relevant = self._relevant(kind, occupancy)
@@ -217,7 +227,9 @@ class PlanningContext:
             # everything not carved hides what is behind it: only its boundary can be seen
             occluders = self.grid.boundary(occupancy)
             relevant = relevant & occluders
-        directions, profile = evidence or self.grid.view_evidence()
+        base = self._caches.get(kind) or self._previous.pop(kind, None)
+        if base is not None:  # what the map changed since, re-examined only where it shows
+            return base.update(occupancy, seeds, rotations, relevant, occluders=occluders)
         return VisibilityCache.build(
             self.grid.spec,
             occupancy,
@@ -226,8 +238,7 @@ class PlanningContext:
             self.visibility,
             relevant=relevant,
             occluders=occluders,
-            range_profile=profile if self.visibility.range_profile else None,
-            directions=directions,
+            incremental=True,
         )
 
     def install(self, candidates: tuple, caches: dict) -> None:
@@ -275,7 +286,11 @@ class PlanningContext:
         return self.candidates()[0]
 
     def cache(self, relevant: str = "roi_not_free") -> VisibilityCache:
-        """Visibility cache recording the ROI voxels that are not known free."""
+        """Visibility cache recording the ROI voxels that are not known free, scored under the
+        current evidence (`evidence`)."""
+        return self._cache(relevant).bind(self.evidence())
+
+    def _cache(self, relevant: str) -> VisibilityCache:
         if relevant not in self._caches:
             occ = self.grid.occupancy()
             self._caches[relevant] = self._build_cache(relevant, occ, *self.candidates())

@@ -20,7 +20,7 @@ from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, NO_RETURN_RULES, FusedGrid
-from area3d_planner.greedy import DECAY_REGIONS, GreedyParams
+from area3d_planner.greedy import DECAY_REGIONS, GreedyParams, warm_up_kernels
 from area3d_planner.policies import POLICIES, PlanningContext, SelectedViews, make_policy
 from area3d_planner.visibility import VisibilityParams
 
@@ -524,6 +524,8 @@ class NextBestViewServer:
         self.refresh_count = 0  # background rebuilds run so far
         self.rebuild_failures = 0  # background rebuilds that raised (the request path rebuilds)
         self.last_rebuild_error = ""
+        # the last background rebuild: its seconds and what it did (`VisibilityCache.report`)
+        self.last_rebuild: dict = {}
         self.worker_tid: int | None = None  # the rebuild worker's thread id (Linux)
         self._worker: threading.Thread | None = None
         if self.background:
@@ -686,6 +688,8 @@ class NextBestViewServer:
             base = os.getpriority(os.PRIO_PROCESS, self.worker_tid)
             os.setpriority(os.PRIO_PROCESS, self.worker_tid, min(19, base + self.rebuild_nice))
         kinds = () if self.policy.relevant is None else (self.policy.relevant,)
+        if kinds:
+            warm_up_kernels()  # loading the compiled kernels takes 0.1-0.3 s: not at a request
         while True:
             with self._refreshed:
                 while not self._closed:
@@ -700,12 +704,13 @@ class NextBestViewServer:
                 version = self._map_version
                 stamp = self.last_fused_stamp
                 occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
-                evidence = self.grid.view_evidence()
+            started = time.perf_counter()
             try:
-                built = self.context.build(occupancy, kinds, evidence)
+                built = self.context.build(occupancy, kinds)
             except Exception as exc:  # noqa: BLE001 - the request path rebuilds and reports it
                 built = None
                 self._rebuild_failed(exc)
+            rebuild_s = time.perf_counter() - started
             with self._refreshed:
                 if built is None:
                     self.context.invalidate()
@@ -714,12 +719,16 @@ class NextBestViewServer:
                     if self.policy.relevant is not None and version == self._map_version:
                         try:  # the field of the current evidence, ready for the next request
                             self.context.policy_field(self.policy)
+                            self.context.evidence()
                         except Exception as exc:  # noqa: BLE001 - reported by the request path
                             self.context.invalidate_fields()
                             self._rebuild_failed(exc)
                 self._cache_version = version
                 self._cache_stamp = stamp
                 self.refresh_count += 1
+                reports = [cache.report for cache in built[1].values()] if built else []
+                self.last_rebuild = {"seconds": rebuild_s, "version": version}
+                self.last_rebuild |= reports[0] if reports else {}
                 self._refreshed.notify_all()
             if self.on_refresh is not None:
                 try:

@@ -14,6 +14,7 @@ weighted by the share of a full observation the view's resolution gives it.
 
 from __future__ import annotations
 
+import copy
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -25,8 +26,14 @@ from scipy.spatial import cKDTree
 from area3d_msgs_py.camera_pose import look_rotation
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
-from area3d_planner.fusion import DIRECTION_BINS
-from area3d_planner.masks import score_all_views, score_view_list, score_views
+from area3d_planner import incremental
+from area3d_planner.fusion import DIRECTION_BINS, RANGE_BIN
+from area3d_planner.masks import (
+    score_all_views,
+    score_view_list,
+    score_views,
+    view_weights,
+)
 from area3d_planner.zbuffer import in_frustum, new_zbuffer, seed_view_masks
 
 CHUNKS_PER_THREAD = 8  # seed chunks per worker thread when building masks (load balance)
@@ -121,6 +128,12 @@ class VisibilityParams:
     def focal(self) -> float:
         """Focal length in pixels of the candidate views' camera."""
         return 0.5 * self.width / self.tan_x
+
+
+def range_bin_dtype(max_range: float) -> type:
+    """The integer type of the masks' range bins (`fusion.RANGE_BIN` metres each) up to
+    max_range: uint8 up to 25.5 m, else uint16."""
+    return np.uint8 if max_range / RANGE_BIN < np.iinfo(np.uint8).max else np.uint16
 
 
 def _direction(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
@@ -250,13 +263,59 @@ def free_side_normals(spec: GridSpec, occupancy: np.ndarray, ids: np.ndarray) ->
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
+@dataclass(frozen=True)
+class ViewEvidence:
+    """What the fused frames say about a view's worth beyond its geometry, applied to each mask
+    entry when views are scored (`masks.entry_weight`): the depth backend's confidence by range
+    relative to its best, and a share for voxels already observed from the view's direction.
+
+    directions: (N,) uint32, the `fusion.DIRECTION_BINS` each voxel was observed from
+    (`FusedGrid.directions`; empty: none yet); profile: (R,) float64 per `fusion.RANGE_BIN` of
+    optical depth (`FusedGrid.range_profile`; ones: no preference); repeat_gain: what a voxel seen
+    again from a direction it was observed from counts (`VisibilityParams.repeat_gain`).
+    """
+
+    directions: np.ndarray
+    profile: np.ndarray
+    repeat_gain: float
+
+    @classmethod
+    def none(cls) -> ViewEvidence:
+        """No evidence: every range as good as the best, every direction new."""
+        return cls(np.zeros(0, np.uint32), np.ones(1), 1.0)
+
+    @classmethod
+    def of_grid(
+        cls, evidence: tuple[np.ndarray, tuple[np.ndarray, float]], params: VisibilityParams
+    ) -> ViewEvidence:
+        """From `FusedGrid.view_evidence()` ((directions, (profile, bin width))) and the
+        parameters that say which of it counts (`range_profile`, `repeat_gain`)."""
+        directions, (profile, width) = evidence
+        if not np.isclose(width, RANGE_BIN):
+            raise InputError("range profile bin", width, f"{RANGE_BIN} m (fusion.RANGE_BIN)")
+        return cls(
+            np.ascontiguousarray(directions, np.uint32),
+            np.ascontiguousarray(profile if params.range_profile else np.ones(1), np.float64),
+            float(params.repeat_gain),
+        )
+
+    def kernel_args(self) -> tuple:
+        return (self.directions, self.profile, float(self.repeat_gain))
+
+
 class VisibilityCache:
     """Cached visibility masks of every candidate view (seed s, orientation b), view index s * B + b.
 
     seeds: (S, 3) camera centres; rotations: (S, B, 3, 3) R_world_cam of their views.
     CSR layout: the mask of view v is voxel_ids[indptr[v]:indptr[v+1]] (int32 flat voxel index)
-    with weights (float32, the share of a full observation the view gives the voxel). Scoring a
-    view against a field U (N,) is the dot product sum_i w_i U[id_i].
+    with weights (float64, the share of a full observation the view's resolution gives the voxel),
+    range_bins (the `fusion.RANGE_BIN` of its optical depth) and direction_bins (uint8, the
+    `fusion.DIRECTION_BINS` row of the direction from the voxel to the camera): geometry only.
+    The evidence of the fused frames (`ViewEvidence`, see `bind`) weighs each entry when views are
+    scored: scoring a view against a field U (N,) is sum_k w_k U[id_k], w_k the entry's weight
+    times repeat_gain where the voxel was observed from its direction bin already, times the
+    range profile at its bin, rounded to float32 (`masks.entry_weight`: the weights a build with
+    the evidence baked in stored, bit for bit; hence float64 geometric weights).
     record_ids (int32) / record_centres ((K, 3) metres): the voxels the masks may hold (for the
     frustum decay).
     """
@@ -271,6 +330,9 @@ class VisibilityCache:
         weights: np.ndarray,
         record_ids: np.ndarray,
         params: VisibilityParams,
+        range_bins: np.ndarray | None = None,
+        direction_bins: np.ndarray | None = None,
+        evidence: ViewEvidence | None = None,
     ) -> None:
         self.spec = spec
         self.seeds = seeds
@@ -279,9 +341,18 @@ class VisibilityCache:
         self.indptr = indptr
         self.voxel_ids = voxel_ids
         self.weights = weights
+        self.range_bins = np.zeros(voxel_ids.size, np.uint8) if range_bins is None else range_bins
+        self.direction_bins = (
+            np.zeros(voxel_ids.size, np.uint8) if direction_bins is None else direction_bins
+        )
         self.record_ids = record_ids
         self.record_centres = spec.centers_of(record_ids)
         self.params = params
+        self.evidence = evidence or ViewEvidence.none()
+        self._state: incremental.State | None = None  # what `update` starts from
+        # how it was made: positions built in full / updated, what changed (`incremental`)
+        self.report: dict = {}
+        self._state_lock = threading.Lock()
 
     @property
     def num_seeds(self) -> int:
@@ -295,6 +366,19 @@ class VisibilityCache:
     def num_views(self) -> int:
         return self.num_seeds * self.num_bins
 
+    @property
+    def masks(self) -> tuple:
+        """(indptr, voxel_ids, weights, range_bins, direction_bins): the kernels' mask set."""
+        return (self.indptr, self.voxel_ids, self.weights, self.range_bins, self.direction_bins)
+
+    def bind(self, evidence: ViewEvidence | None) -> VisibilityCache:
+        """The same masks scored under `evidence` (a shallow copy: the arrays are shared)."""
+        bound = copy.copy(self)
+        bound.evidence = evidence or ViewEvidence.none()
+        bound._state = None  # updates start from the cache itself, not its bound copies
+        bound._state_lock = threading.Lock()
+        return bound
+
     @classmethod
     def build(
         cls,
@@ -306,8 +390,7 @@ class VisibilityCache:
         relevant: np.ndarray | None = None,
         threads: int | None = None,
         occluders: np.ndarray | None = None,
-        range_profile: tuple[np.ndarray, float] | None = None,
-        directions: np.ndarray | None = None,
+        incremental: bool = False,
     ) -> VisibilityCache:
         """Dense masks of every (seed, orientation) view: every relevant voxel visible from the
         seed (cube-map z-buffer of the occupied voxels) and inside the view's frustum.
@@ -316,114 +399,71 @@ class VisibilityCache:
         (S, B, 3, 3) or (B, 3, 3) shared by every seed. relevant: (N,) bool, the voxels recorded
         (default: every voxel that is not known free). occluders: (N,) bool, the voxels splatted
         into the z-buffer (default: the occupied ones). threads: worker threads (default: CPU
-        count); the result does not depend on it. range_profile: (profile (R,) float, bin metres),
-        the depth backend's confidence by range relative to its best (`FusedGrid.range_profile`),
-        a factor of each voxel's weight (None: 1 at every range). directions: (N,) uint32, the
-        `fusion.DIRECTION_BINS` each voxel was observed from (`FusedGrid.directions`): a view
-        from a direction a voxel was already observed from weighs it by params.repeat_gain
-        (None: every direction is new).
+        count); the result does not depend on it. The masks depend on this geometry alone; the
+        evidence of the frames weighs them when views are scored (`bind`). incremental: keep
+        each position's z-buffer (cropped to what its splats wrote: 4 bytes a pixel) for `update`.
         """
         params = params or VisibilityParams()
         params.validate()
-        occupancy = np.ascontiguousarray(occupancy, dtype=np.int8)
-        if occupancy.shape != (spec.num_voxels,):
-            raise InputError(
-                "occupancy", occupancy.shape, f"({spec.num_voxels},) int8 flat occupancy"
-            )
-        seeds = np.ascontiguousarray(np.asarray(seeds, dtype=np.float64).reshape(-1, 3))
-        rotations = np.asarray(rotations, np.float64)
-        if rotations.ndim == 3:
-            rotations = np.broadcast_to(rotations, (seeds.shape[0], *rotations.shape))
-        rotations = np.ascontiguousarray(rotations)
-        if rotations.shape[:1] != seeds.shape[:1] or rotations.shape[2:] != (3, 3):
-            raise InputError(
-                "rotations", rotations.shape, f"({seeds.shape[0]}, B, 3, 3) view rotations"
-            )
-        if relevant is None:
-            relevant = occupancy != 0
-        record_ids = np.flatnonzero(relevant).astype(np.int32)
-        centres = spec.centers_of(record_ids)
-        if params.incidence:
-            normals = free_side_normals(spec, occupancy, record_ids)
-        else:
-            normals = np.zeros((record_ids.size, 3))
-        if occluders is None:
-            occluders = occupancy == 1
-        occ_centres = spec.centers_of(np.flatnonzero(occluders))
-        threads = max(1, min(threads or os.cpu_count() or 1, max(1, seeds.shape[0])))
-        n_chunks = min(seeds.shape[0], threads * CHUNKS_PER_THREAD) if threads > 1 else 1
-        chunks = np.array_split(np.arange(seeds.shape[0]), max(1, n_chunks))
-        scratch = threading.local()
-        tol = 0.7 * spec.voxel_size  # the surface layer counts, one voxel behind it does not
-        profile, profile_bin = range_profile or (np.ones(1), params.max_range)
-        profile = np.ascontiguousarray(profile, np.float64)
-        if directions is None:
-            record_dirs = np.zeros(record_ids.size, np.uint32)
-        else:
-            record_dirs = np.ascontiguousarray(np.asarray(directions, np.uint32)[record_ids])
+        geometry = _Geometry.of(spec, params, occupancy, seeds, rotations, relevant, occluders)
+        return _assemble(cls, geometry, None, threads, incremental)
 
-        def run(idx: np.ndarray):
-            if not hasattr(scratch, "zbuf"):
-                scratch.zbuf, scratch.dirty = new_zbuffer(params.face_res)
-            return seed_view_masks(
-                np.ascontiguousarray(seeds[idx]),
-                np.ascontiguousarray(rotations[idx]),
-                occ_centres,
-                centres,
-                record_ids,
-                normals,
-                spec.voxel_size,
-                params.max_range,
-                params.near,
-                params.tan_x,
-                params.tan_y,
-                params.focal,
-                params.pixels_per_voxel,
-                tol,
-                scratch.zbuf,
-                scratch.dirty,
-                profile,
-                float(profile_bin),
-                record_dirs,
-                DIRECTION_BINS,
-                float(params.repeat_gain),
-            )
+    def update(
+        self,
+        occupancy: np.ndarray,
+        seeds: np.ndarray,
+        rotations: np.ndarray,
+        relevant: np.ndarray | None = None,
+        threads: int | None = None,
+        occluders: np.ndarray | None = None,
+    ) -> VisibilityCache:
+        """The cache of a changed map (arguments as `build`'s, with this cache's grid and
+        parameters), equal to a full build's entry by entry, made incrementally
+        (`incremental.py`): a position that stays a candidate keeps its masks where the change
+        does not show from it and is re-examined only where it does; new positions are built in
+        full. The z-buffers move to the new cache: this one's next update is a full build, and
+        so is the update of a cache built without `incremental`."""
+        geometry = _Geometry.of(
+            self.spec, self.params, occupancy, seeds, rotations, relevant, occluders
+        )
+        return _assemble(type(self), geometry, self._take_state(self), threads, True)
 
-        if seeds.shape[0] == 0:
-            parts = []
-        elif threads == 1:
-            parts = [run(chunks[0])]
-        else:
-            with ThreadPoolExecutor(max_workers=threads) as pool:
-                parts = list(pool.map(run, chunks))
-        nnz = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
-        indptr = np.zeros(nnz.size + 1, np.int64)
-        np.cumsum(nnz, out=indptr[1:])
-        voxel_ids = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int32)
-        weights = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0, np.float32)
-        return cls(spec, seeds, rotations, indptr, voxel_ids, weights, record_ids, params)
+    @staticmethod
+    def _take_state(cache: VisibilityCache) -> tuple | None:
+        """(the cache, its incremental state) once; None after (or without one)."""
+        with cache._state_lock:
+            state, cache._state = cache._state, None
+        return None if state is None else (cache, state)
 
     def score(self, field: np.ndarray) -> np.ndarray:
-        """(num_views,) float64 mask-weighted utility of every view under field U (N,)."""
+        """(num_views,) float64 mask-weighted utility of every view under field U (N,) and the
+        bound evidence."""
         return score_all_views(
-            self.indptr, self.voxel_ids, self.weights, np.asarray(field, np.float64)
+            self.masks, self.evidence.kernel_args(), np.asarray(field, np.float64)
         )
 
     def score_seed(self, field: np.ndarray, seed: int) -> np.ndarray:
         """(num_bins,) float64 utilities of one seed's views (same sums as `score`)."""
         b = self.num_bins
-        return score_views(self.indptr, self.voxel_ids, self.weights, field, seed * b, seed * b + b)
+        field = np.asarray(field, np.float64)
+        return score_views(self.masks, self.evidence.kernel_args(), field, seed * b, seed * b + b)
 
     def score_views(self, field: np.ndarray, views: np.ndarray) -> np.ndarray:
         """(len(views),) float64 utilities of the given views (the same sums as `score`)."""
         return score_view_list(
-            self.indptr, self.voxel_ids, self.weights, field, np.asarray(views, np.int64)
+            self.masks,
+            self.evidence.kernel_args(),
+            np.asarray(field, np.float64),
+            np.asarray(views, np.int64),
         )
 
     def mask(self, view: int) -> tuple[np.ndarray, np.ndarray]:
-        """(voxel ids int32, weights float32) of one view."""
+        """(voxel ids int32, weights float32) of one view, each weight under the bound evidence
+        (`masks.entry_weight`)."""
         lo, hi = self.indptr[view], self.indptr[view + 1]
-        return self.voxel_ids[lo:hi], self.weights[lo:hi]
+        return self.voxel_ids[lo:hi], view_weights(
+            self.masks, self.evidence.kernel_args(), int(view)
+        )
 
     def view_pose(self, view: int) -> np.ndarray:
         """(4, 4) T_world_cam of a view (optical frame)."""
@@ -446,3 +486,202 @@ class VisibilityCache:
             p.tan_y,
         )
         return self.record_ids[inside]
+
+
+@dataclass
+class _Geometry:
+    """What a build reads of the map, checked and prepared."""
+
+    spec: GridSpec
+    params: VisibilityParams
+    occupancy: np.ndarray  # (N,) int8
+    seeds: np.ndarray  # (S, 3)
+    rotations: np.ndarray  # (S, B, 3, 3)
+    record_ids: np.ndarray  # (K,) int32 ascending
+    centres: np.ndarray  # (K, 3)
+    normals: np.ndarray  # (K, 3)
+    occluders: np.ndarray  # (N,) bool
+
+    @classmethod
+    def of(
+        cls,
+        spec: GridSpec,
+        params: VisibilityParams,
+        occupancy: np.ndarray,
+        seeds: np.ndarray,
+        rotations: np.ndarray,
+        relevant: np.ndarray | None,
+        occluders: np.ndarray | None,
+    ) -> _Geometry:
+        occupancy = np.ascontiguousarray(occupancy, dtype=np.int8)
+        if occupancy.shape != (spec.num_voxels,):
+            raise InputError(
+                "occupancy", occupancy.shape, f"({spec.num_voxels},) int8 flat occupancy"
+            )
+        seeds = np.ascontiguousarray(np.asarray(seeds, dtype=np.float64).reshape(-1, 3))
+        rotations = np.asarray(rotations, np.float64)
+        if rotations.ndim == 3:
+            rotations = np.broadcast_to(rotations, (seeds.shape[0], *rotations.shape))
+        rotations = np.ascontiguousarray(rotations)
+        if rotations.shape[:1] != seeds.shape[:1] or rotations.shape[2:] != (3, 3):
+            raise InputError(
+                "rotations", rotations.shape, f"({seeds.shape[0]}, B, 3, 3) view rotations"
+            )
+        if relevant is None:
+            relevant = occupancy != 0
+        record_ids = np.flatnonzero(relevant).astype(np.int32)
+        if params.incidence:
+            normals = free_side_normals(spec, occupancy, record_ids)
+        else:
+            normals = np.zeros((record_ids.size, 3))
+        if occluders is None:
+            occluders = occupancy == 1
+        return cls(
+            spec,
+            params,
+            occupancy,
+            seeds,
+            rotations,
+            record_ids,
+            spec.centers_of(record_ids),
+            normals,
+            np.asarray(occluders, bool),
+        )
+
+    @property
+    def tol(self) -> float:
+        return 0.7 * self.spec.voxel_size  # the surface layer counts, one behind it does not
+
+    @property
+    def bin_template(self) -> np.ndarray:
+        return np.zeros(0, range_bin_dtype(self.params.max_range))
+
+
+def _match(g: _Geometry, previous: tuple | None) -> np.ndarray:
+    """(S,) int64: the position of each candidate of `g` in the previous cache (same centre and
+    view rotations, bit for bit), -1 for a new one (or without a compatible previous cache)."""
+    match = np.full(g.seeds.shape[0], -1, np.int64)
+    if previous is None:
+        return match
+    old = previous[0]
+    if old.params != g.params or old.spec != g.spec or old.num_bins != g.rotations.shape[1]:
+        return match
+    where = {
+        seed.tobytes() + rot.tobytes(): i
+        for i, (seed, rot) in enumerate(zip(old.seeds, old.rotations, strict=True))
+    }
+    for s, (seed, rot) in enumerate(zip(g.seeds, g.rotations, strict=True)):
+        match[s] = where.get(seed.tobytes() + rot.tobytes(), -1)
+    return match
+
+
+def _chunks(positions: np.ndarray, count: int) -> list[np.ndarray]:
+    return [c for c in np.array_split(positions, max(1, min(count, positions.size))) if c.size]
+
+
+def _assemble(
+    cls: type, g: _Geometry, previous: tuple | None, threads: int | None, keep: bool
+) -> VisibilityCache:
+    """Masks of every candidate view of `g`: built in full, or updated from `previous` (a cache
+    and its `incremental.State`) for the positions it holds too; with `keep`, the new cache
+    keeps its z-buffers for the next update."""
+    params, spec = g.params, g.spec
+    n_seeds, n_views = g.seeds.shape[0], g.rotations.shape[1]
+    match = _match(g, previous)
+    fresh, kept = np.flatnonzero(match < 0), np.flatnonzero(match >= 0)
+    change = incremental.Change(g, *previous, match) if kept.size else None
+    threads = max(1, min(threads or os.cpu_count() or 1, max(1, n_seeds)))
+    per_share = (threads * CHUNKS_PER_THREAD if threads > 1 else 1) / max(1, n_seeds)
+    tasks = [("full", c) for c in _chunks(fresh, round(per_share * fresh.size))]
+    if change is not None and not change.nothing:
+        tasks += [("update", c) for c in _chunks(kept, round(per_share * kept.size))]
+    occ_centres = spec.centers_of(np.flatnonzero(g.occluders)) if fresh.size else None
+    scratch = threading.local()
+
+    def run(task: tuple) -> tuple:
+        kind, idx = task
+        if kind == "update":
+            if not hasattr(scratch, "update"):
+                scratch.update = incremental.new_scratch(params.face_res, spec.num_voxels)
+            return kind, idx, change.run(idx, scratch.update)
+        if not hasattr(scratch, "zbuf"):
+            scratch.zbuf, scratch.dirty = new_zbuffer(params.face_res)
+        return (
+            kind,
+            idx,
+            seed_view_masks(
+                np.ascontiguousarray(g.seeds[idx]),
+                np.ascontiguousarray(g.rotations[idx]),
+                occ_centres,
+                g.centres,
+                g.record_ids,
+                g.normals,
+                spec.voxel_size,
+                params.max_range,
+                params.near,
+                params.tan_x,
+                params.tan_y,
+                params.focal,
+                params.pixels_per_voxel,
+                g.tol,
+                scratch.zbuf,
+                scratch.dirty,
+                RANGE_BIN,
+                DIRECTION_BINS,
+                g.bin_template,
+                keep,
+            ),
+        )
+
+    if threads == 1 or len(tasks) <= 1:
+        results = [run(t) for t in tasks]
+    else:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            results = list(pool.map(run, tasks))
+    # each position's masks, and its buffer
+    pieces: list = [None] * n_seeds
+    buffers = incremental.Buffers.empty(n_seeds, params.face_res)
+    if change is not None:
+        buffers.take(kept, change.buffers, match[kept])
+    for kind, idx, out in results:
+        if kind == "update":
+            for s, piece in zip(idx, out, strict=True):
+                pieces[s] = piece
+            continue
+        nnz, ids, w, rb, db, (data, rects, offsets) = out
+        if keep:
+            buffers.add(idx, data, rects, offsets, g.rotations[idx], params)
+        counts = nnz.reshape(idx.size, n_views)
+        ends = np.cumsum(counts.sum(axis=1))
+        for q, s in enumerate(idx):
+            a, e = ends[q] - counts[q].sum(), ends[q]
+            pieces[s] = (counts[q], ids[a:e], w[a:e], rb[a:e], db[a:e])
+    for s in kept:
+        if pieces[s] is None:  # nothing it sees changed: its masks as they were
+            pieces[s] = change.old_piece(match[s])
+    columns = [
+        np.concatenate([p[i] for p in pieces]) if pieces else np.zeros(0, dtype)
+        for i, dtype in enumerate((np.int64, np.int32, np.float64, g.bin_template.dtype, np.uint8))
+    ]
+    indptr = np.zeros(columns[0].size + 1, np.int64)
+    np.cumsum(columns[0], out=indptr[1:])
+    cache = cls(
+        spec,
+        g.seeds,
+        g.rotations,
+        indptr,
+        columns[1],
+        columns[2],
+        g.record_ids,
+        params,
+        columns[3],
+        columns[4],
+    )
+    if keep:
+        cache._state = incremental.State(buffers.compacted(), g.occluders, g.normals)
+    cache.report = {"positions": n_seeds, "built": int(fresh.size), "updated": int(kept.size)}
+    if change is not None:
+        cache.report |= change.counts | dict(
+            zip(incremental.STAT_NAMES, change.stats.tolist(), strict=True)
+        )
+    return cache

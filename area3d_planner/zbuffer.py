@@ -53,6 +53,56 @@ def _clear(zbuf, dirty):
         dirty[f, 3] = -1
 
 
+@njit(cache=True, inline="always")
+def splat_alpha(r, voxel_size):
+    """Angular half extent (radians) of the splat of a voxel at range r."""
+    return min(SPLAT_HALF_EXTENT * voxel_size / r, MAX_SPLAT_HALF_ANGLE)
+
+
+@njit(cache=True, inline="always")
+def splat_rect(dx, dy, dz, r, alpha, a, n):
+    """(face, i0, i1, j0, j1): the pixels of the face of axis a (0..2, on the side of the voxel)
+    that the splat of a voxel at offset (dx, dy, dz) from the camera, range r, half angle alpha
+    covers, in a buffer of n x n pixels per face; face -1 where it covers none. The one
+    definition of a splat's footprint (`fill_zbuffer` and the incremental update use it)."""
+    da = dx if a == 0 else (dy if a == 1 else dz)
+    db = dy if a == 0 else dx
+    dc = dy if a == 2 else dz
+    if da == 0.0:
+        return -1, 0, -1, 0, -1
+    m = abs(da)
+    if m < alpha * r:  # this face's axis is (nearly) perpendicular to the voxel
+        return -1, 0, -1, 0, -1
+    face = 2 * a + (0 if da > 0 else 1)
+    half = 0.5 * n
+    u = db / m
+    v = dc / m
+    eu = alpha * (1.0 + u * u) * half
+    ev = alpha * (1.0 + v * v) * half
+    pu = (u + 1.0) * half
+    pv = (v + 1.0) * half
+    if pu + eu < 0 or pu - eu >= n or pv + ev < 0 or pv - ev >= n:
+        return -1, 0, -1, 0, -1
+    # the pixels whose centres (i + 0.5) lie inside the splat; at least the one holding the
+    # voxel's own centre. Covering every pixel the splat touches instead would grow each
+    # occluder by up to a pixel, hiding more the coarser the buffer.
+    i0 = int(np.ceil(pu - eu - 0.5))
+    i1 = int(np.floor(pu + eu - 0.5))
+    if i1 < i0:
+        i0 = i1 = int(np.floor(pu))
+    j0 = int(np.ceil(pv - ev - 0.5))
+    j1 = int(np.floor(pv + ev - 0.5))
+    if j1 < j0:
+        j0 = j1 = int(np.floor(pv))
+    i0 = max(i0, 0)
+    i1 = min(i1, n - 1)
+    j0 = max(j0, 0)
+    j1 = min(j1, n - 1)
+    if i1 < i0 or j1 < j0:
+        return -1, 0, -1, 0, -1
+    return face, i0, i1, j0, j1
+
+
 @njit(cache=True, nogil=True)
 def fill_zbuffer(origin, occ_centres, voxel_size, max_range, zbuf, dirty):
     """Splat occupied voxel centres (M, 3) into zbuf (6, n, n) float32 as their range from
@@ -63,48 +113,17 @@ def fill_zbuffer(origin, occ_centres, voxel_size, max_range, zbuf, dirty):
     seen from afar is a small part of the panorama."""
     n = zbuf.shape[1]
     _clear(zbuf, dirty)
-    half = 0.5 * n
-    d = np.empty(3)
     for k in range(occ_centres.shape[0]):
-        for a in range(3):
-            d[a] = occ_centres[k, a] - origin[a]
-        r = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        dx = occ_centres[k, 0] - origin[0]
+        dy = occ_centres[k, 1] - origin[1]
+        dz = occ_centres[k, 2] - origin[2]
+        r = np.sqrt(dx * dx + dy * dy + dz * dz)
         if r < 1e-9 or r > max_range:
             continue
-        alpha = min(SPLAT_HALF_EXTENT * voxel_size / r, MAX_SPLAT_HALF_ANGLE)
+        alpha = splat_alpha(r, voxel_size)
         for a in range(3):
-            if d[a] == 0.0:
-                continue
-            m = abs(d[a])
-            if m < alpha * r:  # this face's axis is (nearly) perpendicular to the voxel
-                continue
-            face = 2 * a + (0 if d[a] > 0 else 1)
-            b = 1 if a == 0 else 0
-            c = 1 if a == 2 else 2
-            u = d[b] / m
-            v = d[c] / m
-            eu = alpha * (1.0 + u * u) * half
-            ev = alpha * (1.0 + v * v) * half
-            pu = (u + 1.0) * half
-            pv = (v + 1.0) * half
-            if pu + eu < 0 or pu - eu >= n or pv + ev < 0 or pv - ev >= n:
-                continue
-            # the pixels whose centres (i + 0.5) lie inside the splat; at least the one holding
-            # the voxel's own centre. Covering every pixel the splat touches instead would grow
-            # each occluder by up to a pixel, hiding more the coarser the buffer.
-            i0 = int(np.ceil(pu - eu - 0.5))
-            i1 = int(np.floor(pu + eu - 0.5))
-            if i1 < i0:
-                i0 = i1 = int(np.floor(pu))
-            j0 = int(np.ceil(pv - ev - 0.5))
-            j1 = int(np.floor(pv + ev - 0.5))
-            if j1 < j0:
-                j0 = j1 = int(np.floor(pv))
-            i0 = max(i0, 0)
-            i1 = min(i1, n - 1)
-            j0 = max(j0, 0)
-            j1 = min(j1, n - 1)
-            if i1 < i0 or j1 < j0:
+            face, i0, i1, j0, j1 = splat_rect(dx, dy, dz, r, alpha, a, n)
+            if face < 0:
                 continue
             dirty[face, 0] = min(dirty[face, 0], i0)
             dirty[face, 1] = max(dirty[face, 1], i1)
@@ -138,6 +157,43 @@ def visible_from(origin, centres, zbuf, voxel_size, tol, max_range, out):
     return count
 
 
+@njit(cache=True, nogil=True, inline="always")
+def direction_bin(direction_bins, dx, dy, dz):
+    """Index of the row of direction_bins (D, 3) nearest the direction (dx, dy, dz) (the first of
+    equals): the bin `fusion.direction_bits` gives the same direction."""
+    best, bin_of = -2.0, 0
+    for d in range(direction_bins.shape[0]):
+        dot = direction_bins[d, 0] * dx + direction_bins[d, 1] * dy + direction_bins[d, 2] * dz
+        if dot > best:
+            best, bin_of = dot, d
+    return bin_of
+
+
+@njit(cache=True, inline="always")
+def view_entry(R, dx, dy, dz, normal, near, max_range, tan_x, tan_y, fs2, ppv, range_bin, max_bin):
+    """(weight, range bin) of a voxel at offset (dx, dy, dz) from the camera in the view of
+    rotation R (3, 3) R_world_cam, weight -1 where it is outside the view (see
+    `seed_view_masks`); normal (3,) the voxel's (zero: unknown); fs2 = (focal * voxel_size)^2."""
+    z = R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz
+    if z < near or z > max_range:
+        return -1.0, 0
+    x = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
+    if abs(x) > tan_x * z:
+        return -1.0, 0
+    y = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
+    if abs(y) > tan_y * z:
+        return -1.0, 0
+    cos = 1.0
+    nn = normal[0] * normal[0] + normal[1] * normal[1]
+    nn += normal[2] * normal[2]
+    if nn > 0.0:
+        r = np.sqrt(dx * dx + dy * dy + dz * dz)
+        cos = -(normal[0] * dx + normal[1] * dy + normal[2] * dz) / r
+        if cos <= 0.0:
+            return -1.0, 0
+    return min(1.0, fs2 * cos / (z * z) / ppv), min(int(z / range_bin), max_bin)
+
+
 @njit(cache=True, nogil=True)
 def seed_view_masks(
     seeds,
@@ -156,13 +212,12 @@ def seed_view_masks(
     tol,
     zbuf,
     dirty,
-    range_profile,
     range_bin,
-    voxel_directions,
     direction_bins,
-    repeat_gain,
+    bin_template,
+    keep_buffers,
 ):
-    """Visibility masks of every view at every seed, as CSR rows.
+    """Visibility masks of every view at every seed, as CSR rows, from geometry alone.
 
     seeds: (S, 3) camera centres; rotations: (S, B, 3, 3) R_world_cam of each seed's B views;
     occ_centres: (M, 3) occupied voxel centres (the occluders); centres: (N, 3) centres of the
@@ -172,84 +227,123 @@ def seed_view_masks(
     resolution allows: min(1, (focal * voxel_size / z)^2 * cos / pixels_per_voxel), i.e. the
     pixels its surface covers over the pixels a voxel needs; cos is the cosine between the
     voxel's normal (N, 3) (unit, towards free space; zero = unknown, cos taken as 1) and the
-    direction to the camera, so a surface seen at a grazing angle counts little; and times
-    range_profile[z // range_bin] (the last entry beyond its end): the confidence the depth
-    backend reaches at that range, relative to its best (ones: no preference); and times
-    repeat_gain where the voxel was already observed from the seed's direction: bit b of
-    voxel_directions[k] (N,) uint32 set, b the row of direction_bins (D, 3) nearest the direction
-    from the voxel to the seed (a second look along the same line repeats the same errors).
+    direction to the camera, so a surface seen at a grazing angle counts little. Each entry also
+    keeps what the evidence weighs it by when views are scored (`masks.score_view`): its range
+    bin z // range_bin (capped at the largest value of bin_template's dtype, whose dtype the bins
+    take) and the row of direction_bins (D, 3) nearest the direction from the voxel to the seed.
     zbuf: (6, n, n) float32 scratch, all inf, with its dirty (6, 4) int64 rectangles (see
-    `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32, weights float32).
+    `fill_zbuffer`; left as the last fill wrote them). Returns (nnz (S*B,) int64, ids int32,
+    weights float64, range bins, direction bins uint8, buffers): with keep_buffers, buffers =
+    (data float32, rects (S, 6, 4) int64, offsets (S, 6) int64), each seed's z-buffer cropped
+    to the rectangles its splats wrote (face f: rows i0..i1, columns j0..j1 of rects[s, f], row
+    by row from data[offsets[s, f]]; none where i1 < i0), what an incremental update starts from.
     """
     n_seeds = seeds.shape[0]
     n_views = rotations.shape[1]
     nnz = np.zeros(n_seeds * n_views, np.int64)
     cap = 1 << 16
     out_ids = np.empty(cap, np.int32)
-    out_w = np.empty(cap, np.float32)
+    out_w = np.empty(cap, np.float64)
+    out_r = np.empty(cap, bin_template.dtype)
+    out_d = np.empty(cap, np.uint8)
     total = 0
     visible = np.empty(centres.shape[0], np.int64)
-    repeat = np.empty(centres.shape[0], np.float64)
+    to_seed = np.empty(centres.shape[0], np.uint8)
     fs2 = (focal * voxel_size) ** 2
-    n_profile = range_profile.shape[0] - 1
+    max_bin = np.iinfo(bin_template.dtype).max
+    rects = np.zeros((n_seeds if keep_buffers else 0, 6, 4), np.int64)
+    offsets = np.zeros((n_seeds if keep_buffers else 0, 6), np.int64)
+    data = np.empty(1 << 16 if keep_buffers else 0, np.float32)
+    used = 0
     for s in range(n_seeds):
         o = seeds[s]
         fill_zbuffer(o, occ_centres, voxel_size, max_range, zbuf, dirty)
+        if keep_buffers:
+            data, used = _keep_crop(zbuf, dirty, data, used, rects[s], offsets[s])
         n_vis = visible_from(o, centres, zbuf, voxel_size, tol, max_range, visible)
         for q in range(n_vis):
             k = visible[q]
-            repeat[q] = 1.0
-            if voxel_directions[k] != 0:
-                best, bin_of = -2.0, 0
-                for d in range(direction_bins.shape[0]):
-                    dot = direction_bins[d, 0] * (o[0] - centres[k, 0])
-                    dot += direction_bins[d, 1] * (o[1] - centres[k, 1])
-                    dot += direction_bins[d, 2] * (o[2] - centres[k, 2])
-                    if dot > best:
-                        best, bin_of = dot, d
-                if (voxel_directions[k] >> np.uint32(bin_of)) & np.uint32(1):
-                    repeat[q] = repeat_gain
+            to_seed[q] = direction_bin(
+                direction_bins, o[0] - centres[k, 0], o[1] - centres[k, 1], o[2] - centres[k, 2]
+            )
         for b in range(n_views):
             R = rotations[s, b]
             if total + n_vis > cap:
                 while total + n_vis > cap:
                     cap *= 2
-                grown_ids = np.empty(cap, np.int32)
-                grown_w = np.empty(cap, np.float32)
-                grown_ids[:total] = out_ids[:total]
-                grown_w[:total] = out_w[:total]
-                out_ids = grown_ids
-                out_w = grown_w
+                out_ids = grown(out_ids, total, cap)
+                out_w = grown(out_w, total, cap)
+                out_r = grown(out_r, total, cap)
+                out_d = grown(out_d, total, cap)
             count = 0
             for q in range(n_vis):
                 k = visible[q]
-                dx = centres[k, 0] - o[0]
-                dy = centres[k, 1] - o[1]
-                dz = centres[k, 2] - o[2]
-                z = R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz
-                if z < near or z > max_range:
+                w, rb = view_entry(
+                    R,
+                    centres[k, 0] - o[0],
+                    centres[k, 1] - o[1],
+                    centres[k, 2] - o[2],
+                    normals[k],
+                    near,
+                    max_range,
+                    tan_x,
+                    tan_y,
+                    fs2,
+                    pixels_per_voxel,
+                    range_bin,
+                    max_bin,
+                )
+                if w < 0.0:
                     continue
-                x = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
-                if abs(x) > tan_x * z:
-                    continue
-                y = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
-                if abs(y) > tan_y * z:
-                    continue
-                cos = 1.0
-                nn = normals[k, 0] * normals[k, 0] + normals[k, 1] * normals[k, 1]
-                nn += normals[k, 2] * normals[k, 2]
-                if nn > 0.0:
-                    r = np.sqrt(dx * dx + dy * dy + dz * dz)
-                    cos = -(normals[k, 0] * dx + normals[k, 1] * dy + normals[k, 2] * dz) / r
-                    if cos <= 0.0:
-                        continue
                 out_ids[total + count] = ids[k]
-                share = min(1.0, fs2 * cos / (z * z) / pixels_per_voxel) * repeat[q]
-                out_w[total + count] = share * range_profile[min(int(z / range_bin), n_profile)]
+                out_w[total + count] = w
+                out_r[total + count] = rb
+                out_d[total + count] = to_seed[q]
                 count += 1
             nnz[s * n_views + b] = count
             total += count
-    return nnz, out_ids[:total].copy(), out_w[:total].copy()
+    return (
+        nnz,
+        out_ids[:total],
+        out_w[:total],
+        out_r[:total],
+        out_d[:total],
+        (data[:used], rects, offsets),
+    )
+
+
+@njit(cache=True, nogil=True)
+def _keep_crop(zbuf, dirty, data, used, rect, offset):
+    """Append the dirty rectangles of zbuf to data (grown when full); rect (6, 4), offset (6,)
+    get where they went. Returns (data, used)."""
+    for f in range(6):
+        i0, i1, j0, j1 = dirty[f, 0], dirty[f, 1], dirty[f, 2], dirty[f, 3]
+        rect[f, 0], rect[f, 1], rect[f, 2], rect[f, 3] = i0, i1, j0, j1
+        offset[f] = used
+        if i1 < i0 or j1 < j0:
+            rect[f, 1] = i0 - 1  # none
+            continue
+        size = (i1 - i0 + 1) * (j1 - j0 + 1)
+        if used + size > data.shape[0]:
+            cap = data.shape[0]
+            while used + size > cap:
+                cap *= 2
+            data = grown(data, used, cap)
+        q = used
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                data[q] = zbuf[f, i, j]
+                q += 1
+        used = q
+    return data, used
+
+
+@njit(cache=True, nogil=True)
+def grown(a, used, cap):
+    """A copy of a[:used] in a new array of cap elements."""
+    out = np.empty(cap, a.dtype)
+    out[:used] = a[:used]
+    return out
 
 
 @njit(cache=True)

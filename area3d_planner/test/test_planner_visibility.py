@@ -6,9 +6,10 @@ from scipy.spatial.distance import cdist
 
 from area3d_msgs_py.camera_pose import look_at, look_rotation
 from area3d_perception.grid import GridSpec
-from area3d_planner.fusion import FusedGrid
+from area3d_planner.fusion import RANGE_BIN, FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy
 from area3d_planner.visibility import (
+    ViewEvidence,
     VisibilityCache,
     VisibilityParams,
     lattice_positions,
@@ -142,22 +143,26 @@ def test_weights_are_the_share_of_pixels_a_voxel_needs_that_it_gets(distance):
 
 
 def test_a_range_profile_scales_each_weight_by_the_confidence_reached_at_that_range():
-    spec, occ, _ = wall_scene(1.2)
+    spec, occ, _ = wall_scene(1.19)  # surface layer at x = 1.195 m, the next one at 1.205 m
     params = VisibilityParams(level="room", face_res=128)
     R = look_rotation(np.array([1.0, 0.0, 0.0]))
     plain = VisibilityCache.build(spec, occ, np.zeros((1, 3)), R[None], params)
-    # bins of 1.21 m: full up to 1.21 m, half beyond (the wall's voxels straddle it)
-    profile = np.array([1.0, 0.5])
-    scaled = VisibilityCache.build(
-        spec, occ, np.zeros((1, 3)), R[None], params, range_profile=(profile, 1.21)
-    )
+    # full up to 1.2 m, half beyond (the two layers straddle it)
+    profile = np.where(np.arange(1000) >= 12, 0.5, 1.0)
+    none_seen = np.zeros(spec.num_voxels, np.uint32)
+    scaled = plain.bind(ViewEvidence.of_grid((none_seen, (profile, RANGE_BIN)), params))
     ids, w_plain = plain.mask(0)
     ids_scaled, w_scaled = scaled.mask(0)
     np.testing.assert_array_equal(ids, ids_scaled)  # what is seen does not change
     z = spec.centers_of(ids)[:, 0]  # optical depth: the camera looks along +x from the origin
-    factor = np.where(z >= 1.21, 0.5, 1.0)
-    np.testing.assert_allclose(w_scaled, w_plain * factor, rtol=1e-6)
-    assert (z >= 1.21).any() and (z < 1.21).any()
+    factor = np.where(z >= 1.2, 0.5, 1.0)
+    np.testing.assert_allclose(w_scaled, w_plain * factor, rtol=1e-12)
+    assert (z >= 1.2).any() and (z < 1.2).any()
+    np.testing.assert_allclose(scaled.score(np.ones(spec.num_voxels)), w_scaled.sum(dtype=float))
+    # switched off, the profile counts for nothing
+    off = dataclasses.replace(params, range_profile=False)
+    ignored = plain.bind(ViewEvidence.of_grid((none_seen, (profile, RANGE_BIN)), off))
+    np.testing.assert_array_equal(ignored.mask(0)[1], w_plain)
 
 
 def test_a_voxel_already_seen_from_the_seeds_direction_counts_repeat_gain_of_a_new_one():
@@ -177,11 +182,40 @@ def test_a_voxel_already_seen_from_the_seeds_direction_counts_repeat_gain_of_a_n
     directions[ids[~seen_here]] = direction_bits(
         centres[~seen_here], centres[~seen_here] + [0, 0, 1]
     )
-    again = VisibilityCache.build(spec, occ, seed, R[None], params, directions=directions)
+    again = plain.bind(ViewEvidence.of_grid((directions, (np.ones(1), RANGE_BIN)), params))
     ids_again, w_again = again.mask(0)
     np.testing.assert_array_equal(ids, ids_again)
-    np.testing.assert_allclose(w_again, w_plain * np.where(seen_here, 0.25, 1.0), rtol=1e-6)
+    np.testing.assert_allclose(w_again, w_plain * np.where(seen_here, 0.25, 1.0), rtol=1e-12)
     assert seen_here.any() and (~seen_here).any()
+
+
+def test_an_entrys_weight_is_rounded_once_as_a_mask_built_with_the_evidence_stored_it():
+    """The weight under evidence is float32(share * repeat * profile), multiplied in float64 in
+    that order: bit for bit the weight the masks stored when the evidence was applied at build
+    time, so the planner scores and aims views exactly as it did then (one rounding of the share
+    to float32 first moved an aimed view by 1e-8 and the episode's next views apart)."""
+    from area3d_planner.fusion import direction_bits
+
+    spec, occ, _ = wall_scene(1.19)
+    params = VisibilityParams(level="room", face_res=128, repeat_gain=0.3)
+    R = look_rotation(np.array([1.0, 0.0, 0.0]))
+    seed = np.zeros((1, 3))
+    plain = VisibilityCache.build(spec, occ, seed, R[None], params)
+    assert plain.weights.dtype == np.float64
+    ids = plain.voxel_ids
+    centres = spec.centers_of(ids)
+    directions = np.zeros(spec.num_voxels, np.uint32)
+    seen_here = centres[:, 1] > 0
+    directions[ids[seen_here]] = direction_bits(centres[seen_here], seed[0])
+    profile = np.linspace(1.0, 0.37, 40) ** 1.3  # values whose products round
+    bound = plain.bind(ViewEvidence.of_grid((directions, (profile, RANGE_BIN)), params))
+    z = centres[:, 0]
+    share = plain.weights * np.where(seen_here, 0.3, 1.0)
+    expected = (share * profile[np.minimum((z / RANGE_BIN).astype(int), 39)]).astype(np.float32)
+    _, weights = bound.mask(0)
+    assert weights.dtype == np.float32
+    np.testing.assert_array_equal(weights, expected)
+    assert bound.score(np.ones(spec.num_voxels))[0] == sum(float(w) for w in expected)
 
 
 def fused_clutter(seed: int):
