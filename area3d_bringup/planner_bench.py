@@ -6,14 +6,17 @@ when sim_bridge can render, and a synthetic room-like grid of 10^6 voxels.
 
 from __future__ import annotations
 
-import contextlib
-import os
-import subprocess
 import time
 
 import numpy as np
 
 from area3d_bringup.bench_frames import object_frames
+from area3d_bringup.closed_loop_bench import (
+    CLOSED_LOOP_TARGET_S,
+    LOADED_BURNERS,
+    bench_closed_loop,
+    planner_overrides,
+)
 from area3d_bringup.transport_bench import TARGET_ROUND_TRIP_P95_S
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import FusedGrid
@@ -125,105 +128,6 @@ def bench_grid(
     }
 
 
-def _planner_overrides(scene) -> dict:
-    """What the planner node is told about a scene, as PlannerConfig values."""
-    from area3d_bringup.launch_description import planner_region
-
-    return {k: tuple(v) if isinstance(v, list) else v for k, v in planner_region(scene).items()}
-
-
-CLOSED_LOOP_TARGET_S = {"object": 0.08, "room": 0.3}  # frame captured -> next view answered, p95
-LOADED_BURNERS = (
-    2  # busy processes beside the loaded run (`yes > /dev/null`: load about 4 on 2 cores)
-)
-
-
-@contextlib.contextmanager
-def _burners(count: int):
-    """`count` processes that keep a core busy each (`yes > /dev/null`) while the block runs."""
-    procs = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(count)]
-    try:
-        yield
-    finally:
-        for proc in procs:
-            proc.kill()
-            proc.wait()
-
-
-def _full_rebuild_s(context, occupancy: np.ndarray) -> float:
-    """Seconds the planner's rebuild of candidates and masks takes from nothing (no masks to
-    update) for an occupancy snapshot."""
-    from dataclasses import replace
-
-    fresh = replace(context, _caches={}, _previous={}, _fields={}, _evidence=None)
-    t0 = time.perf_counter()
-    fresh.build(occupancy, ("roi_not_free",))
-    return time.perf_counter() - t0
-
-
-def bench_closed_loop(scene_name: str, steps: int = 12, burners: int = 0) -> dict:
-    """Closed loop in one process, as the nodes run it: after the initial views, each step takes
-    the frame captured at the last planned view through the sensor model's confidence, fusion, the
-    background rebuild of candidates and masks (incremental), and one next-best-view request; the
-    latency is from the rendered frame to the answer (rendering itself excluded). Beside it, each
-    step's rebuild from nothing on the same map (not in the latency), and with `burners` busy
-    processes running (`_burners`), the load average over the run."""
-    from area3d_perception.sensor_model import rgbd_confidence
-    from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
-    from sim_bridge.render import RgbdRenderer
-    from sim_bridge.scenes import load_scene
-
-    scene = load_scene(scene_name)
-    config = PlannerConfig(**{**_planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
-    server = NextBestViewServer(config, background=True)
-    renderer = RgbdRenderer(scene)
-    latencies, incremental, full, updated, changed = [], [], [], [], []
-    try:
-        stamp = 0
-        for T in scene.initial_views:
-            stamp += 1
-            _, depth = renderer.render(T)
-            server.add_frame(stamp, depth, rgbd_confidence(depth, renderer.K), renderer.K, T)
-        poses, reason = server.plan(PlanRequest(T, stamp, 1))
-        with _burners(burners):
-            time.sleep(2.0 if burners else 0.0)  # the busy processes get going
-            for _ in range(steps):
-                if reason:
-                    raise RuntimeError(reason)
-                T = poses[0]
-                _, depth = renderer.render(T)
-                t0 = time.perf_counter()
-                stamp += 1
-                server.add_frame(stamp, depth, rgbd_confidence(depth, renderer.K), renderer.K, T)
-                poses, reason = server.plan(PlanRequest(T, stamp, 1))
-                latencies.append(time.perf_counter() - t0)
-                rebuild = dict(server.last_rebuild)
-                incremental.append(rebuild["seconds"])
-                updated.append(rebuild.get("updated", 0) / max(1, rebuild["positions"]))
-                changed.append(rebuild.get("positions_changed", 0) / max(1, rebuild["positions"]))
-                full.append(_full_rebuild_s(server.context, server.grid.occupancy()))
-            load = os.getloadavg()[0]
-    finally:
-        renderer.close()
-        server.close()
-    lat = np.asarray(latencies)
-    return {
-        "level": scene.level,
-        "voxels": server.grid.spec.num_voxels,
-        "steps": len(latencies),
-        "burners": burners,
-        "load": load,
-        "p50_s": float(np.percentile(lat, 50)),
-        "p95_s": float(np.percentile(lat, 95)),
-        "rebuild_p50_s": float(np.percentile(incremental, 50)),
-        "rebuild_p95_s": float(np.percentile(incremental, 95)),
-        "full_rebuild_p50_s": float(np.percentile(full, 50)),
-        "full_rebuild_p95_s": float(np.percentile(full, 95)),
-        "positions_updated": float(np.mean(updated)),
-        "positions_changed": float(np.mean(changed)),
-    }
-
-
 def bench_visibility_accuracy(scene_name: str) -> dict:
     """Median relative error of every candidate view's score (utility after the initial views)
     at the level's default `face_res` against a buffer with 16x the pixels (4x `face_res`), with
@@ -236,7 +140,7 @@ def bench_visibility_accuracy(scene_name: str) -> dict:
     from sim_bridge.scenes import load_scene
 
     scene = load_scene(scene_name)
-    config = PlannerConfig(**{**_planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
+    config = PlannerConfig(**{**planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
     server = NextBestViewServer(config, background=False)
     renderer = RgbdRenderer(scene)
     try:
@@ -277,7 +181,7 @@ def bench_server(requests: int = 50) -> dict:
     from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
 
     scene, frames = object_frames()
-    config = PlannerConfig(**{**_planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
+    config = PlannerConfig(**{**planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
     server = NextBestViewServer(config, background=True)
     try:
         t0 = time.perf_counter()
