@@ -252,6 +252,110 @@ def _shelf_object(rng: np.random.Generator, k: int) -> trimesh.Trimesh:
     return kinds[k % len(kinds)]()
 
 
+def _shelf_corner(doc, folder: Path, rng, wall_len: float, width: float, materials, areas: list):
+    """The corner of `write_shelf_wall`: a side wall, a kitchen-height cabinet with its worktop (a
+    free area appended to `areas`); `materials` = (wall, wood); returns the bookcase's x beside
+    the cabinet."""
+    wall, wood = materials
+    t = WALL_THICK
+    sx = rng.choice([-1.0, 1.0])  # the side of the corner
+    side_len = rng.uniform(1.6, 2.2)
+    doc.box(
+        "wall_side",
+        [sx * (wall_len + t) / 2, (t - side_len) / 2, WALL_HEIGHT / 2],
+        [t, side_len + t, WALL_HEIGHT],
+        wall,
+    )
+    cab_w = rng.uniform(*CABINET_WIDTH)
+    cab_x, cab_y = sx * (wall_len / 2 - 0.005 - cab_w / 2), -0.005 - CABINET_DEPTH / 2
+    body = doc.material(folder, "cabinet", "noise", (225, 222, 212), (245, 243, 236), seed=9)
+    doc.box(
+        "cabinet",
+        [cab_x, cab_y, (CABINET_HEIGHT - 0.03) / 2],
+        [cab_w, CABINET_DEPTH, CABINET_HEIGHT - 0.03],
+        body,
+    )
+    doc.box(
+        "worktop",
+        [cab_x, cab_y - 0.015, CABINET_HEIGHT - 0.015],
+        [cab_w, CABINET_DEPTH + 0.03, 0.03],
+        wood,
+    )
+    areas.append(
+        [
+            np.array([cab_x - cab_w / 2 + 0.04, cab_y - CABINET_DEPTH / 2, CABINET_HEIGHT]),
+            np.array([cab_x + cab_w / 2 - 0.04, -0.04, CABINET_HEIGHT + 0.3]),
+            [],
+        ]
+    )
+    return cab_x - sx * (cab_w / 2 + rng.uniform(0.05, 0.25) + width / 2)
+
+
+def _bookcase(doc, rng, shelf_x, width, depth, height, wood: str, areas: list) -> np.ndarray:
+    """The bookcase of `write_shelf_wall`: side panels, back board, boards (each a free area
+    appended to `areas`); returns the boards' heights."""
+    # The bookcase: side panels, a back board 1 cm off the wall, boards from 8 cm up to the top.
+    back_y = -0.01
+    front_y = back_y - depth
+    for i, x in enumerate((shelf_x - (width - BOARD) / 2, shelf_x + (width - BOARD) / 2)):
+        doc.box(
+            f"shelf_side{i}", [x, (back_y + front_y) / 2, height / 2], [BOARD, depth, height], wood
+        )
+    inner = width - 2 * BOARD
+    doc.box("shelf_back", [shelf_x, back_y - 0.006, height / 2], [inner, 0.012, height], wood)
+    most = min(5, 1 + int((height - 0.08) // (SHELF_CLEAR + BOARD)))
+    tops = np.linspace(0.08, height, int(rng.integers(3, most + 1)))
+    for i, z in enumerate(tops):
+        doc.box(
+            f"shelf_board{i}",
+            [shelf_x, (back_y - 0.012 + front_y) / 2, z - BOARD / 2],
+            [inner, depth - 0.012, BOARD],
+            wood,
+        )
+        clear = tops[i + 1] - BOARD - z if i + 1 < len(tops) else 0.3
+        x_lo, x_hi = shelf_x - inner / 2 + 0.02, shelf_x + inner / 2 - 0.02
+        areas.append([np.array([x_lo, front_y, z]), np.array([x_hi, back_y - 0.02, z + clear]), []])
+    return tops
+
+
+def _books_and_pair(doc, folder: Path, rng, seed: int, shelves: list, pair: int, mats, books):
+    """Rows of books on some boards, and on board `pair` a small object set back behind a taller
+    one (each placed object a keep-out of its board)."""
+    for i, (lo, hi, keepout) in enumerate(shelves):
+        if i == pair or rng.random() < 0.35:
+            continue
+        x = rng.uniform(lo[0], hi[0] - 0.3)
+        x0 = x
+        for j in range(int(rng.integers(4, 9))):
+            w, d = rng.uniform(0.02, 0.045), rng.uniform(0.14, 0.2)
+            h = min(hi[2] - lo[2] - 0.02, rng.uniform(0.17, 0.25))
+            material = mats[j % len(mats)] if j % 3 == 0 else books
+            doc.box(f"book{i}_{j}", [x + w / 2, hi[1] - d / 2, lo[2] + h / 2], [w, d, h], material)
+            x += w + 0.002
+        keepout.append((np.array([x0, hi[1] - 0.2]), np.array([x, hi[1]])))
+    # On one board, a small object set back behind a taller one standing in front of it.
+    lo, hi, keepout = shelves[pair]
+    small = meshes.blob(radius=rng.uniform(0.035, 0.045), seed=seed + 11)
+    tall = meshes.vase(radius=0.045, height=min(0.22, 0.85 * (hi[2] - lo[2])))
+    r_small, r_tall = (float(np.linalg.norm(m.extents[:2])) / 2 for m in (small, tall))
+    px = rng.uniform(lo[0] + 0.1, hi[0] - 0.1)
+    back = np.array([px, hi[1] - r_small])
+    front = np.array([px + rng.uniform(-0.03, 0.03), back[1] - r_small - OBJECT_GAP - r_tall])
+    for label, mesh, xy, r in (
+        ("set_back", small, back, r_small),
+        ("in_front", tall, front, r_tall),
+    ):
+        _chair_mesh_body(
+            doc,
+            label,
+            _mesh_asset(doc, folder, label, mesh, [1, 1, 1]),
+            [*xy, lo[2]],
+            rng.uniform(-np.pi, np.pi),
+            mats[len(keepout) % len(mats)],
+        )
+        keepout.append((xy - r, xy + r))
+
+
 def write_shelf_wall(folder: Path, seed: int = 0) -> Path:
     """Write a shelf against a wall into `folder` and return its MJCF path (`shelf_wall_s{seed}.xml`).
 
@@ -289,97 +393,15 @@ def write_shelf_wall(folder: Path, seed: int = 0) -> Path:
     height = rng.uniform(*SHELF_HEIGHT)
     # Free areas to put things on: [lo (3,), hi (3,): hi[2] - lo[2] is the free height, keep-outs]
     areas: list[list] = []
-    if corner:
-        sx = rng.choice([-1.0, 1.0])  # the side of the corner
-        side_len = rng.uniform(1.6, 2.2)
-        doc.box(
-            "wall_side",
-            [sx * (wall_len + t) / 2, (t - side_len) / 2, WALL_HEIGHT / 2],
-            [t, side_len + t, WALL_HEIGHT],
-            wall,
-        )
-        cab_w = rng.uniform(*CABINET_WIDTH)
-        cab_x, cab_y = sx * (wall_len / 2 - 0.005 - cab_w / 2), -0.005 - CABINET_DEPTH / 2
-        body = doc.material(folder, "cabinet", "noise", (225, 222, 212), (245, 243, 236), seed=9)
-        doc.box(
-            "cabinet",
-            [cab_x, cab_y, (CABINET_HEIGHT - 0.03) / 2],
-            [cab_w, CABINET_DEPTH, CABINET_HEIGHT - 0.03],
-            body,
-        )
-        doc.box(
-            "worktop",
-            [cab_x, cab_y - 0.015, CABINET_HEIGHT - 0.015],
-            [cab_w, CABINET_DEPTH + 0.03, 0.03],
-            wood,
-        )
-        areas.append(
-            [
-                np.array([cab_x - cab_w / 2 + 0.04, cab_y - CABINET_DEPTH / 2, CABINET_HEIGHT]),
-                np.array([cab_x + cab_w / 2 - 0.04, -0.04, CABINET_HEIGHT + 0.3]),
-                [],
-            ]
-        )
-        shelf_x = cab_x - sx * (cab_w / 2 + rng.uniform(0.05, 0.25) + width / 2)
-    else:
+    shelf_x = (
+        _shelf_corner(doc, folder, rng, wall_len, width, (wall, wood), areas) if corner else None
+    )
+    if shelf_x is None:
         shelf_x = rng.uniform(-0.3, 0.3)
-    # The bookcase: side panels, a back board 1 cm off the wall, boards from 8 cm up to the top.
-    back_y = -0.01
-    front_y = back_y - depth
-    for i, x in enumerate((shelf_x - (width - BOARD) / 2, shelf_x + (width - BOARD) / 2)):
-        doc.box(
-            f"shelf_side{i}", [x, (back_y + front_y) / 2, height / 2], [BOARD, depth, height], wood
-        )
-    inner = width - 2 * BOARD
-    doc.box("shelf_back", [shelf_x, back_y - 0.006, height / 2], [inner, 0.012, height], wood)
-    most = min(5, 1 + int((height - 0.08) // (SHELF_CLEAR + BOARD)))
-    tops = np.linspace(0.08, height, int(rng.integers(3, most + 1)))
-    for i, z in enumerate(tops):
-        doc.box(
-            f"shelf_board{i}",
-            [shelf_x, (back_y - 0.012 + front_y) / 2, z - BOARD / 2],
-            [inner, depth - 0.012, BOARD],
-            wood,
-        )
-        clear = tops[i + 1] - BOARD - z if i + 1 < len(tops) else 0.3
-        x_lo, x_hi = shelf_x - inner / 2 + 0.02, shelf_x + inner / 2 - 0.02
-        areas.append([np.array([x_lo, front_y, z]), np.array([x_hi, back_y - 0.02, z + clear]), []])
+    tops = _bookcase(doc, rng, shelf_x, width, depth, height, wood, areas)
     shelves = areas[-len(tops) : -1]  # the boards with another above them
     pair = int(rng.integers(len(shelves)))
-    # Books: a row at the back of some boards, each book its own box.
-    for i, (lo, hi, keepout) in enumerate(shelves):
-        if i == pair or rng.random() < 0.35:
-            continue
-        x = rng.uniform(lo[0], hi[0] - 0.3)
-        x0 = x
-        for j in range(int(rng.integers(4, 9))):
-            w, d = rng.uniform(0.02, 0.045), rng.uniform(0.14, 0.2)
-            h = min(hi[2] - lo[2] - 0.02, rng.uniform(0.17, 0.25))
-            material = mats[j % len(mats)] if j % 3 == 0 else books
-            doc.box(f"book{i}_{j}", [x + w / 2, hi[1] - d / 2, lo[2] + h / 2], [w, d, h], material)
-            x += w + 0.002
-        keepout.append((np.array([x0, hi[1] - 0.2]), np.array([x, hi[1]])))
-    # On one board, a small object set back behind a taller one standing in front of it.
-    lo, hi, keepout = shelves[pair]
-    small = meshes.blob(radius=rng.uniform(0.035, 0.045), seed=seed + 11)
-    tall = meshes.vase(radius=0.045, height=min(0.22, 0.85 * (hi[2] - lo[2])))
-    r_small, r_tall = (float(np.linalg.norm(m.extents[:2])) / 2 for m in (small, tall))
-    px = rng.uniform(lo[0] + 0.1, hi[0] - 0.1)
-    back = np.array([px, hi[1] - r_small])
-    front = np.array([px + rng.uniform(-0.03, 0.03), back[1] - r_small - OBJECT_GAP - r_tall])
-    for label, mesh, xy, r in (
-        ("set_back", small, back, r_small),
-        ("in_front", tall, front, r_tall),
-    ):
-        _chair_mesh_body(
-            doc,
-            label,
-            _mesh_asset(doc, folder, label, mesh, [1, 1, 1]),
-            [*xy, lo[2]],
-            rng.uniform(-np.pi, np.pi),
-            mats[len(keepout) % len(mats)],
-        )
-        keepout.append((xy - r, xy + r))
+    _books_and_pair(doc, folder, rng, seed, shelves, pair, mats, books)
     # More objects at sampled places on every board and on the worktop, apart from each other.
     count = 0
     for lo, hi, keepout in areas:
