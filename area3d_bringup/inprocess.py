@@ -91,15 +91,17 @@ def run_inprocess_episode(
         for T in scene.initial_views:
             if not episode.take(T, "initial"):
                 raise ValueError(f"the camera refused an initial view of {scene.name}")
-        refused = 0
+        refused, stopped = 0, ""
         while len(episode.views) < total and refused <= total:
             t = time.perf_counter()
             last = episode.views[-1]
-            poses, _ = graph.server.plan(
+            poses, reason = graph.server.plan(
                 _plan_request(np.asarray(last["T_world_cam"]), last["stamp_ns"])
             )
             episode.add_time("planning", time.perf_counter() - t)
-            if not poses:
+            if not poses:  # as the graph's runner: stop early, and say why
+                left = total - len(episode.views)
+                stopped = f"the planner returned no view with {left} left ({reason})"
                 break
             if not episode.take(poses[0], "planned"):
                 refused += 1
@@ -116,6 +118,7 @@ def run_inprocess_episode(
             "mode": "closed_loop",
             "depth_source": depth_source,
             "views": episode.views,
+            "stopped_early": stopped,  # empty when the budget was spent
             "timings_s": episode.timings,
             "config": {spec.name: spec.parameters for spec in specs} | {"in_process": True},
         },
