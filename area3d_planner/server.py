@@ -440,6 +440,8 @@ class NextBestViewServer:
     rebuild_nice: int = 0
     grid: FusedGrid = field(init=False)
     committed: int = field(init=False, default=0)
+    # the last closed-loop plan's views, until a frame comes: (request stamp, frames fused, count)
+    _handed_out: tuple[int, int, int] | None = field(init=False, default=None)
     initial_frames: int | None = field(init=False, default=None)
     last_fused_stamp: int = field(init=False, default=0)
     _sequence: SelectedViews | None = field(
@@ -842,7 +844,23 @@ class NextBestViewServer:
                 if not views.poses:
                     return Plan([], [], "no candidate view sees the region of interest")
                 self.committed += len(views.poses)
+                closed_loop = (request.mode or self.config.mode) == "closed_loop"
+                self._handed_out = (
+                    (int(request.stamp_ns), self.grid.frames, len(views.poses))
+                    if closed_loop and request.stamp_ns > 0
+                    else None
+                )
                 return Plan(list(views.poses), list(views.gains), "")
+
+    def _release_uncaptured(self, request: PlanRequest) -> None:
+        """A closed-loop request from the same frame as the last plan, with no frame fused since,
+        means the views handed out then were not captured (the camera refused them: inside
+        geometry it knows and the map does not, out of reach): they no longer count against the
+        budget (their decay stays, so the next plan looks elsewhere). Lock held."""
+        last = self._handed_out
+        if last is not None and int(request.stamp_ns) == last[0] and self.grid.frames == last[1]:
+            self.committed -= last[2]
+            self._handed_out = None
 
     def _check_request(self, request: PlanRequest) -> tuple[int, int] | str:
         """(views wanted, remaining budget) for a request, or the reason it gets no plan (lock
@@ -865,6 +883,8 @@ class NextBestViewServer:
         mode = request.mode or self.config.mode
         if mode not in MODES:
             return f"mode: got {mode!r}, expected one of {', '.join(MODES)} (empty: the planner's)"
+        if mode == "closed_loop":
+            self._release_uncaptured(request)
         remaining = self.remaining_budget()
         if remaining == 0:
             return f"budget: all {self.budget} views are spent"

@@ -493,3 +493,18 @@ def test_candidate_views_take_the_camera_of_the_fused_frames():
     poses, reason = srv.plan(PlanRequest(None, 2, 1))
     assert reason == "" and len(poses) == 1
     assert srv.context.cache().params.hfov_deg == pytest.approx(87.0)
+
+
+def test_a_closed_loop_view_the_camera_did_not_capture_stops_counting_against_the_budget():
+    srv = NextBestViewServer(config(budget=3, mode="closed_loop"))
+    srv.add_frame(1, *frame())
+    first, _ = srv.plan(PlanRequest(None, 1, 1))
+    assert len(first) == 1 and srv.remaining_budget() == 1
+    # asked again from the same frame, nothing fused since: the first view was never captured
+    second, reason = srv.plan(PlanRequest(None, 1, 1))
+    assert reason == "" and len(second) == 1 and srv.remaining_budget() == 1
+    srv.add_frame(2, *frame())  # this one was captured
+    third, reason = srv.plan(PlanRequest(None, 2, 1))
+    assert reason == "" and len(third) == 1 and srv.remaining_budget() == 0
+    srv.add_frame(3, *frame())
+    assert srv.plan(PlanRequest(None, 3, 1)) == ([], "budget: all 3 views are spent")
