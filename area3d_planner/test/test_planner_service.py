@@ -112,6 +112,12 @@ def test_next_best_view_answers_views_with_gains_in_world_frame_or_says_why_not(
     assert "current.header.frame_id: got 'world', expected 'odom'" in wrong_frame.message
     named = ask(planner, 0, T, T0, mode="closed_loop")  # count 0 in closed loop: one view
     assert named.success and len(named.views.poses) == 1
+    # asked again from the same frame, nothing fused since: that view was not captured and no
+    # longer counts against the budget (4 = the frame + this view + the 2 batch views below)
+    again = ask(planner, 0, T, T0, mode="closed_loop")
+    assert again.success and len(again.views.poses) == 1
+    rest = ask(planner, 0, T, T0, mode="batch")  # batch, count 0: the rest of the budget
+    assert rest.success and len(rest.views.poses) == 2
     spent = ask(planner, 0, T, T0)
     assert not spent.success and spent.message == "budget: all 4 views are spent"
     status = planner._status()
