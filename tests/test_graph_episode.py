@@ -162,19 +162,7 @@ def test_evaluation_and_report_of_the_episode(episode):
         assert image.name in md.read_text()
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        text = (task / "children").read_text().split()
-        out.extend(int(p) for p in text)
-    return out
-
-
-def _cmdline(pid: int) -> str:
-    return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-
-
-def test_a_node_dying_mid_episode_is_named_and_the_episode_resumes(tmp_path):
+def test_a_node_dying_mid_episode_is_named_and_the_episode_resumes(tmp_path, child_pids, cmdline):
     base = [
         sys.executable,
         "-m",
@@ -205,7 +193,7 @@ def test_a_node_dying_mid_episode_is_named_and_the_episode_resumes(tmp_path):
             frames = list(tmp_path.glob("*/frames/*.npz"))
             time.sleep(0.05)
         assert len(frames) >= 5, "the episode did not get going"
-        planner = [p for p in _children(runner.pid) if "area3d_planner.node" in _cmdline(p)]
+        planner = [p for p in child_pids(runner.pid) if "area3d_planner.node" in cmdline(p)]
         assert len(planner) == 1
         os.kill(planner[0], signal.SIGKILL)
         _, err = runner.communicate(timeout=60)

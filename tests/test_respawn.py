@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 # The smallest episode that still plans: |O_0| = 4 plus three planned views, tiny images.
 EPISODE = [
@@ -27,25 +26,15 @@ NODE_MODULE = {
 }
 
 
-def _children(pid: int) -> list[int]:
-    out: list[int] = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        out.extend(int(p) for p in (task / "children").read_text().split())
-    return out
+def test_each_node_killed_once_is_respawned_and_the_episode_completes(
+    tmp_path, child_pids, cmdline
+):
+    def node_pid(name: str) -> int | None:
+        for pid in child_pids(runner.pid):
+            if NODE_MODULE[name] in cmdline(pid):
+                return pid
+        return None
 
-
-def _node_pid(runner_pid: int, name: str) -> int | None:
-    for pid in _children(runner_pid):
-        try:
-            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        except FileNotFoundError:
-            continue
-        if NODE_MODULE[name].encode() in cmdline:
-            return pid
-    return None
-
-
-def test_each_node_killed_once_is_respawned_and_the_episode_completes(tmp_path):
     runner = subprocess.Popen(
         [sys.executable, "-m", "area3d_bringup.cli", "run", *EPISODE, "--out", str(tmp_path),
          "--respawn", "--respawn-delay", "0.5", "--respawn-retries", "1"],
@@ -60,7 +49,7 @@ def test_each_node_killed_once_is_respawned_and_the_episode_completes(tmp_path):
                 log = logs[0].read_text() if logs else ""
                 frames = len(list(tmp_path.glob("*/frames/*.npz")))
                 previous_back = not killed or f"{killed[-1]} respawned" in log
-                pid = _node_pid(runner.pid, name)
+                pid = node_pid(name)
                 if frames >= views and previous_back and pid is not None:
                     os.kill(pid, signal.SIGKILL)
                     killed.append(name)
