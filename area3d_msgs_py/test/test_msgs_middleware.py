@@ -44,6 +44,19 @@ def test_shm_profile_has_a_segment_for_the_largest_sample_plus_udp_and_no_builti
     assert used == ["area3d_shm", "area3d_udp"]
 
 
+@pytest.mark.parametrize("transport", ["shm", "udp"])
+def test_profiles_announce_each_participant_more_often_than_fast_dds_default(transport):
+    root = ET.fromstring(middleware.profile_xml(transport))
+    lease = root.find(
+        f"{NS}profiles/{NS}participant/{NS}rtps/{NS}builtin/{NS}discovery_config/"
+        f"{NS}leaseAnnouncement"
+    )
+    period_s = int(lease.find(NS + "sec").text) + int(lease.find(NS + "nanosec").text) / 1e9
+    assert period_s == pytest.approx(middleware.ANNOUNCEMENT_PERIOD_S)
+    assert 0 < period_s < 3.0  # Fast DDS' default is 3 s
+    assert int(lease.find(NS + "nanosec").text) < 10**9
+
+
 def test_udp_profile_has_no_shared_memory():
     text = middleware.profile_xml("udp")
     assert "SHM" not in text and "UDPv4" in text
