@@ -205,3 +205,51 @@ def test_an_update_moves_the_buffers_so_a_second_update_of_the_same_cache_builds
     assert_same_masks(again, first)
     plain = VisibilityCache.build(spec, occ, seeds, rotations, params)  # no buffers kept
     assert plain.update(later, seeds, rotations).report["built"] == 2
+
+
+def test_buffers_are_gathered_into_one_arena_when_they_hold_much_unused_or_are_many():
+    """Buffers.compacted: positions keep their data, crops and offsets into one arena once the
+    arenas hold more than twice what is in use or are more than MAX_ARENAS; else as they are."""
+    from area3d_planner.incremental import MAX_ARENAS, Buffers
+
+    rng = np.random.default_rng(7)
+
+    def buffers(count: int, arenas: int, dead: int) -> Buffers:
+        b = Buffers.empty(count, 32)
+        b.rects[:] = -1  # empty faces (i1 < i0) ...
+        b.rects[:, :, 0] = 0
+        for s in range(count):  # ... but two of each position's
+            for f in rng.choice(6, 2, replace=False):
+                i0, j0 = rng.integers(0, 16, 2)
+                b.rects[s, f] = (i0, i0 + rng.integers(0, 16), j0, j0 + rng.integers(0, 16))
+        sizes = np.where(
+            b.rects[:, :, 1] >= b.rects[:, :, 0],
+            (b.rects[:, :, 1] - b.rects[:, :, 0] + 1) * (b.rects[:, :, 3] - b.rects[:, :, 2] + 1),
+            0,
+        )
+        owner = np.arange(count) % arenas
+        for a in range(arenas):
+            at = dead  # unused data ahead of the positions'
+            for s in np.flatnonzero(owner == a):
+                b.offsets[s] = at + np.concatenate(([0], np.cumsum(sizes[s])[:-1]))
+                at += int(sizes[s].sum())
+            b.arenas.append(rng.random(at).astype(np.float32))
+        b.arena_of[:] = owner
+        return b
+
+    def data(b: Buffers, s: int) -> np.ndarray:
+        first, end = b.spans()
+        return b.arenas[b.arena_of[s]][first[s] : end[s]]
+
+    kept = buffers(40, 4, dead=0)
+    assert kept.compacted() is kept
+    for b in (buffers(40, 4, dead=400_000), buffers(MAX_ARENAS + 1, MAX_ARENAS + 1, dead=0)):
+        c = b.compacted()
+        assert c is not b and len(c.arenas) == 1 and not c.arena_of.any()
+        first, end = c.spans()
+        assert end.max() == c.arenas[0].size and (end - first).sum() == c.arenas[0].size
+        np.testing.assert_array_equal(c.rects, b.rects)
+        for s in range(b.arena_of.size):
+            np.testing.assert_array_equal(data(c, s), data(b, s))
+            # each face at the same place relative to the position's first
+            np.testing.assert_array_equal(c.offsets[s] - first[s], b.offsets[s] - b.spans()[0][s])
