@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from area3d_bringup.presets import episode_specs
-from area3d_eval.rundir import check_depth_source, write_episode, write_frame
+from area3d_eval.rundir import check_depth_source, stopped_early, write_episode, write_frame
 
 
 def _node_values(specs: list, name: str, module: Any) -> dict:
@@ -100,8 +100,7 @@ def run_inprocess_episode(
             )
             episode.add_time("planning", time.perf_counter() - t)
             if not poses:  # as the graph's runner: stop early, and say why
-                left = total - len(episode.views)
-                stopped = f"the planner returned no view with {left} left ({reason})"
+                stopped = stopped_early(total - len(episode.views), reason)
                 break
             if not episode.take(poses[0], "planned"):
                 refused += 1

@@ -79,6 +79,7 @@ class _Episode:
         self.views: list[dict] = []
         self.frames: list[Frame] = []
         self.recorded: dict[str, int] = {}  # messages recorded before a resume, per topic
+        self.stopped_early = ""  # why this run of the episode ended before the budget, if it did
         if resume is not None:
             self._resume(Path(resume))
         else:
@@ -163,6 +164,7 @@ class _Episode:
                 "recorded": counts,
                 "respawns": dict(self.launcher.respawns) if self.launcher else {},
                 "planner_status": self.manager.planner_status if self.manager else {},
+                "stopped_early": self.stopped_early,  # empty when the budget was spent
             },
         )
 
@@ -387,10 +389,8 @@ class _Episode:
             self.add_time("plan", plan_s)
             self.launcher.check()
             if not poses:
-                self.log(
-                    f"the planner returned no view with {to_plan - planned} left "
-                    f"({manager.plan_message}); stopping early"
-                )
+                self.stopped_early = rundir.stopped_early(to_plan - planned, manager.plan_message)
+                self.log(f"{self.stopped_early}; stopping early")
                 return
             for T in poses[: to_plan - planned]:
                 t = time.monotonic()

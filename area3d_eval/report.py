@@ -242,6 +242,14 @@ def _figures(
     return curves, timing_png
 
 
+def stopped_text(episode: Episode) -> str:
+    """A run that ended before its budget, in a sentence."""
+    return (
+        f"Stopped early after {len(episode.views)} of {episode.budget} views: "
+        f"{episode.stopped_early}."
+    )
+
+
 def hard_region_text(grid: dict[str, np.ndarray] | None) -> str:
     """What the camera could not resolve, in a sentence: the hard regions of a saved grid (its
     `hard` field grouped as the planner groups them, `area3d_planner.hard_regions`), the hard
@@ -366,6 +374,8 @@ def _markdown(
     lines += ["## Chosen views", ""]
     for r in records:
         lines += [f"### {r.label}", "", f"![views]({_rel(r.figures['views'], out_dir)})", ""]
+        if r.episode.stopped_early:
+            lines += [stopped_text(r.episode), ""]
     lines += ["## Uncertainty before and after", ""]
     with_grids = [r for r in records if "uncertainty" in r.figures]
     for r in with_grids:
@@ -450,6 +460,8 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
         parts.append(
             f"<h3>{e(r.label)}</h3><img src='{e(_rel(r.figures['views'], out_dir))}' alt='views'>"
         )
+        if r.episode.stopped_early:
+            parts.append(f"<p>{e(stopped_text(r.episode))}</p>")
     parts.append("<h2>Uncertainty before and after</h2>")
     with_grids = [r for r in records if "uncertainty" in r.figures]
     for r in with_grids:

@@ -6,7 +6,9 @@ Layout (all paths relative to RUN_DIR):
   "views": [{"index", "stamp_ns", "T_world_cam" (4x4 list), "kind": "initial" | "planned",
   "stage_times_s": {...}}], "timings_s": {stage: seconds}, "config": {...},
   "ros": {"domain_id", "namespace"}, "recorded": {topic: message count in the bag},
-  "respawns": {node: restarts during the run}, "planner_status": the planner's last status}
+  "respawns": {node: restarts during the run}, "planner_status": the planner's last status,
+  "stopped_early": why the episode ended before its budget was spent ("" when it was not:
+  `stopped_early`)}
 - `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
   K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index. Optional:
   estimated_depth (H, W) float32 metres NaN = missing and confidence (H, W) float32 in [0, 1],
@@ -94,6 +96,7 @@ class Episode:
     timings_s: dict[str, float] = field(default_factory=dict)
     config: dict[str, Any] = field(default_factory=dict)
     depth_source: str = "sensor"
+    stopped_early: str = ""  # why the episode ended before its budget ("": it did not)
 
     @property
     def scene_name(self) -> str:
@@ -122,6 +125,13 @@ def scene_name(scene: str) -> str:
     return Path(text).stem if "/" in text or text.endswith(".xml") else text
 
 
+def stopped_early(views_left: int, reason: str) -> str:
+    """episode.json's "stopped_early" when the planner returned no view with `views_left` views
+    of the budget left, `reason` being the planner's (the graph's runner and an in-process
+    episode say it alike)."""
+    return f"the planner returned no view with {views_left} left ({reason})"
+
+
 def read_episode(run_dir: Path) -> Episode:
     """Parse RUN_DIR/episode.json; views are sorted by index."""
     path = Path(run_dir) / EPISODE_FILE
@@ -143,6 +153,7 @@ def read_episode(run_dir: Path) -> Episode:
         timings_s={str(k): float(v) for k, v in data.get("timings_s", {}).items()},
         config=dict(data.get("config", {})),
         depth_source=str(data.get("depth_source", "sensor")),
+        stopped_early=str(data.get("stopped_early", "")),
     )
 
 

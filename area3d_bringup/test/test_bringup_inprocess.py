@@ -27,6 +27,19 @@ def test_an_in_process_episode_writes_the_run_directory_of_area3d_run(tmp_path):
         # planned views are new places, not a repeat of a captured one
         assert np.min(np.linalg.norm(poses[:4, :3, 3] - T[:3, 3], axis=1)) > 0.05
     assert episode.timings_s["planning"] > 0 and episode.timings_s["perception"] > 0
+    assert episode.stopped_early == ""  # the budget was spent
+
+
+def test_an_in_process_episode_whose_planner_has_no_view_stops_and_says_why(tmp_path):
+    """No candidate position in a workspace of a millimetre: the episode ends after the
+    initial views and episode.json says why, as the graph's runner words it."""
+    tiny = {"workspace_min": [0.0, 0.0, 0.5], "workspace_max": [0.001, 0.001, 0.501]}
+    run_dir = run_inprocess_episode(
+        "single_object", "area3d", 0, tmp_path, budget=6, overrides={"planner": tiny}
+    )
+    episode = read_episode(run_dir)
+    assert episode.kinds() == ["initial"] * 4
+    assert episode.stopped_early.startswith("the planner returned no view with 2 left (workspace:")
 
 
 def test_an_in_process_episode_refuses_an_unknown_policy(tmp_path):

@@ -9,6 +9,7 @@ import pytest
 from area3d_eval.evaluate import default_checkpoints, evaluate_run, image_metrics, reference_images
 from area3d_eval.render import MeshRenderer
 from area3d_eval.report import aggregate, write_report
+from area3d_eval.rundir import stopped_early
 from area3d_eval.synthetic import SyntheticRenderer, SyntheticScene, hemisphere_views, make_run
 
 SMALL = {
@@ -103,8 +104,20 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
             hard=flags,
         )
 
+    # the area3d run ended before its budget: the report says so, with the planner's reason
+    episode_json = runs[2] / "episode.json"
+    saved = json.loads(episode_json.read_text())
+    saved["budget"] = len(saved["views"]) + 3
+    saved["stopped_early"] = stopped_early(3, "budget: all 9 views are spent")
+    episode_json.write_text(json.dumps(saved))
+
     md_path, html_path = write_report(runs, tmp_path / "report", evaluate_missing=False)
     md, page = md_path.read_text(), html_path.read_text()
+    stopped = (
+        f"Stopped early after {len(saved['views'])} of {len(saved['views']) + 3} views: the "
+        "planner returned no view with 3 left (budget: all 9 views are spent)."
+    )
+    assert md.count("Stopped early") == 1 and stopped in md and stopped in page
 
     rows = [line for line in md.splitlines() if line.startswith("| ")]
     starts = [i for i, r in enumerate(rows) if r.startswith("| Policy |")]
