@@ -805,6 +805,7 @@ class NextBestViewServer:
         with self._plan_lock:
             snapshot = None
             with self._lock:
+                self._settle(request)
                 checked = self._check_request(request)
                 if isinstance(checked, str):
                     return Plan([], [], checked)
@@ -864,6 +865,18 @@ class NextBestViewServer:
                 )
                 return Plan(list(views.poses), list(views.gains), "")
 
+    def _settle(self, request: PlanRequest) -> None:
+        """What a request tells the budget's bookkeeping, before it is checked (lock held): the
+        frames fused before the first request are the initial views; a closed-loop request
+        releases the views of the last plan if they were not captured (`_release_uncaptured`)."""
+        if self.grid.frames == 0:
+            return
+        if self.initial_frames is None:
+            self.initial_frames = self.grid.frames
+            self.context.initial_views = self.initial_frames
+        if (request.mode or self.config.mode) == "closed_loop":
+            self._release_uncaptured(request)
+
     def _release_uncaptured(self, request: PlanRequest) -> None:
         """A closed-loop request from the same frame as the last plan, with no frame fused since,
         means the views handed out then were not captured (the camera refused them: inside
@@ -876,7 +889,7 @@ class NextBestViewServer:
 
     def _check_request(self, request: PlanRequest) -> tuple[int, int] | str:
         """(views wanted, remaining budget) for a request, or the reason it gets no plan (lock
-        held)."""
+        held, after `_settle`; changes nothing)."""
         if self.grid.frames == 0:
             return "no frame fused yet: capture the initial views first"
         if request.start is not None:
@@ -889,14 +902,9 @@ class NextBestViewServer:
             return f"num_views: got {request.num_views!r}, expected an integer >= 0"
         if num < 0:
             return f"num_views: got {num}, expected an integer >= 0 (0 = the remaining budget)"
-        if self.initial_frames is None:
-            self.initial_frames = self.grid.frames
-            self.context.initial_views = self.initial_frames
         mode = request.mode or self.config.mode
         if mode not in MODES:
             return f"mode: got {mode!r}, expected one of {', '.join(MODES)} (empty: the planner's)"
-        if mode == "closed_loop":
-            self._release_uncaptured(request)
         remaining = self.remaining_budget()
         if remaining == 0:
             return f"budget: all {self.budget} views are spent"
