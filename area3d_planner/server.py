@@ -814,10 +814,13 @@ class NextBestViewServer:
                 if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
                     return Plan([], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s")
                 t1 = time.perf_counter()
-                self.last_plan_s = {"wait_cache": t1 - t0}
+                # published whole, never changed after: the node reads it from other threads
+                timings = {"wait_cache": t1 - t0}
                 if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
-                    behind = max(0, int(request.stamp_ns) - self._cache_stamp) / 1e9
-                    self.last_plan_s["masks_behind"] = behind
+                    timings["masks_behind"] = (
+                        max(0, int(request.stamp_ns) - self._cache_stamp) / 1e9
+                    )
+                self.last_plan_s = dict(timings)
                 start = None if request.start is None else np.asarray(request.start, float)
                 self.context.start = start
                 try:
@@ -853,7 +856,7 @@ class NextBestViewServer:
             with self._lock:
                 if snapshot is not None:
                     self.context.adopt(snapshot)
-                self.last_plan_s["select"] = time.perf_counter() - t1
+                self.last_plan_s = timings | {"select": time.perf_counter() - t1}
                 if not views.poses:
                     return Plan([], [], "no candidate view sees the region of interest")
                 self.committed += len(views.poses)

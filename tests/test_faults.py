@@ -69,7 +69,8 @@ def graph_factory(tmp_path: Path) -> Iterator:
         codes = graph.stop()
         # after all that bad input, each node still stops quietly on the first SIGINT
         assert all(code == 0 for code in codes.values()), (codes, graph.lines[-20:])
-        assert not any("Traceback" in line for line in graph.lines), graph.lines[-40:]
+        at = [i for i, line in enumerate(graph.lines) if "Traceback" in line]
+        assert not at, "\n".join(graph.lines[max(0, at[0] - 3) : at[0] + 30] if at else [])
 
 
 def _frame(scene_name: str = "single_object"):
