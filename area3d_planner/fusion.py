@@ -646,19 +646,3 @@ def _tally_surface_hits(
             pixels[index] += 1
             conf_sum[index] += min(max(c, 0.0), 1.0)
     return count
-
-
-def warm_up_kernels() -> None:
-    """Load the compiled kernels a frame's fusion runs (carving, surface tallies, the fused
-    field) on a tiny grid and frame: the first call of each in a process loads it from numba's
-    cache (the first of all also starts numba's compiler: 0.5-1 s), and the planner's first
-    frame then does not wait for them."""
-    spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.25)
-    grid = FusedGrid(spec, np.zeros(3), np.ones(3), gamma=1.0)
-    K = np.array([[4.0, 0.0, 4.0], [0.0, 4.0, 4.0], [0.0, 0.0, 1.0]])
-    T = np.eye(4)
-    T[:3, 3] = (0.5, 0.5, -0.5)  # looking along +z at the grid
-    depth = np.ones((8, 8), np.float32)
-    grid.apply_depth(grid.observe_depth(depth, np.ones_like(depth), K, T, max_range=2.0))
-    grid.fused()
-    grid.hard()

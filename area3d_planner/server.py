@@ -20,7 +20,6 @@ from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, NO_RETURN_RULES, FusedGrid
-from area3d_planner.fusion import warm_up_kernels as warm_up_fusion
 from area3d_planner.greedy import DECAY_REGIONS, GreedyParams, warm_up_kernels
 from area3d_planner.policies import POLICIES, PlanningContext, SelectedViews, make_policy
 from area3d_planner.visibility import VisibilityParams
@@ -691,10 +690,8 @@ class NextBestViewServer:
             base = os.getpriority(os.PRIO_PROCESS, self.worker_tid)
             os.setpriority(os.PRIO_PROCESS, self.worker_tid, min(19, base + self.rebuild_nice))
         kinds = () if self.policy.relevant is None else (self.policy.relevant,)
-        try:
-            self.warm_up()  # not at the first frame or request
-        except Exception:  # noqa: BLE001 - the first frame then loads them, and reports its errors
-            pass
+        if kinds:
+            warm_up_kernels()  # loading the compiled kernels takes 0.1-0.3 s: not at a request
         while True:
             with self._refreshed:
                 while not self._closed:
@@ -740,15 +737,6 @@ class NextBestViewServer:
                     self.on_refresh()
                 except Exception:  # noqa: BLE001 - a failing listener must not stop the refresh
                     pass
-
-    def warm_up(self) -> None:
-        """Load the compiled kernels of a frame's fusion and, for a policy with masks, of a
-        rebuild and a plan, on tiny inputs (0.5-1 s the first time in a process), so that the
-        first frame and request do not wait for them; touches none of this server's state (the
-        background worker runs it as it starts)."""
-        warm_up_fusion()
-        if self.policy.relevant is not None:
-            warm_up_kernels()
 
     def _rebuild_failed(self, exc: Exception) -> None:
         self.rebuild_failures += 1
