@@ -284,8 +284,14 @@ class Driver(Node):
         self.captured.publish(String(data=json.dumps({"stamp_ns": ns, "goal": goal_ns})))
 
 
+def _stop(*_):
+    # as Ctrl-C: spin ends where it is, even inside a callback; shutting the context down from
+    # the handler instead let a tick interrupted mid-way publish on a dead context (a traceback)
+    raise KeyboardInterrupt
+
+
 def main(config):
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    signal.signal(signal.SIGTERM, _stop)
     rclpy.init()
     node = Driver(config)
     try:
