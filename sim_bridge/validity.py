@@ -13,7 +13,7 @@ from typing import Protocol
 import mujoco
 import numpy as np
 import trimesh
-from scipy import ndimage
+from numba import njit
 from scipy.spatial import cKDTree
 
 from sim_bridge.geoms import geom_meshes, ground_planes, solid_geom_ids
@@ -80,7 +80,9 @@ class _Collider:
                 self.ellipsoids.append((R, p, radii))
             else:  # meshes and capsules: filled voxels of the world-frame surface
                 self.mesh_grids.append(_filled_grid(mesh, OCCUPANCY_PITCH))
-        self.tree = cKDTree(np.vstack(samples))
+        # a room's millions of samples: an unbalanced tree builds 2-3x faster (2.2 against
+        # 0.8 s in living_room) and answers the same nearest distances
+        self.tree = cKDTree(np.vstack(samples), balanced_tree=False, compact_nodes=False)
         self.planes = ground_planes(model, data)
 
     def inside_solid(self, points: np.ndarray) -> np.ndarray:
@@ -113,14 +115,67 @@ class _Collider:
 
 
 def _filled_grid(mesh: trimesh.Trimesh, pitch: float) -> tuple[np.ndarray, np.ndarray]:
-    """(lower corner (3,), occupancy (nx, ny, nz) bool) of a closed mesh: shell plus filled inside."""
+    """(lower corner (3,), occupancy (nx, ny, nz) bool) of a closed, outward-facing mesh: the
+    voxels (i, j, k), [lo + (i, j, k) pitch, lo + (i, j, k, + 1) pitch), whose centre is
+    inside it (inside one of its parts where parts overlap: a merged furniture mesh)."""
     lo = mesh.bounds[0] - pitch
-    shape = np.ceil((mesh.bounds[1] + pitch - lo) / pitch).astype(int) + 1
-    fine = mesh.subdivide_to_size(max_edge=pitch / 2, max_iter=20)
-    grid = np.zeros(shape, dtype=bool)
-    ijk = np.floor((fine.vertices - lo) / pitch).astype(int)
-    grid[tuple(ijk.T)] = True
-    return lo, ndimage.binary_fill_holes(grid)
+    shape = np.ceil((mesh.bounds[1] + pitch - lo) / pitch).astype(np.int64) + 1
+    triangles = np.ascontiguousarray(mesh.vertices[mesh.faces], dtype=np.float64)
+    return lo, _winding_fill(triangles, lo, float(pitch), shape)
+
+
+# Voxel centres are moved this much (in voxels, differently along x and y) before the upward ray
+# test, so that no centre falls exactly on an edge of the axis-aligned triangles of a box.
+_RAY_NUDGE = (0.7071e-6, 0.3183e-6)
+
+
+@njit(cache=True)
+def _winding_fill(triangles, lo, pitch, shape):
+    """(nx, ny, nz) bool: the voxels whose centre is inside the closed, outward-facing surface
+    made of triangles (T, 3, 3), by the winding number of the ray going up from each centre:
+    a triangle crossed by the vertical line through a column of centres adds +1 (its normal
+    points up: the ray leaves a solid) or -1 (enters one) to every centre below the crossing.
+    Inside: a winding number above 0 (overlapping parts count once)."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    winding = np.zeros((nx, ny, nz + 1), np.int16)
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])  # 2x, signed
+        if area == 0.0:
+            continue  # vertical: no vertical line crosses it
+        sign = 1 if area > 0.0 else -1
+        x_lo, x_hi = min(a[0], b[0], c[0]), max(a[0], b[0], c[0])
+        y_lo, y_hi = min(a[1], b[1], c[1]), max(a[1], b[1], c[1])
+        i0 = max(0, int(np.floor((x_lo - lo[0]) / pitch - 0.5)))
+        i1 = min(nx - 1, int(np.ceil((x_hi - lo[0]) / pitch - 0.5)))
+        j0 = max(0, int(np.floor((y_lo - lo[1]) / pitch - 0.5)))
+        j1 = min(ny - 1, int(np.ceil((y_hi - lo[1]) / pitch - 0.5)))
+        for i in range(i0, i1 + 1):
+            x = lo[0] + (i + 0.5 + _RAY_NUDGE[0]) * pitch
+            for j in range(j0, j1 + 1):
+                y = lo[1] + (j + 0.5 + _RAY_NUDGE[1]) * pitch
+                # barycentric weights (times area) of (x, y) in the triangle's projection
+                wa = (b[0] - x) * (c[1] - y) - (b[1] - y) * (c[0] - x)
+                wb = (c[0] - x) * (a[1] - y) - (c[1] - y) * (a[0] - x)
+                wc = (a[0] - x) * (b[1] - y) - (a[1] - y) * (b[0] - x)
+                if area > 0.0 and (wa < 0.0 or wb < 0.0 or wc < 0.0):
+                    continue
+                if area < 0.0 and (wa > 0.0 or wb > 0.0 or wc > 0.0):
+                    continue
+                z = (wa * a[2] + wb * b[2] + wc * c[2]) / area
+                # centres below z: k + 0.5 < (z - lo) / pitch
+                k = int(np.ceil((z - lo[2]) / pitch - 0.5))
+                k = min(max(k, 0), nz)
+                winding[i, j, 0] += sign
+                winding[i, j, k] -= sign
+    out = np.empty((nx, ny, nz), np.bool_)
+    for i in range(nx):
+        for j in range(ny):
+            w = 0
+            for k in range(nz):
+                w += winding[i, j, k]
+                out[i, j, k] = w > 0
+    return out
 
 
 def _collider(scene: Scene) -> _Collider:
