@@ -29,7 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from numba.typed import List
 
 from area3d_planner.fusion import DIRECTION_BINS, RANGE_BIN
 from area3d_planner.zbuffer import (
@@ -57,12 +56,10 @@ STAT_NAMES = (
     "voxels_changed",
 )
 STATS = len(STAT_NAMES)
-# Buffers are copied into one arena when their arenas are more than this many (or hold more
-# than twice the data in use). Every position whose crops grow gets an arena of its own, a few
-# dozen a frame at object level; a limit of 64 copied all of an object scene's buffers every two
-# or three frames (28 ms a frame on average with noisy depth). The update hands the arenas to
-# its kernel as a numba list, made afresh each time: 1.3 ms for 256 arrays, 6 ms for 1024.
-MAX_ARENAS = 256
+# Buffers are gathered into a new pool when the pool holds more than twice the data in use (plus
+# this many values): a position whose crops grow gets its buffer anew at the pool's end, its
+# old one left unused, a few dozen positions a frame at object level with the camera's noise.
+SPARE_VALUES = 1 << 20
 
 
 def brick_index(ids: np.ndarray, shape: tuple, centres: np.ndarray) -> tuple:
@@ -304,8 +301,7 @@ def tile_maxima(data, rects, offsets, n):
 def update_seeds(
     seeds,
     rotations,
-    arenas,
-    arena_of,
+    pool,
     zrect,
     zoff,
     theirs,
@@ -328,8 +324,8 @@ def update_seeds(
 ):
     """Update the buffers and masks of positions that stay candidates after the map changed.
 
-    seeds (S, 3), rotations (S, B, 3, 3): the positions and their views; their buffers: data
-    arenas[arena_of[s]], crops zrect[s] (6, 4), offsets zoff[s] (6,) (see
+    seeds (S, 3), rotations (S, B, 3, 3): the positions and their views; their buffers: in
+    pool (float32), crops zrect[s] (6, 4), offsets zoff[s] (6,) into it (see
     `zbuffer.seed_view_masks`), updated in place. Position s was theirs[s] in the cache
     updated, whose arrays by position are: the largest value of each tile, maxima (S', 6, nt,
     nt) float32 (`tile_maxima`, updated in place); the views a direction in each tile may be in,
@@ -381,7 +377,7 @@ def update_seeds(
     d_vis = np.empty(16, np.bool_)  # ... visible now
     for s in range(n_seeds):
         o = seeds[s]
-        data = arenas[arena_of[s]]
+        data = pool
         rect = zrect[s]
         offset = zoff[s]
         # 0. the crops must hold every pixel a new occluder covers (full faces always do)
@@ -719,13 +715,17 @@ def update_seeds(
 @dataclass
 class Buffers:
     """Each position's cube-map z-buffer, cropped to what its splats wrote (see
-    `zbuffer.seed_view_masks`): position s's in arenas[arena_of[s]] from offsets[s], crops
-    rects[s] (6, 4), its faces one after the other; the largest value of each of its tiles
-    (maxima, `tile_maxima`) and the views each tile's directions may be in (cells,
-    `view_cells`)."""
+    `zbuffer.seed_view_masks`): position s's in pool from offsets[s], crops rects[s] (6, 4),
+    its faces one after the other; the largest value of each of its tiles (maxima,
+    `tile_maxima`) and the views each tile's directions may be in (cells, `view_cells`).
 
-    arenas: list
-    arena_of: np.ndarray  # (S,) int64
+    The pool holds buffers in pool[:used] and has room to spare after: a buffer added (a new
+    position, or one whose crops grew) is copied to the end, and the pool is made twice as
+    large when it is full. One array, so that the update's kernel takes it as it is (a numba
+    list of arrays is compiled afresh in every process: 1.2 s the first time)."""
+
+    pool: np.ndarray  # (capacity,) float32
+    used: int
     rects: np.ndarray  # (S, 6, 4) int64
     offsets: np.ndarray  # (S, 6) int64
     maxima: np.ndarray  # (S, 6, nt, nt) float32
@@ -735,20 +735,36 @@ class Buffers:
     def empty(cls, count: int, face_res: int) -> Buffers:
         nt = -(-int(face_res) // TILE)
         return cls(
-            [],
-            np.zeros(count, np.int64),
+            np.zeros(0, np.float32),
+            0,
             np.zeros((count, 6, 4), np.int64),
             np.zeros((count, 6), np.int64),
             np.zeros((count, 6, nt, nt), np.float32),
             np.zeros((count, 6, nt, nt), np.uint64),
         )
 
+    def reserve(self, values: int) -> None:
+        """Make room in the pool for this many more values (one copy of what it holds, if any)."""
+        if self.used + values > self.pool.size:
+            pool = np.empty(max(self.used + values, 2 * self.pool.size), np.float32)
+            pool[: self.used] = self.pool[: self.used]
+            self.pool = pool
+
+    def append(self, data: np.ndarray) -> int:
+        """Copy data to the end of the pool (made larger when it is full); where it starts."""
+        self.reserve(data.size)
+        start = self.used
+        self.pool[start : start + data.size] = data
+        self.used += data.size
+        return start
+
     def take(self, positions: np.ndarray, other: Buffers, theirs: np.ndarray) -> None:
-        """Positions `positions` hold `other`'s buffers of its positions `theirs` (shared)."""
-        base = len(self.arenas)
-        self.arenas.extend(other.arenas)
-        self.arena_of[positions] = other.arena_of[theirs] + base
-        same = positions.size == self.arena_of.size == other.arena_of.size
+        """Positions `positions` hold `other`'s buffers of its positions `theirs` (its pool is
+        shared: call on empty buffers, before `add`)."""
+        if self.used:
+            raise ValueError("Buffers.take: these buffers already hold data")
+        self.pool, self.used = other.pool, other.used
+        same = positions.size == self.offsets.shape[0] == other.offsets.shape[0]
         same = same and np.array_equal(positions, theirs)
         for name in ("rects", "offsets", "maxima", "cells"):
             if same:  # the same positions in the same order: their arrays as they are
@@ -757,17 +773,15 @@ class Buffers:
                 getattr(self, name)[positions] = getattr(other, name)[theirs]
 
     def add(self, positions, data, rects, offsets, rotations, params) -> None:
-        """Positions `positions` hold the buffers in data (their crops rects, offsets), of
-        views of rotations (len(positions), B, 3, 3) (params: `VisibilityParams`)."""
-        self.arena_of[positions] = len(self.arenas)
-        self.arenas.append(data)
+        """Positions `positions` hold the buffers in data (their crops rects, offsets into
+        data), of views of rotations (len(positions), B, 3, 3) (params: `VisibilityParams`)."""
+        self.offsets[positions] = offsets + self.append(data)
         self.rects[positions] = rects
-        self.offsets[positions] = offsets
         self.maxima[positions] = tile_maxima(data, rects, offsets, params.face_res)
         self.cells[positions] = view_cells(rotations, params.face_res, params.tan_x, params.tan_y)
 
     def spans(self) -> tuple[np.ndarray, np.ndarray]:
-        """(first, end) (S,) int64: where each position's data lies in its arena."""
+        """(first, end) (S,) int64: where each position's data lies in the pool."""
         r = self.rects
         rows, cols = r[:, :, 1] - r[:, :, 0] + 1, r[:, :, 3] - r[:, :, 2] + 1
         sizes = np.where(r[:, :, 1] >= r[:, :, 0], rows * cols, 0).sum(axis=1)
@@ -775,35 +789,27 @@ class Buffers:
         return first, first + sizes
 
     def compacted(self) -> Buffers:
-        """These buffers in one arena where the arenas hold more than twice what is in use
-        (positions dropped, crops grown: a grown buffer goes to an arena of its own) or are
-        more than MAX_ARENAS; else themselves."""
+        """These buffers gathered into a new pool where the pool holds more than twice what is
+        in use (positions dropped, buffers grown) plus SPARE_VALUES, else themselves. The new
+        pool has room for as much again plus SPARE_VALUES (memory the system gives when it is
+        written), so that it needs no copy before it is gathered again."""
         first, end = self.spans()
         live = int((end - first).sum())
-        held = sum(a.size for a in {id(a): a for a in self.arenas}.values())
-        if held <= 2 * live + (1 << 20) and len(self.arenas) <= MAX_ARENAS:
+        if self.used <= 2 * live + SPARE_VALUES:
             return self
-        arena = np.empty(live, np.float32)
+        pool = np.empty(2 * live + SPARE_VALUES, np.float32)
         offsets = np.empty_like(self.offsets)
         at = 0
-        for s in range(self.arena_of.size):
+        for s in range(self.offsets.shape[0]):
             size = int(end[s] - first[s])
-            arena[at : at + size] = self.arenas[self.arena_of[s]][first[s] : end[s]]
+            pool[at : at + size] = self.pool[first[s] : end[s]]
             offsets[s] = self.offsets[s] - first[s] + at
             at += size
-        return Buffers(
-            [arena],
-            np.zeros(self.arena_of.size, np.int64),
-            self.rects,
-            offsets,
-            self.maxima,
-            self.cells,
-        )
+        return Buffers(pool, live, self.rects, offsets, self.maxima, self.cells)
 
     @property
     def nbytes(self) -> int:
-        held = sum(a.nbytes for a in {id(a): a for a in self.arenas}.values())
-        return held + self.maxima.nbytes + self.cells.nbytes
+        return self.pool.nbytes + self.maxima.nbytes + self.cells.nbytes
 
 
 @dataclass
@@ -868,6 +874,9 @@ class Change:
         self.counts |= {"record_changed": changed.size, "record_removed": gone.size}
         self._lock = threading.Lock()
         self.stats = np.zeros(STATS, np.int64)  # STAT_NAMES
+        # grown buffers, put into the pool by `finish` once every `run` is over: (position,
+        # its crops, its data, its offsets into the data)
+        self._grown: list[tuple] = []
         if self.nothing:
             return
         self.occluders = _bricked(spec, np.flatnonzero(g.occluders))
@@ -896,17 +905,15 @@ class Change:
             float(g.tol),
             float(RANGE_BIN),
         )
-        self.arenas = List(self.buffers.arenas)
 
-    def _kernel(self, idx, arenas, arena_of, rects, offsets, scratch) -> tuple:
+    def _kernel(self, idx, pool, rects, offsets, scratch) -> tuple:
         theirs = self.match[idx]
         old_entries = int(self.old_counts[theirs].sum())
         cap = old_entries + old_entries // 4 + (1 << 16)
         return update_seeds(
             np.ascontiguousarray(self.g.seeds[idx]),
             np.ascontiguousarray(self.g.rotations[idx]),
-            arenas,
-            arena_of,
+            pool,
             rects,
             offsets,
             theirs,
@@ -936,12 +943,12 @@ class Change:
     def run(self, idx: np.ndarray, scratch: tuple) -> list:
         """The new masks of positions idx (new indices, all kept), each (counts (B,), ids,
         weights, range bins, direction bins), or None where they stay as they were; their
-        buffers are brought up to date (grown where new occluders splat outside them)."""
+        buffers are brought up to date in the pool, or grown (where new occluders splat
+        outside their crops) into arrays of their own that `finish` puts into the pool. Runs
+        of disjoint positions may run at once."""
         theirs = self.match[idx]
         b = self.buffers
-        out = self._kernel(
-            idx, self.arenas, b.arena_of[theirs], b.rects[theirs], b.offsets[theirs], scratch
-        )
+        out = self._kernel(idx, b.pool, b.rects[theirs], b.offsets[theirs], scratch)
         outcome, grow = out[0], out[1]
         with self._lock:
             self.stats += out[2]
@@ -951,29 +958,31 @@ class Change:
             grown_data, grown_offsets = [], []
             for q in regrow:
                 s = theirs[q]
-                data, offset = grow_buffer(
-                    b.arenas[b.arena_of[s]], b.rects[s], b.offsets[s], grow[q]
-                )
+                data, offset = grow_buffer(b.pool, b.rects[s], b.offsets[s], grow[q])
                 grown_data.append(data)
                 grown_offsets.append(offset)
+            starts = np.cumsum([0] + [d.size for d in grown_data])
+            grown = np.concatenate(grown_data)
+            offsets = np.array(grown_offsets, np.int64).reshape(-1, 6) + starts[:-1, None]
             again = self._kernel(
-                idx[regrow],
-                List(grown_data),
-                np.arange(regrow.size, dtype=np.int64),
-                np.ascontiguousarray(grow[regrow]),
-                np.array(grown_offsets, np.int64).reshape(-1, 6),
-                scratch,
+                idx[regrow], grown, np.ascontiguousarray(grow[regrow]), offsets, scratch
             )
             for q, piece in zip(regrow, _pieces(*again[:1], *again[3:]), strict=True):
                 pieces[q] = piece
             with self._lock:
-                for q, data, offset in zip(regrow, grown_data, grown_offsets, strict=True):
-                    s = theirs[q]
-                    b.arena_of[s] = len(b.arenas)
-                    b.arenas.append(data)
-                    b.rects[s] = grow[q]
-                    b.offsets[s] = offset
+                for k, q in enumerate(regrow):
+                    data = grown[starts[k] : starts[k + 1]]
+                    self._grown.append((theirs[q], grow[q], data, grown_offsets[k]))
         return pieces
+
+    def finish(self) -> None:
+        """Put the buffers grown by `run` into the pool (after every run is over: the pool may
+        be made larger, which the runs' kernels must not see)."""
+        b = self.buffers
+        for s, rect, data, offset in self._grown:
+            b.offsets[s] = offset + b.append(data)
+            b.rects[s] = rect
+        self._grown = []
 
     def old_piece(self, s: int) -> tuple:
         """Old position s's masks as they were: (counts (B,), ids, weights, range bins,

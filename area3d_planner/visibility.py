@@ -642,7 +642,10 @@ def _assemble(
     pieces: list = [None] * n_seeds
     buffers = incremental.Buffers.empty(n_seeds, params.face_res)
     if change is not None:
+        change.finish()
         buffers.take(kept, change.buffers, match[kept])
+    if keep:  # the new positions' buffers go into the pool: room for all of them at once
+        buffers.reserve(sum(out[5][0].size for kind, _, out in results if kind == "full"))
     for kind, idx, out in results:
         if kind == "update":
             for s, piece in zip(idx, out, strict=True):

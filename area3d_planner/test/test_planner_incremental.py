@@ -207,14 +207,15 @@ def test_an_update_moves_the_buffers_so_a_second_update_of_the_same_cache_builds
     assert plain.update(later, seeds, rotations).report["built"] == 2
 
 
-def test_buffers_are_gathered_into_one_arena_when_they_hold_much_unused_or_are_many():
-    """Buffers.compacted: positions keep their data, crops and offsets into one arena once the
-    arenas hold more than twice what is in use or are more than MAX_ARENAS; else as they are."""
-    from area3d_planner.incremental import MAX_ARENAS, Buffers
+def test_buffers_are_gathered_into_a_new_pool_when_it_holds_much_unused():
+    """Buffers: a buffer added goes to the end of the pool, which grows when full and keeps
+    what it held; `compacted` gathers the positions' data, crops and offsets into a new pool
+    once the pool holds more than twice what is in use (plus SPARE_VALUES), else keeps it."""
+    from area3d_planner.incremental import SPARE_VALUES, Buffers
 
     rng = np.random.default_rng(7)
 
-    def buffers(count: int, arenas: int, dead: int) -> Buffers:
+    def buffers(count: int, dead: int) -> Buffers:
         b = Buffers.empty(count, 32)
         b.rects[:] = -1  # empty faces (i1 < i0) ...
         b.rects[:, :, 0] = 0
@@ -227,29 +228,32 @@ def test_buffers_are_gathered_into_one_arena_when_they_hold_much_unused_or_are_m
             (b.rects[:, :, 1] - b.rects[:, :, 0] + 1) * (b.rects[:, :, 3] - b.rects[:, :, 2] + 1),
             0,
         )
-        owner = np.arange(count) % arenas
-        for a in range(arenas):
-            at = dead  # unused data ahead of the positions'
-            for s in np.flatnonzero(owner == a):
-                b.offsets[s] = at + np.concatenate(([0], np.cumsum(sizes[s])[:-1]))
-                at += int(sizes[s].sum())
-            b.arenas.append(rng.random(at).astype(np.float32))
-        b.arena_of[:] = owner
+        b.append(rng.random(dead).astype(np.float32))  # unused data ahead of the positions'
+        for s in range(count):  # one at a time: the pool grows several times
+            offsets = np.concatenate(([0], np.cumsum(sizes[s])[:-1]))
+            b.offsets[s] = offsets + b.append(rng.random(sizes[s].sum()).astype(np.float32))
+        assert b.used == dead + sizes.sum() <= b.pool.size
         return b
 
     def data(b: Buffers, s: int) -> np.ndarray:
         first, end = b.spans()
-        return b.arenas[b.arena_of[s]][first[s] : end[s]]
+        return b.pool[first[s] : end[s]]
 
-    kept = buffers(40, 4, dead=0)
+    kept = buffers(40, dead=1000)
     assert kept.compacted() is kept
-    for b in (buffers(40, 4, dead=400_000), buffers(MAX_ARENAS + 1, MAX_ARENAS + 1, dead=0)):
-        c = b.compacted()
-        assert c is not b and len(c.arenas) == 1 and not c.arena_of.any()
-        first, end = c.spans()
-        assert end.max() == c.arenas[0].size and (end - first).sum() == c.arenas[0].size
-        np.testing.assert_array_equal(c.rects, b.rects)
-        for s in range(b.arena_of.size):
-            np.testing.assert_array_equal(data(c, s), data(b, s))
-            # each face at the same place relative to the position's first
-            np.testing.assert_array_equal(c.offsets[s] - first[s], b.offsets[s] - b.spans()[0][s])
+    b = buffers(40, dead=SPARE_VALUES + 400_000)
+    c = b.compacted()
+    first, end = c.spans()
+    assert c is not b and c.used == (end - first).sum() == end.max() <= c.pool.size
+    assert c.used < b.used
+    np.testing.assert_array_equal(c.rects, b.rects)
+    for s in range(b.offsets.shape[0]):
+        np.testing.assert_array_equal(data(c, s), data(b, s))
+        # each face at the same place relative to the position's first
+        np.testing.assert_array_equal(c.offsets[s] - first[s], b.offsets[s] - b.spans()[0][s])
+    # a buffer appended after gathering lands after the data in use, which stays
+    before = [data(c, s).copy() for s in range(40)]
+    at = c.append(np.full(c.pool.size, 5.0, np.float32))  # more than the spare room
+    assert at == end.max() and np.all(c.pool[at : c.used] == 5.0)
+    for s in range(40):
+        np.testing.assert_array_equal(data(c, s), before[s])
