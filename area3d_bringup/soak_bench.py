@@ -1,6 +1,8 @@
 """Soak: a camera streams 640x480 RGB-D at 10 Hz through the perception and planner nodes (real
 processes) for 10 minutes or 6000 frames, while a mission manager (a process of its own,
-`soak_manager`) asks for a next view every second from the newest camera pose it has seen.
+`soak_manager`) asks for a next view every second from the newest camera pose it has seen, once
+the planner has fused a frame (before, the answer would be an empty plan), until it has had an
+answer at least.
 
 Figures: frames the camera sent, published by perception and fused by the planner (none may be
 lost); each node's resident memory at the start and the end of the stream (it must stay flat);
@@ -36,6 +38,8 @@ FRAMES = 6000
 DURATION_S = 600.0
 SCENE = "single_object"
 NODES = ("perception", "planner")
+# after the stream, the mission manager is stopped once it has had an answer, or after this long
+FIRST_ANSWER_WAIT_S = 180.0
 
 
 def rss_mb(pid: int) -> float:
@@ -157,6 +161,9 @@ def run_bench(
             reader = _read_manager(manager, run)
             statuses = (planner_status, perception_status)
             _stream(run, pubs, views, count, rate_hz, launcher, pids, statuses)
+            # the manager asks once the planner has fused a frame: on a busy machine that can
+            # come after a short stream, so it keeps asking until it has had an answer
+            launcher.wait_for(lambda: run.latencies or run.empty_plans, FIRST_ANSWER_WAIT_S)
             _stop_manager(manager)
             reader.join(timeout=120)
             run.caught_up = launcher.wait_for(

@@ -1,4 +1,5 @@
-"""The soak's mission manager, a process of its own as on a robot: once a period it asks the
+"""The soak's mission manager, a process of its own as on a robot: once the planner has fused a
+frame (its status says so; before, the answer is an empty plan), once a period it asks the
 planner for the next view from the newest camera pose it has seen (naming that pose's stamp, so
 the planner plans from that frame) and prints one JSON line per request to stdout: the round
 trip, and the planner's own split of it from the status that follows the answer.
@@ -42,8 +43,12 @@ def main(argv: list[str] | None = None) -> int:
         while not stop.is_set() and not client.wait_for_service(timeout_sec=0.5):
             pass
         print(json.dumps({"ready": True}), flush=True)
+        mapped = False  # the planner has fused a frame
         while not stop.wait(args.period):
-            if not poses:
+            mapped = mapped or any(
+                json.loads(status.data).get("frames_fused", 0) > 0 for status in list(statuses)
+            )
+            if not poses or not mapped:
                 continue
             newest = poses[-1]
             request = msgs.GetPlan_Request()
