@@ -45,8 +45,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"ready": True}), flush=True)
         mapped = False  # the planner has fused a frame
         while not stop.wait(args.period):
-            mapped = mapped or any(
-                json.loads(status.data).get("frames_fused", 0) > 0 for status in list(statuses)
+            # frames_fused only grows: the newest status says whether any frame was fused
+            mapped = mapped or bool(
+                statuses and json.loads(statuses[-1].data).get("frames_fused", 0) > 0
             )
             if not poses or not mapped:
                 continue

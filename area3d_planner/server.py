@@ -808,7 +808,7 @@ class NextBestViewServer:
                     timings["masks_behind"] = (
                         max(0, int(request.stamp_ns) - self._cache_stamp) / 1e9
                     )
-                self.last_plan_s = dict(timings)
+                self.last_plan_s = timings
                 start = None if request.start is None else np.asarray(request.start, float)
                 self.context.start = start
                 try:

@@ -116,7 +116,7 @@ class _Collider:
 
 def _filled_grid(mesh: trimesh.Trimesh, pitch: float) -> tuple[np.ndarray, np.ndarray]:
     """(lower corner (3,), occupancy (nx, ny, nz) bool) of a closed, outward-facing mesh: the
-    voxels (i, j, k), [lo + (i, j, k) pitch, lo + (i, j, k, + 1) pitch), whose centre is
+    voxels (i, j, k), [lo + (i, j, k) pitch, lo + ((i, j, k) + 1) pitch), whose centre is
     inside it (inside one of its parts where parts overlap: a merged furniture mesh)."""
     lo = mesh.bounds[0] - pitch
     shape = np.ceil((mesh.bounds[1] + pitch - lo) / pitch).astype(np.int64) + 1
