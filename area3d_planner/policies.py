@@ -87,6 +87,9 @@ class PlanningContext:
     # how many of the fused frames were the initial views (set at the first plan): the working
     # distance is theirs, the operator's choice, and does not drift with the views planned since
     initial_views: int | None = None
+    # (S,) bool: candidate positions a view may not be taken from although the masks allow it
+    # (the planner's newest frames, which the masks leave out, show them too close to geometry)
+    blocked_seeds: np.ndarray | None = None
     _candidates: tuple | None = None
     _caches: dict = field(default_factory=dict)
     _fields: dict = field(default_factory=dict)
@@ -336,6 +339,8 @@ class GreedyFieldPolicy(Policy):
         taken = taken_views(cache, context.camera_poses, context.greedy, centre)
         if taken.all():  # every candidate was taken already: allow them again
             taken[:] = False
+        if context.blocked_seeds is not None:
+            taken[context.blocked_seeds] = True
         return lazy_greedy(
             cache, U, budget, context.greedy, context.start_position, gain, excluded=taken
         )

@@ -302,6 +302,16 @@ class PlannerConfig:
         "closed_loop: re-plan after each view; batch: all views at once (paper)",
         choices=MODES,
     )
+    mask_lag_frames: int = described(
+        0,
+        "closed loop: a request plans from visibility masks that leave out at most this many of "
+        "the newest fused frames (their rebuild goes on while the camera moves) instead of "
+        "waiting for masks that cover its frame; the uncertainty field is always the current "
+        "one, and candidate positions the newer frames show too close to geometry are left "
+        "out; 0 = masks that cover its frame",
+        "frames",
+        (0, 1000),
+    )
     budget: int = described(
         0,
         f"total views, initial ones included; 0 = the paper's T ({_level('budget')})",
@@ -573,6 +583,12 @@ class NextBestViewServer:
         with self._lock:
             if int(stamp_ns) in self._fused_stamps:  # the same stamp, fused meanwhile
                 return False
+            lagging = self.config.mask_lag_frames > 0
+            if lagging and not self.background:
+                # what the background worker does while the camera moves to this frame's pose:
+                # masks of the map so far, before they fall further behind than allowed
+                if self._map_version - self._cache_version >= self.config.mask_lag_frames:
+                    self._update_masks()
             self._adopt_camera(K, np.shape(depth))
             self.grid.apply_depth(observation)
             self._frames[int(stamp_ns)] = _Frame(
@@ -587,7 +603,7 @@ class NextBestViewServer:
             self.last_fused_stamp = max(self.last_fused_stamp, int(stamp_ns))
             self._map_version += 1
             self._stamp_version[int(stamp_ns)] = self._map_version
-            if self.background:
+            if self.background or lagging:
                 self.context.invalidate_fields()  # masks stay until the rebuild replaces them
             else:
                 self.context.invalidate()
@@ -662,11 +678,14 @@ class NextBestViewServer:
                 return self._cache_version == self._map_version
             return self.context._candidates is not None
 
-    def wait_cache(self, stamp_ns: int = 0, timeout_s: float | None = None) -> bool:
+    def wait_cache(
+        self, stamp_ns: int = 0, timeout_s: float | None = None, lag_frames: int = 0
+    ) -> bool:
         """Background mode: block until the masks cover the frame `stamp_ns` (0 or a stamp not
         fused: every fused frame), or timeout; True if they do. Always True without background.
         With `mask_lag_s` > 0, masks built from a map whose newest frame is at most that much
-        older than `stamp_ns` (any, for 0) do without waiting."""
+        older than `stamp_ns` (any, for 0) do without waiting; with `lag_frames` > 0, masks
+        that leave out at most that many of the frames fused up to `stamp_ns`."""
         if not self.background:
             return True
         with self._refreshed:
@@ -674,6 +693,8 @@ class NextBestViewServer:
             if lag_ns > 0 and self._cache_version > 0 and stamp_ns - self._cache_stamp <= lag_ns:
                 return True  # recent enough (`mask_lag_s`)
             target = self._stamp_version.get(int(stamp_ns), self._map_version)
+            if self._cache_version > 0 and target - self._cache_version <= lag_frames:
+                return True  # recent enough (`mask_lag_frames`)
             self._cache_waiters += 1
             self._refreshed.notify_all()  # the worker may be holding back: a request waits
             try:
@@ -738,6 +759,14 @@ class NextBestViewServer:
                 except Exception:  # noqa: BLE001 - a failing listener must not stop the refresh
                     pass
 
+    def _update_masks(self) -> None:
+        """Without the background worker: seeds and masks of the current map, built (updated
+        from the installed ones) and installed now (lock held)."""
+        kinds = () if self.policy.relevant is None else (self.policy.relevant,)
+        self.context.install(*self.context.build(self.grid.occupancy(), kinds))
+        self._cache_version = self._map_version
+        self._cache_stamp = self.last_fused_stamp
+
     def _rebuild_failed(self, exc: Exception) -> None:
         self.rebuild_failures += 1
         self.last_rebuild_error = f"{exc.__class__.__name__}: {exc}"
@@ -798,12 +827,20 @@ class NextBestViewServer:
                 if isinstance(checked, str):
                     return Plan([], [], checked)
                 want, remaining = checked
+                closed_loop = (request.mode or self.config.mode) == "closed_loop"
+                lag_frames = self.config.mask_lag_frames if closed_loop else 0
                 t0 = time.perf_counter()
-                if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
+                if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S, lag_frames):
                     return Plan([], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s")
+                behind = 0  # fused frames the masks leave out
+                if self.background or self.config.mask_lag_frames > 0:
+                    behind = self._map_version - self._cache_version
+                if not self.background and behind > lag_frames:
+                    self._update_masks()
+                    behind = 0
                 t1 = time.perf_counter()
                 # published whole, never changed after: the node reads it from other threads
-                timings = {"wait_cache": t1 - t0}
+                timings = {"wait_cache": t1 - t0, "masks_frames_behind": behind}
                 if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
                     timings["masks_behind"] = (
                         max(0, int(request.stamp_ns) - self._cache_stamp) / 1e9
@@ -813,6 +850,12 @@ class NextBestViewServer:
                 self.context.start = start
                 try:
                     seeds, rotations = self.context.candidates()
+                    # positions the frames the masks leave out show too close to geometry
+                    self.context.blocked_seeds = (
+                        ~self.context.valid_positions(seeds, self.grid.occupancy())
+                        if behind > 0
+                        else None
+                    )
                     if seeds.shape[0] == 0:
                         return Plan(
                             [],
@@ -848,7 +891,6 @@ class NextBestViewServer:
                 if not views.poses:
                     return Plan([], [], "no candidate view sees the region of interest")
                 self.committed += len(views.poses)
-                closed_loop = (request.mode or self.config.mode) == "closed_loop"
                 self._handed_out = (
                     (int(request.stamp_ns), self.grid.frames, len(views.poses))
                     if closed_loop and request.stamp_ns > 0
