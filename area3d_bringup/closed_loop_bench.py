@@ -48,20 +48,35 @@ def _full_rebuild_s(context, occupancy: np.ndarray) -> float:
     return time.perf_counter() - t0
 
 
-def bench_closed_loop(scene_name: str, steps: int = 12, burners: int = 0) -> dict:
+def bench_closed_loop(
+    scene_name: str, steps: int = 12, burners: int = 0, lag_frames: int = 0
+) -> dict:
     """Closed loop in one process, as the nodes run it: after the initial views, each step takes
     the frame captured at the last planned view through the sensor model's confidence, fusion, the
     background rebuild of candidates and masks (incremental), and one next-best-view request; the
-    latency is from the rendered frame to the answer (rendering itself excluded). Beside it, each
-    step's rebuild from nothing on the same map (not in the latency), and with `burners` busy
-    processes running (`_burners`), the load average over the run."""
+    latency is from the rendered frame to the answer (rendering itself excluded). With
+    `lag_frames` (the planner's `mask_lag_frames`) the request plans from masks that leave out
+    that many of the newest frames, and the rebuild for the frame finishes after the answer, while
+    the camera would move (not in the latency). Beside it, each step's rebuild from nothing on the
+    same map (not in the latency), and with `burners` busy processes running (`_burners`), the
+    load average over the run."""
     from area3d_perception.sensor_model import rgbd_confidence
-    from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+    from area3d_planner.server import (
+        CACHE_WAIT_S,
+        NextBestViewServer,
+        PlannerConfig,
+        PlanRequest,
+    )
     from sim_bridge.render import RgbdRenderer
     from sim_bridge.scenes import load_scene
 
     scene = load_scene(scene_name)
-    config = PlannerConfig(**{**planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
+    config = PlannerConfig(
+        **planner_overrides(scene),
+        mode="closed_loop",
+        budget=10**6,
+        mask_lag_frames=lag_frames,
+    )
     server = NextBestViewServer(config, background=True)
     renderer = RgbdRenderer(scene)
     latencies, incremental, full, updated, changed = [], [], [], [], []
@@ -84,6 +99,8 @@ def bench_closed_loop(scene_name: str, steps: int = 12, burners: int = 0) -> dic
                 server.add_frame(stamp, depth, rgbd_confidence(depth, renderer.K), renderer.K, T)
                 poses, reason = server.plan(PlanRequest(T, stamp, 1))
                 latencies.append(time.perf_counter() - t0)
+                if not server.wait_cache(stamp, CACHE_WAIT_S):  # the camera moves meanwhile
+                    raise RuntimeError(f"masks not rebuilt within {CACHE_WAIT_S} s")
                 rebuild = dict(server.last_rebuild)
                 incremental.append(rebuild["seconds"])
                 updated.append(rebuild.get("updated", 0) / max(1, rebuild["positions"]))
@@ -99,6 +116,7 @@ def bench_closed_loop(scene_name: str, steps: int = 12, burners: int = 0) -> dic
         "voxels": server.grid.spec.num_voxels,
         "steps": len(latencies),
         "burners": burners,
+        "lag_frames": lag_frames,
         "load": load,
         "p50_s": float(np.percentile(lat, 50)),
         "p95_s": float(np.percentile(lat, 95)),

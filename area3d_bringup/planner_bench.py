@@ -6,6 +6,7 @@ when sim_bridge can render, and a synthetic room-like grid of 10^6 voxels.
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -249,13 +250,14 @@ def run_bench(
         except Exception as exc:  # no renderer
             results["service:single_object"] = {"error": f"{type(exc).__name__}: {exc}"}
     if service and not synthetic_only:
-        for name in ("single_object", "living_room"):
-            for burners, label in ((0, "quiet"), (LOADED_BURNERS, "loaded")):
-                key = f"closed_loop:{name} ({label})"
-                try:
-                    results[key] = bench_closed_loop(name, burners=burners)
-                except Exception as exc:  # no renderer
-                    results[key] = {"error": f"{type(exc).__name__}: {exc}"}
+        for name, lag, (burners, label) in itertools.product(
+            ("single_object", "living_room"), (0, 1), ((0, "quiet"), (LOADED_BURNERS, "loaded"))
+        ):
+            key = f"closed_loop:{name} ({label}, masks {lag} frame{'s' * (lag != 1)} behind)"
+            try:
+                results[key] = bench_closed_loop(name, burners=burners, lag_frames=lag)
+            except Exception as exc:  # no renderer
+                results[key] = {"error": f"{type(exc).__name__}: {exc}"}
     if not synthetic_only:
         for name in ("clutter7_a", "living_room"):
             try:

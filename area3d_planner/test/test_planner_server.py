@@ -367,11 +367,11 @@ def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a
     gate = threading.Event()
     builds = []
 
-    def held_build(occupancy, kinds=(), evidence=None):
+    def held_build(occupancy, kinds=()):
         builds.append(srv._map_version)
         if len(builds) > 1:
             gate.wait(30.0)  # every rebuild after the first waits for the test
-        return build(occupancy, kinds, evidence)
+        return build(occupancy, kinds)
 
     srv.context.build = held_build
     try:
@@ -386,6 +386,98 @@ def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a
         assert not srv.wait_cache(3, timeout_s=0.2)
         gate.set()
         assert srv.wait_cache(3, timeout_s=30.0) and srv.cache_ready()
+        assert srv.rebuild_failures == 0  # the rebuilds ran in the worker, not the request
+    finally:
+        gate.set()
+        srv.close()
+
+
+def _masks(server):
+    cache = server.context._caches["roi_not_free"]
+    return cache.seeds, cache.indptr, cache.voxel_ids, cache.weights
+
+
+def test_with_a_frame_lag_a_closed_loop_request_plans_from_the_masks_of_the_map_before_its_frame():
+    """mask_lag_frames=1 without the background worker: a closed-loop request plans from the
+    masks of the map without its frame, exactly as built from that map, with the current field;
+    positions the newest frame shows too close to geometry are left out; a batch request gets
+    masks that cover every frame."""
+    f = frames()
+    lag = NextBestViewServer(config(budget=20, mode="closed_loop", mask_lag_frames=1))
+    before = NextBestViewServer(refresh_config())  # the map without the newest frame
+    for x in f:
+        lag.add_frame(*x)
+    for x in f[:2]:
+        before.add_frame(*x)
+    poses, reason = lag.plan(PlanRequest(f[2][4], 3, 1))
+    assert reason == "" and len(poses) == 1
+    assert lag.last_plan_s["masks_frames_behind"] == 1
+    assert before.plan(PlanRequest(f[1][4], 2, 1))[1] == ""
+    for a, b in zip(_masks(lag), _masks(before), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # the positions the third frame shows too close to geometry are the ones left out
+    seeds = lag.context.seeds()
+    blocked = ~lag.context.valid_positions(seeds, lag.grid.occupancy())
+    assert blocked.any() and not blocked.all()
+    np.testing.assert_array_equal(lag.context.blocked_seeds, blocked)
+    chosen = poses[0][:3, 3]
+    assert not np.any(np.all(np.isclose(seeds[blocked], chosen), axis=1))
+    # a batch request does not plan with lagging masks
+    exact = NextBestViewServer(config(budget=20))
+    for x in f:
+        exact.add_frame(*x)
+    assert lag.plan(PlanRequest(f[2][4], 3, 1, mode="batch"))[1] == ""
+    assert lag.last_plan_s["masks_frames_behind"] == 0 and lag.context.blocked_seeds is None
+    assert exact.plan(PlanRequest(f[2][4], 3, 1))[1] == ""
+    for a, b in zip(_masks(lag), _masks(exact), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_selection_never_takes_a_view_from_a_blocked_position():
+    srv = NextBestViewServer(refresh_config())
+    for x in frames():
+        srv.add_frame(*x)
+    srv.plan(PlanRequest(None, 3, 1))  # builds the masks
+    context, policy = srv.context, srv.policy
+    context.committed_decay = None
+    bins = context.candidates()[1].shape[1]
+    first = policy.selection(context, 1).views[0] // bins
+    context.blocked_seeds = np.zeros(context.seeds().shape[0], bool)
+    context.blocked_seeds[first] = True
+    second = policy.selection(context, 3).views
+    assert second and all(v // bins != first for v in second)
+
+
+def test_with_a_frame_lag_a_request_waits_only_for_masks_more_than_that_many_frames_behind():
+    """Background worker, mask_lag_frames=1: masks one frame behind the request's do without
+    waiting; two frames behind, the request waits for the rebuild."""
+    f = frames()
+    srv = NextBestViewServer(
+        config(budget=20, mode="closed_loop", mask_lag_frames=1), background=True
+    )
+    build = srv.context.build
+    gate = threading.Event()
+    builds = []
+
+    def held_build(occupancy, kinds=()):
+        builds.append(srv._map_version)
+        if len(builds) > 1:
+            gate.wait(30.0)  # every rebuild after the first waits for the test
+        return build(occupancy, kinds)
+
+    srv.context.build = held_build
+    try:
+        srv.add_frame(*f[0])
+        assert srv.wait_cache(1, timeout_s=30.0)
+        srv.add_frame(*f[1])
+        poses, reason = srv.plan(PlanRequest(f[1][4], 2, 1))
+        assert reason == "" and len(poses) == 1
+        assert srv.last_plan_s["masks_frames_behind"] == 1 and not srv.cache_ready()
+        srv.add_frame(*f[2])  # two frames behind: the request waits for a rebuild
+        assert not srv.wait_cache(3, timeout_s=0.2, lag_frames=1)
+        gate.set()
+        assert srv.wait_cache(3, timeout_s=30.0, lag_frames=1)
+        assert srv.rebuild_failures == 0
     finally:
         gate.set()
         srv.close()
