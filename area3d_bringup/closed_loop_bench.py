@@ -49,15 +49,15 @@ def _full_rebuild_s(context, occupancy: np.ndarray) -> float:
 
 
 def bench_closed_loop(
-    scene_name: str, steps: int = 12, burners: int = 0, lag_frames: int = 0
+    scene_name: str, steps: int = 12, burners: int = 0, pipelined: bool = False
 ) -> dict:
     """Closed loop in one process, as the nodes run it: after the initial views, each step takes
     the frame captured at the last planned view through the sensor model's confidence, fusion, the
     background rebuild of candidates and masks (incremental), and one next-best-view request; the
     latency is from the rendered frame to the answer (rendering itself excluded). With
-    `lag_frames` (the planner's `mask_lag_frames`) the request plans from masks that leave out
-    that many of the newest frames, and the rebuild for the frame finishes after the answer, while
-    the camera would move (not in the latency). Beside it, each step's rebuild from nothing on the
+    `pipelined` (the planner's `pipeline_masks`) each request plans from the masks of the previous
+    request's frame, and the rebuild for its own frame finishes after the answer, while the camera
+    would move (not in the latency). Beside it, each step's rebuild from nothing on the
     same map (not in the latency), and with `burners` busy processes running (`_burners`), the
     load average over the run."""
     from area3d_perception.sensor_model import rgbd_confidence
@@ -75,7 +75,7 @@ def bench_closed_loop(
         **planner_overrides(scene),
         mode="closed_loop",
         budget=10**6,
-        mask_lag_frames=lag_frames,
+        pipeline_masks=pipelined,
     )
     server = NextBestViewServer(config, background=True)
     renderer = RgbdRenderer(scene)
@@ -116,7 +116,7 @@ def bench_closed_loop(
         "voxels": server.grid.spec.num_voxels,
         "steps": len(latencies),
         "burners": burners,
-        "lag_frames": lag_frames,
+        "pipelined": pipelined,
         "load": load,
         "p50_s": float(np.percentile(lat, 50)),
         "p95_s": float(np.percentile(lat, 95)),

@@ -250,12 +250,15 @@ def run_bench(
         except Exception as exc:  # no renderer
             results["service:single_object"] = {"error": f"{type(exc).__name__}: {exc}"}
     if service and not synthetic_only:
-        for name, lag, (burners, label) in itertools.product(
-            ("single_object", "living_room"), (0, 1), ((0, "quiet"), (LOADED_BURNERS, "loaded"))
+        for name, pipelined, (burners, label) in itertools.product(
+            ("single_object", "living_room"),
+            (False, True),
+            ((0, "quiet"), (LOADED_BURNERS, "loaded")),
         ):
-            key = f"closed_loop:{name} ({label}, masks {lag} frame{'s' * (lag != 1)} behind)"
+            masks = "pipelined masks" if pipelined else "masks of its frame"
+            key = f"closed_loop:{name} ({label}, {masks})"
             try:
-                results[key] = bench_closed_loop(name, burners=burners, lag_frames=lag)
+                results[key] = bench_closed_loop(name, burners=burners, pipelined=pipelined)
             except Exception as exc:  # no renderer
                 results[key] = {"error": f"{type(exc).__name__}: {exc}"}
     if not synthetic_only:

@@ -127,16 +127,23 @@ class PlanningContext:
             return self._fields[policy.name]
         return self._fields[policy.name] * self.committed_decay
 
-    def snapshot(self, policy: Policy) -> PlanningContext:
+    def masks(self) -> tuple[tuple | None, dict]:
+        """(candidates, caches) as installed, for `snapshot` to select from later."""
+        return self._candidates, dict(self._caches)
+
+    def snapshot(self, policy: Policy, masks: tuple | None = None) -> PlanningContext:
         """A copy from which `policy` (a `Policy.map_free` one) selects views while the map goes
         on changing: the candidates, the policy's visibility cache and its field are made now
         (under the caller's lock) and shared read only; the camera poses and the committed decay
         are copied. The copy reads of the grid only its spec and region, which never change.
-        `adopt` takes the decay of the views it committed back."""
+        `adopt` takes the decay of the views it committed back. With `masks` (of `masks()`,
+        from an earlier map) it selects from those candidates and caches instead."""
         caches = {}
         fields = {}
+        candidates = self.candidates() if masks is None else masks[0]
         if policy.relevant is not None:
-            caches[policy.relevant] = self._cache(policy.relevant)
+            cache = None if masks is None else masks[1].get(policy.relevant)
+            caches[policy.relevant] = cache or self._cache(policy.relevant)
             self.policy_field(policy)
             fields[policy.name] = self._fields[policy.name]
         return replace(
@@ -144,7 +151,7 @@ class PlanningContext:
             camera_positions=list(self.camera_positions),
             camera_poses=list(self.camera_poses),
             committed_decay=None if self.committed_decay is None else self.committed_decay.copy(),
-            _candidates=self.candidates(),
+            _candidates=candidates,
             _caches=caches,
             _fields=fields,
             _evidence=self.evidence() if policy.relevant is not None else None,

@@ -302,15 +302,14 @@ class PlannerConfig:
         "closed_loop: re-plan after each view; batch: all views at once (paper)",
         choices=MODES,
     )
-    mask_lag_frames: int = described(
-        0,
-        "closed loop: a request plans from visibility masks that leave out at most this many of "
-        "the newest fused frames (their rebuild goes on while the camera moves) instead of "
-        "waiting for masks that cover its frame; the uncertainty field is always the current "
-        "one, and candidate positions the newer frames show too close to geometry are left "
-        "out; 0 = masks that cover its frame",
-        "frames",
-        (0, 1000),
+    pipeline_masks: bool = described(
+        False,
+        "closed loop: each request after the first plans from the visibility masks of the map "
+        "at the previous request's frame (rebuilt while the camera moved) instead of waiting "
+        "for the rebuild of its own frame; the uncertainty field is the current one, and "
+        "candidate positions the newer frames show too close to geometry are left out. The "
+        "first request, batch requests and a request from the same frame again wait for masks "
+        "of their frame",
     )
     budget: int = described(
         0,
@@ -530,6 +529,10 @@ class NextBestViewServer:
         self._stamp_version: dict[int, int] = {}  # map version that holds each stamp
         self._cache_version = 0  # map version of the installed seeds and masks
         self._cache_stamp = 0  # newest frame stamp in the map the installed masks were built from
+        # pipeline_masks: the map version of the last closed-loop request's frame (the next
+        # request plans from its masks), and the masks installed before the current ones
+        self._pipeline_base = 0
+        self._previous_masks: tuple | None = None  # (map version, (candidates, caches))
         self._cache_waiters = 0  # requests waiting in wait_cache
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
@@ -583,11 +586,11 @@ class NextBestViewServer:
         with self._lock:
             if int(stamp_ns) in self._fused_stamps:  # the same stamp, fused meanwhile
                 return False
-            lagging = self.config.mask_lag_frames > 0
-            if lagging and not self.background:
+            pipelined = self.config.pipeline_masks
+            if pipelined and not self.background and self._pipeline_base == self._map_version:
                 # what the background worker does while the camera moves to this frame's pose:
-                # masks of the map so far, before they fall further behind than allowed
-                if self._map_version - self._cache_version >= self.config.mask_lag_frames:
+                # the masks of the map at the last request's frame, which the next one plans from
+                if self._cache_version < self._map_version:
                     self._update_masks()
             self._adopt_camera(K, np.shape(depth))
             self.grid.apply_depth(observation)
@@ -603,7 +606,7 @@ class NextBestViewServer:
             self.last_fused_stamp = max(self.last_fused_stamp, int(stamp_ns))
             self._map_version += 1
             self._stamp_version[int(stamp_ns)] = self._map_version
-            if self.background or lagging:
+            if self.background or pipelined:
                 self.context.invalidate_fields()  # masks stay until the rebuild replaces them
             else:
                 self.context.invalidate()
@@ -679,22 +682,20 @@ class NextBestViewServer:
             return self.context._candidates is not None
 
     def wait_cache(
-        self, stamp_ns: int = 0, timeout_s: float | None = None, lag_frames: int = 0
+        self, stamp_ns: int = 0, timeout_s: float | None = None, version: int = 0
     ) -> bool:
         """Background mode: block until the masks cover the frame `stamp_ns` (0 or a stamp not
         fused: every fused frame), or timeout; True if they do. Always True without background.
         With `mask_lag_s` > 0, masks built from a map whose newest frame is at most that much
-        older than `stamp_ns` (any, for 0) do without waiting; with `lag_frames` > 0, masks
-        that leave out at most that many of the frames fused up to `stamp_ns`."""
+        older than `stamp_ns` (any, for 0) do without waiting; with `version` > 0, masks of that
+        map version or a newer one (`pipeline_masks`)."""
         if not self.background:
             return True
         with self._refreshed:
             lag_ns = int(self.mask_lag_s * 1e9)
             if lag_ns > 0 and self._cache_version > 0 and stamp_ns - self._cache_stamp <= lag_ns:
                 return True  # recent enough (`mask_lag_s`)
-            target = self._stamp_version.get(int(stamp_ns), self._map_version)
-            if self._cache_version > 0 and target - self._cache_version <= lag_frames:
-                return True  # recent enough (`mask_lag_frames`)
+            target = version or self._stamp_version.get(int(stamp_ns), self._map_version)
             self._cache_waiters += 1
             self._refreshed.notify_all()  # the worker may be holding back: a request waits
             try:
@@ -738,7 +739,7 @@ class NextBestViewServer:
                 if built is None:
                     self.context.invalidate()
                 else:
-                    self.context.install(*built)
+                    self._install(built)
                     if self.policy.relevant is not None and version == self._map_version:
                         try:  # the field of the current evidence, ready for the next request
                             self.context.policy_field(self.policy)
@@ -763,9 +764,40 @@ class NextBestViewServer:
         """Without the background worker: seeds and masks of the current map, built (updated
         from the installed ones) and installed now (lock held)."""
         kinds = () if self.policy.relevant is None else (self.policy.relevant,)
-        self.context.install(*self.context.build(self.grid.occupancy(), kinds))
+        self._install(self.context.build(self.grid.occupancy(), kinds))
         self._cache_version = self._map_version
         self._cache_stamp = self.last_fused_stamp
+
+    def _install(self, built: tuple) -> None:
+        """Install seeds and masks made by `PlanningContext.build`; with `pipeline_masks` the
+        ones they replace are kept (with their map version) for the next request (lock held)."""
+        if self.config.pipeline_masks and self._cache_version > 0:
+            self._previous_masks = (self._cache_version, self.context.masks())
+        self.context.install(*built)
+
+    def _pipelined_masks(self, request: PlanRequest) -> tuple[int, tuple | None] | None:
+        """For a request that plans from the masks of the previous request's frame
+        (`pipeline_masks`): (their map version, (candidates, caches) when they are the ones the
+        installed masks replaced, None when installed); None when the request waits for masks
+        of its own frame (lock held). The background worker may still be building them:
+        this waits for it."""
+        closed_loop = (request.mode or self.config.mode) == "closed_loop"
+        base = self._pipeline_base
+        target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
+        if not (self.config.pipeline_masks and closed_loop and self.policy.map_free):
+            return None
+        if base == 0 or base >= target:  # the first request, or the same frame again
+            return None
+        if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S, version=base):
+            return None  # the request path then waits for masks of its own frame, and reports
+        if not self.background and self._cache_version < base:
+            self._update_masks()  # frames came without a request between them: the newest
+        previous = self._previous_masks
+        if self._cache_version > base and previous is not None and previous[0] == base:
+            candidates, caches = previous[1]
+            if candidates is not None and self.policy.relevant in caches:
+                return base, previous[1]
+        return self._cache_version, None
 
     def _rebuild_failed(self, exc: Exception) -> None:
         self.rebuild_failures += 1
@@ -828,17 +860,26 @@ class NextBestViewServer:
                     return Plan([], [], checked)
                 want, remaining = checked
                 closed_loop = (request.mode or self.config.mode) == "closed_loop"
-                lag_frames = self.config.mask_lag_frames if closed_loop else 0
+                target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
                 t0 = time.perf_counter()
-                if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S, lag_frames):
-                    return Plan([], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s")
-                behind = 0  # fused frames the masks leave out
-                if self.background or self.config.mask_lag_frames > 0:
-                    behind = self._map_version - self._cache_version
-                if not self.background and behind > lag_frames:
-                    self._update_masks()
-                    behind = 0
+                pipelined = self._pipelined_masks(request)
+                if pipelined is None:
+                    if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
+                        return Plan(
+                            [], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
+                        )
+                    if self.config.pipeline_masks and not self.background:
+                        if self._cache_version < self._map_version:
+                            self._update_masks()
+                    version, masks = self._cache_version, None
+                else:
+                    version, masks = pipelined
+                if self.config.pipeline_masks and closed_loop and self.policy.map_free:
+                    self._pipeline_base = target  # the next request plans from these masks
                 t1 = time.perf_counter()
+                behind = 0  # fused frames the masks leave out
+                if self.background or self.config.pipeline_masks:
+                    behind = max(0, self._map_version - version)
                 # published whole, never changed after: the node reads it from other threads
                 timings = {"wait_cache": t1 - t0, "masks_frames_behind": behind}
                 if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
@@ -849,11 +890,11 @@ class NextBestViewServer:
                 start = None if request.start is None else np.asarray(request.start, float)
                 self.context.start = start
                 try:
-                    seeds, rotations = self.context.candidates()
+                    seeds, rotations = masks[0] if masks else self.context.candidates()
                     # positions the frames the masks leave out show too close to geometry
                     self.context.blocked_seeds = (
                         ~self.context.valid_positions(seeds, self.grid.occupancy())
-                        if behind > 0
+                        if behind > 0 and self.policy.map_free
                         else None
                     )
                     if seeds.shape[0] == 0:
@@ -874,7 +915,7 @@ class NextBestViewServer:
                             self._sequence = self.policy.select_views(self.context, remaining)
                         views, self._sequence = self._sequence.split(want)
                     elif self.policy.map_free:
-                        snapshot = self.context.snapshot(self.policy)
+                        snapshot = self.context.snapshot(self.policy, masks)
                     else:
                         views = self.policy.select_views(self.context, want)
                 except InputError as exc:

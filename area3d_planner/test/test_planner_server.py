@@ -397,39 +397,37 @@ def _masks(server):
     return cache.seeds, cache.indptr, cache.voxel_ids, cache.weights
 
 
-def test_with_a_frame_lag_a_closed_loop_request_plans_from_the_masks_of_the_map_before_its_frame():
-    """mask_lag_frames=1 without the background worker: a closed-loop request plans from the
-    masks of the map without its frame, exactly as built from that map, with the current field;
-    positions the newest frame shows too close to geometry are left out; a batch request gets
-    masks that cover every frame."""
+def test_pipelined_masks_plan_each_request_from_the_masks_of_the_previous_requests_frame():
+    """pipeline_masks without the background worker: the first closed-loop request plans from
+    masks of its frame; each next one from the masks of the map at the previous request's frame,
+    exactly as built from that map, leaving out the positions its own frame shows too close to
+    geometry; a batch request gets masks that cover every frame."""
     f = frames()
-    lag = NextBestViewServer(config(budget=20, mode="closed_loop", mask_lag_frames=1))
-    before = NextBestViewServer(refresh_config())  # the map without the newest frame
-    for x in f:
-        lag.add_frame(*x)
-    for x in f[:2]:
-        before.add_frame(*x)
-    poses, reason = lag.plan(PlanRequest(f[2][4], 3, 1))
-    assert reason == "" and len(poses) == 1
-    assert lag.last_plan_s["masks_frames_behind"] == 1
-    assert before.plan(PlanRequest(f[1][4], 2, 1))[1] == ""
-    for a, b in zip(_masks(lag), _masks(before), strict=True):
-        np.testing.assert_array_equal(a, b)
+    piped = NextBestViewServer(config(budget=20, mode="closed_loop", pipeline_masks=True))
+    exact = NextBestViewServer(refresh_config())
+    masks_of = []  # the exact masks after each frame
+    for i, x in enumerate(f):
+        piped.add_frame(*x)
+        exact.add_frame(*x)
+        poses, reason = piped.plan(PlanRequest(x[4], x[0], 1))
+        assert reason == "" and len(poses) == 1
+        assert exact.plan(PlanRequest(x[4], x[0], 1))[1] == ""
+        masks_of.append([a.copy() for a in _masks(exact)])
+        assert piped.last_plan_s["masks_frames_behind"] == (1 if i else 0)
+        if i:  # the masks it planned from: those of the map at the previous request's frame
+            for a, b in zip(_masks(piped), masks_of[i - 1], strict=True):
+                np.testing.assert_array_equal(a, b)
     # the positions the third frame shows too close to geometry are the ones left out
-    seeds = lag.context.seeds()
-    blocked = ~lag.context.valid_positions(seeds, lag.grid.occupancy())
+    seeds = piped.context.seeds()
+    blocked = ~piped.context.valid_positions(seeds, piped.grid.occupancy())
     assert blocked.any() and not blocked.all()
-    np.testing.assert_array_equal(lag.context.blocked_seeds, blocked)
+    np.testing.assert_array_equal(piped.context.blocked_seeds, blocked)
     chosen = poses[0][:3, 3]
     assert not np.any(np.all(np.isclose(seeds[blocked], chosen), axis=1))
-    # a batch request does not plan with lagging masks
-    exact = NextBestViewServer(config(budget=20))
-    for x in f:
-        exact.add_frame(*x)
-    assert lag.plan(PlanRequest(f[2][4], 3, 1, mode="batch"))[1] == ""
-    assert lag.last_plan_s["masks_frames_behind"] == 0 and lag.context.blocked_seeds is None
-    assert exact.plan(PlanRequest(f[2][4], 3, 1))[1] == ""
-    for a, b in zip(_masks(lag), _masks(exact), strict=True):
+    # a batch request does not plan from them
+    assert piped.plan(PlanRequest(f[2][4], 3, 1, mode="batch"))[1] == ""
+    assert piped.last_plan_s["masks_frames_behind"] == 0 and piped.context.blocked_seeds is None
+    for a, b in zip(_masks(piped), masks_of[2], strict=True):
         np.testing.assert_array_equal(a, b)
 
 
@@ -448,35 +446,42 @@ def test_selection_never_takes_a_view_from_a_blocked_position():
     assert second and all(v // bins != first for v in second)
 
 
-def test_with_a_frame_lag_a_request_waits_only_for_masks_more_than_that_many_frames_behind():
-    """Background worker, mask_lag_frames=1: masks one frame behind the request's do without
-    waiting; two frames behind, the request waits for the rebuild."""
+def test_pipelined_masks_with_the_background_worker_plan_as_without_it():
+    """pipeline_masks with the background worker: a request does not wait for the rebuild of its
+    frame, and plans from the masks of the previous request's frame even when the rebuild of
+    its own has finished: the views are those planned without the worker, whatever the timing."""
     f = frames()
-    srv = NextBestViewServer(
-        config(budget=20, mode="closed_loop", mask_lag_frames=1), background=True
-    )
+    piped = config(budget=20, mode="closed_loop", pipeline_masks=True)
+    srv = NextBestViewServer(piped, background=True)
+    sync = NextBestViewServer(piped)
     build = srv.context.build
     gate = threading.Event()
     builds = []
 
     def held_build(occupancy, kinds=()):
         builds.append(srv._map_version)
-        if len(builds) > 1:
-            gate.wait(30.0)  # every rebuild after the first waits for the test
+        if len(builds) == 2:
+            gate.wait(30.0)  # the rebuild after the second frame waits for the test
         return build(occupancy, kinds)
 
     srv.context.build = held_build
     try:
-        srv.add_frame(*f[0])
-        assert srv.wait_cache(1, timeout_s=30.0)
-        srv.add_frame(*f[1])
-        poses, reason = srv.plan(PlanRequest(f[1][4], 2, 1))
-        assert reason == "" and len(poses) == 1
-        assert srv.last_plan_s["masks_frames_behind"] == 1 and not srv.cache_ready()
-        srv.add_frame(*f[2])  # two frames behind: the request waits for a rebuild
-        assert not srv.wait_cache(3, timeout_s=0.2, lag_frames=1)
-        gate.set()
-        assert srv.wait_cache(3, timeout_s=30.0, lag_frames=1)
+        answers = []
+        for i, x in enumerate(f):
+            srv.add_frame(*x)
+            sync.add_frame(*x)
+            if i == 2:  # the third frame's rebuild finishes before its request
+                assert srv.wait_cache(3, timeout_s=30.0) and srv.cache_ready()
+            a, reason_a = srv.plan(PlanRequest(x[4], x[0], 1))
+            b, reason_b = sync.plan(PlanRequest(x[4], x[0], 1))
+            assert reason_a == reason_b == ""
+            answers.append((a, b, srv.last_plan_s["masks_frames_behind"]))
+            if i == 1:  # planned while the rebuild of its frame is held
+                assert not srv.cache_ready()
+                gate.set()
+        for a, b, _ in answers:
+            np.testing.assert_array_equal(np.array(a), np.array(b))
+        assert [behind for *_, behind in answers] == [0, 1, 1]
         assert srv.rebuild_failures == 0
     finally:
         gate.set()
