@@ -309,7 +309,7 @@ class PlannerConfig:
         "for the rebuild of its own frame; the uncertainty field is the current one, and "
         "candidate positions the newer frames show too close to geometry are left out. The "
         "first request, batch requests and a request from the same frame again wait for masks "
-        "of their frame",
+        "of their frame; with mask_lag_s > 0 (a streaming camera) that rule applies instead",
     )
     budget: int = described(
         0,
@@ -785,6 +785,8 @@ class NextBestViewServer:
         base = self._pipeline_base
         target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
         if not (self.config.pipeline_masks and closed_loop and self.policy.map_free):
+            return None
+        if self.mask_lag_s > 0:  # a streaming camera: the masks' age in capture time rules
             return None
         if base == 0 or base >= target:  # the first request, or the same frame again
             return None
