@@ -303,7 +303,7 @@ class PlannerConfig:
         choices=MODES,
     )
     pipeline_masks: bool = described(
-        False,
+        True,
         "closed loop: each request after the first plans from the visibility masks of the map "
         "at the previous request's frame (rebuilt while the camera moved) instead of waiting "
         "for the rebuild of its own frame; the uncertainty field is the current one, and "

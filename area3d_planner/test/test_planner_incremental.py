@@ -63,7 +63,9 @@ def closed_loop_reports(scene_name: str, frames: int, **overrides) -> list[dict]
 
     scene = load_scene(scene_name)
     region = {k: tuple(v) if isinstance(v, list) else v for k, v in planner_region(scene).items()}
-    config = PlannerConfig(**{**region, "mode": "closed_loop", "budget": 10**6, **overrides})
+    config = PlannerConfig(
+        **{**region, "mode": "closed_loop", "budget": 10**6, "pipeline_masks": False, **overrides}
+    )  # each plan from masks of its own frame, which the test compares with a full build
     server = NextBestViewServer(config)
     renderer = RgbdRenderer(scene, 160, 120)
     reports = []

@@ -404,7 +404,7 @@ def test_pipelined_masks_plan_each_request_from_the_masks_of_the_previous_reques
     geometry; a batch request gets masks that cover every frame."""
     f = frames()
     piped = NextBestViewServer(config(budget=20, mode="closed_loop", pipeline_masks=True))
-    exact = NextBestViewServer(refresh_config())
+    exact = NextBestViewServer(config(budget=20, mode="closed_loop", pipeline_masks=False))
     masks_of = []  # the exact masks after each frame
     for i, x in enumerate(f):
         piped.add_frame(*x)
