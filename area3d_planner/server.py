@@ -532,7 +532,7 @@ class NextBestViewServer:
         # pipeline_masks: the map version of the last closed-loop request's frame (the next
         # request plans from its masks), and the masks installed before the current ones
         self._pipeline_base = 0
-        self._previous_masks: tuple | None = None  # (map version, (candidates, caches))
+        self._previous_masks: tuple | None = None  # (map version, stamp, (candidates, caches))
         self._cache_waiters = 0  # requests waiting in wait_cache
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
@@ -772,15 +772,15 @@ class NextBestViewServer:
         """Install seeds and masks made by `PlanningContext.build`; with `pipeline_masks` the
         ones they replace are kept (with their map version) for the next request (lock held)."""
         if self.config.pipeline_masks and self._cache_version > 0:
-            self._previous_masks = (self._cache_version, self.context.masks())
+            self._previous_masks = (self._cache_version, self._cache_stamp, self.context.masks())
         self.context.install(*built)
 
-    def _pipelined_masks(self, request: PlanRequest) -> tuple[int, tuple | None] | None:
+    def _pipelined_masks(self, request: PlanRequest) -> tuple[int, int, tuple | None] | None:
         """For a request that plans from the masks of the previous request's frame
-        (`pipeline_masks`): (their map version, (candidates, caches) when they are the ones the
-        installed masks replaced, None when installed); None when the request waits for masks
-        of its own frame (lock held). The background worker may still be building them:
-        this waits for it."""
+        (`pipeline_masks`): (their map version, the newest stamp in that map, (candidates,
+        caches) when they are the ones the installed masks replaced, None when installed); None
+        when the request waits for masks of its own frame (lock held). The background worker may
+        still be building them: this waits for it."""
         closed_loop = (request.mode or self.config.mode) == "closed_loop"
         base = self._pipeline_base
         target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
@@ -796,10 +796,10 @@ class NextBestViewServer:
             self._update_masks()  # frames came without a request between them: the newest
         previous = self._previous_masks
         if self._cache_version > base and previous is not None and previous[0] == base:
-            candidates, caches = previous[1]
+            candidates, caches = previous[2]
             if candidates is not None and self.policy.relevant in caches:
-                return base, previous[1]
-        return self._cache_version, None
+                return previous
+        return self._cache_version, self._cache_stamp, None
 
     def _rebuild_failed(self, exc: Exception) -> None:
         self.rebuild_failures += 1
@@ -873,9 +873,9 @@ class NextBestViewServer:
                     if self.config.pipeline_masks and not self.background:
                         if self._cache_version < self._map_version:
                             self._update_masks()
-                    version, masks = self._cache_version, None
+                    version, stamp, masks = self._cache_version, self._cache_stamp, None
                 else:
-                    version, masks = pipelined
+                    version, stamp, masks = pipelined
                 if self.config.pipeline_masks and closed_loop and self.policy.map_free:
                     self._pipeline_base = target  # the next request plans from these masks
                 t1 = time.perf_counter()
@@ -885,9 +885,7 @@ class NextBestViewServer:
                 # published whole, never changed after: the node reads it from other threads
                 timings = {"wait_cache": t1 - t0, "masks_frames_behind": behind}
                 if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
-                    timings["masks_behind"] = (
-                        max(0, int(request.stamp_ns) - self._cache_stamp) / 1e9
-                    )
+                    timings["masks_behind"] = max(0, int(request.stamp_ns) - stamp) / 1e9
                 self.last_plan_s = timings
                 start = None if request.start is None else np.asarray(request.start, float)
                 self.context.start = start

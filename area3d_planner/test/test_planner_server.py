@@ -482,6 +482,8 @@ def test_pipelined_masks_with_the_background_worker_plan_as_without_it():
         for a, b, _ in answers:
             np.testing.assert_array_equal(np.array(a), np.array(b))
         assert [behind for *_, behind in answers] == [0, 1, 1]
+        # the last one planned from the masks of the second frame, which the third's replaced
+        assert srv.last_plan_s["masks_behind"] == pytest.approx(1e-9)
         assert srv.rebuild_failures == 0
     finally:
         gate.set()
