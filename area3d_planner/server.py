@@ -770,8 +770,9 @@ class NextBestViewServer:
 
     def _install(self, built: tuple) -> None:
         """Install seeds and masks made by `PlanningContext.build`; with `pipeline_masks` the
-        ones they replace are kept (with their map version) for the next request (lock held)."""
-        if self.config.pipeline_masks and self._cache_version > 0:
+        ones they replace are kept (with their map version) for the next request, unless a
+        streaming camera's `mask_lag_s` rules instead (lock held)."""
+        if self.config.pipeline_masks and self.mask_lag_s <= 0 and self._cache_version > 0:
             self._previous_masks = (self._cache_version, self._cache_stamp, self.context.masks())
         self.context.install(*built)
 
