@@ -533,6 +533,8 @@ class NextBestViewServer:
         # request plans from its masks), and the masks installed before the current ones
         self._pipeline_base = 0
         self._previous_masks: tuple | None = None  # (map version, stamp, (candidates, caches))
+        self._pipeline_map: tuple | None = None  # (map version, stamp, occupancy) to build first
+        self._building_version = 0  # the map version the worker is building (0: none)
         self._cache_waiters = 0  # requests waiting in wait_cache
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
         self._closed = False
@@ -587,10 +589,23 @@ class NextBestViewServer:
             if int(stamp_ns) in self._fused_stamps:  # the same stamp, fused meanwhile
                 return False
             pipelined = self.config.pipeline_masks
-            if pipelined and not self.background and self._pipeline_base == self._map_version:
-                # what the background worker does while the camera moves to this frame's pose:
-                # the masks of the map at the last request's frame, which the next one plans from
-                if self._cache_version < self._map_version:
+            if (
+                pipelined
+                and self._pipeline_base == self._map_version
+                and self._cache_version < self._map_version
+                and self._building_version != self._map_version
+            ):
+                # the masks of the map at the last request's frame, which the next request plans
+                # from: built now without the worker; with it, the map is kept for the worker,
+                # which may not have started on it (it coalesces frames) before this one changes it
+                if self.background:
+                    self._pipeline_map = (
+                        self._map_version,
+                        self.last_fused_stamp,
+                        self.grid.occupancy(),
+                    )
+                    self._refreshed.notify_all()
+                else:
                     self._update_masks()
             self._adopt_camera(K, np.shape(depth))
             self.grid.apply_depth(observation)
@@ -717,6 +732,11 @@ class NextBestViewServer:
         while True:
             with self._refreshed:
                 while not self._closed:
+                    kept = self._pipeline_map
+                    if kept is not None and kept[0] <= self._cache_version:
+                        kept = self._pipeline_map = None  # built already
+                    if kept is not None:
+                        break  # the next request plans from it: at once
                     stale = self._map_version > self._cache_version
                     wait_s = self._last_refresh + self.refresh_interval_s - time.monotonic()
                     if stale and (wait_s <= 0 or self._cache_waiters > 0):
@@ -725,9 +745,14 @@ class NextBestViewServer:
                 if self._closed:
                     return
                 self._last_refresh = time.monotonic()
-                version = self._map_version
-                stamp = self.last_fused_stamp
-                occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
+                if kept is not None:  # the map at the last request's frame (`pipeline_masks`)
+                    version, stamp, occupancy = kept
+                    self._pipeline_map = None
+                else:
+                    version = self._map_version
+                    stamp = self.last_fused_stamp
+                    occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
+                self._building_version = version
             started = time.perf_counter()
             try:
                 built = self.context.build(occupancy, kinds)
@@ -749,6 +774,7 @@ class NextBestViewServer:
                             self._rebuild_failed(exc)
                 self._cache_version = version
                 self._cache_stamp = stamp
+                self._building_version = 0
                 self.refresh_count += 1
                 reports = [cache.report for cache in built[1].values()] if built else []
                 self.last_rebuild = {"seconds": rebuild_s, "version": version}

@@ -491,6 +491,28 @@ def test_pipelined_masks_with_the_background_worker_plan_as_without_it():
         srv.close()
 
 
+def test_pipelined_masks_are_built_for_the_requests_map_even_when_the_next_frame_came_first():
+    """The worker coalesces frames (and starts a rebuild at most every refresh_interval_s unless a
+    request waits): when the next frame is fused before it has started on the map of the last
+    request's frame, that map is kept and built first, so the next request still plans from it."""
+    f = frames()
+    piped = config(budget=20, mode="closed_loop", pipeline_masks=True)
+    srv = NextBestViewServer(piped, background=True, refresh_interval_s=3600.0)
+    sync = NextBestViewServer(piped)
+    try:
+        for i, x in enumerate(f):
+            srv.add_frame(*x)
+            sync.add_frame(*x)
+            a, reason_a = srv.plan(PlanRequest(x[4], x[0], 1))
+            b, reason_b = sync.plan(PlanRequest(x[4], x[0], 1))
+            assert reason_a == reason_b == ""
+            np.testing.assert_array_equal(np.array(a), np.array(b))
+            assert srv.last_plan_s["masks_frames_behind"] == (1 if i else 0)
+        assert srv.rebuild_failures == 0
+    finally:
+        srv.close()
+
+
 def test_frames_are_fused_while_a_plan_selects_its_views():
     """The selection runs on a snapshot outside the map's lock: a frame arriving meanwhile is
     fused at once, and the plan's committed decay is kept afterwards."""
