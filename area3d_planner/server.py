@@ -588,7 +588,7 @@ class NextBestViewServer:
         with self._lock:
             if int(stamp_ns) in self._fused_stamps:  # the same stamp, fused meanwhile
                 return False
-            pipelined = self.config.pipeline_masks
+            pipelined = self._pipelines()
             if (
                 pipelined
                 and self._pipeline_base == self._map_version
@@ -795,26 +795,32 @@ class NextBestViewServer:
         self._cache_stamp = self.last_fused_stamp
 
     def _install(self, built: tuple) -> None:
-        """Install seeds and masks made by `PlanningContext.build`; with `pipeline_masks` the
-        ones they replace are kept (with their map version) for the next request, unless a
-        streaming camera's `mask_lag_s` rules instead (lock held)."""
-        if self.config.pipeline_masks and self.mask_lag_s <= 0 and self._cache_version > 0:
+        """Install seeds and masks made by `PlanningContext.build`; while masks are pipelined
+        the ones they replace are kept (with their map version) for the next request (lock
+        held)."""
+        if self._pipelines() and self._cache_version > 0:
             self._previous_masks = (self._cache_version, self._cache_stamp, self.context.masks())
         self.context.install(*built)
 
-    def _pipelined_masks(self, request: PlanRequest) -> tuple[int, int, tuple | None] | None:
-        """For a request that plans from the masks of the previous request's frame
-        (`pipeline_masks`): (their map version, the newest stamp in that map, (candidates,
-        caches) when they are the ones the installed masks replaced, None when installed); None
-        when the request waits for masks of its own frame (lock held). The background worker may
-        still be building them: this waits for it."""
-        closed_loop = (request.mode or self.config.mode) == "closed_loop"
+    def _pipelines(self, request: PlanRequest | None = None) -> bool:
+        """Masks are pipelined (`pipeline_masks`, and no streaming camera's `mask_lag_s`, whose
+        rule on the masks' age in capture time applies instead); with `request`: and it is a
+        closed-loop request of a policy that selects from a snapshot."""
+        if not self.config.pipeline_masks or self.mask_lag_s > 0:
+            return False
+        if request is None:
+            return True
+        return (request.mode or self.config.mode) == "closed_loop" and self.policy.map_free
+
+    def _pipelined_masks(
+        self, request: PlanRequest, target: int
+    ) -> tuple[int, int, tuple | None] | None:
+        """For a pipelined request (`_pipelines`) whose frame is map version `target`, the masks
+        of the previous request's frame: (their map version, the newest stamp in that map,
+        (candidates, caches) when they are the ones the installed masks replaced, None when
+        installed); None when the request waits for masks of its own frame (lock held). The
+        background worker may still be building them: this waits for it."""
         base = self._pipeline_base
-        target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
-        if not (self.config.pipeline_masks and closed_loop and self.policy.map_free):
-            return None
-        if self.mask_lag_s > 0:  # a streaming camera: the masks' age in capture time rules
-            return None
         if base == 0 or base >= target:  # the first request, or the same frame again
             return None
         if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S, version=base):
@@ -891,23 +897,24 @@ class NextBestViewServer:
                 closed_loop = (request.mode or self.config.mode) == "closed_loop"
                 target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
                 t0 = time.perf_counter()
-                pipelined = self._pipelined_masks(request)
+                pipelines = self._pipelines(request)
+                pipelined = self._pipelined_masks(request, target) if pipelines else None
                 if pipelined is None:
                     if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
                         return Plan(
                             [], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
                         )
-                    if self.config.pipeline_masks and not self.background:
+                    if self._pipelines() and not self.background:
                         if self._cache_version < self._map_version:
                             self._update_masks()
                     version, stamp, masks = self._cache_version, self._cache_stamp, None
                 else:
                     version, stamp, masks = pipelined
-                if self.config.pipeline_masks and closed_loop and self.policy.map_free:
+                if pipelines:
                     self._pipeline_base = target  # the next request plans from these masks
                 t1 = time.perf_counter()
                 behind = 0  # fused frames the masks leave out
-                if self.background or self.config.pipeline_masks:
+                if self.background or self._pipelines():
                     behind = max(0, self._map_version - version)
                 # published whole, never changed after: the node reads it from other threads
                 timings = {"wait_cache": t1 - t0, "masks_frames_behind": behind}

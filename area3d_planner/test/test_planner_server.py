@@ -388,6 +388,7 @@ def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a
         assert srv.wait_cache(3, timeout_s=30.0) and srv.cache_ready()
         assert srv.rebuild_failures == 0  # the rebuilds ran in the worker, not the request
         assert srv._previous_masks is None  # streaming: no second set of masks is kept
+        assert srv._pipeline_base == 0  # nor a map kept for the worker to build first
     finally:
         gate.set()
         srv.close()
