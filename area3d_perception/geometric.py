@@ -325,6 +325,21 @@ def frame_rays(
     )
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ray_end(depth, u, v, fx, fy, cx, cy, T, max_range, out):  # pragma: no cover - compiled
+    """out[:3] = the world end of pixel (u, v)'s ray; True if it is a surface hit (a return at
+    most `max_range` from the camera), False if it ends `max_range` metres along the ray."""
+    x = (u + 0.5 - cx) / fx
+    y = (v + 0.5 - cy) / fy
+    norm = np.sqrt(x * x + y * y + 1.0)
+    d = np.float64(depth[v, u])
+    hit = np.isfinite(d) and d > 0 and d * norm <= max_range
+    if not hit:
+        d = max_range / norm
+    pixel_to_world(u, v, d, fx, fy, cx, cy, T, out)
+    return hit
+
+
 @njit(cache=True, nogil=True)
 def _frame_ray_ends(depth, fx, fy, cx, cy, T, stride, max_range):  # pragma: no cover - compiled
     h, w = depth.shape
@@ -334,19 +349,36 @@ def _frame_ray_ends(depth, fx, fy, cx, cy, T, stride, max_range):  # pragma: no 
     hit = np.empty(rows * cols, dtype=np.bool_)
     n = 0
     for v in range(0, h, stride):
-        y = (v + 0.5 - cy) / fy
         for u in range(0, w, stride):
-            x = (u + 0.5 - cx) / fx
-            norm = np.sqrt(x * x + y * y + 1.0)
-            d = np.float64(depth[v, u])
-            if np.isfinite(d) and d > 0 and d * norm <= max_range:
-                hit[n] = True
-            else:
-                hit[n] = False
-                d = max_range / norm
-            pixel_to_world(u, v, d, fx, fy, cx, cy, T, points[n])
+            hit[n] = _ray_end(depth, u, v, fx, fy, cx, cy, T, max_range, points[n])
             n += 1
     return points, hit
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _mark_frame_rays(
+    depth, fx, fy, cx, cy, T, stride, max_range, no_return, carve_mask, lower, scale, shape, crossed
+):  # pragma: no cover - compiled
+    """`frame_rays` and `carve_free_space(count=False)` in one pass, rows of rays in parallel:
+    each ray's end is computed and walked at once (no arrays of every ray). no_return: 0 = rays
+    without a return carve nothing, 1 = all of them carve, 2 = those where `carve_mask` is True."""
+    h, w = depth.shape
+    o0 = (T[0, 3] - lower[0]) * scale
+    o1 = (T[1, 3] - lower[1]) * scale
+    o2 = (T[2, 3] - lower[2]) * scale
+    for r in prange((h + stride - 1) // stride):
+        v = r * stride
+        end = np.empty(3)
+        for u in range(0, w, stride):
+            hit = _ray_end(depth, u, v, fx, fy, cx, cy, T, max_range, end)
+            if not hit and (no_return == 0 or (no_return == 2 and not carve_mask[v, u])):
+                continue
+            _walk_ray(
+                o0, o1, o2,
+                (end[0] - lower[0]) * scale, (end[1] - lower[1]) * scale,
+                (end[2] - lower[2]) * scale,
+                shape[0], shape[1], shape[2], crossed, False,
+            )  # fmt: skip
 
 
 def carve_depth_frame(
@@ -368,6 +400,9 @@ def carve_depth_frame(
     (H, W) bool mask of the no-return pixels that may carve. count=False: mark (see
     `carve_free_space`).
     """
+    if not count and surface_margin == 0:
+        return _mark_depth_frame(spec, depth, K, T_world_cam, free_count, stride, max_range,
+                                 carve_no_return)  # fmt: skip
     points, hit = frame_rays(depth, K, T_world_cam, stride, max_range)
     if isinstance(carve_no_return, np.ndarray):
         mask = np.asarray(carve_no_return, bool)
@@ -380,6 +415,43 @@ def carve_depth_frame(
     return carve_free_space(
         spec, T_world_cam[:3, 3], points, free_count, hit, surface_margin, count
     )
+
+
+def _mark_depth_frame(spec, depth, K, T_world_cam, crossed, stride, max_range, carve_no_return):
+    """`carve_depth_frame(count=False)` without a surface margin: every ray's end computed and
+    walked in one compiled pass (`_mark_frame_rays`); marks the same voxels as the general path
+    (test)."""
+    if int(stride) != stride or stride < 1:
+        raise InputError("stride", stride, "an integer >= 1")
+    if not (np.isfinite(max_range) and max_range > 0):
+        raise InputError("max_range", max_range, "a finite range > 0 metres")
+    if np.ndim(depth) != 2:
+        raise InputError("depth", f"shape {np.shape(depth)}", "an (H, W) image in metres")
+    K = np.asarray(K, dtype=np.float64)
+    if not np.all(np.isfinite(K)):
+        raise InputError("K", K.tolist(), "finite (3, 3) intrinsics")
+    T = np.ascontiguousarray(T_world_cam, dtype=np.float64)
+    if not np.all(np.isfinite(T)):
+        raise InputError("T_world_cam", T.tolist(), "a finite (4, 4) pose")
+    crossed = _check_grid_array("free_count", crossed, spec)
+    if crossed.dtype != np.uint8:
+        raise InputError("free_count", crossed.dtype, "a uint8 array to mark (count=False)")
+    mask = np.zeros((1, 1), dtype=bool)
+    if isinstance(carve_no_return, np.ndarray):
+        mask = np.ascontiguousarray(carve_no_return, dtype=bool)
+        if mask.shape != np.shape(depth):
+            raise InputError("carve_no_return", mask.shape, f"the depth shape {np.shape(depth)}")
+        no_return = 2
+    else:
+        no_return = 1 if carve_no_return else 0
+    _mark_frame_rays(
+        np.ascontiguousarray(depth, dtype=np.float32),
+        K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+        T, int(stride), float(max_range), no_return, mask,
+        np.asarray(spec.lower, dtype=np.float64), 1.0 / spec.voxel_size,
+        np.asarray(spec.shape, dtype=np.int64), crossed.reshape(-1),
+    )  # fmt: skip
+    return crossed
 
 
 def splat_depth_frame(

@@ -7,6 +7,7 @@ from area3d_msgs_py.errors import InputError
 from area3d_perception.geometric import (
     carve_depth_frame,
     carve_free_space,
+    frame_rays,
     geometric_uncertainty,
     splat_confidence,
     splat_depth_frame,
@@ -224,6 +225,56 @@ def test_frame_helpers_reject_bad_images():
             e,
             e.copy(),
         )
+
+
+def _tilted_frame(h: int, w: int):
+    """A depth frame of a slanted floor and a box, with holes (NaN, inf, 0 and beyond range),
+    looking along +y from outside SPEC-like grid, and the grid it looks into."""
+    rng = np.random.default_rng(11)
+    spec = GridSpec.from_bounds(np.array([-1.0, 0.0, -1.0]), np.array([1.0, 3.0, 1.0]), 0.07)
+    K = np.array([[w * 0.6, 0, w / 2 + 0.3], [0, w * 0.6, h / 2 - 0.2], [0, 0, 1.0]])
+    T = look_at_plus_y([0.03, -0.4, 0.11])
+    rows = np.linspace(0.5, 4.5, h, dtype=np.float32)[:, None]
+    depth = np.broadcast_to(rows, (h, w)).copy()
+    depth[h // 4 : h // 2, w // 3 : w // 2] = 1.2  # a box in front of the floor
+    holes = rng.random((h, w))
+    depth[holes < 0.05] = np.nan
+    depth[(holes >= 0.05) & (holes < 0.07)] = np.inf
+    depth[(holes >= 0.07) & (holes < 0.08)] = 0.0
+    depth[: h // 6, : w // 5] = np.nan  # a region without returns
+    return spec, depth, K, T
+
+
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_marking_a_frame_in_one_pass_equals_its_rays_walked_one_by_one(stride):
+    """The fused pass (count=False, no surface margin) marks exactly the voxels that the frame's
+    rays (`frame_rays`) mark through `carve_free_space`, for every rule of no-return pixels."""
+    spec, depth, K, T = _tilted_frame(45, 61)
+    region = np.zeros(depth.shape, bool)
+    region[: depth.shape[0] // 3] = True
+    for rule in (True, False, region):
+        fused = carve_depth_frame(
+            spec, depth, K, T, np.zeros(spec.shape, np.uint8), stride, 3.0, carve_no_return=rule,
+            count=False,
+        )  # fmt: skip
+        points, hit = frame_rays(depth, K, T, stride, 3.0)
+        keep = hit | (rule if isinstance(rule, bool) else region[::stride, ::stride].reshape(-1))
+        walked = carve_free_space(
+            spec, T[:3, 3], points[keep], np.zeros(spec.shape, np.uint8), hit[keep], count=False
+        )
+        assert walked.sum() > 100  # the frame carves a real volume
+        np.testing.assert_array_equal(fused, walked)
+    with pytest.raises(InputError, match="T_world_cam"):
+        bad = T.copy()
+        bad[0, 3] = np.nan
+        carve_depth_frame(spec, depth, K, bad, np.zeros(spec.shape, np.uint8), count=False)
+    with pytest.raises(InputError, match="free_count"):
+        carve_depth_frame(spec, depth, K, T, np.zeros(spec.shape, np.int32), count=False)
+    with pytest.raises(InputError, match="carve_no_return"):
+        carve_depth_frame(
+            spec, depth, K, T, np.zeros(spec.shape, np.uint8), carve_no_return=region[1:],
+            count=False,
+        )  # fmt: skip
 
 
 def test_marking_in_parallel_finds_exactly_the_voxels_counting_finds():

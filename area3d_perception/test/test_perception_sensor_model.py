@@ -369,6 +369,17 @@ def test_bounded_edge_distance_is_the_full_transform_cut_at_the_bound(edges, max
     np.testing.assert_array_equal(edge_distance(edges, max_px), expected)
 
 
+@pytest.mark.parametrize("fraction", [0.005, 0.3])
+def test_bounded_edge_distance_on_a_full_frame_sparse_or_dense(fraction):
+    """A 640x480 frame with few edges (each edge pixel's window) and with many (one OpenCV
+    pass, cut at the bound) gives the full transform cut at the bound either way."""
+    edges = np.random.default_rng(5).random((480, 640)) < fraction
+    full = cv2.distanceTransform((~edges).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    for max_px in (2.0, 3.0):
+        expected = np.where(full <= max_px, full, np.inf)
+        np.testing.assert_array_equal(edge_distance(edges, max_px), expected)
+
+
 def test_axial_noise_is_sigma_z_of_depth_and_incidence_times_a_standard_normal():
     # A tilted plane filling the image: no discontinuity, no grazing pixel, so the only random
     # draw is the per-pixel normal.
