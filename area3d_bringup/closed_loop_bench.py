@@ -20,6 +20,10 @@ def planner_overrides(scene) -> dict:
 
 
 CLOSED_LOOP_TARGET_S = {"object": 0.08, "room": 0.3}  # frame captured -> next view answered, p95
+# steps per run: enough for a p95 that is not just the slowest step where a step is cheap (an
+# object's, a few tenths of a second with the rebuild from nothing beside it); a room's step
+# takes seconds
+CLOSED_LOOP_STEPS = {"object": 40, "room": 12}
 LOADED_BURNERS = (
     2  # busy processes beside the loaded run (`yes > /dev/null`: load about 4 on 2 cores)
 )
@@ -49,7 +53,7 @@ def _full_rebuild_s(context, occupancy: np.ndarray) -> float:
 
 
 def bench_closed_loop(
-    scene_name: str, steps: int = 12, burners: int = 0, pipelined: bool = False
+    scene_name: str, steps: int | None = None, burners: int = 0, pipelined: bool = False
 ) -> dict:
     """Closed loop in one process, as the nodes run it: after the initial views, each step takes
     the frame captured at the last planned view through the sensor model's confidence, fusion, the
@@ -59,7 +63,7 @@ def bench_closed_loop(
     request's frame, and the rebuild for its own frame finishes after the answer, while the camera
     would move (not in the latency). Beside it, each step's rebuild from nothing on the
     same map (not in the latency), and with `burners` busy processes running (`_burners`), the
-    load average over the run."""
+    load average over the run. `steps`: `CLOSED_LOOP_STEPS` of the scene's level by default."""
     from area3d_perception.sensor_model import rgbd_confidence
     from area3d_planner.server import (
         CACHE_WAIT_S,
@@ -71,6 +75,7 @@ def bench_closed_loop(
     from sim_bridge.scenes import load_scene
 
     scene = load_scene(scene_name)
+    steps = CLOSED_LOOP_STEPS[scene.level] if steps is None else steps
     config = PlannerConfig(
         **planner_overrides(scene),
         mode="closed_loop",
