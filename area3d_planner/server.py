@@ -26,9 +26,6 @@ from area3d_planner.visibility import VisibilityParams
 
 MODES = ("batch", "closed_loop")
 CACHE_WAIT_S = 120.0  # a request waits at most this long for the background rebuild of the masks
-# pipeline_masks: the background rebuild for a new frame waits at most this long for the request
-# from that frame (see NextBestViewServer._held_for_request_s)
-PIPELINE_HOLD_S = 2.0
 # A camera's field of view within this of the planner's (degrees) is the same camera: the
 # intrinsics of a 90 degree camera, fx = (W / 2) / tan(45 deg), give back 90 to within 1e-13.
 CAMERA_FOV_EPS = 1e-6
@@ -450,9 +447,6 @@ class NextBestViewServer:
     # fusion and requests). For a streaming camera with `mask_lag_s` > 0, where no request waits
     # for a rebuild, fusing every frame on time comes first; with 0, a request waits on it.
     rebuild_nice: int = 0
-    # While masks are pipelined (`pipeline_masks`), the rebuild for a new frame waits for the
-    # request from that frame to be answered, or at most this long after the frame was fused.
-    pipeline_hold_s: float = PIPELINE_HOLD_S
     grid: FusedGrid = field(init=False)
     committed: int = field(init=False, default=0)
     # the last closed-loop plan's views, until a frame comes: (request stamp, frames fused, count)
@@ -538,8 +532,6 @@ class NextBestViewServer:
         # pipeline_masks: the map version of the last closed-loop request's frame (the next
         # request plans from its masks), and the masks installed before the current ones
         self._pipeline_base = 0
-        self._answered_version = 0  # map version of the newest frame a request was answered for
-        self._fused_at = -np.inf  # time.monotonic() when the newest frame was fused
         self._previous_masks: tuple | None = None  # (map version, stamp, (candidates, caches))
         self._pipeline_map: tuple | None = None  # (map version, stamp, occupancy) to build first
         self._building_version = 0  # the map version the worker is building (0: none)
@@ -629,7 +621,6 @@ class NextBestViewServer:
             self.last_fused_stamp = max(self.last_fused_stamp, int(stamp_ns))
             self._map_version += 1
             self._stamp_version[int(stamp_ns)] = self._map_version
-            self._fused_at = time.monotonic()
             if self.background or pipelined:
                 self.context.invalidate_fields()  # masks stay until the rebuild replaces them
             else:
@@ -748,7 +739,6 @@ class NextBestViewServer:
                         break  # the next request plans from it: at once
                     stale = self._map_version > self._cache_version
                     wait_s = self._last_refresh + self.refresh_interval_s - time.monotonic()
-                    wait_s = max(wait_s, self._held_for_request_s())
                     if stale and (wait_s <= 0 or self._cache_waiters > 0):
                         break
                     self._refreshed.wait(wait_s if stale else None)
@@ -795,19 +785,6 @@ class NextBestViewServer:
                     self.on_refresh()
                 except Exception:  # noqa: BLE001 - a failing listener must not stop the refresh
                     pass
-
-    def _held_for_request_s(self) -> float:
-        """Seconds the worker still holds back the rebuild for the newest frame while masks are
-        pipelined (lock held): the next request plans from the masks of the previous request's
-        frame, so the rebuild for this frame is only needed after its own request; started
-        before, it would compete with that request for the CPU. It starts once a request for the
-        frame has been answered, or `pipeline_hold_s` after the frame was fused if none comes
-        (0: not held)."""
-        if self._pipeline_base == 0 or not self._pipelines():
-            return 0.0
-        if self._answered_version >= self._map_version:
-            return 0.0
-        return self._fused_at + self.pipeline_hold_s - time.monotonic()
 
     def _update_masks(self) -> None:
         """Without the background worker: seeds and masks of the current map, built (updated
@@ -910,99 +887,91 @@ class NextBestViewServer:
         evidence) and to keep the committed views afterwards.
         """
         with self._plan_lock:
-            try:
-                return self._plan_views(request)
-            finally:
-                with self._refreshed:  # a rebuild held for the request's frame may start
-                    version = self._stamp_version.get(int(request.stamp_ns), self._map_version)
-                    self._answered_version = max(self._answered_version, version)
-                    self._refreshed.notify_all()
-
-    def _plan_views(self, request: PlanRequest) -> Plan:
-        """`plan_views` (the plan lock held)."""
-        snapshot = None
-        with self._lock:
-            self._settle(request)
-            checked = self._check_request(request)
-            if isinstance(checked, str):
-                return Plan([], [], checked)
-            want, remaining = checked
-            closed_loop = (request.mode or self.config.mode) == "closed_loop"
-            target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
-            t0 = time.perf_counter()
-            pipelines = self._pipelines(request)
-            pipelined = self._pipelined_masks(request, target) if pipelines else None
-            if pipelined is None:
-                if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
-                    return Plan([], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s")
-                if self._pipelines() and not self.background:
-                    if self._cache_version < self._map_version:
-                        self._update_masks()
-                version, stamp, masks = self._cache_version, self._cache_stamp, None
-            else:
-                version, stamp, masks = pipelined
-            if pipelines:
-                self._pipeline_base = target  # the next request plans from these masks
-            t1 = time.perf_counter()
-            behind = 0  # fused frames the masks leave out
-            if self.background or self._pipelines():
-                behind = max(0, self._map_version - version)
-            # published whole, never changed after: the node reads it from other threads
-            timings = {"wait_cache": t1 - t0, "masks_frames_behind": behind}
-            if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
-                timings["masks_behind"] = max(0, int(request.stamp_ns) - stamp) / 1e9
-            self.last_plan_s = timings
-            start = None if request.start is None else np.asarray(request.start, float)
-            self.context.start = start
-            try:
-                seeds, rotations = masks[0] if masks else self.context.candidates()
-                # positions the frames the masks leave out show too close to geometry
-                self.context.blocked_seeds = (
-                    ~self.context.valid_positions(seeds, self.grid.occupancy())
-                    if behind > 0 and self.policy.map_free
+            snapshot = None
+            with self._lock:
+                self._settle(request)
+                checked = self._check_request(request)
+                if isinstance(checked, str):
+                    return Plan([], [], checked)
+                want, remaining = checked
+                closed_loop = (request.mode or self.config.mode) == "closed_loop"
+                target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
+                t0 = time.perf_counter()
+                pipelines = self._pipelines(request)
+                pipelined = self._pipelined_masks(request, target) if pipelines else None
+                if pipelined is None:
+                    if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
+                        return Plan(
+                            [], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
+                        )
+                    if self._pipelines() and not self.background:
+                        if self._cache_version < self._map_version:
+                            self._update_masks()
+                    version, stamp, masks = self._cache_version, self._cache_stamp, None
+                else:
+                    version, stamp, masks = pipelined
+                if pipelines:
+                    self._pipeline_base = target  # the next request plans from these masks
+                t1 = time.perf_counter()
+                behind = 0  # fused frames the masks leave out
+                if self.background or self._pipelines():
+                    behind = max(0, self._map_version - version)
+                # published whole, never changed after: the node reads it from other threads
+                timings = {"wait_cache": t1 - t0, "masks_frames_behind": behind}
+                if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
+                    timings["masks_behind"] = max(0, int(request.stamp_ns) - stamp) / 1e9
+                self.last_plan_s = timings
+                start = None if request.start is None else np.asarray(request.start, float)
+                self.context.start = start
+                try:
+                    seeds, rotations = masks[0] if masks else self.context.candidates()
+                    # positions the frames the masks leave out show too close to geometry
+                    self.context.blocked_seeds = (
+                        ~self.context.valid_positions(seeds, self.grid.occupancy())
+                        if behind > 0 and self.policy.map_free
+                        else None
+                    )
+                    if seeds.shape[0] == 0:
+                        return Plan(
+                            [],
+                            [],
+                            "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
+                        )
+                    candidates = seeds.shape[0] * rotations.shape[1]
+                    if want > candidates:
+                        return Plan(
+                            [],
+                            [],
+                            f"num_views: got {want}, expected at most the {candidates} candidate views",
+                        )
+                    if self.policy.sequential:
+                        if self._sequence is None:  # planned once, handed out in order
+                            self._sequence = self.policy.select_views(self.context, remaining)
+                        views, self._sequence = self._sequence.split(want)
+                    elif self.policy.map_free:
+                        snapshot = self.context.snapshot(self.policy, masks)
+                    else:
+                        views = self.policy.select_views(self.context, want)
+                except InputError as exc:
+                    return Plan([], [], str(exc))
+            if snapshot is not None:  # the selection itself: fusion goes on meanwhile
+                try:
+                    views = self.policy.select_views(snapshot, want)
+                except InputError as exc:
+                    return Plan([], [], str(exc))
+            with self._lock:
+                if snapshot is not None:
+                    self.context.adopt(snapshot)
+                self.last_plan_s = timings | {"select": time.perf_counter() - t1}
+                if not views.poses:
+                    return Plan([], [], "no candidate view sees the region of interest")
+                self.committed += len(views.poses)
+                self._handed_out = (
+                    (int(request.stamp_ns), self.grid.frames, len(views.poses))
+                    if closed_loop and request.stamp_ns > 0
                     else None
                 )
-                if seeds.shape[0] == 0:
-                    return Plan(
-                        [],
-                        [],
-                        "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
-                    )
-                candidates = seeds.shape[0] * rotations.shape[1]
-                if want > candidates:
-                    return Plan(
-                        [],
-                        [],
-                        f"num_views: got {want}, expected at most the {candidates} candidate views",
-                    )
-                if self.policy.sequential:
-                    if self._sequence is None:  # planned once, handed out in order
-                        self._sequence = self.policy.select_views(self.context, remaining)
-                    views, self._sequence = self._sequence.split(want)
-                elif self.policy.map_free:
-                    snapshot = self.context.snapshot(self.policy, masks)
-                else:
-                    views = self.policy.select_views(self.context, want)
-            except InputError as exc:
-                return Plan([], [], str(exc))
-        if snapshot is not None:  # the selection itself: fusion goes on meanwhile
-            try:
-                views = self.policy.select_views(snapshot, want)
-            except InputError as exc:
-                return Plan([], [], str(exc))
-        with self._lock:
-            if snapshot is not None:
-                self.context.adopt(snapshot)
-            self.last_plan_s = timings | {"select": time.perf_counter() - t1}
-            if not views.poses:
-                return Plan([], [], "no candidate view sees the region of interest")
-            self.committed += len(views.poses)
-            self._handed_out = (
-                (int(request.stamp_ns), self.grid.frames, len(views.poses))
-                if closed_loop and request.stamp_ns > 0
-                else None
-            )
-            return Plan(list(views.poses), list(views.gains), "")
+                return Plan(list(views.poses), list(views.gains), "")
 
     def _settle(self, request: PlanRequest) -> None:
         """What a request tells the budget's bookkeeping, before it is checked (lock held): the

@@ -514,53 +514,6 @@ def test_pipelined_masks_are_built_for_the_requests_map_even_when_the_next_frame
         srv.close()
 
 
-def _rebuilt_without_a_waiter(srv, version, timeout_s=60.0):
-    """Wait for the worker's masks to reach `version` without counting as a waiting request
-    (`wait_cache` would make the worker start at once)."""
-    with srv._refreshed:
-        return srv._refreshed.wait_for(lambda: srv._cache_version >= version, timeout_s)
-
-
-def test_pipelined_masks_hold_the_rebuild_for_a_frame_until_its_request_is_answered():
-    """With pipelined masks the rebuild for a new frame is not needed before its request (that
-    request plans from the previous frame's masks), so the worker holds it back until the
-    request is answered instead of competing with it; without a request it starts
-    pipeline_hold_s after the frame."""
-    f = frames()
-    piped = config(budget=20, mode="closed_loop", pipeline_masks=True)
-    srv = NextBestViewServer(piped, background=True, pipeline_hold_s=3600.0)
-    try:
-        srv.add_frame(*f[0])
-        assert srv.plan(PlanRequest(f[0][4], 1, 1))[1] == ""  # waits for the masks of frame 1
-        srv.add_frame(*f[1])
-        assert srv._held_for_request_s() > 0
-        assert not _rebuilt_without_a_waiter(srv, 2, timeout_s=0.3)  # held: no request yet
-        assert srv.refresh_count == 1
-        assert srv.plan(PlanRequest(f[1][4], 2, 1))[1] == ""
-        assert srv.last_plan_s["masks_frames_behind"] == 1  # planned without the rebuild
-        assert _rebuilt_without_a_waiter(srv, 2)  # answered: the rebuild runs now
-        assert srv.refresh_count == 2 and srv.rebuild_failures == 0
-    finally:
-        srv.close()
-    srv = NextBestViewServer(piped, background=True, pipeline_hold_s=0.05)
-    try:
-        srv.add_frame(*f[0])
-        assert srv.plan(PlanRequest(f[0][4], 1, 1))[1] == ""
-        srv.add_frame(*f[1])
-        assert _rebuilt_without_a_waiter(srv, 2)  # no request came: built after the hold
-    finally:
-        srv.close()
-    # a streaming planner (mask_lag_s) never holds
-    srv = NextBestViewServer(piped, background=True, pipeline_hold_s=3600.0, mask_lag_s=1e-9)
-    try:
-        srv.add_frame(*f[0])
-        assert srv.plan(PlanRequest(f[0][4], 1, 1))[1] == ""
-        srv.add_frame(*f[1])
-        assert srv._held_for_request_s() == 0.0 and _rebuilt_without_a_waiter(srv, 2)
-    finally:
-        srv.close()
-
-
 def test_frames_are_fused_while_a_plan_selects_its_views():
     """The selection runs on a snapshot outside the map's lock: a frame arriving meanwhile is
     fused at once, and the plan's committed decay is kept afterwards."""
