@@ -297,6 +297,20 @@ def carve_free_space(
     return free_count
 
 
+def _frame_arrays(depth, K, T_world_cam, stride, max_range):
+    """(depth float32, K float64, T float64) of a frame whose rays are built, with `stride` and
+    `max_range` checked."""
+    if int(stride) != stride or stride < 1:
+        raise InputError("stride", stride, "an integer >= 1")
+    if not (np.isfinite(max_range) and max_range > 0):
+        raise InputError("max_range", max_range, "a finite range > 0 metres")
+    if np.ndim(depth) != 2:
+        raise InputError("depth", f"shape {np.shape(depth)}", "an (H, W) image in metres")
+    K = np.asarray(K, dtype=np.float64)
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    return depth, K, np.ascontiguousarray(T_world_cam, dtype=np.float64)
+
+
 def frame_rays(
     depth: np.ndarray,
     K: np.ndarray,
@@ -311,15 +325,7 @@ def frame_rays(
     others end `max_range` metres along their ray (no hit).
     Returns (points (N, 3) world metres, hit_mask (N,) bool).
     """
-    if int(stride) != stride or stride < 1:
-        raise InputError("stride", stride, "an integer >= 1")
-    if not (np.isfinite(max_range) and max_range > 0):
-        raise InputError("max_range", max_range, "a finite range > 0 metres")
-    if np.ndim(depth) != 2:
-        raise InputError("depth", f"shape {np.shape(depth)}", "an (H, W) image in metres")
-    K = np.asarray(K, dtype=np.float64)
-    depth = np.ascontiguousarray(depth, dtype=np.float32)
-    T = np.ascontiguousarray(T_world_cam, dtype=np.float64)
+    depth, K, T = _frame_arrays(depth, K, T_world_cam, stride, max_range)
     return _frame_ray_ends(
         depth, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T, int(stride), float(max_range)
     )
@@ -421,16 +427,9 @@ def _mark_depth_frame(spec, depth, K, T_world_cam, crossed, stride, max_range, c
     """`carve_depth_frame(count=False)` without a surface margin: every ray's end computed and
     walked in one compiled pass (`_mark_frame_rays`); marks the same voxels as the general path
     (test)."""
-    if int(stride) != stride or stride < 1:
-        raise InputError("stride", stride, "an integer >= 1")
-    if not (np.isfinite(max_range) and max_range > 0):
-        raise InputError("max_range", max_range, "a finite range > 0 metres")
-    if np.ndim(depth) != 2:
-        raise InputError("depth", f"shape {np.shape(depth)}", "an (H, W) image in metres")
-    K = np.asarray(K, dtype=np.float64)
+    depth, K, T = _frame_arrays(depth, K, T_world_cam, stride, max_range)
     if not np.all(np.isfinite(K)):
         raise InputError("K", K.tolist(), "finite (3, 3) intrinsics")
-    T = np.ascontiguousarray(T_world_cam, dtype=np.float64)
     if not np.all(np.isfinite(T)):
         raise InputError("T_world_cam", T.tolist(), "a finite (4, 4) pose")
     crossed = _check_grid_array("free_count", crossed, spec)
@@ -445,7 +444,7 @@ def _mark_depth_frame(spec, depth, K, T_world_cam, crossed, stride, max_range, c
     else:
         no_return = 1 if carve_no_return else 0
     _mark_frame_rays(
-        np.ascontiguousarray(depth, dtype=np.float32),
+        depth,
         K[0, 0], K[1, 1], K[0, 2], K[1, 2],
         T, int(stride), float(max_range), no_return, mask,
         np.asarray(spec.lower, dtype=np.float64), 1.0 / spec.voxel_size,
