@@ -40,6 +40,13 @@ def _check_grid_array(name: str, array: np.ndarray, spec: GridSpec) -> np.ndarra
     return array
 
 
+def _check_marks(free_count: np.ndarray) -> np.ndarray:
+    """`free_count` when it can take marks (count=False): uint8."""
+    if free_count.dtype != np.uint8:
+        raise InputError("free_count", free_count.dtype, "a uint8 array to mark (count=False)")
+    return free_count
+
+
 def _check_points(name: str, points: np.ndarray) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -290,10 +297,8 @@ def carve_free_space(
     shape = np.asarray(spec.shape, dtype=np.int64)
     if count:
         _carve_rays(origin_v, ends_v, shape, free_count.reshape(-1))
-    elif free_count.dtype != np.uint8:
-        raise InputError("free_count", free_count.dtype, "a uint8 array to mark (count=False)")
     else:
-        _mark_rays(origin_v, ends_v, shape, free_count.reshape(-1))
+        _mark_rays(origin_v, ends_v, shape, _check_marks(free_count).reshape(-1))
     return free_count
 
 
@@ -406,15 +411,18 @@ def carve_depth_frame(
     (H, W) bool mask of the no-return pixels that may carve. count=False: mark (see
     `carve_free_space`).
     """
+    if isinstance(carve_no_return, np.ndarray):
+        carve_no_return = np.ascontiguousarray(carve_no_return, dtype=bool)
+        if carve_no_return.shape != np.shape(depth):
+            raise InputError(
+                "carve_no_return", carve_no_return.shape, f"the depth shape {np.shape(depth)}"
+            )
     if not count and surface_margin == 0:
         return _mark_depth_frame(spec, depth, K, T_world_cam, free_count, stride, max_range,
                                  carve_no_return)  # fmt: skip
     points, hit = frame_rays(depth, K, T_world_cam, stride, max_range)
     if isinstance(carve_no_return, np.ndarray):
-        mask = np.asarray(carve_no_return, bool)
-        if mask.shape != np.shape(depth):
-            raise InputError("carve_no_return", mask.shape, f"the depth shape {np.shape(depth)}")
-        keep = hit | mask[::stride, ::stride].reshape(-1)
+        keep = hit | carve_no_return[::stride, ::stride].reshape(-1)
         points, hit = points[keep], hit[keep]
     elif not carve_no_return:
         points, hit = points[hit], hit[hit]
@@ -426,20 +434,16 @@ def carve_depth_frame(
 def _mark_depth_frame(spec, depth, K, T_world_cam, crossed, stride, max_range, carve_no_return):
     """`carve_depth_frame(count=False)` without a surface margin: every ray's end computed and
     walked in one compiled pass (`_mark_frame_rays`); marks the same voxels as the general path
-    (test)."""
+    (test). `carve_no_return`: as checked by `carve_depth_frame`."""
     depth, K, T = _frame_arrays(depth, K, T_world_cam, stride, max_range)
     if not np.all(np.isfinite(K)):
         raise InputError("K", K.tolist(), "finite (3, 3) intrinsics")
     if not np.all(np.isfinite(T)):
         raise InputError("T_world_cam", T.tolist(), "a finite (4, 4) pose")
-    crossed = _check_grid_array("free_count", crossed, spec)
-    if crossed.dtype != np.uint8:
-        raise InputError("free_count", crossed.dtype, "a uint8 array to mark (count=False)")
+    crossed = _check_marks(_check_grid_array("free_count", crossed, spec))
     mask = np.zeros((1, 1), dtype=bool)
     if isinstance(carve_no_return, np.ndarray):
-        mask = np.ascontiguousarray(carve_no_return, dtype=bool)
-        if mask.shape != np.shape(depth):
-            raise InputError("carve_no_return", mask.shape, f"the depth shape {np.shape(depth)}")
+        mask = carve_no_return
         no_return = 2
     else:
         no_return = 1 if carve_no_return else 0
