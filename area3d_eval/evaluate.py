@@ -206,11 +206,12 @@ def evaluate_run(
         mesh = fusion.extract_mesh()
         timings["mesh"] += time.perf_counter() - t
         t = time.perf_counter()
-        row: dict[str, Any] = {"num_views": n, **reference.compare(mesh, tau)}
+        surface = MeshRenderer(mesh)  # one ray-casting scene for the distances and the images
+        row: dict[str, Any] = {"num_views": n, **reference.compare(mesh, tau, surface)}
         timings["surface"] += time.perf_counter() - t
         t = time.perf_counter()
         if images:
-            row.update(image_metrics(MeshRenderer(mesh), K_eval, eval_poses, images, masks))
+            row.update(image_metrics(surface, K_eval, eval_poses, images, masks))
         timings["render"] += time.perf_counter() - t
         curve.append(row)
 

@@ -24,8 +24,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from area3d_eval.open3d_loader import import_open3d
-from area3d_eval.render import canonical_mesh, mesh_arrays, raycasting_scene, render_mesh
+from area3d_eval.mesh_order import position_classes, row_order, smallest_first
+from area3d_eval.render import MeshRenderer, mesh_arrays, render_mesh
 from area3d_msgs_py.errors import InputError
 
 NUM_SURFACE_POINTS = 50_000  # points sampled on each surface; ~0.2 mm spacing on a 10 cm object
@@ -61,13 +61,18 @@ def sample_surface(
     triangles = np.asarray(triangles, dtype=np.int64)
     if len(triangles) == 0 or num_points <= 0:
         return np.zeros((0, 3))
-    corners = vertices[triangles]  # (F, 3 corners, 3)
-    flat = corners.reshape(-1, 3)
-    rank = np.empty(len(flat), dtype=np.int64)
-    rank[np.lexsort(flat.T[::-1])] = np.arange(len(flat))
-    start = np.argmin(rank.reshape(-1, 3), axis=1)
-    corners = corners[np.arange(len(corners))[:, None], (start[:, None] + np.arange(3)) % 3]
-    corners = corners[np.lexsort(corners.reshape(-1, 9).T[::-1])]
+    # the corners' positions ranked (equal positions, equal rank): comparing ranks compares the
+    # corners lexicographically, on integers and without sorting 3 corners per triangle
+    classes = position_classes(vertices)
+    rows = np.arange(len(triangles))[:, None]
+    turn = smallest_first(classes[triangles])  # the smallest corner first (the first of equals)
+    triangles = triangles[rows, turn]
+    ranked = classes[triangles]
+    corners = vertices[triangles[row_order(ranked, int(classes.max()) + 1)]]
+    finite = np.isfinite(corners).all(axis=(1, 2))
+    if not finite.all():
+        bad = corners[~finite][0]
+        raise InputError("vertices", bad.tolist(), "finite corners of every triangle (metres)")
     a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     total = area.sum()
@@ -146,17 +151,19 @@ class ReferenceSurface:
         self.seed = seed
         self.tree = cKDTree(self.points)
 
-    def compare(self, recon_mesh: Any, tau: float) -> dict[str, float]:
-        """Surface metrics of `recon_mesh` (open3d or trimesh) at threshold tau (metres)."""
+    def compare(
+        self, recon_mesh: Any, tau: float, surface: MeshRenderer | None = None
+    ) -> dict[str, float]:
+        """Surface metrics of `recon_mesh` (open3d or trimesh) at threshold tau (metres).
+
+        surface: the `MeshRenderer` of the same mesh when the caller renders it too (its
+        ray-casting scene answers the distances; built once for both)."""
         vertices, triangles, _ = mesh_arrays(recon_mesh)
         recon = sample_surface(vertices, triangles, self.num_points, self.seed + 1)
         if len(recon) == 0:
             return distance_metrics(recon, self.points, tau, self.tree)
-        o3d = import_open3d()
-        surface = raycasting_scene(*canonical_mesh(vertices, triangles)[:2])
-        gt_to_recon = surface.compute_distance(
-            o3d.core.Tensor(self.points.astype(np.float32))
-        ).numpy()
+        surface = MeshRenderer(recon_mesh) if surface is None else surface
+        gt_to_recon = surface.distances(self.points)
         return distance_metrics(recon, self.points, tau, self.tree, gt_to_recon)
 
 

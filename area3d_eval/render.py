@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from area3d_eval.mesh_order import row_order, smallest_first
 from area3d_eval.open3d_loader import import_open3d
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import pixel_rays
@@ -55,9 +56,8 @@ def canonical_mesh(
     rank = np.empty(len(order), dtype=np.int64)
     rank[order] = np.arange(len(order))
     tri = rank[triangles].reshape(-1, 3)
-    start = np.argmin(tri, axis=1)
-    tri = tri[np.arange(len(tri))[:, None], (start[:, None] + np.arange(3)) % 3]
-    tri = tri[np.lexsort(tri.T[::-1])]
+    tri = tri[np.arange(len(tri))[:, None], smallest_first(tri)]
+    tri = tri[row_order(tri, max(len(order), 1))]
     return vertices[order], tri, None if colours is None else np.asarray(colours)[order]
 
 
@@ -97,6 +97,15 @@ class MeshRenderer:
         self.empty = len(self.triangles) == 0
         if not self.empty:
             self._scene = raycasting_scene(self.vertices, self.triangles)
+
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """(N,) float32 distance (metres) of each point (N, 3) to the nearest point of the mesh's
+        triangles (inf for an empty mesh)."""
+        points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        if self.empty:
+            return np.full(len(points), np.inf, np.float32)
+        o3d = import_open3d()
+        return self._scene.compute_distance(o3d.core.Tensor(points)).numpy()
 
     def render(
         self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int
