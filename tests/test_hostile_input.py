@@ -6,6 +6,7 @@ field, and every node keeps serving: a valid frame afterwards is processed and p
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from collections import Counter
@@ -17,6 +18,8 @@ from area3d_msgs_py import codecs, msgs, qos
 from tests.test_faults import H, W, _camera_publishers, _frame, _publish_frame, graph_factory  # noqa: F401
 
 CLIENT = Path(__file__).parent / "clients" / "hostile_client.py"
+# its writers' heartbeat every 50 ms (Fast DDS: 3 s): it waits for acknowledgements between samples
+FAST_ACKS = Path(__file__).parent / "clients" / "fast_acks.xml"
 # The topics each node reads, as the client names them (absolute, default namespace).
 SUBSCRIBED = {
     "sim_bridge": ("/area3d/camera/goal_pose",),
@@ -88,6 +91,7 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
         capture_output=True,
         text=True,
         timeout=300,
+        env=dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(FAST_ACKS)),
     )
     assert client.returncode == 0, client.stderr[-2000:]
     sent = json.loads(client.stdout.strip().splitlines()[-1])["sent"]
@@ -187,6 +191,7 @@ def test_bad_poses_and_transforms_are_rejected_by_field_and_frames_without_a_pos
         capture_output=True,
         text=True,
         timeout=300,
+        env=dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(FAST_ACKS)),
     )  # fmt: skip
     assert client.returncode == 0, client.stderr[-2000:]
     answer = json.loads(client.stdout.strip().splitlines()[-1])
