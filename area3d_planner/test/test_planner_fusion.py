@@ -326,3 +326,21 @@ def test_a_frame_that_fails_part_way_leaves_nothing_in_the_next_frames_tally(mon
     np.testing.assert_array_equal(got.hit, hit)
     np.testing.assert_array_equal(got.confidence, frame_conf.astype(np.float32))
     np.testing.assert_array_equal(got.free, free)
+
+
+def test_occupancy_is_the_sign_of_the_clamped_log_odds_of_observed_voxels():
+    """The compiled pass against its definition, on counts where hits and misses nearly cancel
+    (7 hits x 0.847 against 15 misses x -0.405) and on counts of whole frames and fractions."""
+    grid = make_grid(gamma=0.01)
+    rng = np.random.default_rng(4)
+    n = grid.spec.num_voxels
+    grid.hit_count[:] = rng.integers(0, 20, n) * rng.choice([1.0, 0.5, 0.0], n)
+    grid.free_count[:] = rng.integers(0, 40, n) * rng.choice([1.0, 0.25, 0.0], n)
+    lo = grid.log_odds()
+    observed = (grid.hit_count + grid.free_count) > 0
+    expect = np.where(observed, np.where(lo > 0, 1, 0), -1)
+    occ = grid.occupancy()
+    assert occ.dtype == np.int8 and np.array_equal(occ, expect)
+    assert {-1, 0, 1} <= set(np.unique(occ).tolist())
+    near = np.abs(grid.hit_count * 0.847 + grid.free_count * -0.405) < 0.1
+    assert np.any(near & observed)  # the near-cancelling counts are among them
