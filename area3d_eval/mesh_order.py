@@ -33,17 +33,14 @@ def smallest_first(rows: np.ndarray) -> np.ndarray:
 def _runs(sorted_rows: np.ndarray) -> np.ndarray:
     """(N,) bool: the sorted row starts a run of equal rows (compared exactly, -0.0 == 0.0)."""
     starts = np.ones(len(sorted_rows), dtype=bool)
-    if sorted_rows.ndim == 1:
-        starts[1:] = sorted_rows[1:] != sorted_rows[:-1]
-    else:
-        starts[1:] = np.any(sorted_rows[1:] != sorted_rows[:-1], axis=1)
+    starts[1:] = np.any(sorted_rows[1:] != sorted_rows[:-1], axis=1)
     return starts
 
 
 def position_classes(vertices: np.ndarray) -> np.ndarray:
     """(V,) int64: for each vertex the rank of its position among the distinct positions, in
     lexicographic order (x, then y, then z). Equal positions share a class, so comparing classes
-    compares positions. Vertices must be finite."""
+    compares positions (a position with a NaN coordinate equals no other)."""
     vertices = np.asarray(vertices, dtype=np.float64)
     order = np.lexsort(vertices.T[::-1])
     classes = np.empty(len(order), dtype=np.int64)
@@ -96,11 +93,15 @@ def crop_arrays(
         triangles = triangles[index]
         t_attrs[:] = [None if a is None else a[index] for a in t_attrs]
 
-    inside = np.flatnonzero(np.all((vertices >= lo) & (vertices <= hi), axis=1))
-    new_index = np.full(len(vertices), -1, dtype=np.int64)
-    new_index[inside] = np.arange(len(inside))
-    triangles = new_index[triangles]
-    take_vertices(inside)
+    def keep_vertices(index: np.ndarray) -> None:
+        """Keep the vertices `index` (ascending); corners of the others become -1."""
+        nonlocal triangles
+        new_index = np.full(len(vertices), -1, dtype=np.int64)
+        new_index[index] = np.arange(len(index))
+        triangles = new_index[triangles]
+        take_vertices(index)
+
+    keep_vertices(np.flatnonzero(np.all((vertices >= lo) & (vertices <= hi), axis=1)))
     take_triangles(np.flatnonzero(np.all(triangles >= 0, axis=1)))
     if len(vertices) > 0:
         first, merged = _first_of_equal(vertices, np.lexsort(vertices.T[::-1]))
@@ -113,11 +114,7 @@ def crop_arrays(
         used = np.zeros(len(vertices), dtype=bool)
         used[triangles.reshape(-1)] = True
         if not used.all():
-            kept = np.flatnonzero(used)
-            new_index = np.full(len(vertices), -1, dtype=np.int64)
-            new_index[kept] = np.arange(len(kept))
-            triangles = new_index[triangles]
-            take_vertices(kept)
+            keep_vertices(np.flatnonzero(used))
         t0, t1, t2 = triangles.T
         take_triangles(np.flatnonzero((t0 != t1) & (t1 != t2) & (t0 != t2)))
     if len(vertices) == 0:
