@@ -121,11 +121,16 @@ class PlanningContext:
     def policy_field(self, policy: GreedyFieldPolicy) -> np.ndarray:
         """(N,) utility field of `policy` (memoised until the next invalidation, read only), with
         the frustum decay of the views committed by earlier requests applied."""
+        field = self._field(policy)
+        if self.committed_decay is None:
+            return field
+        return field * self.committed_decay
+
+    def _field(self, policy: GreedyFieldPolicy) -> np.ndarray:
+        """The policy's field without the committed decay, memoised."""
         if policy.name not in self._fields:
             self._fields[policy.name] = policy.field(self)
-        if self.committed_decay is None:
-            return self._fields[policy.name]
-        return self._fields[policy.name] * self.committed_decay
+        return self._fields[policy.name]
 
     def masks(self) -> tuple[tuple | None, dict]:
         """(candidates, caches) as installed, for `snapshot` to select from later."""
@@ -144,8 +149,7 @@ class PlanningContext:
         if policy.relevant is not None:
             cache = None if masks is None else masks[1].get(policy.relevant)
             caches[policy.relevant] = cache or self._cache(policy.relevant)
-            self.policy_field(policy)
-            fields[policy.name] = self._fields[policy.name]
+            fields[policy.name] = self._field(policy)
         return replace(
             self,
             camera_positions=list(self.camera_positions),
@@ -336,8 +340,11 @@ class GreedyFieldPolicy(Policy):
     def field(self, context: PlanningContext) -> np.ndarray:
         raise NotImplementedError
 
-    def selection(self, context: PlanningContext, budget: int) -> Selection:
-        U = context.policy_field(self)
+    def selection(
+        self, context: PlanningContext, budget: int, U: np.ndarray | None = None
+    ) -> Selection:
+        """Lazy greedy on the policy's field `U` (default: `context.policy_field`)."""
+        U = context.policy_field(self) if U is None else U
         if not np.all(np.isfinite(U)):
             raise InputError("uncertainty field", "NaN or inf voxels", "finite uncertainties")
         cache = context.cache(self.relevant)
@@ -354,8 +361,8 @@ class GreedyFieldPolicy(Policy):
 
     def select_views(self, context: PlanningContext, budget: int) -> SelectedViews:
         cache = context.cache(self.relevant)
-        U = context.policy_field(self)
-        selection = self.selection(context, budget)
+        U = context.policy_field(self)  # one decayed copy per request (10^6 voxels in a room)
+        selection = self.selection(context, budget, U)
         views = selection.views
         if context.aim_views:
             poses = [aim_at_uncertainty(cache, v, U) for v in views]

@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
@@ -344,3 +346,69 @@ def test_occupancy_is_the_sign_of_the_clamped_log_odds_of_observed_voxels():
     assert {-1, 0, 1} <= set(np.unique(occ).tolist())
     near = np.abs(grid.hit_count * 0.847 + grid.free_count * -0.405) < 0.1
     assert np.any(near & observed)  # the near-cancelling counts are among them
+
+
+def _fused_by_whole_arrays(grid):
+    """`FusedGrid.fused` as numpy passes over whole arrays (its definition, and the code before
+    the one-pass kernel): the oracle of the test below."""
+    occ = grid.occupancy()
+    g = grid.geometric(occ)
+    s = np.zeros(grid.spec.num_voxels, np.float32)
+    seen = grid.sem_count > 0
+    s[seen] = grid.sem_sum[seen] / grid.sem_count[seen]
+    if grid.geometric_rule == "product":
+        s = s * np.sqrt(g)
+    u = np.maximum(g + np.float32(grid.semantic_weight) * s, 0.0)
+    if grid.gain_rule == "removable":
+        n = np.bitwise_count(grid.directions).astype(np.uint8).astype(np.float32)
+        c = grid.best_confidence
+        u = u * (c + (1.0 - c) * np.float32(grid.retry_gain) ** n).astype(np.float32)
+    u = u + np.float32(grid.gamma)
+    u[occ == 0] = 0.0
+    u[~grid.roi_mask] = 0.0
+    return u.astype(np.float32)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    geometric_rule=st.sampled_from(["product", "mean"]),
+    gain_rule=st.sampled_from(["removable", "held"]),
+    semantic_weight=st.sampled_from([0.0, 0.3, 1.0, 2.5]),
+    gamma=st.sampled_from([0.0, 0.01, 0.2]),
+    retry_gain=st.sampled_from([0.0, 0.3, 0.5, 1.0]),
+)
+def test_the_fused_field_and_achievability_equal_their_whole_array_definitions_bit_for_bit(
+    seed, geometric_rule, gain_rule, semantic_weight, gamma, retry_gain
+):
+    """The one-pass field (and the achievability's looked-up powers) against numpy's passes over
+    whole arrays, on random tallies: hits with any confidence, voxels seen from none to all 32
+    directions, semantic means where frames landed and none elsewhere, every rule."""
+    grid = make_grid(
+        gamma=gamma, semantic_weight=semantic_weight, geometric_rule=geometric_rule,
+        gain_rule=gain_rule, retry_gain=retry_gain, unobserved_uncertainty=0.8,
+    )  # fmt: skip
+    rng = np.random.default_rng(seed)
+    n = grid.spec.num_voxels
+    hits = rng.integers(0, 6, n) * rng.choice([1.0, 0.0], n)
+    grid.hit_count[:] = hits
+    grid.free_count[:] = rng.integers(0, 9, n) * rng.choice([1.0, 0.0], n)
+    conf = rng.random(n).astype(np.float32)
+    grid.conf_sum[:] = hits * conf
+    grid.log_residual[:] = hits * np.log1p(-0.999 * conf)
+    grid.best_confidence[:] = np.where(hits > 0, conf, 0.0)
+    counts = rng.integers(0, 4, n) * rng.choice([1.0, 0.0], n)
+    grid.sem_count[:] = counts
+    grid.sem_sum[:] = counts * rng.random(n)
+    bits = rng.integers(0, 33, n)
+    grid.directions[:] = np.where(bits == 32, 2**32 - 1, (1 << bits.astype(np.uint64)) - 1)
+    got = grid.fused()
+    want = _fused_by_whole_arrays(grid)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+    c = grid.best_confidence
+    powers = np.float32(retry_gain) ** np.bitwise_count(grid.directions).astype(np.float32)
+    want_a = (c + (1.0 - c) * powers).astype(np.float32)
+    np.testing.assert_array_equal(grid.achievability().view(np.uint32), want_a.view(np.uint32))
+    occ = grid.occupancy()
+    assert {-1, 0, 1} <= set(np.unique(occ[grid.roi_mask]).tolist())  # every kind of voxel
