@@ -19,6 +19,7 @@ from area3d_bringup.closed_loop_bench import (
     planner_overrides,
 )
 from area3d_bringup.transport_bench import TARGET_ROUND_TRIP_P95_S
+from area3d_msgs_py.lifecycle import tune_process
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy
@@ -230,7 +231,12 @@ def run_bench(
 ) -> dict:
     """Figures per grid (see bench_grid), the in-process plan latency (bench_server) and the
     GetPlan round trip between two processes (bench_transport); prints a rich table with targets
-    and ratios. Parts that cannot run here (no renderer, no DDS) report their error."""
+    and ratios. Parts that cannot run here (no renderer, no DDS) report their error.
+
+    The process first takes the settings every node process runs with (`tune_process`: the 1 ms
+    GIL switch interval, malloc's arenas and mapped blocks), so that the closed loop's threads
+    (fusion, the background rebuild, the request) share the interpreter as in the planner node."""
+    tune_process()
     params = VisibilityParams(level="room", face_res=face_res)
     # warm the numba kernels so compile time is not measured
     warm, lo, hi = synthetic_room(30, 0.2)
