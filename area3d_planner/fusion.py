@@ -560,12 +560,13 @@ class FusedGrid:
 
 @njit(cache=True, nogil=True)
 def _fused_field(
-    g, occ, roi, sem_sum, sem_count, sqrt_rule, weight, removable, best, directions, powers, gamma
+    g, occ, roi, sem_sum, sem_count, sqrt_rule, weight, removable, best, counts, powers, gamma
 ):  # pragma: no cover - compiled
     """`FusedGrid.fused` from the geometric uncertainty `g` in one pass, in float32 and in the
     order numpy's passes over whole arrays took (the semantic mean, its product with sqrt(g), the
-    weighted sum, max(., 0) keeping a NaN as np.maximum does, the achievability with the
-    power looked up by the count of `directions`, gamma): the same field bit for bit (test)."""
+    weighted sum, max(., 0) keeping a NaN as np.maximum does, the achievability with the power
+    looked up by each voxel's count of directions, `counts`, gamma): the same field bit for bit
+    (test)."""
     out = np.empty(g.shape[0], np.float32)
     zero = np.float32(0.0)
     one = np.float32(1.0)
@@ -581,7 +582,7 @@ def _fused_field(
         u = x if (x >= zero or np.isnan(x)) else zero
         if removable:
             c = best[i]
-            u = u * (c + (one - c) * powers[directions[i]])
+            u = u * (c + (one - c) * powers[counts[i]])
         out[i] = u + gamma
     return out
 
