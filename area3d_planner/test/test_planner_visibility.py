@@ -2,6 +2,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from area3d_msgs_py.camera_pose import look_at, look_rotation
@@ -79,6 +82,48 @@ def test_seeds_stay_in_the_workspace_and_clear_of_occupied_voxels():
     all_pts = candidate_seeds(lo, hi, 0.1, spec, np.zeros_like(occ))
     clear = cdist(all_pts, spec.centers()[occ == 1]).min(axis=1) > 0.075
     assert clear.sum() == seeds.shape[0]
+
+
+def _clear_by_search_tree(points, spec, occ, bound):
+    """The clearance rule as a search tree over every occupied voxel centre answers it."""
+    occupied = np.flatnonzero(occ == 1)
+    if occupied.size == 0:
+        return np.ones(points.shape[0], bool)
+    dist, _ = cKDTree(spec.centers_of(occupied)).query(points, k=1, distance_upper_bound=bound)
+    return ~np.isfinite(dist)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    voxel=st.sampled_from([0.01, 0.05, 0.1, 0.13]),
+    clearance=st.floats(0.0, 0.4),
+    density=st.sampled_from([0.0, 0.01, 0.2, 1.0]),
+)
+def test_the_clearance_check_equals_a_search_tree_over_every_occupied_voxel(
+    seed, voxel, clearance, density
+):
+    """Positions in, on the edge of, and beyond the grid (the workspace reaches past it), on voxel
+    centres and faces (distances on the bound) and anywhere: the same verdicts as the search tree
+    the check replaced."""
+    rng = np.random.default_rng(seed)
+    spec = GridSpec.from_bounds(np.zeros(3), np.array([0.6, 0.5, 0.4]), voxel)
+    occ = np.where(rng.random(spec.num_voxels) < density, 1, 0).astype(np.int8)
+    lo, hi = np.full(3, -0.5), np.full(3, 1.2)
+    anywhere = rng.uniform(lo, hi, (200, 3))
+    centres = spec.centers_of(rng.integers(0, spec.num_voxels, 50))
+    faces = centres + rng.choice([-0.5, 0.0, 0.5], (50, 3)) * voxel
+    offsets = rng.normal(size=(50, 3))
+    offsets *= (clearance + 0.5 * voxel) / np.linalg.norm(offsets, axis=1, keepdims=True)
+    on_bound = spec.centers_of(rng.integers(0, spec.num_voxels, 50)) + offsets
+    points = np.concatenate([anywhere, centres, faces, on_bound])
+    bound = clearance + 0.5 * voxel + 1e-12
+    inside_box = np.all((points >= lo) & (points <= hi), axis=1)
+    vox, inside = spec.flat_index(points)
+    allowed = ~inside | (occ[vox] == 0)
+    expected = inside_box & allowed & _clear_by_search_tree(points, spec, occ, bound)
+    got = valid_seeds(points, spec, occ, lo, hi, clearance)
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_seeds_in_unknown_space_only_outside_the_given_box():
