@@ -266,7 +266,7 @@ def hard_region_text(grid: dict[str, np.ndarray] | None) -> str:
     centre = ", ".join(f"{c:.2f}" for c in largest["centroid"])
     return (
         f"Hard regions in the final grid: {len(regions)} ({int(hard.sum())} hard voxels of "
-        f"{voxel * 100:g} cm; the largest, {int(largest['voxel_count'])} voxels, around "
+        f"{voxel * 100:.3g} cm; the largest, {int(largest['voxel_count'])} voxels, around "
         f"({centre}) m)."
     )
 

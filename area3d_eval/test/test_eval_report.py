@@ -8,7 +8,7 @@ import pytest
 
 from area3d_eval.evaluate import default_checkpoints, evaluate_run, image_metrics, reference_images
 from area3d_eval.render import MeshRenderer
-from area3d_eval.report import aggregate, write_report
+from area3d_eval.report import aggregate, hard_region_text, write_report
 from area3d_eval.rundir import stopped_early
 from area3d_eval.synthetic import SyntheticRenderer, SyntheticScene, hemisphere_views, make_run
 
@@ -259,3 +259,17 @@ def test_hard_voxels_are_picked_from_a_grid_by_height_and_absent_grids_have_none
     x, y = hard_voxels_xy(grid, 0.5)
     np.testing.assert_array_equal(y, [1.0, 1.3])
     assert hard_voxels_xy({k: v for k, v in grid.items() if k != "hard"})[0].size == 0
+
+
+@pytest.mark.parametrize("voxel", [0.01, 0.05, 0.025])
+def test_the_hard_region_sentence_names_the_voxel_size_of_a_grid_saved_in_float32(voxel):
+    # centres saved as float32 (as the planner's PointCloud2 and grid files hold them): their
+    # gaps are the voxel size only to float32 precision (0.00999999 m for 1 cm)
+    ijk = np.stack(np.meshgrid(*[np.arange(6)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    xyz = ((ijk + 0.5) * voxel + np.array([-0.31, 0.17, 0.05])).astype(np.float32)
+    hard = np.zeros(len(xyz), np.uint8)
+    hard[[0, 1]] = 1  # two face neighbours: one region
+    grid = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "hard": hard}
+    grid["uncertainty"] = np.ones(len(xyz), np.float32)
+    text = hard_region_text(grid)
+    assert f"(2 hard voxels of {voxel * 100:g} cm; the largest, 2 voxels" in text, text
