@@ -38,6 +38,17 @@ def _overrides(params: list[str]) -> dict[str, dict]:
     return out
 
 
+def _episode_nodes(text: str) -> tuple[str, ...] | None:
+    """`area3d run --nodes`: None (every node), () for `none` (the mission manager alone, driving
+    a graph started elsewhere), else the names listed."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if names == ("none",):
+        return ()
+    if "none" in names:
+        _fail(f"nodes: got {list(names)}, expected `none` alone or names of graph nodes")
+    return names or None
+
+
 def _fail(message: str) -> None:
     console.print(f"[bold red]error:[/] {message}")
     raise typer.Exit(code=2)
@@ -74,7 +85,9 @@ def run(
     ),
     namespace: str = typer.Option("", help="ROS namespace of the graph, e.g. /robot1"),
     nodes: str = typer.Option(
-        "", help="comma list of the graph nodes to start here (default: all; others run elsewhere)"
+        "",
+        help="comma list of the graph nodes to start here (default: all; others run elsewhere); "
+        "none: start no node, drive a graph started elsewhere (`area3d launch`)",
     ),
     depth_source: str = typer.Option(
         "sensor",
@@ -107,7 +120,7 @@ def run(
         overrides=_overrides(param),
         domain_id=domain_id,
         namespace=namespace,
-        nodes=tuple(n for n in nodes.split(",") if n) or None,
+        nodes=_episode_nodes(nodes),
         depth_source=depth_source,
         respawn=respawn,
         respawn_delay_s=respawn_delay,

@@ -32,7 +32,7 @@ class EpisodeConfig:
     domain_id: int | None = None  # None: $ROS_DOMAIN_ID, else a free domain
     namespace: str = ""  # ROS namespace of the graph and the runner, e.g. "/robot1"
     transport: str | None = None  # middleware.TRANSPORTS; None: $AREA3D_TRANSPORT or "shm"
-    # graph nodes this runner starts (None: all); the others run elsewhere (`area3d launch --nodes`)
+    # graph nodes this runner starts (None: all, (): none); the others run elsewhere (`area3d launch`)
     nodes: tuple[str, ...] | None = None
     capture_timeout_s: float = 30.0
     plan_timeout_s: float = 120.0

@@ -54,6 +54,10 @@ __all__ = ["EpisodeConfig", "EpisodeError", "run_episode"]
 SERVICE_POLL_S = 0.02
 
 
+class StaleMapError(EpisodeError):
+    """The planner's map holds frames of an earlier episode (`_Episode._check_fresh_map`)."""
+
+
 def run_episode(
     config: EpisodeConfig, resume: Path | None = None, progress: object | None = None
 ) -> Path:
@@ -266,6 +270,9 @@ class _Episode:
             self._episode(progress)
             self.add_time("episode_total", time.monotonic() - t0)
             self.save()
+        except StaleMapError as err:  # resuming on the same graph would not help
+            self.save()
+            raise EpisodeError(f"{err}\n{self._kept().rstrip('; ')}") from err
         except (NodeDied, TimeoutError, EpisodeError) as err:
             self.save()
             raise EpisodeError(
@@ -372,6 +379,27 @@ class _Episode:
             self.log(
                 f"the planner has not fused all {self.n_init} initial views after "
                 f"{config.fuse_timeout_s:.0f} s; planning with what it has"
+            )
+        self._check_fresh_map()
+
+    def _check_fresh_map(self) -> None:
+        """Stop when the planner's map holds frames this episode did not capture: a graph started
+        elsewhere (`--nodes none`, `area3d launch`) keeps its map after an episode, and views
+        planned on it would be another episode's."""
+        manager, last = self.manager, self.frames[-1].stamp_ns
+        if not self.step(
+            lambda: manager.wait_until(
+                lambda: int(manager.planner_status.get("last_fused_stamp_ns", 0)) >= last,
+                self.config.fuse_timeout_s,
+            )
+        ):
+            return  # not all fused: reported above
+        fused = int(manager.planner_status.get("frames_fused", 0))
+        if fused > len(self.frames):
+            raise StaleMapError(
+                f"the planner has fused {fused} frames, this episode captured {len(self.frames)}: "
+                "its map holds frames of an earlier episode (a graph started elsewhere keeps its "
+                "map); start the graph again for a new episode"
             )
 
     def _planned_views(self, progress: Any) -> None:
