@@ -380,7 +380,8 @@ class _Episode:
                 f"the planner has not fused all {self.n_init} initial views after "
                 f"{config.fuse_timeout_s:.0f} s; planning with what it has"
             )
-        self._check_fresh_map()
+        else:
+            self._check_fresh_map()
 
     def _check_fresh_map(self) -> None:
         """Stop when the planner's map holds frames this episode did not capture: a graph started
@@ -393,7 +394,7 @@ class _Episode:
                 self.config.fuse_timeout_s,
             )
         ):
-            return  # not all fused: reported above
+            return  # the last initial view is not fused: planning with what the planner has
         fused = int(manager.planner_status.get("frames_fused", 0))
         if fused > len(self.frames):
             raise StaleMapError(
