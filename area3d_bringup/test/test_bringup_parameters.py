@@ -2,6 +2,8 @@
 
 import dataclasses
 import importlib
+import re
+from pathlib import Path
 
 import pytest
 
@@ -48,3 +50,40 @@ def test_the_planners_parameters_are_its_configuration_fields_with_their_descrip
     for field in dataclasses.fields(PlannerConfig):
         assert declared[field.name].description == description_of(field)
         assert declared[field.name].range == field.metadata["range"]
+
+
+def _documented_names(readme: Path) -> tuple[set[str], tuple[str, ...]]:
+    """The names a README gives in backticks outside code blocks, with `a_min/max`, `a, b` and
+    `alpha_x / _y` expanded, and the prefixes it covers with a star (`sensor.*`, `pose_*`)."""
+    text = re.sub(r"```.*?```", "", readme.read_text(), flags=re.S)
+    names: set[str] = set()
+    prefixes: list[str] = []
+    for line in text.splitlines():
+        for quoted in re.findall(r"`([^`]+)`", line):
+            parts = [part.strip() for part in re.split(r"\s*[,/]\s*", quoted) if part.strip()]
+            for part in parts:
+                if part.startswith("_") or part in ("max", "min"):  # alpha_a / _b, roi_min/max
+                    stem = parts[0].rsplit("_", 1)[0]
+                    part = f"{stem}{part}" if part.startswith("_") else f"{stem}_{part}"
+                if part.endswith("*"):
+                    prefixes.append(part[:-1])
+                names.add(part)
+    return names, tuple(prefixes)
+
+
+DOCUMENTED = [(node.package, node.module) for node in NODES]
+DOCUMENTED += [("area3d_bringup", "area3d_bringup.foxglove_bridge")]
+
+
+@pytest.mark.parametrize(("package", "module"), DOCUMENTED)
+def test_every_declared_parameter_is_named_in_its_packages_readme(package, module):
+    readme = Path(__file__).resolve().parents[2] / package / "README.md"
+    names, prefixes = _documented_names(readme)
+    missing = [
+        p.name
+        for p in importlib.import_module(module).PARAMS
+        if p.name not in names
+        and p.name.rsplit(".", 1)[-1] not in names  # a table of `sensor.` parameters
+        and not p.name.startswith(prefixes)
+    ]
+    assert not missing, f"{package}/README.md does not name {missing}"
