@@ -15,6 +15,7 @@ from area3d_planner.visibility import (
     ViewEvidence,
     VisibilityCache,
     VisibilityParams,
+    _clear_of_occupied,
     lattice_positions,
     orientation_bins,
     shell_positions,
@@ -123,6 +124,34 @@ def test_the_clearance_check_equals_a_search_tree_over_every_occupied_voxel(
     allowed = ~inside | (occ[vox] == 0)
     expected = inside_box & allowed & _clear_by_search_tree(points, spec, occ, bound)
     got = valid_seeds(points, spec, occ, lo, hi, clearance)
+    np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("occupancy_dtype", [np.int8, np.uint8, np.float32])
+def test_a_position_exactly_the_bound_from_an_occupied_centre_is_clear_as_with_the_tree(
+    occupancy_dtype,
+):
+    """Distances exactly equal to the bound (representable: 1 m voxels, a grid below zero): clear,
+    as the search tree's upper bound, which keeps only distances below it, had them."""
+    spec = GridSpec.from_bounds(np.array([-3.0, -2.0, -1.0]), np.array([3.0, 2.0, 1.0]), 1.0)
+    occ = np.zeros(spec.num_voxels, occupancy_dtype)
+    centre = np.array([-0.5, 0.5, -0.5])
+    occ[spec.flat_index(centre[None])[0]] = 1
+    bound = 2.5
+    points = np.array(
+        [
+            centre + [bound, 0, 0],  # exactly the bound: clear
+            centre - [0, bound, 0],
+            centre + [1.5, 2.0, 0.0],  # 1.5^2 + 2^2 = 2.5^2, every term exact: clear
+            centre + [np.nextafter(bound, 0.0), 0, 0],  # just inside: not
+            centre + [0, 0, 1.9],
+            centre + [-9.0, 0, 0],  # outside the grid, far: clear
+        ]
+    )
+    args = (np.asarray(spec.shape, np.int64), np.asarray(spec.lower, float), 1.0, bound)
+    got = _clear_of_occupied(points, np.ones(len(points), bool), occ, *args)
+    expected = _clear_by_search_tree(points, spec, occ.astype(np.int8), bound)
+    np.testing.assert_array_equal(got, [True, True, True, False, False, True])
     np.testing.assert_array_equal(got, expected)
 
 
