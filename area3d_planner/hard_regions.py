@@ -108,13 +108,18 @@ def cloud_hard_regions(cloud: np.ndarray, grid: FusedGrid) -> np.ndarray:
 
 
 def grid_voxel_size(xyz: np.ndarray) -> float | None:
-    """The voxel edge of a grid saved as voxel centres (N, 3): the smallest gap between two
-    distinct coordinates along any axis (None when no two centres differ)."""
+    """The voxel edge of a grid saved as voxel centres (N, 3): the median of the gaps between
+    neighbouring distinct coordinates along the axes that are one voxel wide (within half a voxel
+    of the smallest; None when no two centres differ). Centres saved in float32 are a voxel apart
+    only to their precision, which at tens of metres from the origin is 1e-3 of a 1 cm voxel: the
+    smallest gap alone would be that much short."""
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
     gaps = [np.diff(np.unique(xyz[:, axis])) for axis in range(3)]
     gaps = np.concatenate(gaps) if gaps else np.zeros(0)
     gaps = gaps[gaps > 1e-6]
-    return float(gaps.min()) if gaps.size else None
+    if not gaps.size:
+        return None
+    return float(np.median(gaps[gaps < 1.5 * gaps.min()]))
 
 
 def points_hard_regions(

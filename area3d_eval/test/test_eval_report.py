@@ -261,12 +261,21 @@ def test_hard_voxels_are_picked_from_a_grid_by_height_and_absent_grids_have_none
     assert hard_voxels_xy({k: v for k, v in grid.items() if k != "hard"})[0].size == 0
 
 
-@pytest.mark.parametrize("voxel", [0.01, 0.05, 0.025])
-def test_the_hard_region_sentence_names_the_voxel_size_of_a_grid_saved_in_float32(voxel):
+@pytest.mark.parametrize(
+    ("voxel", "origin"),
+    [
+        (0.01, (-0.31, 0.17, 0.05)),
+        (0.05, (-0.31, 0.17, 0.05)),
+        (0.025, (0, 0, 0)),
+        (0.01, (70, 3, 0)),
+    ],
+)
+def test_the_hard_region_sentence_names_the_voxel_size_of_a_grid_saved_in_float32(voxel, origin):
     # centres saved as float32 (as the planner's PointCloud2 and grid files hold them): their
-    # gaps are the voxel size only to float32 precision (0.00999999 m for 1 cm)
+    # gaps are the voxel size only to float32 precision (0.00999999 m for 1 cm; 70 m from the
+    # origin a gap is 0.0099945 or 0.0100021 m)
     ijk = np.stack(np.meshgrid(*[np.arange(6)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    xyz = ((ijk + 0.5) * voxel + np.array([-0.31, 0.17, 0.05])).astype(np.float32)
+    xyz = ((ijk + 0.5) * voxel + np.array(origin, float)).astype(np.float32)
     hard = np.zeros(len(xyz), np.uint8)
     hard[[0, 1]] = 1  # two face neighbours: one region
     grid = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "hard": hard}
