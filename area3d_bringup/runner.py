@@ -400,7 +400,8 @@ class _Episode:
             raise StaleMapError(
                 f"the planner has fused {fused} frames, this episode captured {len(self.frames)}: "
                 "its map holds frames of an earlier episode (a graph started elsewhere keeps its "
-                "map); start the graph again for a new episode"
+                "map) or a capture this run did not receive; start the graph again for a new "
+                f"episode, or start it again and continue this one with --resume {self.run_dir}"
             )
 
     def _planned_views(self, progress: Any) -> None:

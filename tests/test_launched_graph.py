@@ -73,5 +73,5 @@ def test_an_episode_drives_a_graph_launched_elsewhere_and_a_second_one_refuses_i
     said = " ".join((second.stdout + second.stderr).split())
     assert "the planner has fused 10 frames, this episode captured 4" in said, said[-2000:]
     assert "start the graph again for a new episode" in said
-    assert "--resume" not in said  # resuming on the same graph would not help
+    assert "or start it again and continue this one with --resume" in said  # not on this graph
     assert len(json.loads((runs[1] / "episode.json").read_text())["views"]) == 4  # kept
