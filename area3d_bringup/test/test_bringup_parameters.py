@@ -65,7 +65,7 @@ def _documented_names(readme: Path) -> tuple[set[str], tuple[str, ...]]:
                 if part.startswith("_") or part in ("max", "min"):  # alpha_a / _b, roi_min/max
                     stem = parts[0].rsplit("_", 1)[0]
                     part = f"{stem}{part}" if part.startswith("_") else f"{stem}_{part}"
-                if part.endswith("*"):
+                if re.fullmatch(r"\w+[._]\*", part):  # not a topic's `*/camera_info`
                     prefixes.append(part[:-1])
                 names.add(part)
     return names, tuple(prefixes)
