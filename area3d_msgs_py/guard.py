@@ -16,6 +16,8 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
+from rclpy.exceptions import InvalidHandle
+
 from area3d_msgs_py.errors import InputError
 
 
@@ -81,13 +83,20 @@ def guarded(
 ) -> Callable:
     def call(*args: Any) -> Any:
         try:
-            return callback(*args)
-        except InputError as exc:
-            reject(node, rejections, what + _stamp_of(args), exc, topic=what)
-        except Exception:
-            node.get_logger().error(f"{what}: exception, input dropped:\n{traceback.format_exc()}")
-            if rejections is not None:
-                rejections.count(what, "exception")
+            try:
+                return callback(*args)
+            except InputError as exc:
+                reject(node, rejections, what + _stamp_of(args), exc, topic=what)
+            except InvalidHandle:
+                pass  # a publisher or timer of a node being destroyed (shutdown): not an input's fault
+            except Exception:
+                node.get_logger().error(
+                    f"{what}: exception, input dropped:\n{traceback.format_exc()}"
+                )
+                if rejections is not None:
+                    rejections.count(what, "exception")
+        except InvalidHandle:
+            pass  # counting it touched the status timer of a node being destroyed
         return None
 
     call.__name__ = getattr(callback, "__name__", "callback")

@@ -81,3 +81,39 @@ def test_guarded_counts_rejections_by_topic_and_field_and_logs_one_line():
         "by_field": {"header.frame_id": 1},
     }
     assert lines == ["pose at stamp 7: rejected: header.frame_id: got 'map', expected 'world'"]
+
+
+def test_a_callback_of_a_node_being_destroyed_ends_quietly_and_counts_nothing():
+    """rclpy raises InvalidHandle when a callback still running at shutdown publishes, or when
+    counting a rejection resets the status timer of a node being destroyed: neither is an input's
+    fault, and neither may escape into the executor's thread."""
+    from rclpy.exceptions import InvalidHandle
+
+    lines = []
+
+    class Node:
+        def get_logger(self):
+            class Log:
+                warning = error = staticmethod(lines.append)
+
+            return Log()
+
+    def destroyed():
+        raise InvalidHandle("cannot use Destroyable because destruction was requested")
+
+    def publish(_msg):
+        destroyed()
+
+    rejections = Rejections()
+    assert guarded(Node(), publish, "depth", rejections)(_image()) is None
+    assert rejections.total == 0 and lines == []
+    # a real bad input whose count then finds the status timer destroyed
+    counted = Rejections(on_count=destroyed)
+    check = guarded(Node(), lambda m: inputs.check_frame_id(m, "world"), "pose", counted)
+    assert check(msgs.PoseStamped(header=codecs.header(7, "map"))) is None
+    assert counted.total == 1 and len(lines) == 1
+    # anything else is still an error, logged with its traceback and counted
+    failing = guarded(Node(), lambda m: 1 / 0, "depth", rejections)
+    assert failing(_image()) is None
+    assert rejections.snapshot()["by_field"] == {"exception": 1}
+    assert "ZeroDivisionError" in lines[-1]
