@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
@@ -42,3 +44,20 @@ def child_pids() -> Callable[[int], list[int]]:
 @pytest.fixture
 def cmdline() -> Callable[[int], list[str]]:
     return _cmdline
+
+
+def _interrupt(proc: subprocess.Popen, timeout_s: float = 120.0) -> str:
+    """Ctrl-C a process started with its output piped as text, as a user stops `area3d launch`;
+    kill it if it has not ended within `timeout_s` (generous: a loaded machine). Its output."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        out, _ = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+    return out
+
+
+@pytest.fixture
+def interrupt() -> Callable[..., str]:
+    return _interrupt

@@ -7,7 +7,6 @@ from __future__ import annotations
 import importlib.util
 import os
 import shutil
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -82,7 +81,9 @@ def test_the_generated_types_round_trip_through_cdr():
     ]
 
 
-def test_a_next_best_view_call_and_tf_between_two_processes_with_jazzys_type_hash(tmp_path):
+def test_a_next_best_view_call_and_tf_between_two_processes_with_jazzys_type_hash(
+    tmp_path, interrupt
+):
     server = subprocess.Popen(
         [sys.executable, str(SERVER)],
         stdout=subprocess.PIPE,
@@ -123,12 +124,7 @@ def test_a_next_best_view_call_and_tf_between_two_processes_with_jazzys_type_has
             assert [p.node_name for p in publishers] == ["next_best_view_server"]
             assert str(publishers[0].topic_type_hash) == JAZZY_TFMESSAGE_HASH
     finally:
-        server.send_signal(signal.SIGINT)
-        try:
-            log, _ = server.communicate(timeout=TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            log, _ = server.communicate()
+        log = interrupt(server, TIMEOUT_S)
     assert server.returncode == 0, log[-3000:]
 
 

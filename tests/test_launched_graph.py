@@ -6,7 +6,6 @@ message that says so instead of planning on the first one's frames."""
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 
@@ -32,7 +31,9 @@ def test_nodes_none_starts_no_node_and_names_start_only_those():
         _episode_nodes("none,planner")
 
 
-def test_an_episode_drives_a_graph_launched_elsewhere_and_a_second_one_refuses_its_map(tmp_path):
+def test_an_episode_drives_a_graph_launched_elsewhere_and_a_second_one_refuses_its_map(
+    tmp_path, interrupt
+):
     # the camera holds its first frame until the mission manager reads its topics (readers.all)
     graph = subprocess.Popen(
         _cli("launch", "--localhost", "-p", "sim_bridge.readers.all=[mission_manager]", *SIZE),
@@ -50,12 +51,7 @@ def test_an_episode_drives_a_graph_launched_elsewhere_and_a_second_one_refuses_i
             _cli(*episode), capture_output=True, text=True, timeout=600, cwd=tmp_path
         )
     finally:
-        graph.send_signal(signal.SIGINT)
-        try:
-            graph_log, _ = graph.communicate(timeout=120)  # generous: a loaded machine
-        except subprocess.TimeoutExpired:
-            graph.kill()
-            graph_log, _ = graph.communicate()
+        graph_log = interrupt(graph)
     assert first.returncode == 0, (first.stdout[-3000:], first.stderr[-3000:], graph_log[-3000:])
     runs = sorted((tmp_path / "runs").iterdir())
     assert len(runs) == 2

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 
@@ -70,7 +69,7 @@ def _rx_bytes(ns: str, link: str) -> int:
 
 
 def test_camera_and_perception_on_one_host_the_rest_on_another_complete_an_episode(
-    two_hosts, tmp_path
+    two_hosts, tmp_path, interrupt
 ):
     hosts, links, addresses = two_hosts
     env = dict(
@@ -101,12 +100,7 @@ def test_camera_and_perception_on_one_host_the_rest_on_another_complete_an_episo
             env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path,
         )  # fmt: skip
     finally:
-        camera_host.send_signal(signal.SIGINT)
-        try:
-            camera_log, _ = camera_host.communicate(timeout=120)  # generous: a loaded machine
-        except subprocess.TimeoutExpired:
-            camera_host.kill()
-            camera_log, _ = camera_host.communicate()
+        camera_log = interrupt(camera_host)
     assert episode.returncode == 0, (episode.stderr[-3000:], camera_log[-3000:])
     (run_dir,) = (tmp_path / "runs").iterdir()
     data = json.loads((run_dir / "episode.json").read_text())

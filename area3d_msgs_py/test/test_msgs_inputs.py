@@ -61,18 +61,28 @@ def test_maps_in_unit_range_allow_nan_but_not_inf_or_values_outside():
             inputs.check_depth_values(np.array([[0.5, bad, np.nan]], np.float32))
 
 
+class _Node:
+    """A node whose logger keeps its lines (warnings and errors alike) in `lines`."""
+
+    def __init__(self, lines: list[str]) -> None:
+        self.lines = lines
+
+    def get_logger(self):
+        lines = self.lines
+
+        class Log:
+            warning = error = staticmethod(lines.append)
+
+        return Log()
+
+
 def test_guarded_counts_rejections_by_topic_and_field_and_logs_one_line():
     lines = []
 
-    class Node:
-        def get_logger(self):
-            class Log:
-                warning = error = staticmethod(lines.append)
-
-            return Log()
-
     rejections = Rejections()
-    callback = guarded(Node(), lambda m: inputs.check_frame_id(m, "world"), "pose", rejections)
+    callback = guarded(
+        _Node(lines), lambda m: inputs.check_frame_id(m, "world"), "pose", rejections
+    )
     callback(msgs.PoseStamped(header=codecs.header(7, "map")))
     callback(msgs.PoseStamped(header=codecs.header(8, "world")))
     assert rejections.snapshot() == {
@@ -91,13 +101,6 @@ def test_a_callback_of_a_node_being_destroyed_ends_quietly_and_counts_nothing():
 
     lines = []
 
-    class Node:
-        def get_logger(self):
-            class Log:
-                warning = error = staticmethod(lines.append)
-
-            return Log()
-
     def destroyed():
         raise InvalidHandle("cannot use Destroyable because destruction was requested")
 
@@ -105,15 +108,15 @@ def test_a_callback_of_a_node_being_destroyed_ends_quietly_and_counts_nothing():
         destroyed()
 
     rejections = Rejections()
-    assert guarded(Node(), publish, "depth", rejections)(_image()) is None
+    assert guarded(_Node(lines), publish, "depth", rejections)(_image()) is None
     assert rejections.total == 0 and lines == []
     # a real bad input whose count then finds the status timer destroyed
     counted = Rejections(on_count=destroyed)
-    check = guarded(Node(), lambda m: inputs.check_frame_id(m, "world"), "pose", counted)
+    check = guarded(_Node(lines), lambda m: inputs.check_frame_id(m, "world"), "pose", counted)
     assert check(msgs.PoseStamped(header=codecs.header(7, "map"))) is None
     assert counted.total == 1 and len(lines) == 1
     # anything else is still an error, logged with its traceback and counted
-    failing = guarded(Node(), lambda m: 1 / 0, "depth", rejections)
+    failing = guarded(_Node(lines), lambda m: 1 / 0, "depth", rejections)
     assert failing(_image()) is None
     assert rejections.snapshot()["by_field"] == {"exception": 1}
     assert "ZeroDivisionError" in lines[-1]
