@@ -54,10 +54,6 @@ __all__ = ["EpisodeConfig", "EpisodeError", "run_episode"]
 SERVICE_POLL_S = 0.02
 
 
-class StaleMapError(EpisodeError):
-    """The planner's map holds frames of an earlier episode (`_Episode._check_fresh_map`)."""
-
-
 def run_episode(
     config: EpisodeConfig, resume: Path | None = None, progress: object | None = None
 ) -> Path:
@@ -270,9 +266,6 @@ class _Episode:
             self._episode(progress)
             self.add_time("episode_total", time.monotonic() - t0)
             self.save()
-        except StaleMapError as err:  # resuming on the same graph would not help
-            self.save()
-            raise EpisodeError(f"{err}\n{self._kept().rstrip('; ')}") from err
         except (NodeDied, TimeoutError, EpisodeError) as err:
             self.save()
             raise EpisodeError(
@@ -397,11 +390,11 @@ class _Episode:
             return  # the last initial view is not fused: planning with what the planner has
         fused = int(manager.planner_status.get("frames_fused", 0))
         if fused > len(self.frames):
-            raise StaleMapError(
+            raise EpisodeError(
                 f"the planner has fused {fused} frames, this episode captured {len(self.frames)}: "
                 "its map holds frames of an earlier episode (a graph started elsewhere keeps its "
                 "map) or a capture this run did not receive; start the graph again for a new "
-                f"episode, or start it again and continue this one with --resume {self.run_dir}"
+                "episode, or start it again and continue this one with --resume"
             )
 
     def _planned_views(self, progress: Any) -> None:
