@@ -260,11 +260,11 @@ def _clear_of_occupied(
     reach = bound / voxel_size
     bound2 = bound * bound
     out = np.ones(points.shape[0], dtype=np.bool_)
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
     for p in range(points.shape[0]):
         if not check[p]:
             continue
-        lo = np.empty(3, np.int64)
-        hi = np.empty(3, np.int64)
         for a in range(3):
             # centre_a = lower + (i + 0.5) voxel_size lies within `bound` of x only for i in
             # ((x - lower) / voxel_size - 0.5 -+ reach): one voxel more on each side
