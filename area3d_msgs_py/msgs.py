@@ -33,6 +33,7 @@ from nav_msgs.srv import GetPlan
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField, RegionOfInterest
 from std_msgs.msg import Header, String
+from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from area3d_msgs_py.errors import InputError
@@ -56,7 +57,8 @@ __all__ = [
     "GetPlan", "GetPlan_Request", "GetPlan_Response", "HardRegion",
     "HardRegionArray", "Header", "Image", "NextBestView", "Odometry", "Path", "Point",
     "PointCloud2", "PointField", "Pose", "PoseArray", "PoseStamped", "Quaternion",
-    "RegionOfInterest", "String", "TFMessage", "Time", "Transform", "TransformStamped", "Vector3",
+    "RegionOfInterest", "String", "TFMessage", "Time", "Transform", "TransformStamped", "Trigger",
+    "Vector3",
     "deserialize", "get", "serialize", "type_name_of",
 ]  # fmt: skip
 

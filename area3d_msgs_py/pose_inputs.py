@@ -76,6 +76,10 @@ class PoseInputs:
         """Pose the waiting frames whose transforms have arrived; drop those waiting too long."""
         self._deliver(self.core.release(self._now_ns()))
 
+    def forget_frames(self) -> int:
+        """Forget the frames waiting for their camera pose; how many."""
+        return self.core.forget_frames()
+
     def status(self) -> dict:
         return self.core.status()
 

@@ -318,6 +318,12 @@ class CameraPoses:
         self._waiting = still
         return posed
 
+    def forget_frames(self) -> int:
+        """Forget the frames waiting for their transforms (the transforms stay); how many."""
+        waiting = len(self._waiting)
+        self._waiting.clear()
+        return waiting
+
     def _drop(self, stamp_ns: int, failure: LookupFailure, why: str = "") -> None:
         first = failure.cause not in self.dropped
         self.dropped[failure.cause] += 1

@@ -285,6 +285,20 @@ NEXT_BEST_VIEW = Service(
     "start = current pose stamped with the last capture; goal.pose.position.x = views wanted "
     "(for tools with the standard types only)",
 )
+PLANNER_RESET = Service(
+    "area3d/planner/reset",
+    msgs.Trigger,
+    PLANNER,
+    "forget the map, its fused frames and semantic maps and the frames waiting to be fused: the "
+    "next episode starts from nothing (the latched grid goes out empty)",
+)
+SEMANTICS_RESET = Service(
+    "area3d/semantics/reset",
+    msgs.Trigger,
+    SEMANTICS,
+    "forget the collected views and their analysis: the next num_initial_views frames are "
+    "analysed afresh",
+)
 
 # -- every node -----------------------------------------------------------------------------
 DIAGNOSTICS = Topic(
@@ -307,7 +321,7 @@ TOPICS: tuple[Topic, ...] = (
 
 
 #: every service of the graph
-SERVICES: tuple[Service, ...] = (SELECT_VIEWS, NEXT_BEST_VIEW)
+SERVICES: tuple[Service, ...] = (SELECT_VIEWS, NEXT_BEST_VIEW, PLANNER_RESET, SEMANTICS_RESET)
 
 
 def read_by(node: str, topics: tuple[Topic, ...] = TOPICS) -> tuple[Topic, ...]:

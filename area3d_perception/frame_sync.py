@@ -117,6 +117,13 @@ class StampSync:
         dropped, self._dropped = self._dropped, []
         return dropped
 
+    def clear(self) -> int:
+        """Forget every part waiting for partners; how many there were."""
+        parts = sum(len(p) for p in self._pending.values())
+        for p in self._pending.values():
+            p.clear()
+        return parts
+
     def pending(self, key: str) -> list[int]:
         """Stamps of the parts of stream `key` still waiting for partners, ascending."""
         return sorted(self._pending[key])

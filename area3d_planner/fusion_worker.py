@@ -17,7 +17,8 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -56,13 +57,16 @@ class FusionWorker:
         self.last_paired_age_s: float | None = None
         self.last_fused_age_s: float | None = None
         self.stopping = False  # stop() was called: the thread ends on purpose
+        # held while a frame is fused and handed on, and while `cleared` runs
+        self._step = threading.Lock()
+        self._generation = 0  # frames submitted before the last `cleared` are not fused
         self._thread = threading.Thread(target=self._loop, name=WORKER_NAME, daemon=True)
         self._thread.start()
 
     def submit(self, stamp_ns: int, frame: Any, K: np.ndarray) -> bool:
         """Queue a whole frame for fusion; False (and counted in `dropped`) if the backlog is full."""
         try:
-            self._queue.put_nowait((stamp_ns, frame, K, self._now_ns()))
+            self._queue.put_nowait((stamp_ns, frame, K, self._now_ns(), self._generation))
             return True
         except queue.Full:
             self.dropped += 1
@@ -81,6 +85,27 @@ class FusionWorker:
         if self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
 
+    @contextmanager
+    def cleared(self) -> Iterator[int]:
+        """No frame is fused while the body runs, and none submitted before it is fused after it:
+        the frames waiting are dropped (their number is yielded; not counted in `dropped`), the
+        one in flight is finished first."""
+        with self._step:
+            self._generation += 1
+            waiting = 0
+            while True:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is None:  # stop() asked first: it still ends the worker
+                    self._queue.put_nowait(None)
+                    break
+                waiting += 1
+            self._grid_sent = -np.inf
+            self.last_fusion_s = self.last_paired_age_s = self.last_fused_age_s = None
+            yield waiting
+
     @property
     def alive(self) -> bool:
         return self._thread.is_alive()
@@ -90,21 +115,25 @@ class FusionWorker:
             item = self._queue.get()
             if item is None:
                 return
-            stamp, frame, K, submitted_ns = item
-            t0 = time.perf_counter()
-            try:
-                fused = self._fuse(stamp, frame, K)
-            except Exception as exc:  # noqa: BLE001 - the frames that follow are fused
-                self._on_failed(stamp, exc)
-                continue
-            publish_grid = False
-            if fused:
-                self.last_fusion_s = time.perf_counter() - t0
-                self.last_paired_age_s = (submitted_ns - stamp) / 1e9
-                self.last_fused_age_s = (self._now_ns() - stamp) / 1e9
-                now = time.monotonic()
-                if self._queue.empty() or now - self._grid_sent >= self.grid_period_s:
-                    self._grid_sent = now
-                    publish_grid = True
-            if not self._on_done(stamp, fused, publish_grid):
-                return
+            with self._step:
+                if item[4] == self._generation and not self._step_one(*item[:4]):
+                    return
+
+    def _step_one(self, stamp: int, frame: Any, K: np.ndarray, submitted_ns: int) -> bool:
+        """Fuse one frame and hand it on; False once the node has stopped."""
+        t0 = time.perf_counter()
+        try:
+            fused = self._fuse(stamp, frame, K)
+        except Exception as exc:  # noqa: BLE001 - the frames that follow are fused
+            self._on_failed(stamp, exc)
+            return True
+        publish_grid = False
+        if fused:
+            self.last_fusion_s = time.perf_counter() - t0
+            self.last_paired_age_s = (submitted_ns - stamp) / 1e9
+            self.last_fused_age_s = (self._now_ns() - stamp) / 1e9
+            now = time.monotonic()
+            if self._queue.empty() or now - self._grid_sent >= self.grid_period_s:
+                self._grid_sent = now
+                publish_grid = True
+        return self._on_done(stamp, fused, publish_grid)

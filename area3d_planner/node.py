@@ -148,7 +148,7 @@ class PlannerNode(Node):
         self.gate = PublishGate()  # the rebuild worker publishes only while the node runs
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
-        self.server = NextBestViewServer(
+        self._new_server = lambda: NextBestViewServer(
             config,
             background=p["eager_cache"],
             on_refresh=self._on_refresh,
@@ -156,6 +156,8 @@ class PlannerNode(Node):
             mask_lag_s=p["mask_lag_s"],
             rebuild_nice=p["rebuild_nice"],
         )
+        self.server = self._new_server()
+        self.resets = 0  # area3d/planner/reset calls served
         pose_config = PoseSourceConfig(**{f.name: p[f.name] for f in fields(PoseSourceConfig)})
         pose_topic = pose_config.pose_source == "topic"  # else TF or odometry (self.poses)
         self.sync = StampSync(
@@ -233,6 +235,13 @@ class PlannerNode(Node):
                 handler,
                 callback_group=MutuallyExclusiveCallbackGroup(),
             )
+        # in the frames' group: no part of a frame is taken while the map is cleared
+        self.create_service(
+            topics.PLANNER_RESET.srv_type,
+            topics.PLANNER_RESET.name,
+            self._on_reset,
+            callback_group=frames,
+        )
         self.get_logger().info(
             f"planner ready: policy={config.policy} mode={config.mode} "
             f"voxels={self.server.grid.spec.num_voxels} world_frame={self.world_frame} "
@@ -247,6 +256,7 @@ class PlannerNode(Node):
     def _status(self) -> dict:
         return {
             **self.server.status(),
+            "resets": self.resets,
             "parts_dropped_unpaired": self.dropped,
             "frames_dropped_backlog": self.fusion.dropped,
             "frames_dropped_without_camera_info": self.waiting.dropped,
@@ -290,6 +300,35 @@ class PlannerNode(Node):
         self.gate.close()
         self.fusion.stop(0.0)
         self.server.close(0.0)
+
+    def _on_reset(self, request, response):
+        """area3d/planner/reset (std_srvs/Trigger): a new, empty map with the same parameters;
+        frames fused, semantic maps, parts waiting for partners, frames waiting for camera info,
+        a pose or fusion are dropped (counted in the answer's message, not as losses). Camera
+        info and transforms stay: they describe the robot, not the episode."""
+        try:
+            with self.fusion.cleared() as waiting_fusion:
+                old, self.server = self.server, self._new_server()
+                parts = self.sync.clear()
+                held = len(self.waiting.release())
+                waiting_pose = 0 if self.poses is None else self.poses.forget_frames()
+            old.close(0.0)  # a request still waiting on the old map gets its answer from it
+            fused = old.status().get("frames_fused", 0)
+            self.resets += 1
+            self._publish_state(self._now_ns())  # the empty grid replaces the latched one
+        except Exception as exc:  # the node keeps serving; the caller learns why
+            response.success = False
+            response.message = f"reset failed: {type(exc).__name__}: {exc}"
+            self.get_logger().error(f"{topics.PLANNER_RESET.name}: {response.message}")
+            return response
+        response.success = True
+        response.message = (
+            f"map cleared: {fused} frames fused, {waiting_fusion} waiting for fusion, "
+            f"{held + waiting_pose} waiting for camera info or a pose and {parts} parts of "
+            "frames dropped"
+        )
+        self.get_logger().info(f"{topics.PLANNER_RESET.name}: {response.message}")
+        return response
 
     def _on_camera_info(self, msg) -> None:
         stamp = self._stamp(msg)
@@ -456,26 +495,27 @@ class PlannerNode(Node):
         """Wait for the request's frame, plan, publish the views (the Path returned) and their
         markers."""
         log = self.get_logger()
+        server = self.server  # the map of the whole request, even if a reset replaces it meanwhile
         sync_timeout_s = self.get_parameter("sync_timeout_s").value
         t0 = time.perf_counter()
-        if not self.server.wait_fused(request.stamp_ns, sync_timeout_s):
+        if not server.wait_fused(request.stamp_ns, sync_timeout_s):
             log.warning(
                 f"{service}: frame {request.stamp_ns} not fused after {sync_timeout_s} s; "
                 "planning with what is fused"
             )
         t1 = time.perf_counter()
-        plan = self.server.plan_views(request)
+        plan = server.plan_views(request)
         # where the last request's time went, in the status (a mission manager's latency budget)
-        self.server.last_request_s = {
+        server.last_request_s = {
             "wait_fused": round(t1 - t0, 4),
-            **{k: round(v, 4) for k, v in self.server.last_plan_s.items()},
+            **{k: round(v, 4) for k, v in server.last_plan_s.items()},
         }
         if plan.reason:
             log.warning(f"{service}: {plan.reason}")
         now = self._now_ns()
         path = self._path(plan.poses, now)
         self.views_pub.publish(path)
-        hfov_deg, width, height = self.server.camera()
+        hfov_deg, width, height = server.camera()
         self.markers_pub.publish(
             view_markers(
                 plan.poses, self.world_frame, now, hfov_deg, width, height, self.marker_range

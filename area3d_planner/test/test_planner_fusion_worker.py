@@ -135,3 +135,53 @@ def test_the_worker_ends_when_the_node_has_stopped_and_on_stop():
     other = worker(Recorder())
     other.stop(TIMEOUT_S)
     assert not other.alive
+
+
+def test_cleared_waits_for_the_frame_in_flight_and_drops_those_submitted_before_it():
+    rec = Recorder()
+    rec.release.clear()
+    fusion = worker(rec)
+    try:
+        assert fusion.submit(1, "frame", K)
+        assert rec.entered.wait(TIMEOUT_S)  # frame 1 in flight, 2 and 3 wait
+        assert fusion.submit(2, "frame", K) and fusion.submit(3, "frame", K)
+        inside = threading.Event()
+        found = []
+
+        def clear():
+            with fusion.cleared() as waiting:
+                found.append((waiting, list(rec.done)))
+                inside.set()
+
+        clearing = threading.Thread(target=clear)
+        clearing.start()
+        assert not inside.wait(0.2)  # it waits for frame 1 to be handed on
+        rec.release.set()
+        clearing.join(TIMEOUT_S)
+        assert inside.is_set()
+        rec.expected = 2
+        assert fusion.submit(4, "frame", K)  # after the clearing: fused
+        assert rec.finished.wait(TIMEOUT_S)
+    finally:
+        fusion.stop(TIMEOUT_S)
+    # frame 1 (and 2 or 3 where the worker took the lock first) was handed on before the body
+    # ran; the rest were dropped (not counted as a full backlog's) and none fused after it
+    waiting, before = found[0]
+    before = [stamp for stamp, *_ in before]
+    assert before in ([1], [1, 2], [1, 2, 3])
+    assert waiting <= 3 - len(before)  # the worker may hold one off the queue: not fused either
+    assert rec.fused == [*before, 4] and fusion.dropped == 0
+    assert fusion.last_fusion_s is not None  # frame 4's
+
+
+def test_a_stop_asked_before_a_clearing_still_ends_the_worker():
+    rec = Recorder()
+    rec.release.clear()
+    fusion = worker(rec)
+    assert fusion.submit(1, "frame", K)
+    assert rec.entered.wait(TIMEOUT_S)
+    fusion.stop(0.0)  # queued behind frame 1
+    rec.release.set()
+    with fusion.cleared():
+        pass
+    assert wait_for(lambda: not fusion.alive)

@@ -230,3 +230,39 @@ def test_a_failed_fusion_is_an_error_and_a_dead_fusion_worker_stays_one(rig):
     dead = r.diagnostics[seen:]
     assert all(int.from_bytes(s.level, "little") == ERROR for s in dead)
     assert all("worker fusion died" in s.message for s in dead)
+
+
+def test_a_reset_empties_the_map_and_what_waits_and_the_same_frames_fuse_again(rig):
+    r = rig(eager_cache=True, refresh_interval_s=0.0)
+    stamps = r.wall(5_000_000_000)
+    assert r.fused(len(stamps)) and r.wait(lambda: r.status[-1]["hard_regions"] == 2)
+    # a part whose partners have not come yet: the reset drops it
+    depth, _, _ = banded_wall_view(*WALL_DIRECTIONS[0], WALL_X, BANDS_Y, BAND_Z)
+    lone = 5_900_000_000
+    r.pubs["depth"].publish(codecs.image_to_msg(depth, "32FC1", lone, OPTICAL))
+    assert r.wait(lambda: lone in r.planner.sync.pending("depth"))
+    client = r.peer.create_client(topics.PLANNER_RESET.srv_type, topics.PLANNER_RESET.name)
+    assert client.wait_for_service(timeout_sec=TIMEOUT_S)
+    future = client.call_async(msgs.Trigger.Request())
+    assert r.wait(future.done) and future.result() is not None
+    answer = future.result()
+    assert answer.success, answer.message
+    assert f"map cleared: {len(stamps)} frames fused" in answer.message
+    assert "and 1 parts of frames dropped" in answer.message
+    # the empty map's status and hard regions go out (the latched ones no longer hold the wall)
+    assert r.wait(lambda: r.status[-1]["resets"] == 1)
+    assert r.status[-1]["frames_fused"] == 0 and r.status[-1]["hard_voxels"] == 0
+    assert r.wait(lambda: len(r.regions[-1].regions) == 0)
+    # the lone part's partners now make no frame; the same frames as before fuse into the new map
+    _, confidence, T = banded_wall_view(*WALL_DIRECTIONS[0], WALL_X, BANDS_Y, BAND_Z)
+    r.pubs["confidence"].publish(codecs.image_to_msg(confidence, "32FC1", lone, OPTICAL))
+    r.pubs["pose"].publish(
+        msgs.PoseStamped(header=codecs.header(lone, "world"), pose=codecs.matrix_to_pose(T))
+    )
+    for i, direction in enumerate(WALL_DIRECTIONS):
+        r.frame(stamps[i], *banded_wall_view(*direction, WALL_X, BANDS_Y, BAND_Z))
+    assert r.fused(len(stamps)) and r.wait(lambda: r.status[-1]["hard_regions"] == 2)
+    assert r.status[-1]["frames_fused"] == len(stamps)  # not the lone frame
+    assert r.status[-1]["last_fused_stamp_ns"] == stamps[-1]
+    assert r.planner.sync.pending("confidence") == [lone]  # still waiting for its depth
+    assert r.planner.sync.pending("depth") == []
