@@ -128,6 +128,8 @@ class SemanticsNode(Node):
         self.published_usem: set[int] = set()
         self.queried = False
         self.analyses = 0
+        self.resets = 0  # area3d/semantics/reset calls served
+        self._epoch = 0  # an analysis of views collected before the last reset is not published
         self._lock = threading.Lock()
         # the VLM query runs on a worker thread, so callbacks keep running meanwhile
         self.worker = AnalysisWorker(self._analyse, self._requery)
@@ -152,6 +154,9 @@ class SemanticsNode(Node):
                 guarded(self, callback, topic.name, self.rejections),
                 topic.reader_qos(p["camera_qos"], depth),
             )
+        self.create_service(
+            topics.SEMANTICS_RESET.srv_type, topics.SEMANTICS_RESET.name, self._on_reset
+        )
         log.info(
             f"backend={self.backend.name} fallback={self.fallback} "
             f"num_initial_views={self.num_initial_views} lambda={self.params.lam}"
@@ -172,6 +177,7 @@ class SemanticsNode(Node):
                 "backend": self.backend.name,
                 "views_complete": len(self.views.complete),
                 "analyses": self.analyses,
+                "resets": self.resets,
                 "usem_published": len(self.published_usem),
                 "backend_error": self.backend_problem or self.analysis_error,
                 "analysis_failures": self.worker.failures,
@@ -222,6 +228,24 @@ class SemanticsNode(Node):
             return
         self.worker.submit(stamps, reason="request")
 
+    def _on_reset(self, request, response):
+        """area3d/semantics/reset (std_srvs/Trigger): forget the views and their analysis; an
+        analysis running meanwhile finishes unpublished, and the next num_initial_views complete
+        frames are analysed as the initial views."""
+        with self._lock:
+            views = len(self.views.complete)
+            self.views = ViewCollector(require_depth=self.require_depth)
+            self.weights.clear()
+            self.published_usem.clear()
+            self.queried = False
+            self._epoch += 1
+            self.resets += 1
+        self.status.changed()
+        response.success = True
+        response.message = f"views cleared: {views} complete frames dropped"
+        self.get_logger().info(f"{topics.SEMANTICS_RESET.name}: {response.message}")
+        return response
+
     # work ------------------------------------------------------------------------------------
     def _maybe_start_initial(self) -> None:
         with self._lock:
@@ -235,7 +259,11 @@ class SemanticsNode(Node):
         log = self.get_logger()
         with self._lock:
             views = [self.views.get(s) for s in stamps]
+            epoch = self._epoch
         views = [v for v in views if v is not None and v.rgb is not None]
+        if not views:  # a re-query that waited while the views were reset
+            log.info(f"no frames to analyse ({reason}); none since the reset")
+            return
         log.info(f"querying {self.backend.name} with {len(views)} frames ({reason})")
         try:
             analysis = analyze_views(
@@ -253,17 +281,22 @@ class SemanticsNode(Node):
             )
         with self._lock:
             self.analysis_error = analysis.error if analysis.fallback_used else None
-        self._publish(analysis, views)
+        self._publish(analysis, views, epoch)
 
-    def _publish(self, analysis: Analysis, views: list) -> None:
+    def _publish(self, analysis: Analysis, views: list, epoch: int) -> None:
         with self.gate as running:
             if running:  # a query that ends after the node stopped publishes nothing
-                self._publish_analysis(analysis, views)
+                self._publish_analysis(analysis, views, epoch)
 
-    def _publish_analysis(self, analysis: Analysis, views: list) -> None:
+    def _publish_analysis(self, analysis: Analysis, views: list, epoch: int) -> None:
         payload = analysis.to_json([v.stamp_ns for v in views])
-        self.pub_regions.publish(msgs.String(data=json.dumps(payload)))
-        with self._lock:
+        with self._lock:  # a reset comes before all of it or after
+            if epoch != self._epoch:
+                self.get_logger().info(
+                    f"the analysis of {len(views)} frames from before the reset is not published"
+                )
+                return
+            self.pub_regions.publish(msgs.String(data=json.dumps(payload)))
             self.analyses += 1
             for i, view in enumerate(views):
                 h, w = view.rgb.shape[:2]

@@ -345,3 +345,53 @@ def test_an_analysis_that_raises_is_an_error_and_the_next_one_restarts_the_worke
         assert rig.semantics.worker.healthy
     finally:
         rig.close()
+
+
+def test_a_reset_drops_the_views_and_a_running_analysis_and_the_next_views_are_the_initial_ones():
+    from area3d_semantics.backends import HeuristicBackend
+
+    class HeldBackend(HeuristicBackend):
+        """The heuristic analyser, held at its first call until released."""
+
+        def __init__(self):
+            super().__init__()
+            self.entered, self.release, self.calls = threading.Event(), threading.Event(), 0
+
+        def analyze(self, images, depths=None):
+            self.calls += 1
+            if self.calls == 1:
+                self.entered.set()
+                assert self.release.wait(TIMEOUT_S)
+            return super().analyze(images, depths)
+
+    rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
+    try:
+        data = frames(4)
+        for stamp, image, depth, _ in data[:2]:
+            rig.frame(stamp, image, depth)
+        assert rig.spin(lambda: len(rig.regions) == 1)
+        held = HeldBackend()
+        rig.semantics.backend = held
+        rig.request.publish(msgs.String(data="again"))
+        assert held.entered.wait(TIMEOUT_S)  # an analysis of frames 0 and 1 runs
+        client = rig.peer.create_client(
+            topics.SEMANTICS_RESET.srv_type, topics.SEMANTICS_RESET.name
+        )
+        assert client.wait_for_service(timeout_sec=TIMEOUT_S)
+        future = client.call_async(msgs.Trigger.Request())
+        assert rig.spin(future.done) and future.result() is not None
+        assert future.result().success
+        assert future.result().message == "views cleared: 2 complete frames dropped"
+        held.release.set()
+        assert rig.spin(lambda: not rig.semantics.worker.busy)
+        assert len(rig.regions) == 1  # the analysis from before the reset went unpublished
+        assert rig.semantics.analyses == 1 and rig.semantics.resets == 1
+        # the next two frames are the initial views again: one analysis of them alone
+        for stamp, image, depth, _ in data[2:]:
+            rig.frame(stamp, image, depth)
+        assert rig.spin(lambda: len(rig.regions) == 2)
+        assert held.calls == 2
+        payload = json.loads(rig.regions[-1].data)
+        assert [img["stamp_ns"] for img in payload["images"]] == [d[0] for d in data[2:]]
+    finally:
+        rig.close()
