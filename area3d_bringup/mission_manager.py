@@ -9,6 +9,7 @@ node's new process is up. Topics: `area3d_msgs_py/topics.py`.
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -23,7 +24,7 @@ from area3d_bringup.launcher import Launcher, NodeDied
 from area3d_bringup.recorder import BagRecorder
 from area3d_eval.rundir import Frame
 from area3d_msgs_py import codecs, msgs, qos, topics
-from area3d_msgs_py.topics import Topic
+from area3d_msgs_py.topics import Service, Topic
 
 NAME = topics.MISSION_MANAGER
 # The simulated camera's fixed frame: goals, replayed poses and requests are in it.
@@ -58,6 +59,13 @@ GRAPH_OUTPUTS: dict[Topic, int] = {
     topics.NEXT_VIEWS: qos.FRAME_DEPTH,
     topics.PLANNER_STATUS: qos.FRAME_DEPTH,
 }
+#: the outputs stamped with the frame they come from: those of a frame this episode did not
+#: capture or replay (a running graph's transient-local history of an earlier episode, the empty
+#: grid of a reset) are neither recorded nor counted
+FRAME_OUTPUTS = (
+    topics.PERCEPTION_DEPTH, topics.PERCEPTION_CONFIDENCE, topics.SEMANTIC_WEIGHT,
+    topics.SEMANTIC_UNCERTAINTY, topics.UNCERTAINTY_GRID,
+)  # fmt: skip
 # Readers each runner topic has once the graph is up (the mission manager's own included):
 # volatile topics drop what is published before a reader has matched, so goals and replayed
 # frames wait.
@@ -119,6 +127,7 @@ class MissionManager(Node):
         self._parts: dict[int, dict[str, Any]] = {}
         self._status: dict[int, dict] = {}
         self.planner_status: dict = {}
+        self.stamps: set[int] = set()  # the frames this episode captured or replayed
         self.latest_grid: bytes | None = None
         self.received: dict[str, int] = {}
         # what graph nodes read: the goals, and the camera topics for replayed frames
@@ -137,6 +146,7 @@ class MissionManager(Node):
         self._listen(topics.TF_STATIC, None, None)
         self.plan_message = ""  # why the planner's last answer had no view
         self.client = self.create_client(topics.SELECT_VIEWS.srv_type, topics.SELECT_VIEWS.name)
+        self._reset_clients: dict[str, Any] = {}  # service name -> client (`reset`)
 
     # -- callbacks (executor thread) ---------------------------------------------------------
     def _on_match(self, key: str) -> PublisherEventCallbacks:
@@ -151,10 +161,13 @@ class MissionManager(Node):
         `handle(msg, cdr)` under the lock."""
         type_name = topic.type_name
         resolved = self.resolve_topic_name(topic.name)
+        of_frames = topic in FRAME_OUTPUTS
 
         def callback(cdr: bytes) -> None:
             msg = msgs.deserialize(cdr, type_name)
             stamp = codecs.stamp_to_ns(msg.header.stamp) if hasattr(msg, "header") else 0
+            if of_frames and stamp not in self.stamps:
+                return  # not of this episode
             self.record(resolved, type_name, stamp, cdr)
             with self._lock:
                 self.received[resolved] = self.received.get(resolved, 0) + 1
@@ -314,6 +327,7 @@ class MissionManager(Node):
         runner's writer has matched it, and its writers can send the frame before they have
         matched the runner's readers (then some parts of the frame arrive, others never)."""
         stamp = self.clock() if stamp is None else stamp
+        self.stamps.add(stamp)  # before the goal: perception may answer before the camera's parts
         goal = msgs.PoseStamped(
             header=codecs.header(stamp, WORLD_FRAME), pose=codecs.matrix_to_pose(T_world_cam)
         )
@@ -355,6 +369,7 @@ class MissionManager(Node):
 
     def replay(self, frame: Frame) -> None:
         """Publish a saved frame on the camera topics, as the camera did when it was captured."""
+        self.stamps.add(frame.stamp_ns)
         h, w = frame.depth.shape
         header_args = (frame.stamp_ns, "camera_optical_frame")
         pubs = self.runner_pubs
@@ -372,6 +387,40 @@ class MissionManager(Node):
         """{stamp: {"depth", "confidence"}} of what perception has published so far."""
         with self._lock:
             return dict(self.estimates or {})
+
+    def reset(self, service: Service, timeout_s: float) -> str:
+        """Call a node's reset service (std_srvs/Trigger: `topics.PLANNER_RESET`,
+        `topics.SEMANTICS_RESET`) and return its answer's message; a planner's status is awaited
+        until it shows the reset. TimeoutError when the service does not appear or answer within
+        `timeout_s`, RuntimeError when it answers that the reset failed."""
+        client = self._reset_clients.get(service.name)
+        if client is None:
+            client = self._reset_clients[service.name] = self.create_client(
+                service.srv_type, service.name
+            )
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise TimeoutError(f"no service {service.name} within {timeout_s:.0f} s")
+        future = client.call_async(msgs.Trigger.Request())
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        if not done.wait(timeout_s):
+            client.remove_pending_request(future)
+            raise TimeoutError(f"no answer from {service.name} within {timeout_s:.0f} s")
+        answer = future.result()
+        if not answer.success:
+            raise RuntimeError(f"{service.name}: {answer.message}")
+        if service is topics.PLANNER_RESET:  # its status after the reset: "(reset N)" or empty
+            count = re.search(r"\(reset (\d+)\)", answer.message)
+            if not self.wait_until(
+                lambda: (
+                    int(self.planner_status.get("resets", 0)) >= int(count.group(1))
+                    if count
+                    else self.planner_status.get("frames_fused") == 0
+                ),
+                timeout_s,
+            ):
+                raise TimeoutError(f"no planner status after the reset within {timeout_s:.0f} s")
+        return answer.message
 
     def wait_until(
         self,

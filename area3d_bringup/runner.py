@@ -228,6 +228,7 @@ class _Episode:
         self.recorder = BagRecorder(rundir.bag_path(self.run_dir)) if config.record else None
         t0 = time.monotonic()
         local = [spec for spec in self.specs if config.nodes is None or spec.name in config.nodes]
+        self.started = {spec.name for spec in local}  # the others run already (`--nodes`)
         if config.foxglove_port is not None:
             from area3d_bringup.foxglove_bridge import bridge_spec
 
@@ -307,10 +308,29 @@ class _Episode:
         if short:
             self.log(f"topics {short} have fewer readers than the graph should give them")
         manager.note_readers(list(READS))
+        self._reset_graph()
         self.add_time("launch", time.monotonic() - t0)
         if progress is not None:
             self.task = progress.add_task(f"{self.scene.name} / {config.policy}", total=self.budget)
             progress.update(self.task, completed=len(self.frames))
+
+    def _reset_graph(self) -> None:
+        """A planner (and semantics) this run did not start keeps the map (and views) of the
+        episodes before: reset them, so that this episode starts from nothing as on a graph of its
+        own (a resumed one then replays its frames)."""
+        resets = [topics.PLANNER_RESET] + [topics.SEMANTICS_RESET] * self.with_semantics
+        for service in resets:
+            if service.server in self.started:
+                continue
+            try:
+                said = self.manager.reset(service, self.config.startup_timeout_s)
+            except (NodeDied, NodeRespawned):  # a node of this run's: handled as elsewhere
+                raise
+            except RuntimeError as err:  # the service answered that it failed
+                raise EpisodeError(
+                    f"the graph's {service.server} could not be reset: {err}"
+                ) from err
+            self.log(f"{service.server} of the running graph reset: {said}")
 
     def _episode(self, progress: Any) -> None:
         """Replay what a resumed episode had, capture O_0, plan and capture until the budget is
@@ -372,29 +392,6 @@ class _Episode:
             self.log(
                 f"the planner has not fused all {self.n_init} initial views after "
                 f"{config.fuse_timeout_s:.0f} s; planning with what it has"
-            )
-        else:
-            self._check_fresh_map()
-
-    def _check_fresh_map(self) -> None:
-        """Stop when the planner's map holds frames this episode did not capture: a graph started
-        elsewhere (`--nodes none`, `area3d launch`) keeps its map after an episode, and views
-        planned on it would be another episode's."""
-        manager, last = self.manager, self.frames[-1].stamp_ns
-        if not self.step(
-            lambda: manager.wait_until(
-                lambda: int(manager.planner_status.get("last_fused_stamp_ns", 0)) >= last,
-                self.config.fuse_timeout_s,
-            )
-        ):
-            return  # the last initial view is not fused: planning with what the planner has
-        fused = int(manager.planner_status.get("frames_fused", 0))
-        if fused > len(self.frames):
-            raise EpisodeError(
-                f"the planner has fused {fused} frames, this episode captured {len(self.frames)}: "
-                "its map holds frames of an earlier episode (a graph started elsewhere keeps its "
-                "map) or a capture this run did not receive; start the graph again for a new "
-                "episode, or start it again and continue this one with --resume"
             )
 
     def _planned_views(self, progress: Any) -> None:

@@ -323,7 +323,8 @@ class PlannerNode(Node):
             return response
         response.success = True
         response.message = (
-            f"map cleared: {fused} frames fused, {waiting_fusion} waiting for fusion, "
+            f"map cleared (reset {self.resets}): {fused} frames fused, {waiting_fusion} waiting "
+            "for fusion, "
             f"{held + waiting_pose} waiting for camera info or a pose and {parts} parts of "
             "frames dropped"
         )

@@ -1,11 +1,12 @@
 """`area3d run --nodes none`: the mission manager alone drives a graph that `area3d launch` started
 in another process, as a robot's user runs the graph beside their stack and an episode from a
-terminal. The graph keeps its map after the episode, so a second episode on it must stop with a
-message that says so instead of planning on the first one's frames."""
+terminal. Each episode first resets the graph's planner and semantics (area3d/planner/reset,
+area3d/semantics/reset), so a second episode on the same graph plans on its own frames only."""
 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -31,9 +32,7 @@ def test_nodes_none_starts_no_node_and_names_start_only_those():
         _episode_nodes("none,planner")
 
 
-def test_an_episode_drives_a_graph_launched_elsewhere_and_a_second_one_refuses_its_map(
-    tmp_path, interrupt
-):
+def test_episodes_drive_a_graph_launched_elsewhere_each_on_a_reset_map(tmp_path, interrupt):
     # the camera holds its first frame until the mission manager reads its topics (readers.all)
     graph = subprocess.Popen(
         _cli("launch", "--localhost", "-p", "sim_bridge.readers.all=[mission_manager]", *SIZE),
@@ -52,22 +51,26 @@ def test_an_episode_drives_a_graph_launched_elsewhere_and_a_second_one_refuses_i
         )
     finally:
         graph_log = interrupt(graph)
-    assert first.returncode == 0, (first.stdout[-3000:], first.stderr[-3000:], graph_log[-3000:])
+    for run in (first, second):
+        assert run.returncode == 0, (run.stdout[-3000:], run.stderr[-3000:], graph_log[-3000:])
     runs = sorted((tmp_path / "runs").iterdir())
     assert len(runs) == 2
-    data = json.loads((runs[0] / "episode.json").read_text())
-    assert [v["kind"] for v in data["views"]] == ["initial"] * 4 + ["planned"] * (BUDGET - 4)
-    assert data["recorded"]["/area3d/perception/depth"] == BUDGET  # the launched graph's perception
-    assert data["planner_status"]["frames_fused"] == BUDGET
-    log = (runs[0] / "nodes.log").read_text()
-    assert "[mission_manager]" in log
-    for node in ("sim_bridge", "perception", "semantics", "planner"):
-        assert f"[{node}]" not in log  # started by the launch, not by the episode
-        assert f"[{node}]" in graph_log
-    # the second episode captured its 4 initial views into a map that already held 6 frames
-    assert second.returncode != 0
-    said = " ".join((second.stdout + second.stderr).split())
-    assert "the planner has fused 10 frames, this episode captured 4" in said, said[-2000:]
-    assert "start the graph again for a new episode" in said
-    assert "or start it again and continue this one with --resume" in said  # not on this graph
-    assert len(json.loads((runs[1] / "episode.json").read_text())["views"]) == 4  # kept
+    for n, run_dir in enumerate(runs):
+        data = json.loads((run_dir / "episode.json").read_text())
+        kinds = ["initial"] * 4 + ["planned"] * (BUDGET - 4)
+        assert [v["kind"] for v in data["views"]] == kinds
+        assert data["recorded"]["/area3d/perception/depth"] == BUDGET  # the graph's perception
+        # the map holds this episode's frames only (the second's: not the first's as well)
+        assert data["planner_status"]["frames_fused"] == BUDGET
+        assert data["planner_status"]["resets"] == n + 1
+        log = (run_dir / "nodes.log").read_text()
+        assert "[mission_manager]" in log
+        for node in ("sim_bridge", "perception", "semantics", "planner"):
+            assert f"[{node}]" not in log  # started by the launch, not by the episode
+            assert f"[{node}]" in graph_log
+        # what the reset found: nothing before the first episode, its frames before the second
+        fused = 0 if n == 0 else BUDGET
+        said = " ".join(log.split())
+        assert f"planner of the running graph reset: map cleared (reset {n + 1}): {fused} " in said
+        assert re.search(r"semantics of the running graph reset: views cleared: \d+ complete", said)
+    assert "area3d/planner/reset: map cleared (reset 2): 6 frames fused" in graph_log

@@ -247,7 +247,7 @@ def test_a_reset_empties_the_map_and_what_waits_and_the_same_frames_fuse_again(r
     assert r.wait(future.done) and future.result() is not None
     answer = future.result()
     assert answer.success, answer.message
-    assert f"map cleared: {len(stamps)} frames fused" in answer.message
+    assert f"map cleared (reset 1): {len(stamps)} frames fused" in answer.message
     assert "and 1 parts of frames dropped" in answer.message
     # the empty map's status and hard regions go out (the latched ones no longer hold the wall)
     assert r.wait(lambda: r.status[-1]["resets"] == 1)
