@@ -23,8 +23,9 @@ PACKAGES = (
     "area3d_bringup", "area3d_eval",
 )  # fmt: skip
 ROS_PACKAGES = {
-    "rclpy", "builtin_interfaces", "std_msgs", "geometry_msgs", "sensor_msgs", "nav_msgs",
-    "diagnostic_msgs", "visualization_msgs", "rcl_interfaces", "tf2_msgs", "ament_index_python",
+    "rclpy", "builtin_interfaces", "std_msgs", "std_srvs", "geometry_msgs", "sensor_msgs",
+    "nav_msgs", "diagnostic_msgs", "visualization_msgs", "rcl_interfaces", "tf2_msgs",
+    "ament_index_python",
     "launch", "launch_ros", "area3d_interfaces",  # the last: this repository's interfaces (CMake)
 }  # fmt: skip
 # Python imports -> rosdep keys (ros/rosdistro rosdep/python.yaml; "-pip" where Ubuntu 24.04 has
