@@ -34,9 +34,11 @@ class EpisodeConfig:
     transport: str | None = None  # middleware.TRANSPORTS; None: $AREA3D_TRANSPORT or "shm"
     # graph nodes this runner starts (None: all, (): none); the others run elsewhere (`area3d launch`)
     nodes: tuple[str, ...] | None = None
-    capture_timeout_s: float = 30.0
+    # generous: every wait ends as soon as what it waits for arrives, and a node's first frame
+    # on a fresh install compiles its kernels (tens of seconds on a busy 2-core machine)
+    capture_timeout_s: float = 120.0
     plan_timeout_s: float = 120.0
-    fuse_timeout_s: float = 30.0
+    fuse_timeout_s: float = 120.0
     startup_timeout_s: float = 90.0
     # what the TSDF integrates (rundir.DEPTH_SOURCES): the camera's depth, or perception's estimate
     # (then kept in every frame file)
