@@ -57,6 +57,12 @@ def _expected(sent: list[dict], node: str) -> tuple[Counter, Counter]:
     return Counter(c["topic"].lstrip("/") for c in mine), Counter(c["field"] for c in mine)
 
 
+def _warned(lines: list[str], case: dict) -> bool:
+    """A WARN line names the case's topic and field."""
+    topic, field = case["topic"].lstrip("/"), case["field"]
+    return any(topic in line and f"{field}: got" in line for line in lines if "WARN" in line)
+
+
 def _last_status(messages: list) -> dict:
     return json.loads(messages[-1].data) if messages else {}
 
@@ -114,12 +120,13 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
     ), (_last_status(status["sim_bridge"]), graph.lines[-30:])
     assert not _last_status(status["sim_bridge"])["ok"]
 
-    # one warning line per case, naming the topic and the field
+    # one warning line per case, naming the topic and the field (the lines come over the nodes'
+    # output pipes, not with the status: waited for)
     for case in sent:
-        topic, field = case["topic"].lstrip("/"), case["field"]
-        assert any(
-            topic in line and f"{field}: got" in line for line in graph.lines if "WARN" in line
-        ), (case, [line for line in graph.lines if "WARN" in line][-40:])
+        assert graph.wait_for(lambda c=case: _warned(graph.lines, c)), (
+            case,
+            [line for line in graph.lines if "WARN" in line][-40:],
+        )
 
     # ... and every node still serves: a valid frame is processed, re-queried and planned from
     rgb, depth, K, T = _frame()
@@ -224,18 +231,19 @@ def test_bad_poses_and_transforms_are_rejected_by_field_and_frames_without_a_pos
     assert _last_status(status["perception"])["frames_published"] == 0  # none with a wrong pose
     assert _last_status(status["planner"])["frames_fused"] == 0
     for case in sent:  # one warning line per case, naming the topic and the field
-        topic, field = case["topic"].lstrip("/"), case["field"]
-        assert any(
-            topic in line and f"{field}: got" in line for line in graph.lines if "WARN" in line
-        ), case
+        assert graph.wait_for(lambda c=case: _warned(graph.lines, c)), case
     for node, causes in drops.items():  # each cause logged once, with its reason
         for cause in causes:
-            said = [
-                line
-                for line in graph.lines
-                if f"no camera pose ({cause})" in line and f"[{node}]" in line
-            ]
-            assert len(said) == 1, (node, cause, graph.lines[-30:])
+
+            def said(n=node, c=cause):
+                return [
+                    line
+                    for line in graph.lines
+                    if f"no camera pose ({c})" in line and f"[{n}]" in line
+                ]
+
+            assert graph.wait_for(said), (node, cause, graph.lines[-30:])
+            assert len(said()) == 1, (node, cause, graph.lines[-30:])
 
     # ... and both go on: a valid frame with its transforms is perceived, then fused and planned
     rgb, depth, K, T = _frame()

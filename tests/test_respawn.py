@@ -11,6 +11,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 # The smallest episode that still plans: |O_0| = 4 plus three planned views, tiny images.
 EPISODE = [
     "--scene", "single_object", "--budget", "7", "--no-evaluate", "--no-record",
@@ -27,6 +29,7 @@ NODE_MODULE = {
 }
 
 
+@pytest.mark.timeout(600)  # beyond the test's own 300 s deadline, which says what went wrong
 def test_each_node_killed_once_is_respawned_and_the_episode_completes(
     tmp_path, child_pids, cmdline
 ):
@@ -48,7 +51,7 @@ def test_each_node_killed_once_is_respawned_and_the_episode_completes(
             while runner.poll() is None and time.monotonic() < deadline:
                 logs = list(tmp_path.glob("*/nodes.log"))
                 log = logs[0].read_text() if logs else ""
-                frames = len(list(tmp_path.glob("*/frames/*.npz")))
+                frames = len(list(tmp_path.glob("*/frames/[0-9][0-9][0-9][0-9].npz")))
                 previous_back = not killed or f"{killed[-1]} respawned" in log
                 pid = node_pid(name)
                 if frames >= views and previous_back and pid is not None:

@@ -123,7 +123,7 @@ def test_parameters_are_listed_read_and_set_from_another_process_under_a_namespa
     finally:
         node.send_signal(signal.SIGINT)
         try:
-            output, _ = node.communicate(timeout=15)
+            output, _ = node.communicate(timeout=60)  # ends at the exit (test_shutdown times it)
         except subprocess.TimeoutExpired:
             node.kill()
             output, _ = node.communicate()

@@ -108,7 +108,7 @@ def test_request_waits_until_its_stamp_is_fused():
     assert srv.wait_fused(5, timeout_s=0.05) is False
     timer = threading.Timer(0.1, lambda: srv.add_frame(5, *frame()))
     timer.start()
-    assert srv.wait_fused(5, timeout_s=5.0) is True
+    assert srv.wait_fused(5, timeout_s=120.0) is True  # ends once fused (the first compiles)
     timer.join()
 
 

@@ -129,7 +129,9 @@ def _stop_node(proc: subprocess.Popen) -> str:
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
     try:
-        output, _ = proc.communicate(timeout=10)
+        output, _ = proc.communicate(
+            timeout=60
+        )  # ends at the exit; a prompt one is timed elsewhere
     except subprocess.TimeoutExpired:
         proc.kill()
         output, _ = proc.communicate()
