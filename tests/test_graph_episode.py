@@ -23,9 +23,11 @@ from sim_bridge.validity import check_pose
 # Poses of the same view over the graph and in process: a view chosen differently is centimetres
 # and degrees away; the same view differs by the quaternion round trips (about 1e-7).
 POSE_TOLERANCE = 1e-4
+# the planner waits for each request's frame as long as it takes (on a busy machine a frame may
+# take more than the default 5 s, and a plan without it would choose other views)
 SMALL_CAMERA = {
     "sim_bridge": {"width": 320, "height": 240},
-    "planner": {"width": 320, "height": 240},
+    "planner": {"width": 320, "height": 240, "sync_timeout_s": 120.0},
 }
 
 

@@ -21,9 +21,11 @@ from area3d_eval.rundir import iter_frames, read_episode, reconstruction_input
 # in a few edge pixels, and so does the camera's noise there.
 POSITION_TOLERANCE = 1e-4  # metres
 ROTATION_TOLERANCE = 2e-3  # rotation matrix entries (about 0.1 degree)
+# the planner waits for each request's frame as long as it takes (on a busy machine a frame may
+# take more than the default 5 s, and a plan without it would choose other views)
 SMALL_CAMERA = {
     "sim_bridge": {"width": 320, "height": 240},
-    "planner": {"width": 320, "height": 240},
+    "planner": {"width": 320, "height": 240, "sync_timeout_s": 120.0},
 }
 
 

@@ -28,7 +28,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 
-TIMEOUT_S = 60.0
+TIMEOUT_S = 180.0  # generous: every wait ends once its condition holds
 VOLATILE = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=100,
@@ -240,6 +240,14 @@ def pose_cases(now, w, h):
 POSE_DROPS = {"perception": {"in_future": 1, "no_transform": 1}, "planner": {"in_future": 1}}
 
 
+def _acked(pub, topic: str) -> None:
+    """Every reader has acknowledged every sample of `pub`, or this process fails saying so (a
+    sample still unacknowledged would vanish with the writer, and the test would then see a
+    count that differs for no reason it could tell)."""
+    if not pub.wait_for_all_acked(rclpy.duration.Duration(seconds=TIMEOUT_S)):
+        raise SystemExit(f"{topic}: not every reader acknowledged every sample in {TIMEOUT_S} s")
+
+
 def main(config):
     rclpy.init()
     node = rclpy.create_node("hostile_client")
@@ -261,12 +269,12 @@ def main(config):
             if field is not None:
                 sent.append({"topic": topic, "case": case, "field": field})
             if poses:  # in order: each transform before the next (they come on three topics)
-                pubs[topic].wait_for_all_acked(rclpy.duration.Duration(seconds=TIMEOUT_S))
+                _acked(pubs[topic], topic)
     # a 1 MB re-query request is well formed (any text re-queries): sent, not counted as rejected
     if S_REQUEST in config.get("readers", {}):
         pubs[S_REQUEST].publish(String(data="x" * 1_000_000))
-    for pub in pubs.values():  # every reader has every sample before this process goes
-        pub.wait_for_all_acked(rclpy.duration.Duration(seconds=TIMEOUT_S))
+    for topic, pub in pubs.items():  # every reader has every sample before this process goes
+        _acked(pub, topic)
     print(json.dumps({"sent": sent, "drops": POSE_DROPS if poses else {}}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
