@@ -55,6 +55,12 @@ def main(argv: list[str] | None = None) -> int:
             request = msgs.GetPlan_Request()
             request.start = newest
             request.goal.pose.position.x = 1.0  # one view
+            # the status that follows the answer carries its split; it may arrive before the
+            # answer does, so the statuses are counted before the request goes out
+            seen = len(statuses)
+            answered_before = (
+                json.loads(statuses[-1].data).get("requests_answered", 0) if statuses else 0
+            )
             answered = threading.Event()
             t = time.perf_counter()
             future = client.call_async(request)
@@ -63,12 +69,14 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps({"error": f"no answer within {ANSWER_WAIT_S} s"}), flush=True)
                 continue
             round_trip = time.perf_counter() - t
-            seen = len(statuses)  # the status that follows the answer carries its split
             split = {}
             deadline = time.monotonic() + STATUS_WAIT_S
             while time.monotonic() < deadline and not split:
                 for status in list(statuses[seen:]):
-                    split = json.loads(status.data).get("last_request_s", {}) or split
+                    line = json.loads(status.data)
+                    if line.get("requests_answered", 0) > answered_before:
+                        split = line.get("last_request_s", {})
+                        break
                 time.sleep(0.01)
             record = {
                 "stamp_ns": codecs.stamp_to_ns(newest.header.stamp),

@@ -158,6 +158,9 @@ class PlannerNode(Node):
         )
         self.server = self._new_server()
         self.resets = 0  # area3d/planner/reset calls served
+        self.requests_answered = (
+            0  # view requests answered (the status after one carries its split)
+        )
         pose_config = PoseSourceConfig(**{f.name: p[f.name] for f in fields(PoseSourceConfig)})
         pose_topic = pose_config.pose_source == "topic"  # else TF or odometry (self.poses)
         self.sync = StampSync(
@@ -257,6 +260,7 @@ class PlannerNode(Node):
         return {
             **self.server.status(),
             "resets": self.resets,
+            "requests_answered": self.requests_answered,
             "parts_dropped_unpaired": self.dropped,
             "frames_dropped_backlog": self.fusion.dropped,
             "frames_dropped_without_camera_info": self.waiting.dropped,
@@ -511,6 +515,7 @@ class PlannerNode(Node):
             "wait_fused": round(t1 - t0, 4),
             **{k: round(v, 4) for k, v in server.last_plan_s.items()},
         }
+        self.requests_answered += 1
         if plan.reason:
             log.warning(f"{service}: {plan.reason}")
         now = self._now_ns()
