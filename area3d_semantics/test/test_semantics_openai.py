@@ -23,12 +23,13 @@ H, W = 48, 64
 
 class FakeVLM:
     """A chat-completions server whose next replies are scripted: ("answer", text) | ("status",
-    code, body) | ("sleep", seconds, text) | ("raw", body)."""
+    code, body) | ("late", text): answered only once the test is over | ("raw", body)."""
 
     def __init__(self):
         self.script: list[tuple] = []
         self.requests: list[dict] = []
         self.headers: list[dict] = []
+        self.over = threading.Event()  # set when the test ends: the late answers go out
         fake = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -40,9 +41,9 @@ class FakeVLM:
                 fake.requests.append({"path": self.path, "json": json.loads(body)})
                 fake.headers.append(dict(self.headers))
                 step = fake.script.pop(0) if fake.script else ("answer", "")
-                if step[0] == "sleep":
-                    time.sleep(step[1])
-                    step = ("answer", step[2])
+                if step[0] == "late":  # later than any client waits, however slow the machine
+                    fake.over.wait(60.0)
+                    step = ("answer", step[1])
                 if step[0] == "answer":
                     reply = {
                         "id": "chatcmpl-1",
@@ -79,6 +80,7 @@ class FakeVLM:
         self.thread.start()
 
     def close(self):
+        self.over.set()
         self.server.shutdown()
         self.server.server_close()
 
@@ -139,19 +141,22 @@ def test_json_answer_from_the_server_parses(server):
 
 
 def test_timeout_is_retried_then_reported(server):
-    server.script = [("sleep", 1.0, "late"), ("sleep", 1.0, "late")]
-    client = backend(server.url, timeout_s=0.2, retries=1)
-    with pytest.raises(VLMError, match=r"did not answer within 0.2 s"):
+    server.script = [("late", "late"), ("late", "late")]
+    client = backend(server.url, timeout_s=0.5, retries=1)
+    with pytest.raises(VLMError, match=r"did not answer within 0.5 s"):
         client.analyze(images(1))
+    deadline = time.monotonic() + 60.0  # the server's thread notes the request as it reads it
+    while len(server.requests) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert len(server.requests) == 2
 
 
 def test_timeout_then_success_returns_the_answer(server):
     server.script = [
-        ("sleep", 1.0, "late"),
+        ("late", "late"),
         ("answer", "IMAGE 1\nREGION: left-top | TYPE: OCCLUSION"),
     ]
-    text = backend(server.url, timeout_s=0.3, retries=1).analyze(images(1))
+    text = backend(server.url, timeout_s=5.0, retries=1).analyze(images(1))
     assert "left-top" in text
 
 
