@@ -129,6 +129,7 @@ class SemanticsNode(Node):
         self.queried = False
         self.analyses = 0
         self.resets = 0  # area3d/semantics/reset calls served
+        self.requests = 0  # re-query requests received
         self._epoch = 0  # an analysis of views collected before the last reset is not published
         self._lock = threading.Lock()
         # the VLM query runs on a worker thread, so callbacks keep running meanwhile
@@ -178,6 +179,7 @@ class SemanticsNode(Node):
                 "views_complete": len(self.views.complete),
                 "analyses": self.analyses,
                 "resets": self.resets,
+                "requests": self.requests,
                 "usem_published": len(self.published_usem),
                 "backend_error": self.backend_problem or self.analysis_error,
                 "analysis_failures": self.worker.failures,
@@ -220,6 +222,9 @@ class SemanticsNode(Node):
             return list(stamps)
 
     def on_request(self, msg) -> None:
+        with self._lock:
+            self.requests += 1
+        self.status.changed()
         stamps = self._requery()
         if not stamps:
             self.get_logger().warning(

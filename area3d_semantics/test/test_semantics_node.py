@@ -228,7 +228,8 @@ def test_requests_arriving_while_a_query_runs_are_answered_by_one_more_query():
         assert rig.spin(lambda: len(rig.semantics.views.complete) == 3)
         rig.request.publish(msgs.String(data="second"))
         rig.request.publish(msgs.String(data="third"))
-        assert rig.spin(lambda: rig.semantics.worker.pending)
+        assert rig.spin(lambda: rig.semantics.requests == 3)  # both taken while the first runs
+        assert rig.semantics.worker.pending
         held.release.set()
         assert rig.spin(lambda: len(rig.regions) >= 3)
         rig.spin(lambda: False, 1.0)
