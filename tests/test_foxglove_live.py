@@ -57,6 +57,9 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+PLAN_TOPICS = ["/area3d/planner/next_views", "/area3d/planner/view_markers"]
+
+
 def client(
     port: int, topics: list[str], count: int, timeout_s: float, stay: bool = False, stdout=None
 ) -> subprocess.Popen:
@@ -103,21 +106,29 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
         stderr=subprocess.PIPE,
         text=True,
     )
-    # the viewer watches the whole episode, then is told to stop
-    viewer_log = tmp_path / "viewer.jsonl"
-    with viewer_log.open("w") as log:
+    # the viewer watches the whole episode, then is told to stop; a second client watches the
+    # plans alone (the bridge drops the oldest of what a client's 16-message queue holds: the
+    # viewer's is shared by every image and grid, the plans' never fills)
+    viewer_log, plans_log = tmp_path / "viewer.jsonl", tmp_path / "plans.jsonl"
+    with viewer_log.open("w") as log, plans_log.open("w") as plans_out:
         viewer = client(port, list(TOPICS), count=1, timeout_s=2 * TIMEOUT_S, stay=True, stdout=log)
+        plans = client(
+            port, PLAN_TOPICS, count=1, timeout_s=2 * TIMEOUT_S, stay=True, stdout=plans_out
+        )
     try:
         run_out, run_err = run.communicate(timeout=TIMEOUT_S)
-        viewer.send_signal(signal.SIGTERM)
+        for watcher in (viewer, plans):
+            watcher.send_signal(signal.SIGTERM)
         _, err = viewer.communicate(timeout=60)
+        _, plans_err = plans.communicate(timeout=60)
         out = viewer_log.read_text()
     finally:
-        for process in (viewer, run):
+        for process in (viewer, plans, run):
             if process.poll() is None:
                 process.kill()
     events = lines(out)
     assert viewer.returncode == 0, f"client: {events[-1:]} {err[-2000:]}\nrun: {run_err[-3000:]}"
+    assert plans.returncode == 0, plans_err[-2000:]
     assert run.returncode == 0, run_err[-3000:]
     assert f"Foxglove live view on ws://localhost:{port}" in run_err
     run_dir = next(p for p in tmp_path.iterdir() if p.is_dir())
@@ -180,6 +191,10 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
         assert np.all(np.array(low) >= roi_min - 0.25) and np.all(np.array(high) <= roi_max + 0.25)
 
     # the planned views: every view the camera was sent to is the first pose of a decoded plan
+    planned_events = [e for e in lines(plans_log.read_text()) if "topic" in e]
+    for topic in PLAN_TOPICS:  # the viewer got them too, as many as its queue kept
+        assert received[topic], topic
+        received[topic] = [e["summary"] for e in planned_events if e["topic"] == topic]
     paths = received["/area3d/planner/next_views"]
     for path in paths:
         assert path["frame_id"] == "world"
