@@ -23,7 +23,7 @@ from area3d_bringup.graph import GRAPH_NODES
 from area3d_bringup.launcher import Launcher, NodeDied
 from area3d_bringup.recorder import BagRecorder
 from area3d_eval.rundir import Frame
-from area3d_msgs_py import codecs, msgs, qos, topics
+from area3d_msgs_py import codecs, msgs, qos, services, topics
 from area3d_msgs_py.topics import Service, Topic
 
 NAME = topics.MISSION_MANAGER
@@ -400,13 +400,9 @@ class MissionManager(Node):
             )
         if not client.wait_for_service(timeout_sec=timeout_s):
             raise TimeoutError(f"no service {service.name} within {timeout_s:.0f} s")
-        future = client.call_async(msgs.Trigger.Request())
-        done = threading.Event()
-        future.add_done_callback(lambda _: done.set())
-        if not done.wait(timeout_s):
-            client.remove_pending_request(future)
-            raise TimeoutError(f"no answer from {service.name} within {timeout_s:.0f} s")
-        answer = future.result()
+        # asked again while no reply comes (a server that has just appeared may lose the reply):
+        # a second reset before the episode's first capture changes nothing
+        answer = services.call(client, msgs.Trigger.Request(), timeout_s)
         if not answer.success:
             raise RuntimeError(f"{service.name}: {answer.message}")
         if service is topics.PLANNER_RESET:  # its status after the reset: "(reset N)" or empty

@@ -20,7 +20,7 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.qos import QoSProfile
 
-from area3d_msgs_py import qos
+from area3d_msgs_py import qos, services
 
 
 class Probe:
@@ -67,18 +67,13 @@ class Probe:
         return True
 
     def call(self, srv_type: type, name: str, request: Any, timeout_s: float) -> Any:
-        """Call a service and wait for the response (TimeoutError when none comes)."""
+        """Call a service and wait for the response (TimeoutError when none comes); the request
+        is sent again while no reply comes (`services.call`), so the service must take a repeat."""
         client = self.node.create_client(srv_type, name)
         try:
             if not client.wait_for_service(timeout_sec=timeout_s):
                 raise TimeoutError(f"service {name} did not appear within {timeout_s} s")
-            future = client.call_async(request)
-            done = threading.Event()
-            future.add_done_callback(lambda _: done.set())
-            if not done.wait(timeout_s):
-                client.remove_pending_request(future)
-                raise TimeoutError(f"service {name}: no response within {timeout_s} s")
-            return future.result()
+            return services.call(client, request, timeout_s)
         finally:
             self.node.destroy_client(client)
 

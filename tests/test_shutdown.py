@@ -41,6 +41,7 @@ def _wait_spinning(names, timeout_s: float = 60.0) -> None:
     before, and a signal landing in between is another case)."""
     from rcl_interfaces.srv import ListParameters
 
+    from area3d_msgs_py import services
     from area3d_msgs_py.probe import Probe
 
     probe = Probe("shutdown_waiter")
@@ -48,8 +49,7 @@ def _wait_spinning(names, timeout_s: float = 60.0) -> None:
         for name in names:
             client = probe.node.create_client(ListParameters, f"/{name}/list_parameters")
             assert client.wait_for_service(timeout_sec=timeout_s), name
-            future = client.call_async(ListParameters.Request())
-            assert probe.wait_for(future.done, timeout_s), name
+            services.call(client, ListParameters.Request(), timeout_s)  # asked again if lost
     finally:
         probe.close()
 

@@ -14,7 +14,7 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 
-from area3d_msgs_py import codecs, msgs, qos, topics
+from area3d_msgs_py import codecs, msgs, qos, services, topics
 from area3d_msgs_py.diagnostics import DIAGNOSTICS_TOPIC, ERROR, OK
 from area3d_planner.node import PlannerNode
 from area3d_planner.test.conftest import WALL_DIRECTIONS, WALL_K, banded_wall_view
@@ -250,9 +250,7 @@ def test_a_reset_empties_the_map_and_what_waits_and_the_same_frames_fuse_again(r
     assert r.wait(lambda: lone in r.planner.sync.pending("depth"))
     client = r.peer.create_client(topics.PLANNER_RESET.srv_type, topics.PLANNER_RESET.name)
     assert client.wait_for_service(timeout_sec=TIMEOUT_S)
-    future = client.call_async(msgs.Trigger.Request())
-    assert r.wait(future.done) and future.result() is not None
-    answer = future.result()
+    answer = services.call(client, msgs.Trigger.Request(), TIMEOUT_S)
     assert answer.success, answer.message
     assert f"map cleared (reset 1): {len(stamps)} frames fused" in answer.message
     assert "and 1 parts of frames dropped" in answer.message

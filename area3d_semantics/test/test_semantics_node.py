@@ -15,7 +15,7 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 
-from area3d_msgs_py import codecs, msgs, qos, topics
+from area3d_msgs_py import codecs, msgs, qos, services, topics
 from area3d_msgs_py.diagnostics import DIAGNOSTICS_TOPIC, ERROR, OK
 from area3d_semantics.node import SemanticsNode
 from area3d_semantics.weights import semantic_uncertainty, sigma_from_confidence
@@ -379,10 +379,9 @@ def test_a_reset_drops_the_views_and_a_running_analysis_and_the_next_views_are_t
             topics.SEMANTICS_RESET.srv_type, topics.SEMANTICS_RESET.name
         )
         assert client.wait_for_service(timeout_sec=TIMEOUT_S)
-        future = client.call_async(msgs.Trigger.Request())
-        assert rig.spin(future.done) and future.result() is not None
-        assert future.result().success
-        assert future.result().message == "views cleared: 2 complete frames dropped"
+        answer = services.call(client, msgs.Trigger.Request(), TIMEOUT_S)
+        assert answer.success
+        assert answer.message == "views cleared: 2 complete frames dropped"
         held.release.set()
         assert rig.spin(lambda: not rig.semantics.worker.busy)
         assert len(rig.regions) == 1  # the analysis from before the reset went unpublished
