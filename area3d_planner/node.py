@@ -320,6 +320,7 @@ class PlannerNode(Node):
             fused = old.status().get("frames_fused", 0)
             self.resets += 1
             self._publish_state(self._now_ns())  # the empty grid replaces the latched one
+            self._publish_views([], self.server)  # and no planned view is drawn
         except Exception as exc:  # the node keeps serving; the caller learns why
             response.success = False
             response.message = f"reset failed: {type(exc).__name__}: {exc}"
@@ -518,17 +519,20 @@ class PlannerNode(Node):
         self.requests_answered += 1
         if plan.reason:
             log.warning(f"{service}: {plan.reason}")
+        path = self._publish_views(plan.poses, server)
+        self.status.changed()
+        return plan, path
+
+    def _publish_views(self, poses: list, server: NextBestViewServer) -> msgs.Path:
+        """The views on next_views and as frustums on view_markers (none: both cleared)."""
         now = self._now_ns()
-        path = self._path(plan.poses, now)
+        path = self._path(poses, now)
         self.views_pub.publish(path)
         hfov_deg, width, height = server.camera()
         self.markers_pub.publish(
-            view_markers(
-                plan.poses, self.world_frame, now, hfov_deg, width, height, self.marker_range
-            )
+            view_markers(poses, self.world_frame, now, hfov_deg, width, height, self.marker_range)
         )
-        self.status.changed()
-        return plan, path
+        return path
 
 
 def config_from_parameters(p: dict) -> PlannerConfig:

@@ -248,6 +248,9 @@ def test_a_reset_empties_the_map_and_what_waits_and_the_same_frames_fuse_again(r
     lone = 5_900_000_000
     r.pubs["depth"].publish(codecs.image_to_msg(depth, "32FC1", lone, OPTICAL))
     assert r.wait(lambda: lone in r.planner.sync.pending("depth"))
+    views, frustums = [], []
+    for topic, into in ((topics.NEXT_VIEWS, views), (topics.VIEW_MARKERS, frustums)):
+        r.peer.create_subscription(topic.msg_type, topic.name, into.append, topic.qos())
     client = r.peer.create_client(topics.PLANNER_RESET.srv_type, topics.PLANNER_RESET.name)
     assert client.wait_for_service(timeout_sec=TIMEOUT_S)
     answer = services.call(client, msgs.Trigger.Request(), TIMEOUT_S)
@@ -258,6 +261,10 @@ def test_a_reset_empties_the_map_and_what_waits_and_the_same_frames_fuse_again(r
     assert r.wait(lambda: r.status[-1]["resets"] == 1)
     assert r.status[-1]["frames_fused"] == 0 and r.status[-1]["hard_voxels"] == 0
     assert r.wait(lambda: len(r.regions[-1].regions) == 0)
+    # and no planned view: an empty path, the frustums deleted
+    assert r.wait(lambda: views and frustums)
+    assert views[-1].poses == [] and views[-1].header.frame_id == "world"
+    assert [m.action for m in frustums[-1].markers] == [msgs.Marker.DELETEALL]
     # the lone part's partners now make no frame; the same frames as before fuse into the new map
     _, confidence, T = banded_wall_view(*WALL_DIRECTIONS[0], WALL_X, BANDS_Y, BAND_Z)
     r.pubs["confidence"].publish(codecs.image_to_msg(confidence, "32FC1", lone, OPTICAL))
