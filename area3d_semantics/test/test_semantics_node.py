@@ -17,6 +17,7 @@ from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs, qos, services, topics
 from area3d_msgs_py.diagnostics import DIAGNOSTICS_TOPIC, ERROR, OK
+from area3d_semantics.backends import HeuristicBackend
 from area3d_semantics.node import SemanticsNode
 from area3d_semantics.weights import semantic_uncertainty, sigma_from_confidence
 
@@ -197,23 +198,22 @@ def test_unreachable_vlm_falls_back_and_the_node_keeps_running():
         rig.close()
 
 
+class HeldBackend(HeuristicBackend):
+    """The heuristic analyser, held at its first call until released."""
+
+    def __init__(self):
+        super().__init__()
+        self.entered, self.release, self.calls = threading.Event(), threading.Event(), 0
+
+    def analyze(self, images, depths=None):
+        self.calls += 1
+        if self.calls == 1:
+            self.entered.set()
+            assert self.release.wait(TIMEOUT_S)
+        return super().analyze(images, depths)
+
+
 def test_requests_arriving_while_a_query_runs_are_answered_by_one_more_query():
-    from area3d_semantics.backends import HeuristicBackend
-
-    class HeldBackend(HeuristicBackend):
-        """The heuristic analyser, held at its first call until released."""
-
-        def __init__(self):
-            super().__init__()
-            self.entered, self.release, self.calls = threading.Event(), threading.Event(), 0
-
-        def analyze(self, images, depths=None):
-            self.calls += 1
-            if self.calls == 1:
-                self.entered.set()
-                assert self.release.wait(TIMEOUT_S)
-            return super().analyze(images, depths)
-
     rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
     try:
         data = frames(3)
@@ -349,22 +349,6 @@ def test_an_analysis_that_raises_is_an_error_and_the_next_one_restarts_the_worke
 
 
 def test_a_reset_drops_the_views_and_a_running_analysis_and_the_next_views_are_the_initial_ones():
-    from area3d_semantics.backends import HeuristicBackend
-
-    class HeldBackend(HeuristicBackend):
-        """The heuristic analyser, held at its first call until released."""
-
-        def __init__(self):
-            super().__init__()
-            self.entered, self.release, self.calls = threading.Event(), threading.Event(), 0
-
-        def analyze(self, images, depths=None):
-            self.calls += 1
-            if self.calls == 1:
-                self.entered.set()
-                assert self.release.wait(TIMEOUT_S)
-            return super().analyze(images, depths)
-
     rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
     try:
         data = frames(4)
