@@ -213,17 +213,23 @@ class HeldBackend(HeuristicBackend):
         return super().analyze(images, depths)
 
 
+def _held_requery(rig: Rig, initial: list) -> HeldBackend:
+    """The initial views analysed, then a re-query of them held in the analyser."""
+    for stamp, image, depth, _ in initial:
+        rig.frame(stamp, image, depth)
+    assert rig.spin(lambda: len(rig.regions) == 1)
+    held = HeldBackend()
+    rig.semantics.backend = held
+    rig.request.publish(msgs.String(data="again"))
+    assert held.entered.wait(TIMEOUT_S)
+    return held
+
+
 def test_requests_arriving_while_a_query_runs_are_answered_by_one_more_query():
     rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
     try:
         data = frames(3)
-        for stamp, image, depth, _ in data[:2]:
-            rig.frame(stamp, image, depth)
-        assert rig.spin(lambda: len(rig.regions) == 1)
-        held = HeldBackend()
-        rig.semantics.backend = held
-        rig.request.publish(msgs.String(data="first"))
-        assert held.entered.wait(TIMEOUT_S)
+        held = _held_requery(rig, data[:2])
         rig.frame(*data[2][:3])  # a new frame, then two requests while the first query runs
         assert rig.spin(lambda: len(rig.semantics.views.complete) == 3)
         rig.request.publish(msgs.String(data="second"))
@@ -352,13 +358,7 @@ def test_a_reset_drops_the_views_and_a_running_analysis_and_the_next_views_are_t
     rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
     try:
         data = frames(4)
-        for stamp, image, depth, _ in data[:2]:
-            rig.frame(stamp, image, depth)
-        assert rig.spin(lambda: len(rig.regions) == 1)
-        held = HeldBackend()
-        rig.semantics.backend = held
-        rig.request.publish(msgs.String(data="again"))
-        assert held.entered.wait(TIMEOUT_S)  # an analysis of frames 0 and 1 runs
+        held = _held_requery(rig, data[:2])  # an analysis of frames 0 and 1 runs
         client = rig.peer.create_client(
             topics.SEMANTICS_RESET.srv_type, topics.SEMANTICS_RESET.name
         )
