@@ -158,9 +158,8 @@ class PlannerNode(Node):
         )
         self.server = self._new_server()
         self.resets = 0  # area3d/planner/reset calls served
-        self.requests_answered = (
-            0  # view requests answered (the status after one carries its split)
-        )
+        # view requests answered (the status after one carries its `last_request_s`)
+        self.requests_answered = 0
         pose_config = PoseSourceConfig(**{f.name: p[f.name] for f in fields(PoseSourceConfig)})
         pose_topic = pose_config.pose_source == "topic"  # else TF or odometry (self.poses)
         self.sync = StampSync(
@@ -328,10 +327,9 @@ class PlannerNode(Node):
             return response
         response.success = True
         response.message = (
-            f"map cleared (reset {self.resets}): {fused} frames fused, {waiting_fusion} waiting "
-            "for fusion, "
-            f"{held + waiting_pose} waiting for camera info or a pose and {parts} parts of "
-            "frames dropped"
+            f"map cleared (reset {self.resets}): {fused} frames fused, "
+            f"{waiting_fusion} waiting for fusion, {held + waiting_pose} waiting for camera info "
+            f"or a pose and {parts} parts of frames dropped"
         )
         self.get_logger().info(f"{topics.PLANNER_RESET.name}: {response.message}")
         return response
