@@ -315,10 +315,11 @@ class _Episode:
             progress.update(self.task, completed=len(self.frames))
 
     def _reset_graph(self) -> None:
-        """A planner (and semantics) this run did not start keeps the map (and views) of the
-        episodes before: reset them, so that this episode starts from nothing as on a graph of its
-        own (a resumed one then replays its frames)."""
-        resets = [topics.PLANNER_RESET] + [topics.SEMANTICS_RESET] * self.with_semantics
+        """A camera, planner (and semantics) this run did not start keep the noise stream, map
+        (and views) of the episodes before: reset them, so that this episode starts from nothing
+        and repeats as on a graph of its own (a resumed one then replays its frames)."""
+        resets = [topics.CAMERA_RESET, topics.PLANNER_RESET]
+        resets += [topics.SEMANTICS_RESET] * self.with_semantics
         for service in resets:
             if service.server in self.started:
                 continue

@@ -285,6 +285,13 @@ NEXT_BEST_VIEW = Service(
     "start = current pose stamped with the last capture; goal.pose.position.x = views wanted "
     "(for tools with the standard types only)",
 )
+CAMERA_RESET = Service(
+    "area3d/camera/reset",
+    msgs.Trigger,
+    SIM_BRIDGE,
+    "the simulated camera only: start its noise over from noise_seed and hold the next frame "
+    "until its readers have matched again, so an episode repeats on a running graph",
+)
 PLANNER_RESET = Service(
     "area3d/planner/reset",
     msgs.Trigger,
@@ -321,7 +328,9 @@ TOPICS: tuple[Topic, ...] = (
 
 
 #: every service of the graph
-SERVICES: tuple[Service, ...] = (SELECT_VIEWS, NEXT_BEST_VIEW, PLANNER_RESET, SEMANTICS_RESET)
+SERVICES: tuple[Service, ...] = (
+    SELECT_VIEWS, NEXT_BEST_VIEW, CAMERA_RESET, PLANNER_RESET, SEMANTICS_RESET,
+)  # fmt: skip
 
 
 def read_by(node: str, topics: tuple[Topic, ...] = TOPICS) -> tuple[Topic, ...]:

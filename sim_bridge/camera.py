@@ -96,11 +96,17 @@ class SimCamera:
         self.clearance = clearance
         self.depth_noise = bool(depth_noise)
         self.sensor = sensor or RgbdSensorParams(max_range=max_range)
+        self.seed = int(seed)
+        self.reseed()
+        self._renderer: RgbdRenderer | None = None
+
+    def reseed(self) -> None:
+        """Start the noise over from `seed`: the captures that follow repeat those after
+        construction (a new episode on the same camera)."""
         # one stream for the depth noise, one for the images: neither shifts the other
-        depth_seed, image_seed = np.random.SeedSequence(int(seed)).spawn(2)
+        depth_seed, image_seed = np.random.SeedSequence(self.seed).spawn(2)
         self._depth_rng = np.random.default_rng(depth_seed)
         self._image_rng = np.random.default_rng(image_seed)
-        self._renderer: RgbdRenderer | None = None
 
     @property
     def renderer(self) -> RgbdRenderer:

@@ -165,6 +165,7 @@ class SimBridgeNode(Node):
         self._readers_timer.cancel()
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
         self.captures = 0
+        self.resets = 0  # area3d/camera/reset calls served
         self.refused: Counter[str] = Counter()  # goals refused, by `validity` kind or bad_goal
         self.diagnostics = StatusPublisher(self, None, self._diagnostic_state)
         # malformed goals, reported in every status line
@@ -176,6 +177,7 @@ class SimBridgeNode(Node):
             guarded(self, self.on_goal, goal.name, self.rejections),
             goal.qos(),
         )
+        self.create_service(topics.CAMERA_RESET.srv_type, topics.CAMERA_RESET.name, self._on_reset)
         self.get_logger().info(
             f"scene {self.scene.name!r} ({self.scene.level}), {p['width']}x{p['height']}, "
             f"hfov {p['hfov_deg']} deg, waiting for {self.resolve_topic_name(goal.name)}"
@@ -227,6 +229,26 @@ class SimBridgeNode(Node):
             self._readers_deadline = time.monotonic() + timeout_s
             self._readers_timer.reset()
         self._release_when_read()
+
+    def _on_reset(self, request, response):
+        """area3d/camera/reset (std_srvs/Trigger): the noise starts over from noise_seed, frames
+        held for their readers are dropped, and the next frame waits for its readers again (a new
+        mission manager's), as the first one did."""
+        self.camera.reseed()
+        held = len(self.held)
+        self.held.clear()
+        self.readers_matched = False
+        self._readers_deadline = None
+        self._readers_timer.cancel()
+        self.resets += 1
+        self.diagnostics.changed()
+        response.success = True
+        response.message = (
+            f"noise from seed {self.camera.seed} again, {held} held frames dropped "
+            f"(reset {self.resets})"
+        )
+        self.get_logger().info(f"{topics.CAMERA_RESET.name}: {response.message}")
+        return response
 
     def _release_when_read(self) -> None:
         """Publish the held frames once their readers have matched, or once readers_timeout_s
@@ -287,6 +309,7 @@ class SimBridgeNode(Node):
         return {
             "node": "sim_bridge",
             "captures": self.captures,
+            "resets": self.resets,
             "goals_refused": {"total": sum(self.refused.values()), "by_reason": dict(self.refused)},
             "frames_held_for_readers": len(self.held),
             "readers_matched": self.readers_matched,

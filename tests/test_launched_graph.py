@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import typer
 
@@ -74,3 +75,9 @@ def test_episodes_drive_a_graph_launched_elsewhere_each_on_a_reset_map(tmp_path,
         assert f"planner of the running graph reset: map cleared (reset {n + 1}): {fused} " in said
         assert re.search(r"semantics of the running graph reset: views cleared: \d+ complete", said)
     assert "area3d/planner/reset: map cleared (reset 2): 6 frames fused" in graph_log
+    # the same episode twice on one graph: the camera's noise started over, the same views
+    first_views, second_views = (
+        np.array([v["T_world_cam"] for v in json.loads((d / "episode.json").read_text())["views"]])
+        for d in runs
+    )
+    np.testing.assert_array_equal(first_views, second_views)

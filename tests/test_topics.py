@@ -54,5 +54,6 @@ def test_every_topic_has_a_writer_a_type_and_a_qos():
     }  # fmt: skip
     assert [(s.name, s.server) for s in topics.SERVICES] == [
         ("area3d/planner/select_views", "planner"), ("area3d/planner/next_best_view", "planner"),
-        ("area3d/planner/reset", "planner"), ("area3d/semantics/reset", "semantics"),
+        ("area3d/camera/reset", "sim_bridge"), ("area3d/planner/reset", "planner"),
+        ("area3d/semantics/reset", "semantics"),
     ]  # fmt: skip
