@@ -10,14 +10,18 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor
 
 from area3d_bringup.mission_manager import MissionManager
-from area3d_msgs_py import topics
+from area3d_msgs_py import middleware, topics
 
 TIMEOUT_S = 120.0
 
 
-def test_a_reader_that_is_not_the_camera_does_not_make_the_goal_topic_ready():
+def test_a_reader_that_is_not_the_camera_does_not_make_the_goal_topic_ready(monkeypatch):
+    # a domain of its own: a camera node of an earlier test may still be listed on the session's
+    # (discovery keeps a participant until its lease ends), and it would read the goals
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    lease = middleware.DomainLease()
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, domain_id=lease.domain_id)
     manager = MissionManager(None, context=context)
     viewer = rclpy.create_node("foxglove_bridge", context=context)
     executor = MultiThreadedExecutor(context=context)
@@ -48,3 +52,4 @@ def test_a_reader_that_is_not_the_camera_does_not_make_the_goal_topic_ready():
         executor.shutdown()
         spinner.join(10)
         context.try_shutdown()
+        lease.release()
