@@ -87,8 +87,8 @@ def run(
     nodes: str = typer.Option(
         "",
         help="comma list of the graph nodes to start here (default: all; others run elsewhere); "
-        "none: start no node, drive a graph started elsewhere (`area3d launch`); a planner and "
-        "semantics started elsewhere are reset first",
+        "none: start no node, drive a graph started elsewhere (`area3d launch`); a camera, "
+        "planner and semantics started elsewhere are reset first",
     ),
     depth_source: str = typer.Option(
         "sensor",

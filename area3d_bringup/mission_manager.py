@@ -146,7 +146,6 @@ class MissionManager(Node):
         self._listen(topics.TF_STATIC, None, None)
         self.plan_message = ""  # why the planner's last answer had no view
         self.client = self.create_client(topics.SELECT_VIEWS.srv_type, topics.SELECT_VIEWS.name)
-        self._reset_clients: dict[str, Any] = {}  # service name -> client (`reset`)
 
     # -- callbacks (executor thread) ---------------------------------------------------------
     def _on_match(self, key: str) -> PublisherEventCallbacks:
@@ -389,20 +388,20 @@ class MissionManager(Node):
             return dict(self.estimates or {})
 
     def reset(self, service: Service, timeout_s: float) -> str:
-        """Call a node's reset service (std_srvs/Trigger: `topics.PLANNER_RESET`,
-        `topics.SEMANTICS_RESET`) and return its answer's message; a planner's status is awaited
-        until it shows the reset. TimeoutError when the service does not appear or answer within
-        `timeout_s`, RuntimeError when it answers that the reset failed."""
-        client = self._reset_clients.get(service.name)
-        if client is None:
-            client = self._reset_clients[service.name] = self.create_client(
-                service.srv_type, service.name
-            )
-        if not client.wait_for_service(timeout_sec=timeout_s):
-            raise TimeoutError(f"no service {service.name} within {timeout_s:.0f} s")
-        # asked again while no reply comes (a server that has just appeared may lose the reply):
-        # a second reset before the episode's first capture changes nothing
-        answer = services.call(client, msgs.Trigger.Request(), timeout_s)
+        """Call a node's reset service (std_srvs/Trigger: `topics.CAMERA_RESET`,
+        `topics.PLANNER_RESET`, `topics.SEMANTICS_RESET`) and return its answer's message; a
+        planner's status is awaited until it shows the reset. TimeoutError when the service does
+        not appear or answer within `timeout_s`, RuntimeError when it answers that the reset
+        failed."""
+        client = self.create_client(service.srv_type, service.name)  # once per episode
+        try:
+            if not client.wait_for_service(timeout_sec=timeout_s):
+                raise TimeoutError(f"no service {service.name} within {timeout_s:.0f} s")
+            # asked again while no reply comes (a server that has just appeared may lose the
+            # reply): a second reset before the episode's first capture changes nothing
+            answer = services.call(client, msgs.Trigger.Request(), timeout_s)
+        finally:
+            self.destroy_client(client)
         if not answer.success:
             raise RuntimeError(f"{service.name}: {answer.message}")
         if service is topics.PLANNER_RESET:  # its status after the reset: "(reset N)" or empty

@@ -1,7 +1,8 @@
 """`area3d run --nodes none`: the mission manager alone drives a graph that `area3d launch` started
 in another process, as a robot's user runs the graph beside their stack and an episode from a
-terminal. Each episode first resets the graph's planner and semantics (area3d/planner/reset,
-area3d/semantics/reset), so a second episode on the same graph plans on its own frames only."""
+terminal. Each episode first resets the graph's camera, planner and semantics
+(area3d/camera/reset, area3d/planner/reset, area3d/semantics/reset), so a second episode on the
+same graph plans on its own frames only, and the same episode twice chooses the same views."""
 
 from __future__ import annotations
 

@@ -144,9 +144,8 @@ def _stop_node(proc: subprocess.Popen) -> str:
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
     try:
-        output, _ = proc.communicate(
-            timeout=60
-        )  # ends at the exit; a prompt one is timed elsewhere
+        # ends at the exit; how promptly it exits is timed in tests/test_shutdown.py
+        output, _ = proc.communicate(timeout=60)
     except subprocess.TimeoutExpired:
         proc.kill()
         output, _ = proc.communicate()
