@@ -1,25 +1,68 @@
-"""The `area3d` command: run episodes, launch the graph, write reports, run benchmarks."""
+"""The `area3d` command: run episodes, launch the graph, write reports; and the command groups
+that installed packages add through the `area3d.cli` entry point group (`area3d bench`)."""
 
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import os
 import sys
 from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from typer.core import TyperCommand, TyperGroup
+
+# Entry points of this group name a typer app each, added as `area3d NAME` (as ros2cli adds the
+# verbs of its `ros2cli.command` group); pyproject.toml declares them.
+COMMAND_GROUP = "area3d.cli"
+
+
+def command_entry_points() -> list[importlib.metadata.EntryPoint]:
+    """The installed entry points of `COMMAND_GROUP` (pyproject.toml, a colcon package's setup.py)."""
+    return list(importlib.metadata.entry_points(group=COMMAND_GROUP))
+
+
+class CommandGroup(TyperGroup):
+    """The `area3d` group: its own commands, then those of the installed `COMMAND_GROUP` entry
+    points, loaded only when listed (help) or asked for by a name of its own (`area3d run` loads
+    none). One that does not load is left out with a warning on stderr, the others still run."""
+
+    def _add_entry_point_commands(self, name: str | None = None) -> None:
+        for entry_point in command_entry_points():
+            if entry_point.name in self.commands or name not in (None, entry_point.name):
+                continue
+            try:
+                command = typer.main.get_command(entry_point.load())
+            except Exception as err:  # whatever a broken installation raises
+                console.print(
+                    escape(
+                        f"warning: `area3d {entry_point.name}` is unavailable: {entry_point.value} "
+                        f"did not load ({type(err).__name__}: {err})"
+                    )
+                )
+                continue
+            command.name = entry_point.name  # the help's list shows a command by its name
+            self.add_command(command)
+
+    def list_commands(self, ctx: typer.Context) -> list[str]:
+        self._add_entry_point_commands()
+        return super().list_commands(ctx)
+
+    def get_command(self, ctx: typer.Context, cmd_name: str) -> TyperCommand | TyperGroup | None:
+        if cmd_name not in self.commands:
+            self._add_entry_point_commands(cmd_name)
+        return super().get_command(ctx, cmd_name)
+
 
 app = typer.Typer(
+    cls=CommandGroup,
     add_completion=False,
     no_args_is_help=True,
     help="AREA3D: active 3D reconstruction over a ROS 2 node graph.",
 )
-bench_app = typer.Typer(
-    no_args_is_help=True, help="Benchmarks: print measured figures beside their targets."
-)
-app.add_typer(bench_app, name="bench")
 console = Console(stderr=True)
 
 PARAM_HELP = "NODE.NAME=VALUE parameter override, repeatable (e.g. planner.eta=0.3)"
@@ -29,13 +72,9 @@ DEFAULT_FOXGLOVE_PORT = 8765  # area3d_bringup/foxglove_bridge.py: DEFAULT_PORT
 
 
 def _overrides(params: list[str]) -> dict[str, dict]:
-    from area3d_bringup.launch_description import parse_override
+    from area3d_bringup.launch_description import parse_overrides
 
-    out: dict[str, dict] = {}
-    for text in params:
-        node, name, value = parse_override(text)
-        out.setdefault(node, {})[name] = value
-    return out
+    return parse_overrides(params)
 
 
 def _episode_nodes(text: str) -> tuple[str, ...] | None:
@@ -311,133 +350,6 @@ def scenes() -> None:
         print(
             f"{name:16s} {scene.level:7s} |O_0|={len(scene.initial_views):2d} held-out={len(scene.eval_views)}"
         )
-
-
-BENCHES = {
-    "transport": "area3d_bringup.transport_bench",
-    "tf": "area3d_msgs_py.tf_bench",
-    "render": "sim_bridge.bench",
-    "stereo": "area3d_bringup.stereo_bench",
-    "perception": "area3d_perception.bench",
-    "semantics": "area3d_semantics.bench",
-    "planner": "area3d_bringup.planner_bench",
-    "eval": "area3d_eval.bench",
-    "foxglove": "area3d_bringup.foxglove_bench",
-}
-
-
-def _bench_command(name: str, module: str) -> None:
-    def command() -> None:
-        importlib.import_module(module).run_bench()
-
-    command.__doc__ = f"Benchmark: {name} (see {module})."
-    bench_app.command(name)(command)
-
-
-for _name, _module in BENCHES.items():
-    _bench_command(_name, _module)
-
-
-@bench_app.command("soak")
-def bench_soak(
-    frames: int = typer.Option(
-        6000, help="frames to stream (the run ends at --frames or --duration)"
-    ),
-    duration: float = typer.Option(600.0, help="longest stream, seconds"),
-    rate: float = typer.Option(10.0, help="camera rate, Hz"),
-    scene: str = typer.Option("single_object"),
-    mask_lag: float = typer.Option(
-        1.0, help="the planner's mask_lag_s (0: every request waits for masks covering its frame)"
-    ),
-    rebuild_nice: int = typer.Option(
-        10, help="the planner's rebuild_nice (0: its mask rebuilds compete with fusion for the CPU)"
-    ),
-    json_out: Path = typer.Option(
-        None, "--json", help="also write every figure, and each request's times, to this file"
-    ),
-) -> None:
-    """Benchmark: 640x480 RGB-D at 10 Hz through perception and the planner (see area3d_bringup.soak_bench)."""
-    from area3d_bringup.soak_bench import run_bench
-
-    run_bench(
-        frames=frames,
-        duration_s=duration,
-        rate_hz=rate,
-        scene_name=scene,
-        mask_lag_s=mask_lag,
-        rebuild_nice=rebuild_nice,
-        json_out=json_out,
-    )
-
-
-@bench_app.command("episode")
-def bench_episode(
-    seeds: int = typer.Option(3),
-    policies: str = typer.Option(
-        "area3d,random,uniform,vlm_naive,volumetric_ig,no_vlm,no_ff,gamma0"
-    ),
-    scenes_: str = typer.Option(
-        "", "--scenes", help="comma list of names or MJCF paths (default: every bundled scene)"
-    ),
-    holdout: bool = typer.Option(
-        True,
-        help="also generate and run the hold-out scenes (tabletop, alcove room, shelf against a "
-        "wall, thin objects; seed 0 of each)",
-    ),
-    budget: int = typer.Option(
-        None, help="view budget T per episode, O_0 included (default: the paper's, 25 / 40)"
-    ),
-    out: Path = typer.Option(Path("runs/bench")),
-    in_process: bool = typer.Option(
-        False, help="call the nodes' cores in one process (same views, no transport; faster)"
-    ),
-    param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
-    depth_source: str = typer.Option(
-        "sensor",
-        help="what the TSDF reconstructs from: sensor (the camera's depth) | estimated (perception's)",
-    ),
-    workers: str = typer.Option(
-        "",
-        help="run the episodes in this many worker processes on this machine (a local Dask "
-        "cluster); a comma list such as 1,2 runs them once per count and prints the wall times "
-        "side by side (default: one after another in this process)",
-    ),
-    cluster: str = typer.Option(
-        None,
-        help="run the episodes on the workers of the Dask cluster whose scheduler is at this "
-        "address, e.g. tcp://10.0.0.5:8786 (needs the [cluster] extra on every machine)",
-    ),
-) -> None:
-    """Every policy on every scene with several seeds; prints the table."""
-    from area3d_bringup.episode_bench import run_episode_bench
-
-    counts: list[int] = []
-    for text in (w.strip() for w in workers.split(",") if w.strip()):
-        if not text.isdigit() or int(text) < 1:
-            _fail(f"workers: got {text!r}, expected an int >= 1 or a comma list of them (1,2)")
-        counts.append(int(text))
-    if counts and cluster:
-        _fail(
-            f"workers, cluster: got --workers {workers} and --cluster {cluster}, expected one of "
-            "them (a cluster has its own workers)"
-        )
-    try:
-        run_episode_bench(
-            seeds=seeds,
-            policies=policies.split(","),
-            scenes=[s for s in scenes_.split(",") if s],
-            budget=budget,
-            out=out,
-            console=console,
-            in_process=in_process,
-            holdout=holdout,
-            overrides=_overrides(param),
-            depth_source=depth_source,
-            workers=counts or None,
-            cluster=cluster,
-        )
-    except (RuntimeError, ValueError) as err:
-        _fail(str(err))
 
 
 def with_foxglove_port(args: list[str]) -> list[str]:

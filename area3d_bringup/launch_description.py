@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -13,7 +13,8 @@ import yaml
 from area3d_bringup.graph import GRAPH_NODES
 
 __all__ = [
-    "GRAPH_NODES", "NodeSpec", "build_graph", "load_parameters", "merge", "scene_parameters",
+    "GRAPH_NODES", "NodeSpec", "build_graph", "load_parameters", "merge", "parse_override",
+    "parse_overrides", "scene_parameters",
 ]  # fmt: skip
 
 # Node sections of a parameter file apply to the node in any namespace.
@@ -80,6 +81,16 @@ def parse_override(text: str) -> tuple[str, str, object]:
     if not sep or not dot or not node or not name:
         raise ValueError(f"--param: got {text!r}, expected NODE.NAME=VALUE, e.g. planner.eta=0.3")
     return node, name, yaml.safe_load(raw) if raw else ""
+
+
+def parse_overrides(texts: Iterable[str]) -> dict[str, dict]:
+    """Repeated `--param NODE.NAME=VALUE` -> {node: {name: yaml-typed value}}, a later text
+    winning for the same parameter."""
+    out: dict[str, dict] = {}
+    for text in texts:
+        node, name, value = parse_override(text)
+        out.setdefault(node, {})[name] = value
+    return out
 
 
 def planner_region(scene) -> dict:

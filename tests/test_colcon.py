@@ -20,7 +20,7 @@ from area3d_bringup.graph import NODES
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = (
     "area3d_msgs_py", "sim_bridge", "area3d_perception", "area3d_semantics", "area3d_planner",
-    "area3d_bringup", "area3d_eval",
+    "area3d_bringup", "area3d_eval", "area3d_bench",
 )  # fmt: skip
 ROS_PACKAGES = {
     "rclpy", "builtin_interfaces", "std_msgs", "std_srvs", "geometry_msgs", "sensor_msgs",

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from area3d_bringup.soak_bench import run_bench
+from area3d_bench.soak import run_bench
 from sim_bridge.holdout_scenes import write_holdout_scene
 
 

@@ -11,14 +11,14 @@ import time
 
 import numpy as np
 
-from area3d_bringup.bench_frames import object_frames
-from area3d_bringup.closed_loop_bench import (
+from area3d_bench.closed_loop import (
     CLOSED_LOOP_TARGET_S,
     LOADED_BURNERS,
     bench_closed_loop,
     planner_overrides,
 )
-from area3d_bringup.transport_bench import TARGET_ROUND_TRIP_P95_S
+from area3d_bench.frames import object_frames
+from area3d_bench.planner_service import TARGET_ROUND_TRIP_P95_S
 from area3d_msgs_py.lifecycle import tune_process
 from area3d_perception.grid import GridSpec
 from area3d_planner.fusion import FusedGrid
@@ -274,7 +274,7 @@ def run_bench(
             except Exception as exc:  # no renderer
                 results[f"visibility:{name}"] = {"error": f"{type(exc).__name__}: {exc}"}
     if transport and not synthetic_only:
-        from area3d_bringup.transport_bench import bench_transport
+        from area3d_bench.planner_service import bench_transport
 
         try:
             results["transport:single_object"] = bench_transport(requests)

@@ -22,7 +22,7 @@ import socket
 from collections.abc import Iterable, Iterator
 from typing import Any, Protocol
 
-from area3d_bringup.episode_task import EpisodeResult, EpisodeTask, run_episode_task
+from area3d_bench.episode_task import EpisodeResult, EpisodeTask, run_episode_task
 
 INSTALL_HINT = 'pip install -e ".[cluster]" (Dask distributed)'
 CONNECT_TIMEOUT_S = 30.0

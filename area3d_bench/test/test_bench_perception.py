@@ -2,7 +2,7 @@
 
 import pytest
 
-from area3d_perception.bench import node_frames, synthetic_frame, timed
+from area3d_bench.perception import node_frames, synthetic_frame, timed
 
 
 def test_a_node_frame_goes_through_the_node_and_is_timed():

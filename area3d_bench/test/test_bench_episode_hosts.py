@@ -3,7 +3,8 @@
 `area3d bench episode --cluster` in another, joined by a veth pair with addresses of their own.
 The worker writes the generated hold-out scenes itself and keeps the frames; the client gets the
 results. Needs root and `ip netns` (CI runs as root); the namespaces are created and removed here.
-Without them the same code is covered by the local-cluster tests in area3d_bringup/test."""
+Without them the same code is covered by the local-cluster tests
+(`test_bench_episode_cluster.py`)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from area3d_bringup.episode_task import holdout_digest
+from area3d_bench.episode_task import holdout_digest
 from sim_bridge.holdout_scenes import HOLDOUT_WRITERS
 
 
@@ -84,8 +85,8 @@ def test_the_benchmark_runs_on_the_worker_of_another_host(two_hosts, tmp_path):
     )  # fmt: skip
     try:
         bench = subprocess.run(
-            ["ip", "netns", "exec", hosts["client"], sys.executable, "-m", "area3d_bringup.cli",
-             "bench", "episode", "--in-process", "--scenes", "single_object", "--policies",
+            ["ip", "netns", "exec", hosts["client"], sys.executable, "-m", "area3d_bench.cli",
+             "episode", "--in-process", "--scenes", "single_object", "--policies",
              "uniform", "--seeds", "1", "--budget", "5", "--holdout", "--cluster", address,
              "--out", "runs"],
             cwd=client_dir, capture_output=True, text=True, timeout=1200,

@@ -13,8 +13,8 @@ import distributed
 import pytest
 from rich.console import Console
 
-from area3d_bringup.episode_bench import run_episode_bench
-from area3d_bringup.episode_task import (
+from area3d_bench.episode import run_episode_bench
+from area3d_bench.episode_task import (
     EpisodeResult,
     EpisodeTask,
     HoldoutScene,
@@ -195,9 +195,9 @@ def test_the_bench_command_refuses_bad_worker_options_before_running_anything(
 ):
     from typer.testing import CliRunner
 
-    from area3d_bringup.cli import app
+    from area3d_bench.cli import app
 
-    result = CliRunner().invoke(app, ["bench", "episode", "--out", str(tmp_path), *args])
+    result = CliRunner().invoke(app, ["episode", "--out", str(tmp_path), *args])
     assert result.exit_code == 2
     assert message in " ".join(result.output.split())
     assert not any(tmp_path.iterdir())  # nothing was started or written

@@ -17,7 +17,7 @@ from rich.live import Live
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from area3d_bringup.episode_task import (
+from area3d_bench.episode_task import (
     ATTEMPTS_DIR,
     EpisodeResult,
     EpisodeTask,
@@ -268,7 +268,7 @@ def run_episode_bench(
     Returns {"rows", "failures", "report", "runs": [{"workers", "engine", "wall_s", "cpu_s", "load",
     "lost_attempts", "out_dir", "episodes": {run name: its views and metrics}, "ran_on": {run
     name: host:pid}}]}."""
-    from area3d_bringup.episode_cluster import open_engine
+    from area3d_bench.episode_cluster import open_engine
     from area3d_eval.report import write_report
     from sim_bridge.holdout_scenes import HOLDOUT_WRITERS
     from sim_bridge.scenes import list_scenes

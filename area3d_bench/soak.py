@@ -99,7 +99,7 @@ def run_bench(
     json_out: Path | None = None,
 ) -> dict:
     """Stream min(frames, duration_s * rate_hz) frames; returns the figures (see module doc)."""
-    from area3d_bringup.bench_frames import render_views
+    from area3d_bench.frames import render_views
     from area3d_bringup.launch_description import NodeSpec, scene_parameters
     from area3d_bringup.launcher import Launcher
     from area3d_msgs_py import middleware, topics
@@ -342,7 +342,7 @@ def _start_manager(period_s: float, env: dict) -> subprocess.Popen:
     """The mission manager (`soak_manager`), a process of its own: its requests and the camera's
     publishing do not share an interpreter, as on a robot."""
     return subprocess.Popen(
-        [sys.executable, "-m", "area3d_bringup.soak_manager", "--period", str(period_s)],
+        [sys.executable, "-m", "area3d_bench.soak_manager", "--period", str(period_s)],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,

@@ -4,7 +4,7 @@ planner for the next view from the newest camera pose it has seen (naming that p
 the planner plans from that frame) and prints one JSON line per request to stdout: the round
 trip, and the planner's own split of it from the status that follows the answer.
 
-    python -m area3d_bringup.soak_manager --period 1.0
+    python -m area3d_bench.soak_manager --period 1.0
 
 It stops when its stdin closes (the benchmark closes it), so it never depends on a signal
 reaching a process blocked in the middleware.

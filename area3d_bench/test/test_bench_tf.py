@@ -1,6 +1,6 @@
 """The TF benchmark times real lookups that give the trajectory's pose (no speed is asserted)."""
 
-from area3d_msgs_py.tf_bench import run_bench
+from area3d_bench.tf import run_bench
 
 
 def test_the_tf_benchmark_times_lookups_that_are_right():

@@ -1,0 +1,157 @@
+"""`area3d bench NAME`: the benchmarks' command line. The `area3d` command adds this typer app as
+its `bench` group through the `area3d.cli` entry point group (pyproject.toml, setup.py), so the
+product packages name no benchmark; `python -m area3d_bench.cli NAME` runs it alone."""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+import typer
+from rich.console import Console
+
+from area3d_bringup.cli import PARAM_HELP
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Benchmarks: print measured figures beside their targets.",
+)
+console = Console(stderr=True)
+
+# `area3d bench NAME` with no options: NAME -> the module whose run_bench() prints the figures
+BENCHES = {
+    "transport": "area3d_bench.transport",
+    "tf": "area3d_bench.tf",
+    "render": "area3d_bench.render",
+    "stereo": "area3d_bench.stereo",
+    "perception": "area3d_bench.perception",
+    "semantics": "area3d_bench.semantics",
+    "planner": "area3d_bench.planner",
+    "eval": "area3d_bench.evaluation",
+    "foxglove": "area3d_bench.foxglove",
+}
+
+
+def _fail(message: str) -> None:
+    console.print(f"[bold red]error:[/] {message}")
+    raise typer.Exit(code=2)
+
+
+def _bench_command(name: str, module: str) -> None:
+    def command() -> None:
+        importlib.import_module(module).run_bench()
+
+    command.__doc__ = f"Benchmark: {name} (see {module})."
+    app.command(name)(command)
+
+
+for _name, _module in BENCHES.items():
+    _bench_command(_name, _module)
+
+
+@app.command("soak")
+def bench_soak(
+    frames: int = typer.Option(
+        6000, help="frames to stream (the run ends at --frames or --duration)"
+    ),
+    duration: float = typer.Option(600.0, help="longest stream, seconds"),
+    rate: float = typer.Option(10.0, help="camera rate, Hz"),
+    scene: str = typer.Option("single_object"),
+    mask_lag: float = typer.Option(
+        1.0, help="the planner's mask_lag_s (0: every request waits for masks covering its frame)"
+    ),
+    rebuild_nice: int = typer.Option(
+        10, help="the planner's rebuild_nice (0: its mask rebuilds compete with fusion for the CPU)"
+    ),
+    json_out: Path = typer.Option(
+        None, "--json", help="also write every figure, and each request's times, to this file"
+    ),
+) -> None:
+    """Benchmark: 640x480 RGB-D at 10 Hz through perception and the planner (see area3d_bench.soak)."""
+    from area3d_bench.soak import run_bench
+
+    run_bench(
+        frames=frames,
+        duration_s=duration,
+        rate_hz=rate,
+        scene_name=scene,
+        mask_lag_s=mask_lag,
+        rebuild_nice=rebuild_nice,
+        json_out=json_out,
+    )
+
+
+@app.command("episode")
+def bench_episode(
+    seeds: int = typer.Option(3),
+    policies: str = typer.Option(
+        "area3d,random,uniform,vlm_naive,volumetric_ig,no_vlm,no_ff,gamma0"
+    ),
+    scenes_: str = typer.Option(
+        "", "--scenes", help="comma list of names or MJCF paths (default: every bundled scene)"
+    ),
+    holdout: bool = typer.Option(
+        True,
+        help="also generate and run the hold-out scenes (tabletop, alcove room, shelf against a "
+        "wall, thin objects; seed 0 of each)",
+    ),
+    budget: int = typer.Option(
+        None, help="view budget T per episode, O_0 included (default: the paper's, 25 / 40)"
+    ),
+    out: Path = typer.Option(Path("runs/bench")),
+    in_process: bool = typer.Option(
+        False, help="call the nodes' cores in one process (same views, no transport; faster)"
+    ),
+    param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),
+    depth_source: str = typer.Option(
+        "sensor",
+        help="what the TSDF reconstructs from: sensor (the camera's depth) | estimated (perception's)",
+    ),
+    workers: str = typer.Option(
+        "",
+        help="run the episodes in this many worker processes on this machine (a local Dask "
+        "cluster); a comma list such as 1,2 runs them once per count and prints the wall times "
+        "side by side (default: one after another in this process)",
+    ),
+    cluster: str = typer.Option(
+        None,
+        help="run the episodes on the workers of the Dask cluster whose scheduler is at this "
+        "address, e.g. tcp://10.0.0.5:8786 (needs the [cluster] extra on every machine)",
+    ),
+) -> None:
+    """Every policy on every scene with several seeds; prints the table."""
+    from area3d_bench.episode import run_episode_bench
+    from area3d_bringup.launch_description import parse_overrides
+
+    counts: list[int] = []
+    for text in (w.strip() for w in workers.split(",") if w.strip()):
+        if not text.isdigit() or int(text) < 1:
+            _fail(f"workers: got {text!r}, expected an int >= 1 or a comma list of them (1,2)")
+        counts.append(int(text))
+    if counts and cluster:
+        _fail(
+            f"workers, cluster: got --workers {workers} and --cluster {cluster}, expected one of "
+            "them (a cluster has its own workers)"
+        )
+    try:
+        run_episode_bench(
+            seeds=seeds,
+            policies=policies.split(","),
+            scenes=[s for s in scenes_.split(",") if s],
+            budget=budget,
+            out=out,
+            console=console,
+            in_process=in_process,
+            holdout=holdout,
+            overrides=parse_overrides(param),
+            depth_source=depth_source,
+            workers=counts or None,
+            cluster=cluster,
+        )
+    except (RuntimeError, ValueError) as err:
+        _fail(str(err))
+
+
+if __name__ == "__main__":
+    app(prog_name="area3d bench")

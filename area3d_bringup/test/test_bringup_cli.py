@@ -1,0 +1,90 @@
+"""The `area3d` command adds the command groups of installed `area3d.cli` entry points: listed in
+its help, run by name, and left out with a warning when one does not load; a command of its own
+loads none of them."""
+
+from __future__ import annotations
+
+import typer
+from typer.testing import CliRunner
+
+from area3d_bringup import cli
+
+
+class _EntryPoint:
+    """An installed entry point as `importlib.metadata` gives it: a name, a value, load()."""
+
+    def __init__(self, name: str, value: str, load) -> None:
+        self.name, self.value, self.group = name, value, cli.COMMAND_GROUP
+        self.load = load
+
+
+def _greetings() -> typer.Typer:
+    group = typer.Typer(help="Greetings from an installed package.")
+
+    @group.command()
+    def hello(name: str = typer.Option("robot", help="whom to greet")) -> None:
+        """Say hello."""
+        print(f"hello {name}")
+
+    @group.command()
+    def bye() -> None:
+        """Say bye."""
+        print("bye")
+
+    return group
+
+
+def _broken() -> typer.Typer:
+    raise ImportError("No module named 'greetings_missing'")
+
+
+def _invoke(args: list[str]):
+    return CliRunner().invoke(cli.app, args, prog_name="area3d", env={"COLUMNS": "200"})
+
+
+def test_an_entry_points_group_is_listed_and_runs_under_its_name(monkeypatch):
+    monkeypatch.setattr(
+        cli, "command_entry_points", lambda: [_EntryPoint("greet", "greetings:app", _greetings)]
+    )
+    listing = _invoke(["--help"])
+    assert listing.exit_code == 0, listing.output
+    assert "greet" in listing.output and "Greetings from an installed package." in listing.output
+    assert "run" in listing.output and "launch" in listing.output  # its own commands stay
+    result = _invoke(["greet", "hello", "--name", "rover"])
+    assert result.exit_code == 0, result.output
+    assert result.output.strip() == "hello rover"
+    assert _invoke(["greet", "bye"]).output.strip() == "bye"
+
+
+def test_a_group_that_does_not_load_is_left_out_with_a_warning_and_the_others_still_run(
+    monkeypatch,
+):
+    monkeypatch.setattr(
+        cli,
+        "command_entry_points",
+        lambda: [
+            _EntryPoint("broken", "greetings_missing:app", _broken),
+            _EntryPoint("greet", "greetings:app", _greetings),
+        ],
+    )
+    listing = _invoke(["--help"])
+    assert listing.exit_code == 0
+    text = " ".join(listing.output.split())
+    assert "warning: `area3d broken` is unavailable: greetings_missing:app did not load" in text
+    assert "ImportError: No module named 'greetings_missing'" in text
+    assert "greet" in listing.output
+    assert _invoke(["greet", "bye"]).output.strip() == "bye"
+    missing = _invoke(["broken"])
+    assert missing.exit_code == 2 and "No such command 'broken'" in missing.output
+
+
+def test_a_command_of_its_own_loads_no_entry_point(monkeypatch):
+    def loaded() -> typer.Typer:
+        raise AssertionError("an entry point was loaded for `area3d scenes`")
+
+    monkeypatch.setattr(
+        cli, "command_entry_points", lambda: [_EntryPoint("greet", "greetings:app", loaded)]
+    )
+    result = _invoke(["scenes"])
+    assert result.exit_code == 0, result.output
+    assert "single_object" in result.output and "warning" not in result.output
