@@ -9,9 +9,11 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from area3d_bringup.cli import PARAM_HELP
 
+# Help texts are rich markup (typer's default): a literal `[word]` is written escape("[word]").
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
@@ -34,7 +36,7 @@ BENCHES = {
 
 
 def _fail(message: str) -> None:
-    console.print(f"[bold red]error:[/] {message}")
+    console.print(f"[bold red]error:[/] {escape(message)}")
     raise typer.Exit(code=2)
 
 
@@ -117,7 +119,8 @@ def bench_episode(
     cluster: str = typer.Option(
         None,
         help="run the episodes on the workers of the Dask cluster whose scheduler is at this "
-        "address, e.g. tcp://10.0.0.5:8786 (needs the [cluster] extra on every machine)",
+        f"address, e.g. tcp://10.0.0.5:8786 (needs the {escape('[cluster]')} extra on every "
+        "machine)",
     ),
 ) -> None:
     """Every policy on every scene with several seeds; prints the table."""

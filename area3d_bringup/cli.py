@@ -89,7 +89,7 @@ def _episode_nodes(text: str) -> tuple[str, ...] | None:
 
 
 def _fail(message: str) -> None:
-    console.print(f"[bold red]error:[/] {message}")
+    console.print(f"[bold red]error:[/] {escape(message)}")
     raise typer.Exit(code=2)
 
 
@@ -189,7 +189,7 @@ def run(
             run_dir = run_episode(config, resume=resume, progress=progress)
     except (EpisodeError, ValueError, FileNotFoundError, FileExistsError) as err:
         _fail(str(err))
-    console.print(f"episode written to [bold]{run_dir}[/]")
+    console.print(f"episode written to [bold]{escape(str(run_dir))}[/]")
     if evaluate:
         report_paths = _evaluate_and_report([run_dir], run_dir / "report")
         print(f"report: {report_paths[1]}")
@@ -286,7 +286,7 @@ def launch(
         try:
             launcher.wait()
         except NodeDied as err:
-            console.print(f"[bold red]{err}[/]")
+            console.print(f"[bold red]{escape(str(err))}[/]")
             code = 1
         finally:
             launcher.stop()

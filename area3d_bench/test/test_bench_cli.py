@@ -1,5 +1,6 @@
 """`area3d bench` is the benchmarks' typer app, added to the `area3d` command by the `area3d.cli`
-entry point that pip (pyproject.toml) and colcon (setup.py) install."""
+entry point that pip (pyproject.toml) and colcon (setup.py) install; every help text of the
+whole command renders every word."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+import typer
 from typer.testing import CliRunner
 
 from area3d_bench import cli as bench_cli
@@ -73,3 +75,42 @@ def test_area3d_bench_episode_checks_its_options_before_running_anything(area3d,
     assert result.exit_code == 2
     assert "workers: got '0', expected an int >= 1" in _words(result.output)
     assert not any(tmp_path.iterdir())
+
+
+def _command_paths(group, ctx, prefix=()) -> list[tuple[tuple[str, ...], object]]:
+    """(path, command) of every command and group below `group`, the group's own first."""
+    out = [(prefix, group)]
+    for name in group.list_commands(ctx):
+        command = group.get_command(ctx, name)
+        if hasattr(command, "list_commands"):
+            out += _command_paths(command, typer.Context(command, parent=ctx), (*prefix, name))
+        else:
+            out.append(((*prefix, name), command))
+    return out
+
+
+def test_every_help_of_area3d_shows_every_word_of_its_texts(area3d):
+    root = typer.main.get_command(cli.app)
+    paths = _command_paths(root, typer.Context(root, info_name="area3d"))
+    own = ("run", "report", "launch", "node", "rviz", "scenes")
+    assert {path for path, _ in paths} == {
+        (),
+        *((name,) for name in (*own, "bench")),
+        *(("bench", name) for name in BENCHES),
+    }
+    for path, command in paths:
+        result = area3d([*path, "--help"])
+        assert result.exit_code == 0, (path, result.output)
+        shown = _words(result.output)
+        texts = [command.help or ""]
+        for param in command.params:
+            texts += [getattr(param, "help", None) or "", param.metavar or ""]
+        for text in texts:
+            # a help text says `\[word]` where rich markup would read a tag: shown as `[word]`
+            expected = " ".join(text.replace("\\[", "[").split())
+            assert expected in shown, (path, expected)
+    # the words rich markup used to eat, and a bracketed metavar
+    assert "(needs the [cluster] extra on every machine)" in _words(
+        area3d(["bench", "episode", "--help"]).output
+    )
+    assert "[PORT]" in area3d(["run", "--help"]).output

@@ -88,3 +88,13 @@ def test_a_command_of_its_own_loads_no_entry_point(monkeypatch):
     result = _invoke(["scenes"])
     assert result.exit_code == 0, result.output
     assert "single_object" in result.output and "warning" not in result.output
+
+
+def test_an_error_message_with_brackets_is_printed_whole(tmp_path):
+    # rich markup would take `[cluster]` for a tag and drop it
+    run_dir = tmp_path / "[cluster]"
+    result = _invoke(["report", str(run_dir)])
+    assert result.exit_code == 2
+    assert "[cluster]" in result.output and "expected a directory containing episode.json" in (
+        " ".join(result.output.split())
+    )
