@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-# Per request during fusion, p95: the object-level closed-loop target (planner_bench).
+# Per request during fusion, p95: the object-level closed-loop target (planner.py).
 TARGET_PLAN_P95_S = 0.3
 RATE_HZ = 10.0
 # The planner's setting for a streaming camera: plan from masks up to 1 s behind the request's

@@ -1,1 +1,1 @@
-"""TSDF reconstruction, metrics, baselines, benchmarks and reports."""
+"""TSDF reconstruction, metrics, baselines and reports."""
