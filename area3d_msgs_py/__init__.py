@@ -4,6 +4,7 @@
 - ``codecs``: Image / PointCloud2 / Pose / CameraInfo <-> numpy
 - ``topics``: the graph's topics and service: names, types, QoS, writers and readers
 - ``qos``: the graph's QoS profiles
+- ``camera``: the paper's camera (field of view, range) and the pinhole intrinsics it makes
 - ``camera_pose``: ``look_at`` / ``look_rotation``, camera poses in the graph's conventions
 - ``middleware``: Fast DDS transport profile, graph environment, ``DomainLease``
 - ``parameters``: ``Param`` and ``declare_parameters`` (typed, described, validated)

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 from numba import njit
 
+from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
 
@@ -104,8 +105,8 @@ class RgbdSensorParams:
     )
     # Returns beyond this range are NaN (the paper's camera: max range 5 m).
     max_range: float = described(
-        5.0, "returns beyond this range are no return (the paper's camera: 5)", "metres",
-        (0.01, 1000.0),
+        PAPER_MAX_RANGE, "returns beyond this range are no return (the paper's camera: 5)",
+        "metres", (0.01, 1000.0),
     )  # fmt: skip
 
     def __post_init__(self) -> None:

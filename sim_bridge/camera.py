@@ -14,8 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE
 from area3d_perception.sensor_model import RgbdSensorParams, add_depth_noise
-from sim_bridge.render import HFOV_DEG, MAX_RANGE, RgbdRenderer
+from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import Scene
 from sim_bridge.validity import CLEARANCE, check_pose
 
@@ -74,8 +75,8 @@ class SimCamera:
         scene: Scene,
         width: int = 640,
         height: int = 480,
-        hfov_deg: float = HFOV_DEG,
-        max_range: float = MAX_RANGE,
+        hfov_deg: float = PAPER_HFOV_DEG,
+        max_range: float = PAPER_MAX_RANGE,
         clearance: float = CLEARANCE,
         depth_noise: bool = False,
         seed: int = 0,
