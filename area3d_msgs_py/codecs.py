@@ -16,6 +16,7 @@ import numpy as np
 
 from area3d_msgs_py import msgs
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.hard_region import HARD_REGION_DTYPE
 from area3d_msgs_py.transforms import (  # noqa: F401  (rotations live there; re-exported here)
     QUATERNION_NORM_TOLERANCE,
     StampedTransform,
@@ -580,18 +581,6 @@ def msg_to_view_answer(msg: Any) -> ViewAnswer:
 
 
 # hard regions (area3d_interfaces/msg/HardRegionArray) ---------------------------------------
-#: One hard region per row: centroid and extent in metres, in the array's frame.
-HARD_REGION_DTYPE = np.dtype(
-    [
-        ("centroid", "<f8", (3,)),
-        ("extent", "<f8", (3,)),
-        ("voxel_count", "<u4"),
-        ("direction_count", "<u4"),
-        ("mean_uncertainty", "<f4"),
-    ]
-)
-
-
 def hard_regions_to_msg(regions: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
     """(N,) HARD_REGION_DTYPE -> area3d_interfaces/HardRegionArray (order kept)."""
     regions = np.asarray(regions)
