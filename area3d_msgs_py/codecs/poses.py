@@ -12,12 +12,12 @@ import numpy as np
 from area3d_msgs_py import msgs
 from area3d_msgs_py.codecs.header import header, stamp_to_ns
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.transforms import (
-    StampedTransform,
+from area3d_msgs_py.rotations import (
     check_quaternion,
     quaternion_to_rotation,
     rotation_to_quaternion,
 )
+from area3d_msgs_py.transforms import StampedTransform
 
 # Rotation orthonormality tolerance on max |R^T R - I| (float64 poses composed a few times).
 ROTATION_TOLERANCE = 1e-5

@@ -8,7 +8,7 @@ from hypothesis.extra import numpy as hnp
 
 from area3d_msgs_py import codecs, msgs
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.transforms import quaternion_to_rotation
+from area3d_msgs_py.rotations import quaternion_to_rotation
 
 
 def wire(msg):
