@@ -3,12 +3,11 @@ scalar-last order), rotations (3, 3) float64, rigid transforms 4x4 float64.
 
 A rotation becomes a quaternion through scipy's `Rotation`. The three functions a TF lookup or a
 TF sample runs stay on numpy, because scipy's object costs more than their arithmetic (scipy
-1.17.1, `timeit`, one call, 2 shared cores): `quaternion_to_rotation` 8 us against 23 us
-(`Rotation.from_quat(q).as_matrix()`), `slerp` 11 us against 300 us (`Slerp`; 140 us for
-`Rotation` composed by hand) and `rotation_angle` 2 us against 90 us (`Rotation.magnitude`). With
-scipy's conversion in `matrix` alone, `area3d bench tf` measured the per-frame lookup at p50 90 us
-against 57 us (the robot's 4-edge tree, same load). They are checked against scipy in
-test_msgs_rotations.
+1.17.1, `timeit`, one call, idle 2-core machine): `quaternion_to_rotation` 3 us against 11 us
+(`Rotation.from_quat(q).as_matrix()`), `slerp` 5 us against 145 us (`Slerp`) and
+`rotation_angle` 1 us against 41 us (`Rotation.magnitude`). With scipy's conversion in `matrix`
+alone, `area3d bench tf` measured the per-frame lookup of a robot's 4-edge tree at p50 90 us
+against 57 us (same load). They are checked against scipy in test_msgs_rotations.
 """
 
 from __future__ import annotations
