@@ -19,15 +19,9 @@ import numpy as np
 
 from area3d_msgs_py.camera_pose import look_at
 from sim_bridge import meshes
-from sim_bridge.scenes import (
-    GAMMA,
-    INITIAL_VIEWS,
-    ROI_RIM,
-    SCENES_DIR,
-    TAU,
-    Scene,
-    scene_to_json,
-)
+from sim_bridge.scene import GAMMA, INITIAL_VIEWS, TAU, Scene
+from sim_bridge.scene_layout import ROI_RIM
+from sim_bridge.scenes import SCENES_DIR, scene_to_json
 from sim_bridge.textures import write_texture
 from sim_bridge.views import orbit_views
 

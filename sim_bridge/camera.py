@@ -18,7 +18,7 @@ from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE
 from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from sim_bridge.noise import add_depth_noise
 from sim_bridge.render import RgbdRenderer
-from sim_bridge.scenes import Scene
+from sim_bridge.scene import Scene
 from sim_bridge.validity import CLEARANCE, check_pose
 
 # optical frame in camera_link (x forward, y left, z up): REP 103 rpy (-pi/2, 0, -pi/2).

@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 
 from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE, intrinsics
-from sim_bridge.scenes import Scene
+from sim_bridge.scene import Scene
 
 ZNEAR = 0.01  # metres, near clipping plane: closer surfaces are not seen
 CAMERA_NAME = "area3d_optical"
