@@ -1,13 +1,19 @@
 """Rotations in the graph's conventions: quaternions are (x, y, z, w) as in ROS (scipy's
 scalar-last order), rotations (3, 3) float64, rigid transforms 4x4 float64.
 
-A rotation becomes a quaternion through scipy's `Rotation`. The three functions a TF lookup or a
-TF sample runs stay on numpy, because scipy's object costs more than their arithmetic (scipy
-1.17.1, `timeit`, one call, idle 2-core machine): `quaternion_to_rotation` 3 us against 11 us
-(`Rotation.from_quat(q).as_matrix()`), `slerp` 5 us against 145 us (`Slerp`) and
-`rotation_angle` 1 us against 41 us (`Rotation.magnitude`). With scipy's conversion in `matrix`
-alone, `area3d bench tf` measured the per-frame lookup of a robot's 4-edge tree at p50 90 us
-against 57 us (same load). They are checked against scipy in test_msgs_rotations.
+Written on numpy rather than scipy's `Rotation` / `Slerp`, for two measured reasons (scipy 1.17.1;
+the tests check every function here against scipy):
+
+- Speed on the paths that run per frame (`timeit`, one call, idle 2-core machine): quaternion to
+  matrix 3 us against 11 us (`Rotation.from_quat(q).as_matrix()`), matrix to quaternion 13 us
+  against 52 us (`Rotation.from_matrix(R).as_quat(canonical=True)`), `slerp` 5 us against 145 us
+  (`Slerp`), `rotation_angle` 1 us against 41 us (`Rotation.magnitude`). With scipy's quaternion to
+  matrix alone, `area3d bench tf` measured the per-frame TF lookup at p50 90 us against 57 us.
+- The same views bit for bit: `Rotation.from_matrix` maps a rotation matrix that is orthonormal
+  only to its stored precision (the bundled scenes keep 7 decimals) to a quaternion up to 2.2e-8
+  away from Shepperd's, and the poses on the wire move with it: a 12-view single_object episode
+  captured every frame up to 6.6e-8 (rotation) and 3e-6 (position of a planned view) off, its depth
+  images and maps no longer the same.
 """
 
 from __future__ import annotations
@@ -15,7 +21,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from area3d_msgs_py.errors import InputError
 
@@ -26,8 +31,31 @@ _SLERP_LINEAR_BELOW_RAD = 1e-6
 
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (4,) unit quaternion (x, y, z, w) with w >= 0."""
-    return Rotation.from_matrix(R).as_quat(canonical=True)
+    """(3, 3) rotation -> (4,) unit quaternion (x, y, z, w) with w >= 0 (Shepperd's method)."""
+    trace = np.trace(R)
+    diag = np.diag(R)
+    i = int(np.argmax(np.r_[trace, diag]))
+    if i == 0:
+        w = np.sqrt(1.0 + trace) / 2.0
+        q = np.array(
+            [
+                (R[2, 1] - R[1, 2]) / (4 * w),
+                (R[0, 2] - R[2, 0]) / (4 * w),
+                (R[1, 0] - R[0, 1]) / (4 * w),
+                w,
+            ]
+        )
+    else:
+        a = i - 1
+        b, c = (a + 1) % 3, (a + 2) % 3
+        s = np.sqrt(1.0 + R[a, a] - R[b, b] - R[c, c]) * 2.0
+        q = np.empty(4)
+        q[a] = s / 4.0
+        q[b] = (R[b, a] + R[a, b]) / s
+        q[c] = (R[c, a] + R[a, c]) / s
+        q[3] = (R[c, b] - R[b, c]) / s
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
 
 
 def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
