@@ -40,6 +40,7 @@ from area3d_eval.rundir import (
     reconstruction_input,
     write_json,
 )
+from area3d_msgs_py.camera import PAPER_HFOV_DEG
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import depth_to_world
 
@@ -53,7 +54,7 @@ EVAL_WIDTH = (
     320  # held-out images at half the camera's 640 x 480: 4x fewer rays, same field of view
 )
 EVAL_HEIGHT = 240
-EVAL_HFOV_DEG = 90.0  # the paper's camera field of view
+EVAL_HFOV_DEG = PAPER_HFOV_DEG  # held-out views see what the camera sees
 GT_PREVIEW_POINTS = 4000  # GT points saved next to the metrics for the views plot
 
 RendererFactory = Callable[[Any, int, int, float], Any]

@@ -12,9 +12,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from area3d_msgs_py.camera import PAPER_HFOV_DEG  # noqa: E402
+
 DPI = 110
 FRUSTUM_DEPTH_FRACTION = 0.08  # frustum pyramid depth as a share of the scene's extent
-FRUSTUM_HALF_ANGLE = np.radians(45.0)  # half of the paper's 90 degree field of view
+FRUSTUM_HALF_ANGLE = np.radians(PAPER_HFOV_DEG / 2)
 
 METRIC_LABELS = {
     "completion": "completion ratio (higher is better)",

@@ -23,6 +23,7 @@ from numba import njit
 
 from area3d_eval.mesh_order import crop_arrays
 from area3d_eval.open3d_loader import import_open3d
+from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import depth_to_world
 
@@ -44,7 +45,7 @@ class TsdfParams:
 
     voxel_length: float = 0.004  # metres; object level, tau = 1 cm (DESIGN.md) -> 4 mm voxels
     sdf_trunc: float = 0.016  # metres; 4 voxels, the usual TSDF truncation band
-    depth_trunc: float = 5.0  # metres; the camera's max range (paper: 5 m)
+    depth_trunc: float = PAPER_MAX_RANGE  # metres; the camera's max range
     depth_stride: int = 2  # integrate every 2nd pixel of each row and column (4x fewer rays)
     roi_margin: float = 0.05  # metres; depth points farther than this outside the ROI are dropped
 

@@ -14,16 +14,8 @@ import trimesh
 
 from area3d_eval.render import MeshRenderer
 from area3d_eval.rundir import write_episode, write_frame
+from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE, intrinsics
 from area3d_msgs_py.camera_pose import look_at
-
-MAX_RANGE = 5.0  # metres, the paper's camera range
-HFOV_DEG = 90.0  # the paper's camera field of view
-
-
-def intrinsics(width: int, height: int, hfov_deg: float = HFOV_DEG) -> np.ndarray:
-    """K (3, 3) of the shared convention: fx = fy = (W / 2) / tan(hfov / 2), cx = W / 2, cy = H / 2."""
-    f = (width / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
-    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
 
 
 def hemisphere_views(
@@ -103,8 +95,8 @@ class SyntheticRenderer:
         scene: SyntheticScene,
         width: int = 640,
         height: int = 480,
-        hfov_deg: float = HFOV_DEG,
-        max_range: float = MAX_RANGE,
+        hfov_deg: float = PAPER_HFOV_DEG,
+        max_range: float = PAPER_MAX_RANGE,
     ) -> None:
         self.width, self.height, self.max_range = int(width), int(height), float(max_range)
         self.K = intrinsics(self.width, self.height, hfov_deg)

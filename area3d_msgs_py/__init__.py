@@ -4,6 +4,11 @@
 - ``codecs``: Image / PointCloud2 / Pose / CameraInfo <-> numpy
 - ``topics``: the graph's topics and service: names, types, QoS, writers and readers
 - ``qos``: the graph's QoS profiles
+- ``camera``: the paper's camera (field of view, range) and the pinhole intrinsics it makes
+- ``depth_sensor``, ``depth_surface``: a depth camera's noise description and a depth image's
+  incidence angles and edges (the simulated camera's noise and perception's confidence)
+- ``rotations``: quaternions, rotation matrices, slerp, rigid transforms
+- ``transforms``: ``TransformBuffer`` and ``PoseStream``, camera poses at an image's stamp
 - ``camera_pose``: ``look_at`` / ``look_rotation``, camera poses in the graph's conventions
 - ``middleware``: Fast DDS transport profile, graph environment, ``DomainLease``
 - ``parameters``: ``Param`` and ``declare_parameters`` (typed, described, validated)

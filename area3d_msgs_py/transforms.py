@@ -29,16 +29,21 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.rotations import (
+    check_quaternion,
+    check_translation,
+    invert,
+    matrix,
+    rotation_angle,
+    rotation_to_quaternion,
+    slerp,
+)
 
 NS_PER_S = 1_000_000_000
-# ROS tools (tf2) warn beyond ~1e-3 off unit length.
-QUATERNION_NORM_TOLERANCE = 1e-3
 # tf2's default cache time: how much history each dynamic edge keeps, counted back from its newest.
 DEFAULT_HISTORY_S = 10.0
 # As for every input of the graph (area3d_msgs_py.inputs): clock skew allowed between hosts.
 DEFAULT_MAX_AHEAD_S = 5.0
-# Below this angle slerp is replaced by a normalised linear blend (sin(theta) ~ 0).
-_SLERP_LINEAR_BELOW_RAD = 1e-6
 
 
 class StampedTransform(NamedTuple):
@@ -81,104 +86,6 @@ class LookupFailure(LookupError):
 
     def __reduce__(self):
         return (type(self), (self.cause, str(self)))
-
-
-# rotations ---------------------------------------------------------------------------------------
-def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (4,) unit quaternion (x, y, z, w) with w >= 0 (Shepperd's method)."""
-    trace = np.trace(R)
-    diag = np.diag(R)
-    i = int(np.argmax(np.r_[trace, diag]))
-    if i == 0:
-        w = np.sqrt(1.0 + trace) / 2.0
-        q = np.array(
-            [
-                (R[2, 1] - R[1, 2]) / (4 * w),
-                (R[0, 2] - R[2, 0]) / (4 * w),
-                (R[1, 0] - R[0, 1]) / (4 * w),
-                w,
-            ]
-        )
-    else:
-        a = i - 1
-        b, c = (a + 1) % 3, (a + 2) % 3
-        s = np.sqrt(1.0 + R[a, a] - R[b, b] - R[c, c]) * 2.0
-        q = np.empty(4)
-        q[a] = s / 4.0
-        q[b] = (R[b, a] + R[a, b]) / s
-        q[c] = (R[c, a] + R[a, c]) / s
-        q[3] = (R[c, b] - R[b, c]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
-    """(4,) unit quaternion (x, y, z, w) -> (3, 3) rotation."""
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def check_quaternion(values: Any, field: str) -> np.ndarray:
-    """(4,) float64 unit quaternion (x, y, z, w) from `values`, normalised; a quaternion that is
-    not finite or whose norm is off 1 by more than QUATERNION_NORM_TOLERANCE is refused."""
-    q = np.asarray(values, dtype=np.float64).reshape(-1)
-    norm = np.linalg.norm(q) if q.shape == (4,) else np.nan
-    if not np.isfinite(norm) or abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise InputError(
-            field,
-            q.tolist(),
-            f"a unit quaternion (|norm - 1| <= {QUATERNION_NORM_TOLERANCE})",
-        )
-    return q / norm
-
-
-def check_translation(values: Any, field: str) -> np.ndarray:
-    """(3,) float64 finite translation in metres from `values`."""
-    t = np.asarray(values, dtype=np.float64).reshape(-1)
-    if t.shape != (3,) or not np.isfinite(t).all():
-        raise InputError(field, t.tolist(), "finite (x, y, z) in metres")
-    return t
-
-
-def rotation_angle(q0: np.ndarray, q1: np.ndarray) -> float:
-    """Angle in radians (in [0, pi]) of the rotation between two unit quaternions."""
-    return float(2.0 * np.arccos(min(1.0, abs(float(np.dot(q0, q1))))))
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
-    """Unit quaternion at fraction `u` in [0, 1] of the shortest rotation from q0 to q1."""
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:  # q and -q are one rotation: take the shorter arc
-        q1, dot = -q1, -dot
-    theta = np.arccos(min(1.0, dot))
-    if theta < _SLERP_LINEAR_BELOW_RAD:
-        q = q0 + u * (q1 - q0)
-    else:
-        q = (np.sin((1.0 - u) * theta) * q0 + np.sin(u * theta) * q1) / np.sin(theta)
-    return q / np.linalg.norm(q)
-
-
-def matrix(translation: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-    """4x4 homogeneous transform from a translation (3,) and a unit quaternion (x, y, z, w)."""
-    T = np.eye(4)
-    T[:3, :3] = quaternion_to_rotation(rotation)
-    T[:3, 3] = translation
-    return T
-
-
-def invert(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform."""
-    inv = np.eye(4)
-    R_t = T[:3, :3].T
-    inv[:3, :3] = R_t
-    inv[:3, 3] = -R_t @ T[:3, 3]
-    return inv
 
 
 # one edge's samples ------------------------------------------------------------------------------

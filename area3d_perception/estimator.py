@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from area3d_msgs_py.errors import InputError
 from area3d_perception.feedforward import (
     DepthAnything3Backend,
@@ -30,7 +31,7 @@ from area3d_perception.feedforward import (
     align_scale_to_poses,
     normalize_confidence,
 )
-from area3d_perception.sensor_model import RgbdSensorParams, rgbd_confidence
+from area3d_perception.sensor_model import rgbd_confidence
 from area3d_perception.stereo import StereoMatcher, StereoParams
 
 BACKENDS = ("rgbd", "vggt", "depth_anything_3", "uniform", "stereo")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
 from area3d_perception.backproject import backproject, pixel_to_world
 from area3d_perception.grid import GridSpec
@@ -25,8 +26,6 @@ from area3d_perception.grid import GridSpec
 UNOBSERVED_UNCERTAINTY = 1.0
 # Pixels are subsampled by 2 in u and v for carving: 76,800 rays per 640x480 frame (our choice).
 CARVE_STRIDE = 2
-# The paper's camera range, metres; rays without a return carve up to here.
-MAX_RANGE = 5.0
 
 
 def _check_grid_array(name: str, array: np.ndarray, spec: GridSpec) -> np.ndarray:
@@ -321,7 +320,7 @@ def frame_rays(
     K: np.ndarray,
     T_world_cam: np.ndarray,
     stride: int = CARVE_STRIDE,
-    max_range: float = MAX_RANGE,
+    max_range: float = PAPER_MAX_RANGE,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ray ends of a depth frame subsampled by `stride`, for `carve_free_space`.
 
@@ -399,7 +398,7 @@ def carve_depth_frame(
     T_world_cam: np.ndarray,
     free_count: np.ndarray,
     stride: int = CARVE_STRIDE,
-    max_range: float = MAX_RANGE,
+    max_range: float = PAPER_MAX_RANGE,
     surface_margin: float = 0.0,
     carve_no_return: bool | np.ndarray = True,
     count: bool = True,

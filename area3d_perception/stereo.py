@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
 
@@ -97,7 +98,10 @@ class StereoParams:
         2, "match at 1 / downscale of the image size (1, 2 or 4)", "", (1, 4)
     )
     max_range: float = described(
-        5.0, "depths beyond this are no match (the paper's camera)", "metres", (0.01, 1000.0)
+        PAPER_MAX_RANGE,
+        "depths beyond this are no match (the paper's camera)",
+        "metres",
+        (0.01, 1000.0),
     )
 
     def validate(self) -> None:

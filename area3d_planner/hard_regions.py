@@ -10,18 +10,22 @@ voxel is a region too.
 
 Pure numpy / scipy, no ROS: `hard_regions` on integer voxel coordinates, `cloud_hard_regions` on
 the planner's grid cloud (`cloud.grid_to_cloud`), `points_hard_regions` on a saved grid's points
-(the report). Rows are `area3d_msgs_py.codecs.HARD_REGION_DTYPE`, what `hard_regions_to_msg`
-publishes.
+(the report, which imports no message code). Rows are `area3d_msgs_py.hard_region.HARD_REGION_DTYPE`,
+what the node publishes with `codecs.hard_regions_to_msg`.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from scipy import ndimage
 
-from area3d_msgs_py.codecs import HARD_REGION_DTYPE
 from area3d_msgs_py.errors import InputError
-from area3d_planner.fusion import FusedGrid
+from area3d_msgs_py.hard_region import HARD_REGION_DTYPE
+
+if TYPE_CHECKING:  # the report reads saved grids without the fusion kernels
+    from area3d_planner.fusion import FusedGrid
 
 # 26-connectivity: face, edge and corner neighbours belong to one region
 CONNECTIVITY = np.ones((3, 3, 3), bool)

@@ -2,9 +2,9 @@
 
 A real depth camera does not return the scene's exact depth: the camera adds the noise of a
 Kinect-class structured-light sensor (axial noise growing with range and incidence, lateral jitter
-and flying pixels at depth edges, dropouts at grazing angles; `area3d_perception.sensor_model`,
-the same model perception's `rgbd` confidence is derived from) before anything downstream sees it,
-and its images carry the read noise of an 8-bit sensor (each pixel and channel, each image of a
+and flying pixels at depth edges, dropouts at grazing angles; `sim_bridge.noise`, on the sensor
+description perception's `rgbd` confidence is derived from, `area3d_msgs_py.depth_sensor`) before
+anything downstream sees it, and its images carry the read noise of an 8-bit sensor (each pixel and channel, each image of a
 stereo pair on its own).
 """
 
@@ -14,9 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from area3d_perception.sensor_model import RgbdSensorParams, add_depth_noise
-from sim_bridge.render import HFOV_DEG, MAX_RANGE, RgbdRenderer
-from sim_bridge.scenes import Scene
+from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE
+from area3d_msgs_py.depth_sensor import RgbdSensorParams
+from sim_bridge.noise import add_depth_noise
+from sim_bridge.render import RgbdRenderer
+from sim_bridge.scene import Scene
 from sim_bridge.validity import CLEARANCE, check_pose
 
 # optical frame in camera_link (x forward, y left, z up): REP 103 rpy (-pi/2, 0, -pi/2).
@@ -74,8 +76,8 @@ class SimCamera:
         scene: Scene,
         width: int = 640,
         height: int = 480,
-        hfov_deg: float = HFOV_DEG,
-        max_range: float = MAX_RANGE,
+        hfov_deg: float = PAPER_HFOV_DEG,
+        max_range: float = PAPER_MAX_RANGE,
         clearance: float = CLEARANCE,
         depth_noise: bool = False,
         seed: int = 0,

@@ -7,21 +7,13 @@ import os
 import mujoco
 import numpy as np
 
-from sim_bridge.scenes import Scene
+from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE, intrinsics
+from sim_bridge.scene import Scene
 
-# Paper, Sec. 4 (setting): camera FOV 90 degrees, max range 5 m.
-HFOV_DEG = 90.0
-MAX_RANGE = 5.0
 ZNEAR = 0.01  # metres, near clipping plane: closer surfaces are not seen
 CAMERA_NAME = "area3d_optical"
 # MuJoCo cameras look along -z with y up; the optical frame looks along +z with y down.
 MJ_FROM_OPTICAL = np.diag([1.0, -1.0, -1.0])
-
-
-def intrinsics(width: int, height: int, hfov_deg: float) -> np.ndarray:
-    """(3, 3) K with fx = fy = (W/2)/tan(hfov/2), cx = W/2, cy = H/2 (pixel centres at +0.5)."""
-    f = (width / 2) / np.tan(np.deg2rad(hfov_deg) / 2)
-    return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
 
 
 def _gl_context(width: int, height: int):
@@ -67,8 +59,8 @@ class RgbdRenderer:
         scene: Scene,
         width: int = 640,
         height: int = 480,
-        hfov_deg: float = HFOV_DEG,
-        max_range: float = MAX_RANGE,
+        hfov_deg: float = PAPER_HFOV_DEG,
+        max_range: float = PAPER_MAX_RANGE,
         camera_headlight: bool = False,
     ) -> None:
         if not (isinstance(width, int | np.integer) and width > 0):

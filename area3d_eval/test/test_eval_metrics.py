@@ -121,29 +121,58 @@ def _image_pairs():
     return pairs
 
 
+def reference_ssim_map(a: np.ndarray, b: np.ndarray, data_range: float = 255.0) -> np.ndarray:
+    """SSIM of Wang et al. 2004 per pixel as the paper writes it, in float64: 11 x 11 Gaussian
+    window of sigma 1.5 (OpenCV's), mirrored at the border, population (co)variances, K1 0.01,
+    K2 0.03; averaged over channels."""
+    fa, fb = np.atleast_3d(a).astype(np.float64), np.atleast_3d(b).astype(np.float64)
+
+    def blur(x):
+        return np.stack(
+            [
+                cv2.GaussianBlur(x[..., c], (11, 11), 1.5, borderType=cv2.BORDER_REFLECT)
+                for c in range(x.shape[-1])
+            ],
+            axis=-1,
+        )
+
+    mu_a, mu_b = blur(fa), blur(fb)
+    var_a, var_b = blur(fa * fa) - mu_a**2, blur(fb * fb) - mu_b**2
+    cov = blur(fa * fb) - mu_a * mu_b
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / (
+        (mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2)
+    )
+    return s.mean(axis=-1)
+
+
 @pytest.mark.parametrize(("a", "b"), _image_pairs())
-def test_psnr_and_ssim_agree_with_scikit_image(a, b):
-    """scikit-image (a dev-only dependency) as the independent reference: its PSNR, and its SSIM
-    with the settings of Wang et al. 2004 (Gaussian window sigma 1.5, population covariance),
-    mean over the pixels at least a window radius from the border and over channels."""
-    metrics = pytest.importorskip("skimage.metrics", reason="scikit-image: pip install -e .[dev]")
-    channel_axis = -1 if a.ndim == 3 else None
+def test_psnr_and_ssim_follow_their_definitions(a, b):
+    """PSNR is 10 log10(255^2 / MSE) over all pixels or a mask's; SSIM is the Wang et al. 2004
+    map written out above, its mean taken over the pixels at least a window radius from the
+    border, or over a mask's."""
     mask = np.zeros(a.shape[:2], bool)
     mask[10:30, 5:40] = True  # a region's pixels: the mean of the same map over them
-    with np.errstate(divide="ignore"):  # identical images: inf, as `psnr` gives
-        reference = metrics.peak_signal_noise_ratio(a, b, data_range=255)
-        masked_reference = metrics.peak_signal_noise_ratio(a[mask], b[mask], data_range=255)
-    assert psnr(a, b) == pytest.approx(reference, rel=1e-9)
-    _, full = metrics.structural_similarity(
-        a, b, data_range=255, channel_axis=channel_axis, gaussian_weights=True, sigma=1.5,
-        use_sample_covariance=False, full=True,
-    )  # fmt: skip
-    full = full.mean(axis=-1) if a.ndim == 3 else full
-    r = 5  # the window radius: scikit-image crops it, as `ssim` does
-    assert ssim(a, b) == pytest.approx(full[r:-r, r:-r].mean(), abs=1e-4)
-    np.testing.assert_allclose(ssim_map(a, b)[r:-r, r:-r], full[r:-r, r:-r], atol=1e-3)
-    assert ssim(a, b, mask) == pytest.approx(full[mask].mean(), abs=1e-4)
-    assert psnr(a, b, mask) == pytest.approx(masked_reference, rel=1e-9)
+    error = (a.astype(np.float64) - b) ** 2
+    for m, mse in ((None, error.mean()), (mask, error[mask].mean())):
+        expected = math.inf if mse == 0 else 10 * math.log10(255**2 / mse)
+        assert psnr(a, b, m) == pytest.approx(expected, rel=1e-9)
+    full = reference_ssim_map(a, b)
+    r = 5  # the window radius
+    np.testing.assert_allclose(ssim_map(a, b), full, atol=1e-9)
+    assert ssim(a, b) == pytest.approx(full[r:-r, r:-r].mean(), abs=1e-9)
+    assert ssim(a, b, mask) == pytest.approx(full[mask].mean(), abs=1e-9)
+
+
+def test_image_metrics_refuse_what_they_cannot_measure():
+    with pytest.raises(InputError, match="^b: "):
+        ssim(np.zeros((16, 16, 3), np.uint8), np.zeros((16, 17, 3), np.uint8))
+    with pytest.raises(InputError, match="^a: .*11 x 11"):
+        ssim(np.zeros((8, 16), np.uint8), np.zeros((8, 16), np.uint8))
+    with pytest.raises(InputError, match="^mask: "):
+        psnr(np.zeros((16, 16)), np.ones((16, 16)), np.ones((4, 4), bool))
+    assert math.isnan(psnr(np.zeros((16, 16)), np.ones((16, 16)), np.zeros((16, 16), bool)))
+    assert math.isnan(ssim(np.zeros((16, 16)), np.ones((16, 16)), np.zeros((16, 16), bool)))
 
 
 def test_ssim_decreases_as_noise_grows():

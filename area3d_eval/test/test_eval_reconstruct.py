@@ -7,7 +7,8 @@ import trimesh
 from area3d_eval.metrics import surface_metrics
 from area3d_eval.reconstruct import TsdfFusion, TsdfParams, subsample, tsdf_reconstruct
 from area3d_eval.render import render_mesh
-from area3d_eval.synthetic import hemisphere_views, intrinsics
+from area3d_eval.synthetic import hemisphere_views
+from area3d_msgs_py.camera import intrinsics
 from area3d_msgs_py.errors import InputError
 
 W, H = 256, 192

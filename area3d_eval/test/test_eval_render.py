@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from area3d_eval.render import render_mesh
-from area3d_eval.synthetic import intrinsics
+from area3d_msgs_py.camera import intrinsics
 from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
 

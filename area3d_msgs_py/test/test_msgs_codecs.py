@@ -8,6 +8,7 @@ from hypothesis.extra import numpy as hnp
 
 from area3d_msgs_py import codecs, msgs
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.rotations import quaternion_to_rotation
 
 
 def wire(msg):
@@ -163,7 +164,7 @@ unit_quaternions = (
 @given(q=unit_quaternions, t=hnp.arrays(np.float64, 3, elements=st.floats(-100, 100)))
 def test_pose_round_trips_and_rotation_is_orthonormal(q, t):
     T = np.eye(4)
-    T[:3, :3] = codecs.quaternion_to_rotation(q)
+    T[:3, :3] = quaternion_to_rotation(q)
     T[:3, 3] = t
     pose = wire(codecs.matrix_to_pose(T))
     back = codecs.pose_to_matrix(pose)
@@ -332,7 +333,7 @@ def test_unknown_message_type_is_rejected():
 # ---- TF, the next-best-view service and hard regions -----------------------------------------
 def rigid(q, t):
     T = np.eye(4)
-    T[:3, :3] = codecs.quaternion_to_rotation(q)
+    T[:3, :3] = quaternion_to_rotation(q)
     T[:3, 3] = t
     return T
 

@@ -13,7 +13,8 @@ from area3d_msgs_py.pose_source import (
     PoseSourceConfig,
     tf_fields,
 )
-from area3d_msgs_py.transforms import LookupFailure, matrix, rotation_to_quaternion
+from area3d_msgs_py.rotations import matrix, rotation_to_quaternion
+from area3d_msgs_py.transforms import LookupFailure
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S

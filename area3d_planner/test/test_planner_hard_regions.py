@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from area3d_msgs_py import codecs
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.hard_region import HARD_REGION_DTYPE
 from area3d_perception.grid import GridSpec
 from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.fusion import FusedGrid
@@ -31,7 +31,7 @@ def test_two_separate_clusters_are_two_regions_with_their_centroids_extents_and_
     directions = np.array([3, 4, 3, 3, 5, 3, 6, 3])
     uncertainty = np.array([0.2] * 6 + [0.5, 0.7])
     regions = hard_regions(ijk, LOWER, VOXEL, directions, uncertainty)
-    assert regions.dtype == codecs.HARD_REGION_DTYPE and len(regions) == 2
+    assert regions.dtype == HARD_REGION_DTYPE and len(regions) == 2
     big, small = regions
     assert big["voxel_count"] == 6 and small["voxel_count"] == 2
     # centroid: the mean of the voxel centres lower + (ijk + 0.5) voxel
@@ -61,7 +61,7 @@ def test_regions_of_equal_size_come_most_uncertain_first_and_none_give_an_empty_
     regions = hard_regions(ijk, np.zeros(3), 1.0, np.array([3, 3]), np.array([0.1, 0.9]))
     assert list(regions["mean_uncertainty"]) == pytest.approx([0.9, 0.1])
     empty = hard_regions(np.zeros((0, 3), int), np.zeros(3), 1.0, [], [])
-    assert empty.dtype == codecs.HARD_REGION_DTYPE and len(empty) == 0
+    assert empty.dtype == HARD_REGION_DTYPE and len(empty) == 0
 
 
 def test_bad_inputs_name_the_field():

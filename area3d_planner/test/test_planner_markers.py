@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from visualization_msgs.msg import Marker
 
+from area3d_msgs_py.camera import intrinsics
 from area3d_msgs_py.errors import InputError
 from area3d_planner.markers import (
     FIRST_COLOUR,
@@ -20,7 +21,6 @@ from area3d_planner.markers import (
     order_colours,
     view_markers,
 )
-from sim_bridge.render import intrinsics
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:

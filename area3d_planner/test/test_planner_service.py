@@ -8,7 +8,7 @@ from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs
 from area3d_msgs_py.camera_pose import look_at
-from area3d_msgs_py.transforms import invert, matrix
+from area3d_msgs_py.rotations import invert, matrix
 from area3d_planner.node import PlannerNode
 
 S = 1_000_000_000

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 from area3d_msgs_py.errors import InputError
-from area3d_semantics.parser import UnusableAnswer, parse_answer, parse_location
+from area3d_semantics.answer_fields import parse_location
+from area3d_semantics.parser import UnusableAnswer, parse_answer
 from area3d_semantics.prompt import PROMPT_VERSION, prompt_text
 from area3d_semantics.region import COLUMNS, PRIORITIES, ROWS, SIZES, TYPES
 from area3d_semantics.weights import SemanticParams

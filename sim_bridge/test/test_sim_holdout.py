@@ -8,7 +8,8 @@ import pytest
 from area3d_perception.backproject import backproject
 from sim_bridge.holdout_scenes import write_holdout_scene
 from sim_bridge.render import RgbdRenderer
-from sim_bridge.scenes import SCENES_DIR, load_scene, scene_layout
+from sim_bridge.scene_layout import scene_layout
+from sim_bridge.scenes import SCENES_DIR, load_scene
 from sim_bridge.validity import check_pose
 
 NEW_KINDS = [(kind, seed) for kind in ("shelf_wall", "thin_objects") for seed in (0, 1, 2)]
@@ -368,7 +369,7 @@ def test_layout_counts_a_backdrop_once_and_a_large_or_walled_in_footprint_stays_
 def test_bundled_rooms_derive_their_sidecar_room_from_geometry(name):
     import mujoco
 
-    from sim_bridge.scenes import geometry_boxes
+    from sim_bridge.scene_layout import geometry_boxes
 
     bundled = load_scene(name)  # from its sidecar
     model = mujoco.MjModel.from_xml_path(str(bundled.mjcf_path))

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from area3d_perception.sensor_model import RgbdSensorParams, axial_sigma
+from area3d_msgs_py.depth_sensor import RgbdSensorParams, axial_sigma
 from sim_bridge.camera import SimCamera, link_from_optical, right_from_left
 from sim_bridge.node import READER_TOPICS
 from sim_bridge.render import RgbdRenderer

@@ -4,8 +4,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from area3d_msgs_py.camera import intrinsics
 from area3d_msgs_py.camera_pose import look_at
-from sim_bridge.render import RgbdRenderer, intrinsics
+from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import load_scene
 
 
