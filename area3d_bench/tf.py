@@ -24,9 +24,8 @@ from area3d_msgs_py.transforms import (
     PoseStream,
     StampedTransform,
     TransformBuffer,
-    matrix,
-    rotation_to_quaternion,
 )
+from area3d_msgs_py.rotations import matrix, rotation_to_quaternion
 
 TARGET_US = 1000.0  # pose lookup and interpolation per frame (issue: < 1 ms)
 CAMERA_HZ = 30.0

@@ -99,13 +99,3 @@ def rgbd_confidence(
         f32(1.0 - params.edge_confidence),
     )
     return conf
-
-
-def __getattr__(name: str):
-    # The camera's noise is the simulated camera's (sim_bridge.noise); perception's benchmark
-    # still reads it from here until it moves beside the other benchmarks.
-    if name == "add_depth_noise":
-        from sim_bridge.noise import add_depth_noise
-
-        return add_depth_noise
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -33,7 +33,7 @@ from area3d_msgs_py.parameters import (
     report_unknown_parameters,
 )
 from area3d_msgs_py.status import StatusPublisher
-from area3d_perception.sensor_model import RgbdSensorParams
+from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from sim_bridge.camera import (
     R_LINK_OPTICAL,
     STEREO_BASELINE,

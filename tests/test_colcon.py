@@ -35,6 +35,7 @@ ROSDEP_KEYS: dict[str, str | None] = {
     "scipy": "python3-scipy",
     "yaml": "python3-yaml",
     "cv2": "python3-opencv",
+    "skimage": "python3-skimage",
     "matplotlib": "python3-matplotlib",
     "PIL": "python3-pil",
     "requests": "python3-requests",
