@@ -18,6 +18,7 @@ from rich.console import Console
 from rich.table import Table
 
 from area3d_msgs_py import codecs, msgs
+from area3d_msgs_py.rotations import matrix, rotation_to_quaternion
 from area3d_msgs_py.transforms import (
     NS_PER_S,
     ODOMETRY_FIELDS,
@@ -25,7 +26,6 @@ from area3d_msgs_py.transforms import (
     StampedTransform,
     TransformBuffer,
 )
-from area3d_msgs_py.rotations import matrix, rotation_to_quaternion
 
 TARGET_US = 1000.0  # pose lookup and interpolation per frame (issue: < 1 ms)
 CAMERA_HZ = 30.0

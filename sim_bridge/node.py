@@ -21,6 +21,7 @@ import numpy as np
 from rclpy.node import Node
 
 from area3d_msgs_py import codecs, msgs, topics
+from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded
 from area3d_msgs_py.inputs import check_frame_id, check_stamp
@@ -33,7 +34,6 @@ from area3d_msgs_py.parameters import (
     report_unknown_parameters,
 )
 from area3d_msgs_py.status import StatusPublisher
-from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from sim_bridge.camera import (
     R_LINK_OPTICAL,
     STEREO_BASELINE,
