@@ -41,7 +41,7 @@ from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
-from area3d_perception.frame_sync import MAX_AGE_NS, HeldFrames, StampSync
+from area3d_msgs_py.frame_sync import MAX_AGE_NS, HeldFrames, StampSync
 from area3d_perception.sensor_model import RgbdSensorParams
 from area3d_perception.stereo import StereoParams
 

@@ -52,7 +52,7 @@ from area3d_msgs_py.parameters import (
 from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.status import StatusPublisher
-from area3d_perception.frame_sync import CameraInfoCache, HeldFrames, StampSync
+from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync
 from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.fusion_worker import FusionWorker
 from area3d_planner.hard_regions import cloud_hard_regions

@@ -3,7 +3,7 @@
 import pytest
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.frame_sync import CameraInfoCache, HeldFrames, StampSync
+from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync
 
 S = 1_000_000_000
 
