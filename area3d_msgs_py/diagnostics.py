@@ -8,7 +8,8 @@ follows these rules, checked in this order (README: "Diagnostics"):
   rose since the previous period), or one of its worker threads died (a `workers.<name>` fact
   is false).
 - WARN: frames were dropped (a count whose key contains `dropped` rose) or inputs were rejected
-  (`rejected.total` rose) since the previous period.
+  (`rejected.total` rose) since the previous period, or the node states a standing warning (each
+  line of its `warnings` list: the pairing rate below its threshold, say).
 - OK: otherwise.
 
 "Since the previous period" compares with the status of the last heartbeat (once a second), so
@@ -95,8 +96,10 @@ def assess(status: Mapping[str, Any], baseline: Mapping[str, Any] | None = None)
     warnings = [f"{n} dropped ({key})" for key, n in dropped.items()]
     if rejected:
         warnings.append(f"{rejected} inputs rejected")
-    if warnings:
-        return Assessment(WARN, ", ".join(warnings) + " in the last period")
+    standing = [str(w) for w in status.get("warnings") or ()]
+    if warnings or standing:
+        recent = [", ".join(warnings) + " in the last period"] if warnings else []
+        return Assessment(WARN, "; ".join(recent + standing))
     return Assessment(OK, "OK")
 
 

@@ -1,7 +1,9 @@
-"""Exact-stamp pairing of the messages that make up one captured frame (color, depth, pose).
+"""Stamp pairing of the messages that make up one captured frame (color, depth, pose).
 
 Every message of a frame carries the capture stamp of its source frame, so a frame is complete when
-each stream has delivered a message with the same `stamp_ns`. Entries wait in one small dict per
+each stream has delivered a message with the same `stamp_ns`, or (`slop_ns` > 0, the approximate
+time policy of `message_filters`) with a stamp within `slop_ns` of the reference stream's (the
+first key): drivers that stamp colour and depth a few milliseconds apart. Entries wait in one small dict per
 stream; when a frame completes, the parts still waiting with stamps more than `max_age_ns` before
 it are dropped and reported, so a pose whose images never arrive (or the reverse) cannot pile up.
 Age is measured on the stamps, not on the wall clock, so recorded episodes replay the same way at
@@ -19,10 +21,11 @@ restart) pairs like any other: only frames completing after its parts arrived ca
 
 from __future__ import annotations
 
+import bisect
 from collections import OrderedDict, deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 from area3d_msgs_py.errors import InputError
 
@@ -30,6 +33,15 @@ from area3d_msgs_py.errors import InputError
 MAX_AGE_NS = 5_000_000_000
 # Hard cap on waiting entries per stream, whatever their age (a stuck stream must not grow memory).
 MAX_PENDING = 64
+# The pairing rate is measured over this many frames of the reference stream.
+RATE_WINDOW = 100
+
+
+class Paired(NamedTuple):
+    """A complete frame: the reference stream's stamp and {key: value} of every stream."""
+
+    stamp_ns: int
+    parts: dict
 
 
 @dataclass(frozen=True)
@@ -42,7 +54,8 @@ class Dropped:
 
 
 class StampSync:
-    """Pairs messages of several streams by identical stamp.
+    """Pairs messages of several streams by stamp: identical, or within `slop_ns` of the
+    reference stream's (the first key) when `slop_ns` > 0, the closest part of each stream.
 
     keys: the stream names that make a complete frame, e.g. ("color", "depth", "pose").
     max_pending: the cap on waiting parts per stream; `pending_caps` overrides it per stream (a
@@ -55,11 +68,14 @@ class StampSync:
         max_age_ns: int = MAX_AGE_NS,
         max_pending: int = MAX_PENDING,
         pending_caps: dict[str, int] | None = None,
+        slop_ns: int = 0,
     ) -> None:
         if len(keys) == 0 or len(set(keys)) != len(keys):
             raise InputError("keys", list(keys), "one or more distinct stream names")
         if max_age_ns < 0:
             raise InputError("max_age_ns", max_age_ns, "a duration >= 0 nanoseconds")
+        if slop_ns < 0:
+            raise InputError("slop_ns", slop_ns, "a duration >= 0 nanoseconds")
         if max_pending < 1:
             raise InputError("max_pending", max_pending, "an integer >= 1")
         self.keys = tuple(keys)
@@ -68,49 +84,109 @@ class StampSync:
         self._caps = {k: int((pending_caps or {}).get(k, max_pending)) for k in self.keys}
         if min(self._caps.values()) < 1:
             raise InputError("pending_caps", pending_caps, "integers >= 1")
+        self.slop_ns = int(slop_ns)
         self._pending: dict[str, dict[int, Any]] = {k: {} for k in self.keys}
+        self._sorted: dict[str, list[int]] = {k: [] for k in self.keys}  # the stamps, ascending
         self._dropped: list[Dropped] = []
+        self.frames_paired = 0  # complete frames handed out
+        self.parts_dropped = 0  # parts discarded without partners (every stream)
+        # the reference stream's last RATE_WINDOW parts: True paired, False dropped
+        self._outcomes: deque[bool] = deque(maxlen=RATE_WINDOW)
 
     def add(self, key: str, stamp_ns: int, value: Any) -> dict[str, Any] | None:
-        """Store one part; returns {key: value} for every stream once the frame is complete.
+        """Store one part; returns {key: value} for every stream once the frame is complete
+        (`add_part` also says the frame's stamp)."""
+        paired = self.add_part(key, stamp_ns, value)
+        return None if paired is None else paired.parts
 
-        A repeated (key, stamp) replaces the earlier part. Completing a frame removes it.
+    def add_part(self, key: str, stamp_ns: int, value: Any) -> Paired | None:
+        """Store one part; returns the frame (the reference stream's stamp and {key: value} for
+        every stream) once it is complete.
+
+        A repeated (key, stamp) replaces the earlier part. Completing a frame removes its parts.
         """
         if key not in self._pending:
             raise InputError("key", key, f"one of {list(self.keys)}")
         stamp_ns = int(stamp_ns)
+        if stamp_ns not in self._pending[key]:
+            bisect.insort(self._sorted[key], stamp_ns)
         self._pending[key][stamp_ns] = value
-        complete = None
-        if all(stamp_ns in parts for parts in self._pending.values()):
-            complete = {k: self._pending[k].pop(stamp_ns) for k in self.keys}
-            self._expire(stamp_ns - self.max_age_ns)
+        complete = self._complete(key, stamp_ns)
+        if complete is not None:
+            self.frames_paired += 1
+            self._outcomes.append(True)
+            self._expire(complete.stamp_ns - self.max_age_ns)
         self._cap()
         return complete
 
+    def _closest(self, key: str, stamp_ns: int) -> int | None:
+        """The stamp of `key`'s waiting part closest to `stamp_ns`, within the slop; None if
+        there is none."""
+        if self.slop_ns == 0:
+            return stamp_ns if stamp_ns in self._pending[key] else None
+        stamps = self._sorted[key]
+        i = bisect.bisect_left(stamps, stamp_ns)
+        near = [s for s in stamps[max(0, i - 1) : i + 1] if abs(s - stamp_ns) <= self.slop_ns]
+        return min(near, key=lambda s: abs(s - stamp_ns)) if near else None
+
+    def _complete(self, key: str, stamp_ns: int) -> Paired | None:
+        """The frame the part (key, stamp_ns) completes, its parts taken out; None if none."""
+        ref = self.keys[0]
+        if key == ref:
+            references = [stamp_ns]
+        else:  # reference parts within the slop, closest first
+            stamps = self._sorted[ref]
+            lo = bisect.bisect_left(stamps, stamp_ns - self.slop_ns)
+            hi = bisect.bisect_right(stamps, stamp_ns + self.slop_ns)
+            references = sorted(stamps[lo:hi], key=lambda s: abs(s - stamp_ns))
+        for reference in references:
+            chosen = {ref: reference}
+            for k in self.keys[1:]:
+                s = stamp_ns if k == key else self._closest(k, reference)
+                if s is None or abs(s - reference) > self.slop_ns:
+                    break
+                chosen[k] = s
+            else:
+                return Paired(reference, {k: self._take(k, s) for k, s in chosen.items()})
+        return None
+
+    def _take(self, key: str, stamp_ns: int) -> Any:
+        self._sorted[key].remove(stamp_ns)
+        return self._pending[key].pop(stamp_ns)
+
+    def _drop(self, key: str, stamp_ns: int, reason: str) -> None:
+        self._take(key, stamp_ns)
+        self.parts_dropped += 1
+        if key == self.keys[0]:
+            self._outcomes.append(False)
+        self._dropped.append(Dropped(key, stamp_ns, reason))
+
     def _expire(self, horizon_ns: int) -> None:
-        for key, parts in self._pending.items():
-            for stamp in [s for s in parts if s < horizon_ns]:
-                del parts[stamp]
-                self._dropped.append(
-                    Dropped(
-                        key, stamp, f"no matching {self._missing(stamp, key)} within the age limit"
-                    )
-                )
+        for key in self.keys:
+            for stamp in [s for s in self._sorted[key] if s < horizon_ns]:
+                missing = self._missing(stamp, key)
+                self._drop(key, stamp, f"no matching {missing} within the age limit")
 
     def _cap(self) -> None:
-        for key, parts in self._pending.items():
-            while len(parts) > self._caps[key]:
-                stamp = min(parts)
-                del parts[stamp]
-                self._dropped.append(
-                    Dropped(key, stamp, f"more than {self._caps[key]} {key} parts waiting")
-                )
+        for key in self.keys:
+            while len(self._sorted[key]) > self._caps[key]:
+                stamp = self._sorted[key][0]
+                self._drop(key, stamp, f"more than {self._caps[key]} {key} parts waiting")
 
     def _missing(self, stamp_ns: int, key: str) -> str:
         return (
-            "/".join(k for k in self.keys if k != key and stamp_ns not in self._pending[k])
+            "/".join(
+                k for k in self.keys if k != key and self._closest(k, stamp_ns) is None
+            )
             or "part"
         )
+
+    def pairing_rate(self) -> float | None:
+        """The share of the reference stream's last parts (up to RATE_WINDOW) that paired into a
+        frame; None before any paired or was dropped. Parts still waiting do not count."""
+        if not self._outcomes:
+            return None
+        return sum(self._outcomes) / len(self._outcomes)
 
     def pop_dropped(self) -> list[Dropped]:
         """The parts discarded since the last call (for logging), oldest first."""
@@ -120,13 +196,14 @@ class StampSync:
     def clear(self) -> int:
         """Forget every part waiting for partners; how many there were."""
         parts = sum(len(p) for p in self._pending.values())
-        for p in self._pending.values():
-            p.clear()
+        for key in self.keys:
+            self._pending[key].clear()
+            self._sorted[key].clear()
         return parts
 
     def pending(self, key: str) -> list[int]:
         """Stamps of the parts of stream `key` still waiting for partners, ascending."""
-        return sorted(self._pending[key])
+        return list(self._sorted[key])
 
 
 class HeldFrames:
@@ -177,3 +254,16 @@ class CameraInfoCache:
 
     def get(self, stamp_ns: int) -> Any:
         return self._by_stamp.get(int(stamp_ns), self.latest)
+
+
+def pairing_warning(sync: StampSync, min_rate: float) -> str | None:
+    """The node's standing warning when the share of frames paired fell below `min_rate` (its
+    status `warnings`, WARN on /diagnostics); None while it holds or nothing was paired yet."""
+    rate = sync.pairing_rate()
+    if rate is None or rate >= min_rate:
+        return None
+    return (
+        f"pairing rate {rate:.2f} below min_pairing_rate {min_rate:g}: parts of frames are lost "
+        "on the way (best effort, a reader queue too short) or stamped further apart than "
+        "sync_slop_s"
+    )

@@ -132,6 +132,22 @@ CAMERA_QOS_PARAM = Param(
     "(best effort: a driver that publishes with the sensor-data profile)",
     choices=CAMERA_QOS_CHOICES,
 )
+# Pairing of a frame's parts (`area3d_msgs_py.frame_sync.StampSync`).
+SYNC_SLOP_PARAM = Param(
+    "sync_slop_s",
+    0.0,
+    "parts of one frame pair when their stamps lie within this of the reference part's (colour "
+    "in perception, depth in the planner); 0 = identical stamps only (our camera stamps every "
+    "part of a frame alike; a driver that stamps colour and depth apart: 0.01-0.02), seconds",
+    range=(0.0, 1.0),
+)
+MIN_PAIRING_RATE_PARAM = Param(
+    "min_pairing_rate",
+    0.8,
+    "below this share of frames paired (of the last 100) /diagnostics warns: parts are lost "
+    "on the way (best effort) or stamped too far apart (sync_slop_s)",
+    range=(0.0, 1.0),
+)
 
 
 def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:

@@ -2,9 +2,12 @@
 
 Subscribes the camera's color, depth and camera info (with the `stereo` backend also the right
 image and right camera info of a rectified pair) with the QoS `camera_qos` chooses, pairs them by
-stamp (`StampSync`), takes each frame's camera pose from its `pose_source` (the pose topic, paired
-by stamp; or TF or odometry, interpolated: `area3d_msgs_py/pose_inputs.py`), runs `FrameEstimator`
-and publishes depth and confidence with the source frame's stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
+stamp (`StampSync`, within `sync_slop_s`), takes each frame's camera pose from its `pose_source`
+(the pose topic, paired by stamp; or TF or odometry, interpolated:
+`area3d_msgs_py/pose_inputs.py`), keeps the keyframes of a streaming camera (`KeyframeSelector`:
+moved, turned or time passed; the others are counted as skipped), runs `FrameEstimator` on them on
+a thread of its own (`FrameWorker`, a bounded backlog) and publishes depth and confidence with the
+source frame's stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
@@ -27,10 +30,14 @@ from area3d_msgs_py.inputs import (
     decode_camera_info,
     decode_image,
 )
-from area3d_msgs_py.lifecycle import exit_process, run_node
+from area3d_msgs_py.frame_sync import MAX_AGE_NS, HeldFrames, StampSync, pairing_warning
+from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
+from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
     MAX_STAMP_AHEAD_PARAM,
+    MIN_PAIRING_RATE_PARAM,
+    SYNC_SLOP_PARAM,
     WORLD_FRAME_PARAM,
     Param,
     declare_parameters,
@@ -39,15 +46,20 @@ from area3d_msgs_py.parameters import (
 )
 from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
+from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
 from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
-from area3d_msgs_py.frame_sync import MAX_AGE_NS, HeldFrames, StampSync
 from area3d_perception.sensor_model import RgbdSensorParams
 from area3d_perception.stereo import StereoParams
 
 FRAME = "frame"  # rejections of a complete frame whose parts do not fit together
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
 MAX_FRAMES_WITHOUT_INFO = 8
+# Keyframes waiting for the estimator at most (a 848x480 frame: 2.4 MB); beyond it a keyframe is
+# dropped and counted (frames_dropped_backlog): the camera outruns the backend for good.
+ESTIMATOR_BACKLOG = 16
+# On shutdown the frame in flight gets this long to finish.
+CLOSE_WAIT_S = 1.0
 
 PARAMS = (
     Param("backend", "rgbd", "depth + confidence estimator", choices=BACKENDS),
@@ -72,6 +84,9 @@ PARAMS = (
         "parts of a frame wait this long for their partners, seconds",
         range=(0.0, 3600.0),
     ),
+    SYNC_SLOP_PARAM,
+    MIN_PAIRING_RATE_PARAM,
+    *params_of(KeyframeConfig),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
     CAMERA_QOS_PARAM,
@@ -100,7 +115,16 @@ class PerceptionNode(Node):
         keys += ("pose",) if pose_topic else ()
         if self.stereo:
             keys += ("right",)
-        self.sync = StampSync(keys, max_age_ns=int(p["sync_max_age_s"] * 1e9))
+        self.sync = StampSync(
+            keys,
+            max_age_ns=int(p["sync_max_age_s"] * 1e9),
+            slop_ns=int(round(p["sync_slop_s"] * 1e9)),
+        )
+        self.min_pairing_rate = p["min_pairing_rate"]
+        self.keyframes = KeyframeSelector(
+            KeyframeConfig(**{f.name: p[f.name] for f in dataclasses.fields(KeyframeConfig)})
+        )
+        self.gate = PublishGate()  # the estimator's worker publishes only while the node runs
         self.camera: tuple[Any, int, int] | None = None
         self.right_camera: tuple[float, int, int] | None = None  # (baseline m, width, height)
         self.waiting = HeldFrames(MAX_FRAMES_WITHOUT_INFO)
@@ -116,6 +140,15 @@ class PerceptionNode(Node):
         self.backend_error: str | None = None
         self.frames_dropped_backend = 0
 
+        self.worker = FrameWorker(
+            self._estimate,
+            self._on_estimated,
+            lambda stamp, exc: None,  # `_estimate` handles its own failures
+            "perception-estimator",
+            backlog=ESTIMATOR_BACKLOG,
+            publish_period_s=0.0,
+            now_ns=self._now_ns,
+        )
         self.pub_depth = self._publisher(topics.PERCEPTION_DEPTH)
         self.pub_conf = self._publisher(topics.PERCEPTION_CONFIDENCE)
         self.poses = None
@@ -149,10 +182,28 @@ class PerceptionNode(Node):
     def _publisher(self, topic: topics.Topic) -> Any:
         return self.create_publisher(topic.msg_type, topic.name, topic.qos())
 
+    def stop(self) -> None:
+        """Before the executor stops: no more publishing from the estimator's worker."""
+        self.gate.close()
+        self.worker.stop(0.0)
+
+    def destroy_node(self) -> None:
+        self.gate.close()
+        self.worker.stop(CLOSE_WAIT_S)
+        super().destroy_node()
+
     def _status(self) -> dict:
+        warning = pairing_warning(self.sync, self.min_pairing_rate)
         return {
             "node": "perception",
             "frames_published": self.frames_published,
+            **self.keyframes.status(),
+            "frames_paired": self.sync.frames_paired,
+            "pairing_rate": self.sync.pairing_rate(),
+            "frames_waiting_for_estimator": self.worker.waiting,
+            "frames_dropped_backlog": self.worker.dropped,
+            "workers": {"estimator": self.worker.alive or self.worker.stopping},
+            "warnings": [warning] if warning else [],
             "last_frame_age_s": None
             if self.last_frame_age_s is None
             else round(self.last_frame_age_s, 4),
@@ -208,14 +259,16 @@ class PerceptionNode(Node):
     def _add(self, key: str, msg: Any, decode) -> None:
         stamp = check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
         value = (decode(msg), check_frame_id(msg))
-        parts = self.sync.add(key, stamp, value)
+        paired = self.sync.add_part(key, stamp, value)
         for dropped in self.sync.pop_dropped():
             self.dropped += 1
             self.get_logger().warning(
-                f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}"
+                f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}",
+                throttle_duration_sec=1.0,
             )
-        if parts is None:
+        if paired is None:
             return
+        stamp, parts = paired
         if self.poses is not None:  # the pose at the frame's stamp, now or once it has arrived
             self.poses.submit(stamp, parts["color"][1], parts)
             return
@@ -225,6 +278,9 @@ class PerceptionNode(Node):
         self._complete(stamp, {**parts, "pose": (T_world_cam, self.world_frame)})
 
     def _complete(self, stamp: int, parts: dict) -> None:
+        if not self.keyframes.offer(stamp, parts["pose"][0]):
+            self.status.changed()
+            return  # the camera has not moved, turned or waited enough: skipped, counted
         if not self._ready():
             missing = topics.CAMERA_INFO if self.camera is None else topics.RIGHT_CAMERA_INFO
             warning = self.waiting.hold(stamp, parts, missing.name)
@@ -233,9 +289,28 @@ class PerceptionNode(Node):
             return
         self._process(stamp, parts)
 
-    # processing -----------------------------------------------------------------------------
     def _process(self, stamp: int, parts: dict) -> None:
-        K, width, height = self.camera
+        """Hand a keyframe to the estimator's worker with the camera it was taken with; one that
+        finds the backlog full is dropped, logged and counted (`frames_dropped_backlog`)."""
+        if not self.worker.submit(stamp, parts, (self.camera, self.right_camera)):
+            self.get_logger().warning(
+                f"frame at stamp {stamp} dropped: {self.worker.backlog} frames wait for the "
+                f"{self.estimator.backend} backend already (the camera outruns it)",
+                throttle_duration_sec=1.0,
+            )
+            self.status.changed()
+
+    def _on_estimated(self, stamp: int, published: bool, publish: bool) -> bool:
+        with self.gate as running:
+            if running:
+                self.status.changed()
+            return running
+
+    # processing -----------------------------------------------------------------------------
+    def _estimate(self, stamp: int, parts: dict, cameras: tuple) -> bool:
+        """The worker's step: depth and confidence of one keyframe, published; False when it
+        was rejected or the backend failed (said, counted)."""
+        (K, width, height), right_camera = cameras
         rgb, color_frame = parts["color"]
         depth, depth_frame = parts["depth"] if "depth" in parts else (None, None)
         T_world_cam, _ = parts["pose"]
@@ -251,7 +326,7 @@ class PerceptionNode(Node):
                 )
             check_frame(rgb, depth, (width, height))
             if self.stereo:
-                baseline, right_width, right_height = self.right_camera
+                baseline, right_width, right_height = right_camera
                 if (right_width, right_height) != (width, height):
                     raise InputError(
                         "right camera_info",
@@ -262,8 +337,10 @@ class PerceptionNode(Node):
                 rgb, depth, K, T_world_cam, right=right, baseline=baseline
             )
         except InputError as exc:
-            reject(self, self.rejections, f"{FRAME} at stamp {stamp}", exc, topic=FRAME)
-            return
+            with self.gate as running:
+                if running:
+                    reject(self, self.rejections, f"{FRAME} at stamp {stamp}", exc, topic=FRAME)
+            return False
         except Exception as exc:  # the backend failed on a good frame: dropped, and said so
             self.backend_error = f"{exc.__class__.__name__}: {exc}"
             self.frames_dropped_backend += 1
@@ -271,18 +348,20 @@ class PerceptionNode(Node):
                 f"frame at stamp {stamp}: {self.estimator.backend} backend failed, frame "
                 f"dropped:\n{traceback.format_exc()}"
             )
-            self.status.changed()
-            return
+            return False
         self.backend_error = None
         for note in result.notes:
             self.get_logger().warning(f"frame at stamp {stamp}: {note}")
-        self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
-        self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
+        with self.gate as running:
+            if not running:
+                return False
+            self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
+            self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
         self.frames_published += 1
         # how old the frame was when its outputs went out, by this node's clock (the camera's
         # stamp is its capture time; recorded or simulated stamps make this meaningless)
-        self.last_frame_age_s = (self.get_clock().now().nanoseconds - stamp) / 1e9
-        self.status.changed()
+        self.last_frame_age_s = (self._now_ns() - stamp) / 1e9
+        return True
 
 
 def estimator_from_parameters(p: dict) -> FrameEstimator:
@@ -317,6 +396,7 @@ def main(args: Sequence[str] | None = None) -> int:
         "perception",
         args,
         startup_errors=(InputError, FileNotFoundError, ImportError, RuntimeError),
+        on_stop=lambda node: node.stop(),
     )
 
 

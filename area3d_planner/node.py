@@ -51,10 +51,10 @@ from area3d_msgs_py.parameters import (
 )
 from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
+from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
 from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync
 from area3d_planner.cloud import grid_to_cloud
-from area3d_planner.fusion_worker import FusionWorker
 from area3d_planner.hard_regions import cloud_hard_regions
 from area3d_planner.markers import hard_region_markers, view_markers
 from area3d_planner.server import NextBestViewServer, Plan, PlannerConfig, PlanRequest
@@ -187,11 +187,12 @@ class PlannerNode(Node):
         self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
         # whole frames are fused in arrival order by a worker thread, off the executor
-        self.fusion = FusionWorker(
+        self.fusion = FrameWorker(
             self._fuse_frame,
             self._on_fused,
             self._on_fusion_failed,
-            grid_period_s=p["grid_period_s"],
+            "planner-fusion",
+            publish_period_s=p["grid_period_s"],
             now_ns=self._now_ns,
         )
 
@@ -274,8 +275,8 @@ class PlannerNode(Node):
                 key: None if value is None else round(value, 4)
                 for key, value in (
                     ("last_paired_age_s", self.fusion.last_paired_age_s),
-                    ("last_fused_age_s", self.fusion.last_fused_age_s),
-                    ("last_fusion_s", self.fusion.last_fusion_s),
+                    ("last_fused_age_s", self.fusion.last_done_age_s),
+                    ("last_fusion_s", self.fusion.last_process_s),
                 )
             },
             **({} if self.poses is None else self.poses.status()),

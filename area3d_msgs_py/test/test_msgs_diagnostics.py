@@ -57,6 +57,15 @@ def test_inputs_rejected_in_the_period_warn():
     assert result.level == WARN and "1 inputs rejected" in result.message
 
 
+def test_a_standing_warning_of_the_node_warns_for_as_long_as_it_stands():
+    warning = "pairing rate 0.52 below min_pairing_rate 0.8 (parts lost or stamped apart)"
+    result = assess(_with(warnings=[warning]), STATUS)
+    assert result.level == WARN and result.message == warning
+    both = assess(_with(warnings=[warning], parts_dropped_unpaired=5), STATUS)
+    assert both.level == WARN and "3 dropped" in both.message and warning in both.message
+    assert assess(_with(warnings=[]), STATUS).level == OK
+
+
 def test_drops_before_the_period_do_not_warn_but_the_first_status_counts_from_zero():
     assert assess(STATUS, STATUS).level == OK
     first = assess(STATUS, None)

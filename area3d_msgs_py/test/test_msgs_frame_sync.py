@@ -1,4 +1,8 @@
-"""StampSync: parts of a frame pair by exact stamp; orphans are dropped after the age limit."""
+"""StampSync: parts of a frame pair by stamp (exact, or within a slop); orphans are dropped after
+the age limit; the pairing rate says how many frames a lossy transport cost."""
+
+import itertools
+import random
 
 import pytest
 
@@ -8,12 +12,59 @@ from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync
 S = 1_000_000_000
 
 
-def test_a_frame_completes_when_every_stream_has_the_stamp_in_any_order():
-    sync = StampSync(("color", "depth", "pose"))
-    assert sync.add("pose", 10 * S, "P") is None
-    assert sync.add("depth", 10 * S, "D") is None
-    assert sync.add("color", 10 * S, "C") == {"color": "C", "depth": "D", "pose": "P"}
-    assert sync.pending("pose") == [] and sync.pending("depth") == []
+@pytest.mark.parametrize("slop_ns", [0, 5_000_000])
+def test_a_frame_completes_when_every_stream_has_the_stamp_in_any_order(slop_ns):
+    parts = {"color": "C", "depth": "D", "pose": "P"}
+    for order in itertools.permutations(parts):
+        sync = StampSync(("color", "depth", "pose"), slop_ns=slop_ns)
+        results = [sync.add_part(key, 10 * S, parts[key]) for key in order]
+        assert results[:2] == [None, None], order
+        assert results[2] == (10 * S, parts), order
+        assert all(sync.pending(k) == [] for k in parts), order
+
+
+def test_with_a_slop_parts_a_few_milliseconds_apart_pair_with_the_closest_and_the_reference_stamp():
+    ms = 1_000_000
+    for order in itertools.permutations(("color", "depth", "pose")):
+        sync = StampSync(("color", "depth", "pose"), slop_ns=10 * ms)
+        stamps = {"color": 100 * ms, "depth": 104 * ms, "pose": 93 * ms}
+        sync.add("depth", 125 * ms, "later depth")  # 25 ms off the colour: never its partner
+        results = [sync.add_part(k, stamps[k], k) for k in order]
+        assert results[-1] == (100 * ms, {"color": "color", "depth": "depth", "pose": "pose"})
+        assert sync.pending("depth") == [125 * ms]
+    # beyond the slop nothing pairs, and without one only identical stamps do
+    sync = StampSync(("color", "depth"), slop_ns=10 * ms)
+    sync.add("color", 100 * ms, "c")
+    assert sync.add("depth", 111 * ms, "d") is None
+    exact = StampSync(("color", "depth"))
+    exact.add("color", 100 * ms, "c")
+    assert exact.add("depth", 100 * ms + 1, "d") is None
+    with pytest.raises(InputError, match="^slop_ns: "):
+        StampSync(("a", "b"), slop_ns=-1)
+
+
+def test_a_lost_part_costs_its_own_frame_only_and_the_pairing_rate_says_how_many():
+    """A third of the parts lost on a best-effort link (30 Hz, depth stamped 3 ms after colour):
+    every frame whose parts all arrived pairs, each lost part costs one frame, and the rate is
+    the share of colour frames that paired."""
+    ms = 1_000_000
+    rng = random.Random(3)
+    sync = StampSync(("color", "depth"), max_age_ns=200 * ms, slop_ns=10 * ms)
+    whole, paired = 0, []
+    for i in range(300):
+        t = i * 33 * ms
+        kept = {k: rng.random() > 1 / 3 for k in ("color", "depth")}
+        whole += all(kept.values())
+        if kept["color"]:
+            paired.append(sync.add_part("color", t, i))
+        if kept["depth"]:
+            paired.append(sync.add_part("depth", t + 3 * ms, i))
+    frames = [p for p in paired if p is not None]
+    assert len(frames) == whole == sync.frames_paired
+    assert all(f.parts["color"] == f.parts["depth"] for f in frames)
+    rate = sync.pairing_rate()
+    assert rate is not None and 0.55 < rate < 0.8  # about 2/3 of the colour frames
+    assert sync.parts_dropped > 0
 
 
 def test_different_stamps_never_pair():

@@ -45,7 +45,7 @@ class Log:
     def info(self, m):
         self.lines.append(("info", m))
 
-    def warning(self, m):
+    def warning(self, m, **throttle):
         self.lines.append(("warning", m))
 
     def error(self, m):
@@ -72,13 +72,38 @@ def ros_context():
     context.try_shutdown()
 
 
+class InlineWorker:
+    """The node's FrameWorker, run in the caller's thread: a frame's outputs are published when
+    its last part's callback returns (the real worker's order and backlog have their own tests,
+    area3d_msgs_py/test/test_msgs_scheduling.py)."""
+
+    def __init__(self, worker):
+        self._process, self._on_done = worker._process, worker._on_done
+        self.backlog, self.waiting, self.dropped = worker.backlog, 0, 0
+        self.alive, self.stopping = True, False
+        worker.stop(1.0)
+
+    def submit(self, stamp, frame, K):
+        self._on_done(stamp, self._process(stamp, frame, K), True)
+        return True
+
+    def stop(self, timeout_s):
+        self.stopping = True
+
+
+# every frame is a keyframe unless a test says otherwise (the sim camera's setting)
+EVERY_FRAME = {"keyframe_distance": 0.0, "keyframe_angle_deg": 0.0, "keyframe_interval_s": 0.0}
+
+
 class FakeNode:
     """A real PerceptionNode whose outputs and log are captured and whose callbacks are called
     directly (no transport): `subs[topic](msg)`, `pubs[topic].sent`, `log.warnings()`."""
 
     def __init__(self, parameters=None):
-        overrides = [Parameter(k, value=v) for k, v in (parameters or {}).items()]
+        parameters = {**EVERY_FRAME, **(parameters or {})}
+        overrides = [Parameter(k, value=v) for k, v in parameters.items()]
         self.node = PerceptionNode(context=pytest.perception_context, parameter_overrides=overrides)
+        self.node.worker = InlineWorker(self.node.worker)
         self.log = Log()
         self.node.get_logger = lambda: self.log
         self.pubs = {OUT_DEPTH_TOPIC: Pub(), OUT_CONFIDENCE_TOPIC: Pub()}
@@ -94,17 +119,24 @@ class FakeNode:
         }
 
 
-def send_frame(node, stamp, depth=None, rgb=None, info=True, order=("color", "depth", "pose")):
+def send_frame(
+    node, stamp, depth=None, rgb=None, info=True, order=("color", "depth", "pose"), x=0.0, stamps=None
+):
+    """One frame's parts; `x` moves the camera along x, `stamps` ({key: stamp}) stamps parts
+    apart."""
     depth = np.full((H, W), 2.0, np.float32) if depth is None else depth
     rgb = np.zeros((H, W, 3), np.uint8) if rgb is None else rgb
     if info:
         node.subs[INFO_TOPIC](codecs.intrinsics_to_camera_info(K, W, H, stamp, FRAME))
     T = np.eye(4)
-    T[:3, 3] = [0.0, 0.0, 1.0]
-    pose = msgs.PoseStamped(header=codecs.header(stamp, "world"), pose=codecs.matrix_to_pose(T))
+    T[:3, 3] = [x, 0.0, 1.0]
+    at = {"color": stamp, "depth": stamp, "pose": stamp, **(stamps or {})}
+    pose = msgs.PoseStamped(
+        header=codecs.header(at["pose"], "world"), pose=codecs.matrix_to_pose(T)
+    )
     parts = {
-        "color": (COLOR_TOPIC, codecs.image_to_msg(rgb, "rgb8", stamp, FRAME)),
-        "depth": (DEPTH_TOPIC, codecs.image_to_msg(depth, "32FC1", stamp, FRAME)),
+        "color": (COLOR_TOPIC, codecs.image_to_msg(rgb, "rgb8", at["color"], FRAME)),
+        "depth": (DEPTH_TOPIC, codecs.image_to_msg(depth, "32FC1", at["depth"], FRAME)),
         "pose": (POSE_TOPIC, pose),
     }
     for key in order:
@@ -123,6 +155,54 @@ def test_a_complete_frame_is_published_with_its_stamp_and_frame():
     np.testing.assert_array_equal(codecs.msg_to_image(depth_msg), np.full((H, W), 2.0, np.float32))
     conf = codecs.msg_to_image(conf_msg)
     assert np.all((conf > 0) & (conf <= 1))
+
+
+def test_a_streaming_camera_integrates_keyframes_only_and_counts_the_rest_as_skipped():
+    """30 Hz from a camera at rest, then moving: a frame is integrated when the camera moved
+    keyframe_distance or a keyframe_interval_s passed since the last one; the rest are skipped,
+    counted, and never reach the backend."""
+    node = FakeNode({"keyframe_distance": 0.1, "keyframe_angle_deg": 10.0, "keyframe_interval_s": 1.0})
+    period = S // 30
+    for i in range(45):  # 1.5 s at rest: the first frame, and the one a second later
+        send_frame(node, S + i * period)
+    stamps = [codecs.stamp_to_ns(m.header.stamp) for m in node.pubs[OUT_DEPTH_TOPIC].sent]
+    assert stamps == [S, S + 31 * period]  # the first frame a second (or more) later
+    # moving 4 cm a frame: the first frame more than a second after the last keyframe, then the
+    # one 12 cm (>= 10 cm) from it
+    for i in range(1, 6):
+        send_frame(node, 3 * S + i * period, x=0.04 * i)
+    stamps = [codecs.stamp_to_ns(m.header.stamp) for m in node.pubs[OUT_DEPTH_TOPIC].sent]
+    assert stamps[2:] == [3 * S + period, 3 * S + 4 * period]
+    status = node.node._status()
+    assert status["frames_integrated"] == 4 and status["frames_skipped"] == 46
+    assert status["frames_published"] == 4 and status["frames_paired"] == 50
+
+
+def test_parts_stamped_apart_pair_within_the_slop_and_go_out_with_the_colour_stamp():
+    node = FakeNode({"sync_slop_s": 0.01})
+    send_frame(node, 5 * S, stamps={"depth": 5 * S + 3_000_000, "pose": 5 * S - 2_000_000})
+    (depth_msg,) = node.pubs[OUT_DEPTH_TOPIC].sent
+    assert codecs.stamp_to_ns(depth_msg.header.stamp) == 5 * S
+    exact = FakeNode()
+    send_frame(exact, 5 * S, stamps={"depth": 5 * S + 3_000_000})
+    assert exact.pubs[OUT_DEPTH_TOPIC].sent == []
+
+
+def test_a_pairing_rate_below_the_threshold_is_a_standing_warning_on_diagnostics():
+    """A third of the depth images lost: the colour frames that lose theirs are dropped at the
+    age limit; the rate (about 2/3) falls below min_pairing_rate and /diagnostics warns."""
+    node = FakeNode({"sync_max_age_s": 0.5, "min_pairing_rate": 0.8})
+    period = S // 30
+    for i in range(60):
+        keys = ("color", "pose") if i % 3 == 0 else ("color", "depth", "pose")
+        send_frame(node, S + i * period, order=keys)
+    status = node.node._status()
+    assert status["frames_paired"] == 40
+    assert 0.55 < status["pairing_rate"] < 0.75
+    (warning,) = status["warnings"]
+    assert "pairing rate" in warning and "min_pairing_rate 0.8" in warning
+    result = assess(status, status)
+    assert result.level == WARN and "pairing rate" in result.message
 
 
 def test_uniform_backend_parameter_is_honoured():

@@ -1,10 +1,10 @@
-"""The planner's fusion worker without ROS: order, backlog, grid throttling, failures, stop."""
+"""The frame worker without ROS: order, backlog, publish throttling, failures, stop."""
 
 import threading
 
 import numpy as np
 
-from area3d_planner.fusion_worker import FusionWorker
+from area3d_msgs_py.scheduling import FrameWorker
 
 TIMEOUT_S = 120.0  # generous: every wait ends as soon as its condition holds
 K = np.eye(3)
@@ -40,7 +40,7 @@ class Recorder:
 
 
 def worker(recorder, **kwargs):
-    return FusionWorker(recorder.fuse, recorder.on_done, recorder.on_failed, **kwargs)
+    return FrameWorker(recorder.fuse, recorder.on_done, recorder.on_failed, "test-worker", **kwargs)
 
 
 def wait_for(condition) -> bool:
@@ -64,16 +64,16 @@ def test_frames_are_fused_in_order_and_the_grid_follows_each_while_fusion_keeps_
     assert rec.fused == [1, 2, 3]
     # 3 had been fused before (a repeat): it changes nothing and publishes no grid
     assert rec.done == [(1, True, True), (2, True, True), (3, False, False)]
-    assert fusion.last_fused_age_s == (5_000_000_000 - 2) / 1e9  # the last frame really fused
+    assert fusion.last_done_age_s == (5_000_000_000 - 2) / 1e9  # the last frame really fused
     assert fusion.last_paired_age_s == (5_000_000_000 - 2) / 1e9
-    assert fusion.last_fusion_s is not None and fusion.dropped == 0
+    assert fusion.last_process_s is not None and fusion.dropped == 0
 
 
 def test_while_frames_wait_the_grid_goes_out_once_a_period_and_once_caught_up():
     rec = Recorder()
     rec.release.clear()
     rec.expected = 5
-    fusion = worker(rec, grid_period_s=1e6)
+    fusion = worker(rec, publish_period_s=1e6)
     try:
         assert fusion.submit(1, "frame", K)
         assert rec.entered.wait(TIMEOUT_S)  # frame 1 in flight, the next four wait
@@ -127,7 +127,7 @@ def test_the_worker_ends_when_the_node_has_stopped_and_on_stop():
         stopped.set()
         return False  # the node's gate is closed
 
-    fusion = FusionWorker(rec.fuse, on_done, rec.on_failed)
+    fusion = FrameWorker(rec.fuse, on_done, rec.on_failed, "test-worker")
     assert fusion.submit(1, "frame", K)
     assert stopped.wait(TIMEOUT_S)
     fusion.stop(TIMEOUT_S)
@@ -171,7 +171,7 @@ def test_cleared_waits_for_the_frame_in_flight_and_drops_those_submitted_before_
     assert before in ([1], [1, 2], [1, 2, 3])
     assert waiting <= 3 - len(before)  # the worker may hold one off the queue: not fused either
     assert rec.fused == [*before, 4] and fusion.dropped == 0
-    assert fusion.last_fusion_s is not None  # frame 4's
+    assert fusion.last_process_s is not None  # frame 4's
 
 
 def test_a_stop_asked_before_a_clearing_still_ends_the_worker():
