@@ -39,10 +39,13 @@ from area3d_msgs_py.inputs import (
     decode_camera_info,
     decode_image,
 )
+from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
     MAX_STAMP_AHEAD_PARAM,
+    MIN_PAIRING_RATE_PARAM,
+    SYNC_SLOP_PARAM,
     WORLD_FRAME_PARAM,
     Param,
     declare_parameters,
@@ -53,7 +56,7 @@ from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
-from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync
+from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync, pairing_warning
 from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.hard_regions import cloud_hard_regions
 from area3d_planner.markers import hard_region_markers, view_markers
@@ -76,7 +79,9 @@ PARAMS = (
     Param(
         "sync_timeout_s",
         5.0,
-        "how long a request waits for the frame it names to be fused, seconds",
+        "how long a request waits for the map to hold the frame it names (fused, or with "
+        "keyframes a frame as new or taken near its pose); then it is answered from what is "
+        "fused and its message says how old that is, seconds",
         read_only=False,
         range=(0.0, 600.0),
     ),
@@ -130,6 +135,9 @@ PARAMS = (
         "hard regions published at most, the largest (the status counts them all), regions",
         range=(0, 100000),
     ),
+    SYNC_SLOP_PARAM,
+    MIN_PAIRING_RATE_PARAM,
+    *params_of(KeyframeConfig),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
     CAMERA_QOS_PARAM,
@@ -168,7 +176,14 @@ class PlannerNode(Node):
             # the camera's poses arrive ahead of perception's images, which trail by the
             # perception backlog: a minute of poses at 30 Hz may wait (they are small)
             pending_caps={"pose": POSES_PENDING},
+            slop_ns=int(round(p["sync_slop_s"] * 1e9)),
         )
+        self.min_pairing_rate = p["min_pairing_rate"]
+        keyframe_config = KeyframeConfig(**{f.name: p[f.name] for f in fields(KeyframeConfig)})
+        self.keyframes = KeyframeSelector(keyframe_config)
+        # a request's frame may have been skipped (here or by perception): the map holds it when
+        # a frame as new, or one taken near its pose, was fused (`NextBestViewServer.covers`)
+        self.near = None if keyframe_config.every_frame else keyframe_config.near
         self.camera_info = CameraInfoCache(CAMERA_INFO_CACHE)  # stamp -> K
         self.waiting = HeldFrames(MAX_FRAMES_WITHOUT_INFO)
         self.world_frame = p["world_frame"]
@@ -257,10 +272,15 @@ class PlannerNode(Node):
         super().destroy_node()
 
     def _status(self) -> dict:
+        warning = pairing_warning(self.sync, self.min_pairing_rate)
         return {
             **self.server.status(),
             "resets": self.resets,
             "requests_answered": self.requests_answered,
+            **self.keyframes.status(),
+            "frames_paired": self.sync.frames_paired,
+            "pairing_rate": self.sync.pairing_rate(),
+            "warnings": [warning] if warning else [],
             "parts_dropped_unpaired": self.dropped,
             "frames_dropped_backlog": self.fusion.dropped,
             "frames_dropped_without_camera_info": self.waiting.dropped,
@@ -313,6 +333,7 @@ class PlannerNode(Node):
         try:
             with self.fusion.cleared() as waiting_fusion:
                 old, self.server = self.server, self._new_server()
+                self.keyframes.reset()  # the next frame starts the new map
                 parts = self.sync.clear()
                 held = len(self.waiting.release())
                 waiting_pose = 0 if self.poses is None else self.poses.forget_frames()
@@ -354,14 +375,16 @@ class PlannerNode(Node):
 
     def _part(self, key: str, msg) -> None:
         stamp = self._stamp(msg)
-        frame = self.sync.add(key, stamp, self._decode(key, msg))
+        paired = self.sync.add_part(key, stamp, self._decode(key, msg))
         for dropped in self.sync.pop_dropped():
             self.dropped += 1
             self.get_logger().warning(
-                f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}"
+                f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}",
+                throttle_duration_sec=1.0,
             )
-        if frame is None:
+        if paired is None:
             return
+        stamp, frame = paired
         if self.poses is not None:  # the pose at the frame's stamp, now or once it has arrived
             self.poses.submit(stamp, msg.header.frame_id, frame)
             return
@@ -371,6 +394,9 @@ class PlannerNode(Node):
         self._with_camera_info(stamp, {**frame, "pose": T_world_cam})
 
     def _with_camera_info(self, stamp: int, frame: dict) -> None:
+        if not self.keyframes.offer(stamp, frame["pose"]):
+            self.status.changed()
+            return  # the camera has not moved, turned or waited enough: skipped, counted
         K = self.camera_info.get(stamp)
         if K is None:
             warning = self.waiting.hold(stamp, frame, topics.CAMERA_INFO.name)
@@ -467,6 +493,8 @@ class PlannerNode(Node):
         service = topics.SELECT_VIEWS.name
         try:
             asked = codecs.msg_to_view_request(request)
+            if asked.frame_id == "":  # as `ros2 service call ... "{count: 3}"` sends it
+                asked = asked._replace(frame_id=self.world_frame)
             if asked.frame_id != self.world_frame:
                 raise InputError(
                     "current.header.frame_id", asked.frame_id, f"{self.world_frame!r} (world_frame)"
@@ -483,7 +511,9 @@ class PlannerNode(Node):
         stamp = codecs.stamp_to_ns(request.current.header.stamp) or self._now_ns()
         if plan.reason:
             return codecs.view_refusal_to_msg(plan.reason, stamp, self.world_frame)
-        return codecs.view_answer_to_msg(np.array(plan.poses), plan.gains, stamp, self.world_frame)
+        return codecs.view_answer_to_msg(
+            np.array(plan.poses), plan.gains, stamp, self.world_frame, plan.note
+        )
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -503,13 +533,14 @@ class PlannerNode(Node):
         server = self.server  # the map of the whole request, even if a reset replaces it meanwhile
         sync_timeout_s = self.get_parameter("sync_timeout_s").value
         t0 = time.perf_counter()
-        if not server.wait_fused(request.stamp_ns, sync_timeout_s):
-            log.warning(
-                f"{service}: frame {request.stamp_ns} not fused after {sync_timeout_s} s; "
-                "planning with what is fused"
-            )
+        stale = ""
+        if not server.wait_fused(request.stamp_ns, sync_timeout_s, request.start, self.near):
+            stale = server.stale_note(request.stamp_ns, sync_timeout_s)
+            log.warning(f"{service}: {stale}")
         t1 = time.perf_counter()
         plan = server.plan_views(request)
+        if not plan.reason and stale:
+            plan = plan._replace(note="; ".join(n for n in (stale, plan.note) if n))
         # where the last request's time went, in the status (a mission manager's latency budget)
         server.last_request_s = {
             "wait_fused": round(t1 - t0, 4),

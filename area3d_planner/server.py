@@ -38,6 +38,7 @@ LEVEL_DEFAULTS = {
     # and the resolution term (8 x 8 pixels per voxel: a pixel footprint of 1.25 mm at object
     # level, 6 mm at room level; chosen on the bundled scenes, planner README)
     "object": {
+        "initial_views": 4,
         "voxel_size": 0.01,
         "gamma": 0.01,
         "budget": 25,
@@ -45,6 +46,7 @@ LEVEL_DEFAULTS = {
         "pixels_per_voxel": 64.0,
     },
     "room": {
+        "initial_views": 15,
         "voxel_size": 0.05,
         "gamma": 0.005,
         "budget": 40,
@@ -313,7 +315,16 @@ class PlannerConfig:
     )
     budget: int = described(
         0,
-        f"total views, initial ones included; 0 = the paper's T ({_level('budget')})",
+        f"total views, initial ones included; 0 = the paper's T ({_level('budget')}). It counts "
+        "the initial views and the views handed out, never the frames a streaming camera sends "
+        "in between (those are fused: evidence, not views)",
+        "views",
+        (0, 2**31 - 1),
+    )
+    initial_views: int = described(
+        0,
+        "the initial views the budget counts: the frames fused before the first request, at most "
+        f"this many; 0 = the paper's |O_0| ({_level('initial_views')})",
         "views",
         (0, 2**31 - 1),
     )
@@ -394,6 +405,9 @@ class PlannerConfig:
     def resolved_budget(self) -> int:
         return int(self.budget) or LEVEL_DEFAULTS[self.resolved_level()]["budget"]
 
+    def resolved_initial_views(self) -> int:
+        return int(self.initial_views) or LEVEL_DEFAULTS[self.resolved_level()]["initial_views"]
+
 
 @dataclass
 class PlanRequest:
@@ -409,11 +423,23 @@ class PlanRequest:
 
 class Plan(NamedTuple):
     """A request's answer: poses (T_world_cam, optical frame) best first, the predicted gain of
-    each (`SelectedViews`), and the reason when there are none ("" when all is well)."""
+    each (`SelectedViews`), the reason when there are none ("" when all is well), and with views
+    what the caller should know about them (`note`: a view handed out before, the map lacking
+    the request's frame; "" when nothing)."""
 
     poses: list
     gains: list
     reason: str
+    note: str = ""
+
+
+def _alike(T: np.ndarray, U: np.ndarray, radius: float, angle_deg: float) -> bool:
+    """Two camera poses within `radius` metres of each other looking within `angle_deg`."""
+    T, U = np.asarray(T, float), np.asarray(U, float)
+    if np.linalg.norm(T[:3, 3] - U[:3, 3]) > radius:
+        return False
+    cos = float(np.clip(T[:3, 2] @ U[:3, 2], -1.0, 1.0))
+    return np.degrees(np.arccos(cos)) <= angle_deg
 
 
 @dataclass
@@ -451,7 +477,10 @@ class NextBestViewServer:
     committed: int = field(init=False, default=0)
     # the last closed-loop plan's views, until a frame comes: (request stamp, frames fused, count)
     _handed_out: tuple[int, int, int] | None = field(init=False, default=None)
+    # frames fused before the first request (the working distance's), and how many of them the
+    # budget counts as initial views (at most `initial_views`)
     initial_frames: int | None = field(init=False, default=None)
+    initial_counted: int = field(init=False, default=0)
     last_fused_stamp: int = field(init=False, default=0)
     _sequence: SelectedViews | None = field(
         init=False, default=None
@@ -466,6 +495,10 @@ class NextBestViewServer:
         c.validate()
         level = c.resolved_level()
         self.budget = c.resolved_budget()
+        self.initial_limit = c.resolved_initial_views()
+        # every view handed out: (pose, request stamp), to say when one repeats (`_repeats`)
+        self._answered: list[tuple[np.ndarray, int]] = []
+        self._fused_order: list[int] = []  # fused stamps in fusion order (context.camera_poses')
         self.grid = FusedGrid(
             c.grid_spec(),
             c.roi_min,
@@ -618,6 +651,7 @@ class NextBestViewServer:
             self._fused_stamps.add(int(stamp_ns))
             self.context.camera_positions.append(np.asarray(T, float)[:3, 3].copy())
             self.context.camera_poses.append(np.asarray(T, float).copy())
+            self._fused_order.append(int(stamp_ns))
             self.last_fused_stamp = max(self.last_fused_stamp, int(stamp_ns))
             self._map_version += 1
             self._stamp_version[int(stamp_ns)] = self._map_version
@@ -679,12 +713,38 @@ class NextBestViewServer:
             u_sem, frame.depth, frame.K, frame.T
         )
 
-    def wait_fused(self, stamp_ns: int, timeout_s: float) -> bool:
-        """Block until the frame `stamp_ns` (0 = none) has been fused, or timeout; True if it has."""
+    def covers(self, stamp_ns: int, pose: np.ndarray | None = None, near=None) -> bool:
+        """The map holds the frame `stamp_ns` (0 = none asked): it was fused, or, with `near`
+        (a streaming camera's keyframe rule, `KeyframeConfig.near`: the frame may have been
+        skipped), a frame at or after that stamp was, or one taken near `pose` (lock held or
+        not: a read of append-only state)."""
+        if stamp_ns <= 0 or stamp_ns in self._fused_stamps:
+            return True
+        if near is None:
+            return False
+        if self.last_fused_stamp >= stamp_ns:
+            return True
+        return pose is not None and any(near(pose, T) for T in self.context.camera_poses[::-1])
+
+    def wait_fused(
+        self, stamp_ns: int, timeout_s: float, pose: np.ndarray | None = None, near=None
+    ) -> bool:
+        """Block until the map covers the frame `stamp_ns` (`covers`), or timeout; True if it
+        does."""
         with self._fused:
-            return self._fused.wait_for(
-                lambda: stamp_ns <= 0 or stamp_ns in self._fused_stamps, timeout_s
-            )
+            return self._fused.wait_for(lambda: self.covers(stamp_ns, pose, near), timeout_s)
+
+    def stale_note(self, stamp_ns: int, waited_s: float) -> str:
+        """What an answer planned without the request's frame says: the newest frame it planned
+        from and how much older it is."""
+        with self._lock:
+            last = self.last_fused_stamp
+        if last == 0:
+            return f"frame {stamp_ns} not fused within {waited_s:g} s, and none before it"
+        return (
+            f"frame {stamp_ns} not fused within {waited_s:g} s: planned from the map up to frame "
+            f"{last}, {(stamp_ns - last) / 1e9:.2f} s older"
+        )
 
     # ------------------------------------------------------------------ cache refresh
     def cache_ready(self) -> bool:
@@ -845,9 +905,16 @@ class NextBestViewServer:
 
     # ------------------------------------------------------------------ planning
     def remaining_budget(self) -> int:
-        """Views the budget still allows: budget - max(frames fused, initial frames + committed)."""
-        initial = self.grid.frames if self.initial_frames is None else self.initial_frames
-        return max(0, self.budget - max(self.grid.frames, initial + self.committed))
+        """Views the budget still allows: budget - (initial views + views handed out). Before
+        the first request the frames fused so far count as the initial views (at most
+        `initial_views`); frames a streaming camera sends in between never count."""
+        return max(0, self.budget - self.views_spent())
+
+    def views_spent(self) -> int:
+        """Initial views + views handed out (and not released)."""
+        if self.initial_frames is None:
+            return min(self.grid.frames, self.initial_limit) + self.committed
+        return self.initial_counted + self.committed
 
     def status(self) -> dict:
         return {
@@ -859,6 +926,14 @@ class NextBestViewServer:
             "level": self.context.visibility.level,
             "voxel_size": self.grid.spec.voxel_size,
             "committed_views": self.committed,
+            "budget": {
+                "views": self.budget,
+                "initial": self.initial_counted
+                if self.initial_frames is not None
+                else min(self.grid.frames, self.initial_limit),
+                "handed_out": self.committed,
+                "spent": self.views_spent(),
+            },
             "remaining_budget": self.remaining_budget(),
             "hard_voxels": int(self.grid.hard().sum()),
             "rebuild_failures": self.rebuild_failures,
@@ -971,7 +1046,34 @@ class NextBestViewServer:
                     if closed_loop and request.stamp_ns > 0
                     else None
                 )
-                return Plan(list(views.poses), list(views.gains), "")
+                note = self._repeats(views.poses)
+                self._answered += [(np.array(T, float), int(request.stamp_ns)) for T in views.poses]
+                return Plan(list(views.poses), list(views.gains), "", note)
+
+    def _repeats(self, poses: list) -> str:
+        """What to say of views that repeat one handed out before (within nms_radius and
+        nms_angle_deg of it): which, and whether a frame from there was fused since (lock
+        held). "" when none repeats."""
+        g = self.context.greedy
+        notes = []
+        for i, T in enumerate(poses):
+            for j, (U, stamp) in enumerate(self._answered):
+                if not _alike(T, U, g.nms_radius, g.nms_angle_deg):
+                    continue
+                fused = [
+                    s
+                    for s, F in zip(self._fused_order, self.context.camera_poses, strict=False)
+                    if s > stamp and _alike(F, U, g.nms_radius, g.nms_angle_deg)
+                ]
+                seen = (
+                    f"a frame from there was fused (stamp {fused[-1]}) and it still sees the most "
+                    "uncertainty"
+                    if fused
+                    else "no frame from there has been fused since"
+                )
+                notes.append(f"view {i} was handed out before (view {j} of this map): {seen}")
+                break
+        return "; ".join(notes)
 
     def _settle(self, request: PlanRequest) -> None:
         """What a request tells the budget's bookkeeping, before it is checked (lock held): the
@@ -981,6 +1083,7 @@ class NextBestViewServer:
             return
         if self.initial_frames is None:
             self.initial_frames = self.grid.frames
+            self.initial_counted = min(self.grid.frames, self.initial_limit)
             self.context.initial_views = self.initial_frames
         if (request.mode or self.config.mode) == "closed_loop":
             self._release_uncaptured(request)
@@ -1015,7 +1118,10 @@ class NextBestViewServer:
             return f"mode: got {mode!r}, expected one of {', '.join(MODES)} (empty: the planner's)"
         remaining = self.remaining_budget()
         if remaining == 0:
-            return f"budget: all {self.budget} views are spent"
+            return (
+                f"budget: all {self.budget} views are spent ({self.initial_counted} initial, "
+                f"{self.committed} handed out)"
+            )
         # 0: batch plans the whole remaining budget at once, closed loop the next best view only
         want = num or (remaining if mode == "batch" else 1)
         if want > remaining:

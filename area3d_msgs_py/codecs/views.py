@@ -79,8 +79,12 @@ def msg_to_view_request(msg: Any) -> ViewRequest:
     )
 
 
-def view_answer_to_msg(views: np.ndarray, gains: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
-    """A successful NextBestView.Response: views (N, 4, 4) best first, gains (N,) finite."""
+def view_answer_to_msg(
+    views: np.ndarray, gains: np.ndarray, stamp_ns: int, frame_id: str, message: str = ""
+) -> Any:
+    """A successful NextBestView.Response: views (N, 4, 4) best first, gains (N,) finite;
+    `message` what the caller should know about them ("" when nothing: the map held the request's
+    frame and no view repeats one handed out before)."""
     views = np.asarray(views, dtype=np.float64)
     gains = np.asarray(gains, dtype=np.float32).reshape(-1)
     pose_array = matrices_to_pose_array(views, stamp_ns, frame_id)
@@ -88,7 +92,9 @@ def view_answer_to_msg(views: np.ndarray, gains: np.ndarray, stamp_ns: int, fram
         raise InputError("gains", gains.shape, f"({len(views)},): one gain per view")
     if not np.isfinite(gains).all():
         raise InputError("gains", gains.tolist(), "finite predicted gains")
-    return msgs.NextBestView.Response(success=True, message="", views=pose_array, gains=gains)
+    return msgs.NextBestView.Response(
+        success=True, message=str(message), views=pose_array, gains=gains
+    )
 
 
 def view_refusal_to_msg(message: str, stamp_ns: int, frame_id: str) -> Any:

@@ -630,4 +630,78 @@ def test_a_closed_loop_view_the_camera_did_not_capture_stops_counting_against_th
     third, reason = srv.plan(PlanRequest(None, 2, 1))
     assert reason == "" and len(third) == 1 and srv.remaining_budget() == 0
     srv.add_frame(3, *frame())
-    assert srv.plan(PlanRequest(None, 3, 1)) == ([], "budget: all 3 views are spent")
+    assert srv.plan(PlanRequest(None, 3, 1)) == (
+        [],
+        "budget: all 3 views are spent (1 initial, 2 handed out)",
+    )
+
+
+def _moved(T, dx):
+    U = np.array(T, float)
+    U[:3, 3] += [0.0, dx, 0.0]
+    return U
+
+
+def test_frames_streamed_between_views_are_fused_but_never_spend_the_budget():
+    """A streaming camera: 12 frames fused before the first request count as the level's |O_0|
+    at most (initial_views 4 here), and the 30 streamed while the robot drives to each view
+    count nothing: only the views handed out do."""
+    srv = NextBestViewServer(config(budget=7, mode="closed_loop", initial_views=4))
+    depth, conf, K_, T = frame()
+    stamp = 0
+    for i in range(12):
+        stamp += 1
+        srv.add_frame(stamp, depth, conf, K_, _moved(T, 0.02 * i))
+    assert srv.remaining_budget() == 3 and srv.status()["budget"]["initial"] == 4
+    for view in range(3):
+        poses, reason = srv.plan(PlanRequest(None, stamp, 1))
+        assert reason == "" and len(poses) == 1, reason
+        for _ in range(30):  # the drive there, streamed
+            stamp += 1
+            srv.add_frame(stamp, depth, conf, K_, poses[0])
+        assert srv.remaining_budget() == 2 - view
+    assert srv.grid.frames == 12 + 90
+    budget = srv.status()["budget"]
+    assert budget == {"views": 7, "initial": 4, "handed_out": 3, "spent": 7}
+    _, reason = srv.plan(PlanRequest(None, stamp, 1))
+    assert reason == "budget: all 7 views are spent (4 initial, 3 handed out)"
+    # one frame per view (initial_views 0: the level's 15 at most): every frame before the
+    # first request counts, as before
+    triggered = NextBestViewServer(config(budget=6))
+    triggered.add_frame(1, depth, conf, K_, T)
+    triggered.add_frame(2, depth, conf, K_, _moved(T, 0.1))
+    assert triggered.remaining_budget() == 4
+
+
+def test_with_keyframes_a_skipped_frame_is_covered_by_a_newer_one_or_one_from_near_its_pose():
+    from area3d_msgs_py.keyframes import KeyframeConfig
+
+    near = KeyframeConfig(0.1, 10.0, 1.0).near
+    srv = NextBestViewServer(config())
+    depth, conf, K_, T = frame()
+    srv.add_frame(10, depth, conf, K_, T)
+    assert srv.covers(10) and srv.covers(0) and not srv.covers(11)
+    # stamp 11 was skipped (the camera had not moved): the map holds its view
+    assert srv.covers(11, _moved(T, 0.05), near) and not srv.covers(11, _moved(T, 0.3), near)
+    assert not srv.wait_fused(12, 0.01, _moved(T, 0.3), near)
+    srv.add_frame(13, depth, conf, K_, _moved(T, 0.5))  # a newer frame holds what 12 saw
+    assert srv.wait_fused(12, 0.01, _moved(T, 0.3), near)
+    note = srv.stale_note(20 * 10**9, 5.0)
+    assert note.startswith(f"frame {20 * 10**9} not fused within 5 s: planned from the map up to")
+    assert "frame 13, 20.00 s older" in note
+
+
+def test_a_view_handed_out_again_says_so_and_whether_a_frame_from_there_was_fused():
+    srv = NextBestViewServer(config(budget=10, mode="closed_loop"))
+    srv.add_frame(1, *frame())
+    first = srv.plan_views(PlanRequest(None, 1, 1))
+    assert first.reason == "" and first.note == ""
+    (view,) = first.poses
+    # the same view chosen again (the frame from it lost on the way) is said to repeat
+    assert srv._repeats([view]) == (
+        "view 0 was handed out before (view 0 of this map): no frame from there has been fused since"
+    )
+    assert srv._repeats([_moved(view, 0.5)]) == ""  # elsewhere: nothing to say
+    depth, conf, K_, _ = frame()
+    srv.add_frame(2, depth, conf, K_, view)  # now a frame from there was fused
+    assert "a frame from there was fused (stamp 2)" in srv._repeats([view])

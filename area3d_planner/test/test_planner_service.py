@@ -119,7 +119,8 @@ def test_next_best_view_answers_views_with_gains_in_world_frame_or_says_why_not(
     rest = ask(planner, 0, T, T0, mode="batch")  # batch, count 0: the rest of the budget
     assert rest.success and len(rest.views.poses) == 2
     spent = ask(planner, 0, T, T0)
-    assert not spent.success and spent.message == "budget: all 4 views are spent"
+    assert not spent.success
+    assert spent.message == "budget: all 4 views are spent (1 initial, 3 handed out)"
     status = planner._status()
     assert status["frames_dropped_no_pose"] == {} and status["frames_waiting_for_pose"] == 0
 
@@ -149,3 +150,36 @@ def test_a_frame_without_odometry_is_dropped_and_counted_not_fused(planner):
     status = planner._status()
     assert status["frames_dropped_no_pose"] == {"no_transform": 1}
     assert status["frames_fused"] == 0
+
+
+def test_a_request_with_an_empty_frame_id_is_read_in_world_frame(planner):
+    """`ros2 service call area3d/planner/select_views ... "{count: 1}"` sends no frame_id."""
+    T = look_at(np.array([0.1, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
+    feed_frame(planner, T0, T)
+    assert planner.server.wait_fused(T0, WAIT_S)
+    answer = codecs.msg_to_view_answer(ask(planner, 1, T, T0, frame_id=""))
+    assert answer.success and answer.frame_id == "odom" and len(answer.views) == 1
+
+
+def test_a_streaming_camera_fuses_keyframes_and_an_answer_without_its_frame_says_how_old(planner):
+    """30 Hz at rest: one keyframe a second, the rest skipped and counted; a request naming a
+    frame that never came is answered from the map after sync_timeout_s, and says so."""
+    T = look_at(np.array([0.1, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
+    period = S // 30
+    for i in range(40):
+        feed_frame(planner, T0 + i * period, T)
+    status = planner._status()
+    assert status["frames_integrated"] == 2 and status["frames_skipped"] == 38
+    assert status["frames_paired"] == 40 and status["pairing_rate"] == 1.0
+    assert planner.server.wait_fused(T0 + 31 * period, WAIT_S)
+    # a skipped frame from where the camera stands is covered at once
+    covered = codecs.msg_to_view_answer(ask(planner, 1, T, T0 + 35 * period))
+    assert covered.success and covered.message == ""
+    planner.set_parameters([Parameter("sync_timeout_s", value=0.05)])
+    far = look_at(np.array([0.2, 0.1, 0.9]), np.array([1.0, 0.5, 0.5]))
+    late = T0 + 60 * S  # the frame of this pose never arrives
+    answer = codecs.msg_to_view_answer(ask(planner, 1, far, late))
+    assert answer.success and len(answer.views) == 1
+    assert answer.message.startswith(f"frame {late} not fused within 0.05 s: planned from the map")
+    assert f"frame {T0 + 31 * period}, " in answer.message
+    assert planner._status()["budget"]["handed_out"] == 2
