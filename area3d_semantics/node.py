@@ -1,7 +1,9 @@
 """The semantics node: one VLM query with the initial views -> regions, weight maps, U_sem.
 
-Subscribes color, depth (with the QoS `camera_qos` chooses) and perception confidence; once the first num_initial_views frames are in,
-asks the backend once with all of them (on a worker thread, so callbacks keep running), publishes
+Subscribes color, depth (with the QoS `camera_qos` chooses) and perception confidence; a frame is
+a view once all three are in (perception publishes confidence for the frames it integrates, so a
+streaming camera's views are its keyframes, chosen by motion, not every frame); once the first
+num_initial_views views are in, asks the backend once with all of them (on a worker thread, so callbacks keep running), publishes
 the regions as JSON, one weight map per frame and, as each frame's confidence arrives, its U_sem.
 Any message on the request topic re-runs the query on the frames collected so far. Topics:
 `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
@@ -85,6 +87,12 @@ PARAMS = (
         choices=("all", "latest"),
     ),
     Param("require_depth", True, "a view needs its depth before it is analysed"),
+    Param(
+        "require_confidence",
+        True,
+        "a view needs perception's confidence before it is analysed: the views are the frames "
+        "perception integrates (its keyframes), not every frame a camera streams",
+    ),
     MAX_STAMP_AHEAD_PARAM,
     CAMERA_QOS_PARAM,
     Param(
@@ -112,6 +120,7 @@ class SemanticsNode(Node):
         self.num_initial_views = p["num_initial_views"]
         self.params = semantic_params(p)
         self.require_depth = p["require_depth"]
+        self.require_confidence = p["require_confidence"]
         self.sigma_source = p["sigma_source"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
         self.rejections = Rejections(on_count=lambda: self.status.changed())
@@ -123,7 +132,7 @@ class SemanticsNode(Node):
         self.backend_problem = problem
         self.analysis_error: str | None = None
 
-        self.views = ViewCollector(require_depth=self.require_depth)
+        self.views = ViewCollector(self.require_depth, require_confidence=self.require_confidence)
         self.weights: dict[int, np.ndarray] = {}  # stamp -> weight map of the latest analysis
         self.published_usem: set[int] = set()
         self.queried = False
@@ -212,6 +221,7 @@ class SemanticsNode(Node):
         with self._lock:
             self.views.add_confidence(stamp, confidence)
             self._publish_usem(stamp)
+        self._maybe_start_initial()
 
     def _requery(self) -> list[int]:
         """The frames a re-query analyses."""
@@ -239,7 +249,7 @@ class SemanticsNode(Node):
         frames are analysed as the initial views."""
         with self._lock:
             views = len(self.views.complete)
-            self.views = ViewCollector(require_depth=self.require_depth)
+            self.views = ViewCollector(self.require_depth, require_confidence=self.require_confidence)
             self.weights.clear()
             self.published_usem.clear()
             self.queried = False

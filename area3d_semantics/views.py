@@ -23,28 +23,47 @@ class View:
 
 class ViewCollector:
     """Pairs color, depth and confidence images by stamp; a view is complete once it has color
-    (and depth when require_depth). Keeps at most max_views views, dropping the oldest."""
+    (and depth when require_depth, and perception's confidence when require_confidence:
+    perception publishes it for the frames it integrates, so a streaming camera's views are its
+    keyframes, not every frame). Keeps at most max_views complete views and max_pending
+    incomplete ones, dropping the oldest of each (a 30 Hz stream whose frames never become
+    views cannot push out the views)."""
 
-    def __init__(self, require_depth: bool = True, max_views: int = 128) -> None:
+    def __init__(
+        self,
+        require_depth: bool = True,
+        max_views: int = 128,
+        require_confidence: bool = False,
+        max_pending: int = 64,
+    ) -> None:
         self.require_depth = require_depth
+        self.require_confidence = require_confidence
         self.max_views = max_views
+        self.max_pending = max_pending
         self._views: dict[int, View] = {}
         self._complete: list[int] = []  # stamps in the order they became complete
+        self._pending: dict[int, None] = {}  # stamps of incomplete views, in arrival order
 
     def _view(self, stamp_ns: int) -> View:
         if stamp_ns not in self._views:
             self._views[stamp_ns] = View(stamp_ns)
-            if len(self._views) > self.max_views:
-                oldest = min(self._views)
-                del self._views[oldest]
-                if oldest in self._complete:
-                    self._complete.remove(oldest)
+            self._pending[stamp_ns] = None
+            while len(self._pending) > self.max_pending:
+                oldest = next(iter(self._pending))
+                del self._pending[oldest], self._views[oldest]
         return self._views[stamp_ns]
 
     def _update(self, view: View) -> None:
-        ready = view.rgb is not None and (view.depth is not None or not self.require_depth)
+        ready = (
+            view.rgb is not None
+            and (view.depth is not None or not self.require_depth)
+            and (view.confidence is not None or not self.require_confidence)
+        )
         if ready and view.stamp_ns not in self._complete:
+            self._pending.pop(view.stamp_ns, None)
             self._complete.append(view.stamp_ns)
+            while len(self._complete) > self.max_views:
+                del self._views[self._complete.pop(0)]
 
     @staticmethod
     def _check_size(
@@ -77,6 +96,7 @@ class ViewCollector:
     def add_confidence(self, stamp_ns: int, confidence: np.ndarray) -> View:
         view = self._view(stamp_ns)
         view.confidence = confidence
+        self._update(view)
         return view
 
     def get(self, stamp_ns: int) -> View | None:

@@ -31,6 +31,9 @@ class Rig:
     def __init__(self, parameters: dict):
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
+        # most tests send a frame's confidence after its analysis (a view without it); the
+        # streaming test below keeps the default, views only with perception's confidence
+        parameters = {"require_confidence": False, **parameters}
         overrides = [Parameter(k, value=v) for k, v in parameters.items()]
         self.semantics = SemanticsNode(context=self.context, parameter_overrides=overrides)
         self.peer = rclpy.create_node("feeder", context=self.context)
@@ -159,6 +162,28 @@ def test_initial_views_are_analysed_once_and_each_frame_gets_weight_and_usem():
         assert rig.spin(lambda: len(rig.regions) >= 2 and data[3][0] in rig.weights)
         again = json.loads(rig.regions[-1].data)
         assert [img["stamp_ns"] for img in again["images"]] == [d[0] for d in data]
+    finally:
+        rig.close()
+
+
+def test_with_a_streaming_camera_the_initial_views_are_perceptions_keyframes_not_the_first_frames():
+    """30 frames streamed; perception integrates (sends confidence for) every tenth: the initial
+    query analyses those keyframes, not the first num_initial_views frames of the stream."""
+    rig = Rig({"num_initial_views": 3, "backend": "heuristic", "require_confidence": True})
+    try:
+        rng = np.random.default_rng(3)
+        _, image, depth, confidence = frames(1)[0]
+        keyframes = []
+        for k in range(30):
+            stamp = 1_000_000_000 + k * 33_000_000
+            noisy = np.clip(image + rng.integers(0, 3, image.shape), 0, 255).astype(np.uint8)
+            rig.frame(stamp, noisy, depth, confidence if k % 10 == 0 else None)
+            keyframes += [stamp] if k % 10 == 0 else []
+        assert rig.spin(lambda: rig.regions)
+        payload = json.loads(rig.regions[0].data)
+        assert [img["stamp_ns"] for img in payload["images"]] == keyframes
+        rig.spin(lambda: False, 0.5)
+        assert len(rig.regions) == 1 and set(rig.weights) == set(keyframes)
     finally:
         rig.close()
 
