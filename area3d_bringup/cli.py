@@ -340,6 +340,23 @@ def rviz(
         os.execvp("rviz2", command)
 
 
+@app.command("middleware-profile")
+def middleware_profile(
+    transport: str = typer.Argument("shm", help="shm (shared memory + UDP) or udp"),
+) -> None:
+    """Print the path of the graph's Fast DDS profile, for a camera driver to load too, e.g.
+    FASTRTPS_DEFAULT_PROFILES_FILE=$(area3d middleware-profile) ros2 launch ...: its 32 MB
+    shared-memory segment carries a 848x480 frame whole (Fast DDS' default 0.5 MB does not, and
+    such frames then cross fragmented UDP, where a 30 Hz stream loses most of them)."""
+    from area3d_msgs_py.errors import InputError
+    from area3d_msgs_py.middleware import profile_path
+
+    try:
+        print(profile_path(transport))
+    except InputError as exc:
+        _fail(str(exc))
+
+
 @app.command()
 def scenes() -> None:
     """List the bundled scenes."""

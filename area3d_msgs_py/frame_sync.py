@@ -35,6 +35,14 @@ MAX_AGE_NS = 5_000_000_000
 MAX_PENDING = 64
 # The pairing rate is measured over this many frames of the reference stream.
 RATE_WINDOW = 100
+# Frames that never arrived at all are estimated from the gaps between the reference stream's
+# stamps (`count_gaps`): the stream's period is the 10th percentile of its last GAP_WINDOW gaps
+# (frames that came back to back), counted only for a stream of at least 5 Hz, and a gap longer
+# than MAX_GAP_NS is a pause of the camera, not frames lost.
+GAP_WINDOW = 50
+MIN_GAPS = 10
+MAX_PERIOD_NS = 200_000_000
+MAX_GAP_NS = 1_000_000_000
 
 
 class Paired(NamedTuple):
@@ -69,6 +77,7 @@ class StampSync:
         max_pending: int = MAX_PENDING,
         pending_caps: dict[str, int] | None = None,
         slop_ns: int = 0,
+        count_gaps: bool = False,
     ) -> None:
         if len(keys) == 0 or len(set(keys)) != len(keys):
             raise InputError("keys", list(keys), "one or more distinct stream names")
@@ -90,8 +99,12 @@ class StampSync:
         self._dropped: list[Dropped] = []
         self.frames_paired = 0  # complete frames handed out
         self.parts_dropped = 0  # parts discarded without partners (every stream)
-        # the reference stream's last RATE_WINDOW parts: True paired, False dropped
+        # the reference stream's last RATE_WINDOW frames: True paired, False dropped or missed
         self._outcomes: deque[bool] = deque(maxlen=RATE_WINDOW)
+        self.count_gaps = count_gaps
+        self.frames_missed = 0  # reference frames that never arrived (estimated from the gaps)
+        self._gaps: deque[int] = deque(maxlen=GAP_WINDOW)
+        self._last_reference: int | None = None
 
     def add(self, key: str, stamp_ns: int, value: Any) -> dict[str, Any] | None:
         """Store one part; returns {key: value} for every stream once the frame is complete
@@ -108,6 +121,8 @@ class StampSync:
         if key not in self._pending:
             raise InputError("key", key, f"one of {list(self.keys)}")
         stamp_ns = int(stamp_ns)
+        if key == self.keys[0] and self.count_gaps:
+            self._count_gap(stamp_ns)
         if stamp_ns not in self._pending[key]:
             bisect.insort(self._sorted[key], stamp_ns)
         self._pending[key][stamp_ns] = value
@@ -118,6 +133,23 @@ class StampSync:
             self._expire(complete.stamp_ns - self.max_age_ns)
         self._cap()
         return complete
+
+    def _count_gap(self, stamp_ns: int) -> None:
+        """Frames the reference stream skipped before `stamp_ns`: a gap of n periods is n - 1
+        frames that never arrived (a streaming camera's frames lost on the way)."""
+        last, self._last_reference = self._last_reference, stamp_ns
+        if last is None or stamp_ns <= last:
+            self._last_reference = last if last is not None else stamp_ns
+            return
+        gap = stamp_ns - last
+        if len(self._gaps) >= MIN_GAPS and gap <= MAX_GAP_NS:
+            period = sorted(self._gaps)[len(self._gaps) // 10]
+            if 0 < period <= MAX_PERIOD_NS:
+                missed = int(round(gap / period)) - 1
+                if missed > 0:
+                    self.frames_missed += missed
+                    self._outcomes.extend([False] * missed)
+        self._gaps.append(gap)
 
     def _closest(self, key: str, stamp_ns: int) -> int | None:
         """The stamp of `key`'s waiting part closest to `stamp_ns`, within the slop; None if
@@ -175,15 +207,15 @@ class StampSync:
 
     def _missing(self, stamp_ns: int, key: str) -> str:
         return (
-            "/".join(
-                k for k in self.keys if k != key and self._closest(k, stamp_ns) is None
-            )
+            "/".join(k for k in self.keys if k != key and self._closest(k, stamp_ns) is None)
             or "part"
         )
 
     def pairing_rate(self) -> float | None:
-        """The share of the reference stream's last parts (up to RATE_WINDOW) that paired into a
-        frame; None before any paired or was dropped. Parts still waiting do not count."""
+        """The share of the reference stream's last frames (up to RATE_WINDOW) that paired into a
+        frame: a part dropped without partners, or (`count_gaps`) a frame missing from the
+        stream, counts against it; None before any paired or was lost. Parts still waiting do
+        not count."""
         if not self._outcomes:
             return None
         return sum(self._outcomes) / len(self._outcomes)

@@ -86,7 +86,10 @@ class KeyframeSelector:
             keep = (
                 (c.keyframe_distance > 0 and dist >= c.keyframe_distance)
                 or (c.keyframe_angle_deg > 0 and angle >= c.keyframe_angle_deg)
-                or (c.keyframe_interval_s > 0 and abs(stamp_ns - last_stamp) >= c.keyframe_interval_s * 1e9)
+                or (
+                    c.keyframe_interval_s > 0
+                    and abs(stamp_ns - last_stamp) >= c.keyframe_interval_s * 1e9
+                )
             )
         if keep:
             self._last = (int(stamp_ns), np.array(T_world_cam, float))

@@ -21,6 +21,7 @@ from rclpy.node import Node
 
 from area3d_msgs_py import codecs, topics
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.frame_sync import MAX_AGE_NS, HeldFrames, StampSync, pairing_warning
 from area3d_msgs_py.guard import Rejections, guarded, reject
 from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
@@ -30,7 +31,6 @@ from area3d_msgs_py.inputs import (
     decode_camera_info,
     decode_image,
 )
-from area3d_msgs_py.frame_sync import MAX_AGE_NS, HeldFrames, StampSync, pairing_warning
 from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
@@ -119,6 +119,7 @@ class PerceptionNode(Node):
             keys,
             max_age_ns=int(p["sync_max_age_s"] * 1e9),
             slop_ns=int(round(p["sync_slop_s"] * 1e9)),
+            count_gaps=True,  # a streaming camera's frames lost whole count against the rate
         )
         self.min_pairing_rate = p["min_pairing_rate"]
         self.keyframes = KeyframeSelector(
@@ -199,6 +200,7 @@ class PerceptionNode(Node):
             "frames_published": self.frames_published,
             **self.keyframes.status(),
             "frames_paired": self.sync.frames_paired,
+            "frames_missed": self.sync.frames_missed,
             "pairing_rate": self.sync.pairing_rate(),
             "frames_waiting_for_estimator": self.worker.waiting,
             "frames_dropped_backlog": self.worker.dropped,

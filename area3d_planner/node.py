@@ -29,6 +29,7 @@ from rclpy.node import Node
 
 from area3d_msgs_py import codecs, msgs, qos, topics
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync, pairing_warning
 from area3d_msgs_py.guard import Rejections, guarded, reject
 from area3d_msgs_py.inputs import (
     FLOAT_ENCODINGS,
@@ -56,7 +57,6 @@ from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
-from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync, pairing_warning
 from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.hard_regions import cloud_hard_regions
 from area3d_planner.markers import hard_region_markers, view_markers

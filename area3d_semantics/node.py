@@ -249,7 +249,9 @@ class SemanticsNode(Node):
         frames are analysed as the initial views."""
         with self._lock:
             views = len(self.views.complete)
-            self.views = ViewCollector(self.require_depth, require_confidence=self.require_confidence)
+            self.views = ViewCollector(
+                self.require_depth, require_confidence=self.require_confidence
+            )
             self.weights.clear()
             self.published_usem.clear()
             self.queried = False

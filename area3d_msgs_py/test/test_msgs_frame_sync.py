@@ -172,3 +172,36 @@ def test_a_frame_takes_its_own_stamps_camera_info_else_the_latest():
     assert cache.get(2) == "K2" and cache.get(3) == "K3"
     assert cache.get(1) == "K3"  # evicted: the latest stands in
     assert cache.get(99) == "K3"
+
+
+def test_frames_that_never_arrive_are_counted_from_the_gaps_of_a_streaming_camera():
+    """30 Hz with whole frames lost on the way (neither part arrives): the pairing rate says so,
+    estimated from the gaps between the colour stamps; a pause of the camera is not a loss, nor
+    the irregular gaps of a triggered camera (slower than 5 Hz)."""
+    ms = 1_000_000
+    period = 33 * ms
+    sync = StampSync(("color", "depth"), slop_ns=5 * ms, count_gaps=True)
+    lost = {i for i in range(20, 200) if i % 3 == 0}  # a third of the frames, after 20 good ones
+    for i in range(200):
+        if i in lost:
+            continue
+        jitter = (i % 5) * ms // 2
+        sync.add_part("color", i * period + jitter, i)
+        sync.add_part("depth", i * period + jitter + ms, i)
+    assert sync.frames_missed == len(lost) - (1 if 199 in lost else 0)
+    assert sync.frames_paired == 200 - len(lost)
+    assert 0.6 < sync.pairing_rate() < 0.72
+    # a camera that pauses 3 s and resumes loses nothing
+    paused = StampSync(("color", "depth"), count_gaps=True)
+    for i in list(range(30)) + list(range(120, 150)):
+        paused.add_part("color", i * period, i)
+        paused.add_part("depth", i * period, i)
+    assert paused.frames_missed == 0 and paused.pairing_rate() == 1.0
+    # a triggered camera, one frame per view every few seconds: not a stream
+    triggered = StampSync(("color", "depth"), count_gaps=True)
+    stamp = 0
+    for i in range(30):
+        stamp += (2000 + 700 * (i % 4)) * ms
+        triggered.add_part("color", stamp, i)
+        triggered.add_part("depth", stamp, i)
+    assert triggered.frames_missed == 0

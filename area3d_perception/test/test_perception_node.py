@@ -120,7 +120,14 @@ class FakeNode:
 
 
 def send_frame(
-    node, stamp, depth=None, rgb=None, info=True, order=("color", "depth", "pose"), x=0.0, stamps=None
+    node,
+    stamp,
+    depth=None,
+    rgb=None,
+    info=True,
+    order=("color", "depth", "pose"),
+    x=0.0,
+    stamps=None,
 ):
     """One frame's parts; `x` moves the camera along x, `stamps` ({key: stamp}) stamps parts
     apart."""
@@ -161,7 +168,9 @@ def test_a_streaming_camera_integrates_keyframes_only_and_counts_the_rest_as_ski
     """30 Hz from a camera at rest, then moving: a frame is integrated when the camera moved
     keyframe_distance or a keyframe_interval_s passed since the last one; the rest are skipped,
     counted, and never reach the backend."""
-    node = FakeNode({"keyframe_distance": 0.1, "keyframe_angle_deg": 10.0, "keyframe_interval_s": 1.0})
+    node = FakeNode(
+        {"keyframe_distance": 0.1, "keyframe_angle_deg": 10.0, "keyframe_interval_s": 1.0}
+    )
     period = S // 30
     for i in range(45):  # 1.5 s at rest: the first frame, and the one a second later
         send_frame(node, S + i * period)

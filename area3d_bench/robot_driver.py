@@ -1,6 +1,6 @@
 """A robot stack nobody wrote for AREA3D: an RGB-D camera driver and the odometry of the body it is
 mounted on, as a plain rclpy process that imports nothing from the project (rclpy, the standard
-messages, tf2_msgs, numpy and mujoco only).
+messages, tf2_msgs, numpy and mujoco only). The robot tests and `area3d bench robot` run it.
 
     python robot_driver.py '{"scene": "path/to/scene.xml", "readers": {"/odom": 2, ...}}'
 
@@ -13,10 +13,21 @@ mounted on the body by a fixed transform published on /tf_static (base_link -> c
 camera_color_optical_frame). The scene is rendered with MuJoCo from the MJCF file itself.
 
 A goal (geometry_msgs/PoseStamped on /driver/goal: where the camera's optical frame should be, in
-odom) moves the body there over half a second, odometry flowing meanwhile; once it has stood
-still for a few odometry periods, the camera captures: the image is stamped with the driver's
-clock at that moment, independently of the odometry's stamps. /driver/captured (std_msgs/String,
-reliable) then says {"stamp_ns", "goal"}. Runs until SIGINT or SIGTERM.
+the driver's fixed frame) moves the body there over `move_s` seconds, odometry flowing meanwhile;
+once it has stood still for a few odometry periods, the camera captures: the image is stamped
+with the driver's clock at that moment, independently of the odometry's stamps.
+/driver/captured (std_msgs/String, reliable) then says {"stamp_ns", "goal"}.
+
+Options (the JSON argument):
+- `stream_hz` > 0: the camera streams at that rate all the time, while the body moves and at
+  rest, as real drivers do; the capture reported is the first frame after the body stood still.
+- `tf`: poses go out on /tf instead of /odom: map -> odom (10 Hz, a localisation offset of
+  0.3 m, -0.2 m and 5 degrees of yaw) and odom -> base_link (50 Hz); goals are in `map`.
+- `loss`: each image and camera info is left unpublished with this probability (seeded by
+  `seed`), as a best-effort link loses parts.
+- `render_scale` < 1: render at that fraction of 848x480 and publish 848x480 (nearest
+  neighbour), so that a CPU-rendered stream keeps its rate.
+Runs until SIGINT or SIGTERM.
 """
 
 import json
@@ -50,6 +61,7 @@ from tf2_msgs.msg import TFMessage  # noqa: E402
 WIDTH, HEIGHT, HFOV_DEG = 848, 480, 87.0
 MAX_RANGE = 5.0
 ODOM_HZ = 50.0
+MAP_HZ = 10.0
 MOVE_S = 0.5
 SETTLE_TICKS = 3  # odometry periods the body stands still before a capture
 READERS_FOR_S = 1.0  # the readers have had the odometry this long before the first capture
@@ -58,6 +70,9 @@ DEPTH = "/camera/camera/aligned_depth_to_color/image_raw"
 INFO = "/camera/camera/color/camera_info"
 ODOM = "/odom"
 OPTICAL = "camera_color_optical_frame"
+# map -> odom: where localisation puts the odometry's origin (tf option)
+MAP_ODOM_XY = (0.3, -0.2)
+MAP_ODOM_YAW_DEG = 5.0
 # base_link -> camera_link: 10 cm ahead, 25 cm up, pitched down 10 degrees (REP 103 axes)
 LINK_XYZ = (0.10, 0.0, 0.25)
 LINK_PITCH_DEG = 10.0
@@ -68,6 +83,12 @@ MJ_FROM_OPTICAL = np.diag([1.0, -1.0, -1.0])
 RELIABLE = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+TF_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
@@ -146,8 +167,10 @@ def transform(parent, child, T, ns):
 class Camera:
     """MuJoCo RGB-D rendering of the MJCF scene at an optical-frame pose."""
 
-    def __init__(self, scene_path):
+    def __init__(self, scene_path, scale=1.0):
         self.fx = (WIDTH / 2) / np.tan(np.radians(HFOV_DEG) / 2)
+        self.scale = int(round(1.0 / scale)) if scale < 1.0 else 1
+        width, height = WIDTH // self.scale, HEIGHT // self.scale
         fovy = 2 * np.degrees(np.arctan((HEIGHT / 2) / self.fx))
         spec = mujoco.MjSpec.from_file(scene_path)
         spec.visual.global_.offwidth = max(WIDTH, spec.visual.global_.offwidth)
@@ -160,7 +183,7 @@ class Camera:
         self.data = mujoco.MjData(self.model)
         mujoco.mj_forward(self.model, self.data)
         self.camera = self.model.camera("driver_camera").id
-        self.renderer = mujoco.Renderer(self.model, HEIGHT, WIDTH)
+        self.renderer = mujoco.Renderer(self.model, height, width)
 
     def render(self, T):
         """(bgr (H, W, 3) uint8, depth (H, W) uint16 millimetres, 0 = no return)."""
@@ -173,7 +196,11 @@ class Camera:
         self.renderer.update_scene(self.data, camera=self.camera)
         metres = self.renderer.render().astype(np.float64)
         mm = np.where((metres > 0) & (metres < MAX_RANGE), np.rint(metres * 1000.0), 0.0)
-        return np.ascontiguousarray(rgb[..., ::-1]), mm.astype(np.uint16)
+        bgr, mm = rgb[..., ::-1], mm.astype(np.uint16)
+        if self.scale > 1:  # nearest neighbour back to the published size
+            bgr = bgr.repeat(self.scale, 0).repeat(self.scale, 1)
+            mm = mm.repeat(self.scale, 0).repeat(self.scale, 1)
+        return np.ascontiguousarray(bgr), np.ascontiguousarray(mm)
 
     def info(self, ns):
         msg = CameraInfo()
@@ -200,8 +227,21 @@ def image(array, encoding, ns):
 class Driver(Node):
     def __init__(self, config):
         super().__init__("robot_driver")
-        self.camera = Camera(config["scene"])
+        self.camera = Camera(config["scene"], config.get("render_scale", 1.0))
         self.readers = config.get("readers", {})
+        self.stream_hz = float(config.get("stream_hz", 0.0))
+        self.use_tf = bool(config.get("tf", False))
+        self.loss = float(config.get("loss", 0.0))
+        self.move_s = float(config.get("move_s", MOVE_S))
+        self.rng = np.random.default_rng(config.get("seed", 0))
+        self.fixed = "map" if self.use_tf else "odom"
+        yaw = np.radians(MAP_ODOM_YAW_DEG)
+        self.T_map_odom = np.eye(4)
+        self.T_map_odom[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        self.T_map_odom[:2, 3] = MAP_ODOM_XY
+        self.frames_published = 0
+        self.parts_lost = 0
+        self.frames_late = 0  # frame slots the renderer was too slow for (a camera's drops)
         T_link = np.eye(4)
         pitch = np.radians(LINK_PITCH_DEG)
         T_link[:3, :3] = [
@@ -226,6 +266,8 @@ class Driver(Node):
         }
         self.captured = self.create_publisher(String, "/driver/captured", RELIABLE)
         self.tf_static = self.create_publisher(TFMessage, "/tf_static", LATCHED)
+        # /tf as tf2's TransformBroadcaster publishes it: reliable, 100 deep
+        self.tf = self.create_publisher(TFMessage, "/tf", TF_QOS)
         now = self.get_clock().now().nanoseconds
         self.tf_static.publish(
             TFMessage(
@@ -237,33 +279,113 @@ class Driver(Node):
         )
         self.create_subscription(PoseStamped, "/driver/goal", self.on_goal, RELIABLE)
         self.create_timer(1.0 / ODOM_HZ, self.tick)
+        if self.use_tf:
+            self.create_timer(1.0 / MAP_HZ, self.tick_map)
+        self.stream_ns = 0  # stamp of the last streamed frame
+        self.settled_ns = None  # when the body stood still at the goal (streaming)
+        # a camera's frame clock: frame k is exposed at t0 + k / stream_hz, whatever the renderer
+        # does; a slot it is too late for is a frame dropped (counted, as a driver counts them)
+        self.slot = None  # (t0 in ns, t0 monotonic, last slot)
+        if self.stream_hz > 0:
+            self.create_timer(0.25 / self.stream_hz, self.stream)
 
     def on_goal(self, msg):
-        if msg.header.frame_id != "odom":
-            self.get_logger().error(f"goal in {msg.header.frame_id!r}, expected 'odom'")
+        if msg.header.frame_id != self.fixed:
+            self.get_logger().error(f"goal in {msg.header.frame_id!r}, expected {self.fixed!r}")
             return
-        target = pose_matrix(msg.pose) @ np.linalg.inv(self.T_base_camera)
+        T_goal = pose_matrix(msg.pose)
+        if self.use_tf:  # the body moves in odom
+            T_goal = np.linalg.inv(self.T_map_odom) @ T_goal
+        target = T_goal @ np.linalg.inv(self.T_base_camera)
         goal_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.motion = (self.body.copy(), target, time.monotonic(), goal_ns)
         self.settled = 0
 
+    def body_at(self, monotonic):
+        """The body's pose at a time of the monotonic clock (the drive under way)."""
+        if self.motion is None:
+            return self.body
+        start, target, t0, _ = self.motion
+        u = min(1.0, max(0.0, (monotonic - t0) / self.move_s))
+        return target if u >= 1.0 else blend(start, target, u)
+
     def tick(self):
         if self.motion is not None:
-            start, target, t0, goal_ns = self.motion
-            u = min(1.0, (time.monotonic() - t0) / MOVE_S)
-            self.body = target if u >= 1.0 else blend(start, target, u)
-            if u >= 1.0:
+            _, _, t0, _ = self.motion
+            self.body = self.body_at(time.monotonic())
+            if time.monotonic() - t0 >= self.move_s:
                 self.settled += 1
-        odometry = Odometry()
-        odometry.header.frame_id, odometry.child_frame_id = "odom", "base_link"
-        odometry.header.stamp = self.get_clock().now().to_msg()
-        p, q = odometry.pose.pose.position, odometry.pose.pose.orientation
-        p.x, p.y, p.z = map(float, self.body[:3, 3])
-        q.x, q.y, q.z, q.w = map(float, quaternion(self.body[:3, :3]))
-        self.pubs[ODOM].publish(odometry)
+        now = self.get_clock().now()
+        if self.use_tf:
+            self.tf.publish(
+                TFMessage(transforms=[transform("odom", "base_link", self.body, now.nanoseconds)])
+            )
+        else:
+            odometry = Odometry()
+            odometry.header.frame_id, odometry.child_frame_id = "odom", "base_link"
+            odometry.header.stamp = now.to_msg()
+            p, q = odometry.pose.pose.position, odometry.pose.pose.orientation
+            p.x, p.y, p.z = map(float, self.body[:3, 3])
+            q.x, q.y, q.z, q.w = map(float, quaternion(self.body[:3, :3]))
+            self.pubs[ODOM].publish(odometry)
         if self.motion is not None and self.settled > SETTLE_TICKS and self.read():
+            if self.stream_hz > 0:  # the first streamed frame from here on is the capture
+                if self.settled_ns is None:
+                    self.settled_ns = now.nanoseconds
+                return
             self.capture(self.motion[3])
             self.motion = None
+
+    def tick_map(self):
+        now = self.get_clock().now().nanoseconds
+        self.tf.publish(TFMessage(transforms=[transform("map", "odom", self.T_map_odom, now)]))
+
+    def stream(self):
+        """One frame of the stream at the body's pose now, moving or not (from the first goal on:
+        the robot is placed in the scene then)."""
+        if self.stream_ns == 0 and self.motion is None:
+            return
+        if not self.read():
+            return
+        self.stream_ns = 1
+        now_ns, now_mono = self.get_clock().now().nanoseconds, time.monotonic()
+        if self.slot is None:
+            self.slot = (now_ns, now_mono, -1)
+        t0_ns, t0_mono, last = self.slot
+        period = 1.0 / self.stream_hz
+        k = int((now_mono - t0_mono) / period)
+        if k <= last:
+            return
+        self.frames_late += k - last - 1
+        self.slot = (t0_ns, t0_mono, k)
+        ns = self.publish_frame(
+            t0_ns + int(round(k * period * 1e9)), self.body_at(t0_mono + k * period)
+        )
+        if self.settled_ns is not None and ns > self.settled_ns and self.motion is not None:
+            self.captured.publish(String(data=json.dumps({"stamp_ns": ns, "goal": self.motion[3]})))
+            self.motion, self.settled_ns = None, None
+
+    def publish_frame(self, ns=None, body=None):
+        """Render at the body's pose (`body`: at the frame's exposure), publish colour, depth and
+        camera info (each lost with probability `loss`) stamped `ns` (default: now); the
+        frame's stamp."""
+        body = self.body if body is None else body
+        # the scene is the world: map with tf (localisation is right), odom without
+        T_world_body = self.T_map_odom @ body if self.use_tf else body
+        bgr, depth_mm = self.camera.render(T_world_body @ self.T_base_camera)
+        if ns is None:
+            ns = self.get_clock().now().nanoseconds  # the capture: not an odometry stamp
+        for topic, msg in (
+            (INFO, self.camera.info(ns)),
+            (DEPTH, image(depth_mm, "16UC1", ns)),
+            (COLOR, image(bgr, "bgr8", ns)),
+        ):
+            if self.loss > 0 and self.rng.random() < self.loss:
+                self.parts_lost += 1
+                continue
+            self.pubs[topic].publish(msg)
+        self.frames_published += 1
+        return ns
 
     def read(self):
         """Every topic has had its readers for a second (a best-effort frame published before
@@ -276,11 +398,7 @@ class Driver(Node):
         return time.monotonic() - self.read_since >= READERS_FOR_S
 
     def capture(self, goal_ns):
-        bgr, depth_mm = self.camera.render(self.body @ self.T_base_camera)
-        ns = self.get_clock().now().nanoseconds  # the capture: not an odometry stamp
-        self.pubs[INFO].publish(self.camera.info(ns))
-        self.pubs[DEPTH].publish(image(depth_mm, "16UC1", ns))
-        self.pubs[COLOR].publish(image(bgr, "bgr8", ns))
+        ns = self.publish_frame()
         self.captured.publish(String(data=json.dumps({"stamp_ns": ns, "goal": goal_ns})))
 
 
@@ -299,6 +417,17 @@ def main(config):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        # what it sent, for the bench (stdout)
+        print(
+            json.dumps(
+                {
+                    "frames_published": node.frames_published,
+                    "parts_lost": node.parts_lost,
+                    "frames_late": node.frames_late,
+                }
+            ),
+            flush=True,
+        )
         node.destroy_node()
         rclpy.try_shutdown()
 
