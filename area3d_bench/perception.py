@@ -30,7 +30,14 @@ from sim_bridge.noise import add_depth_noise
 # Every per-frame step should keep up with a 30 Hz camera on 2 CPU cores.
 TARGET_MS = 30.0
 # The perception node's settings in the shipped graph (area3d_bringup/config/area3d.yaml).
-NODE_PARAMETERS = {"backend": "rgbd"}
+# every frame is estimated (no keyframe rule): each timed frame is a whole frame's work
+NODE_PARAMETERS = {
+    "backend": "rgbd",
+    "keyframe_distance": 0.0,
+    "keyframe_angle_deg": 0.0,
+    "keyframe_interval_s": 0.0,
+}
+WORKER_WAIT_S = 120.0
 OPTICAL_FRAME = "camera_optical_frame"
 
 
@@ -97,7 +104,7 @@ def node_frames(
     publish every frame it was given (a rejected frame would time nothing).
 
     depth: (H, W) float32 metres; K: (3, 3); T_world_cam: (4, 4); parameters: node parameters
-    (default `NODE_PARAMETERS`).
+    (over `NODE_PARAMETERS`).
     """
     import rclpy
     from rclpy.parameter import Parameter
@@ -105,7 +112,7 @@ def node_frames(
     from area3d_msgs_py import codecs, msgs
     from area3d_perception.node import PerceptionNode
 
-    parameters = NODE_PARAMETERS if parameters is None else parameters
+    parameters = {**NODE_PARAMETERS, **(parameters or {})}
     h, w = depth.shape
     rgb = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
 
@@ -149,6 +156,9 @@ def node_frames(
             node.on_color(color_msg)
             node.on_depth(depth_msg)
             node.on_pose(pose_msg)
+            # the estimate runs on the node's worker thread: the frame is done once it is out
+            if not node.worker.wait_idle(WORKER_WAIT_S):
+                raise RuntimeError(f"frame {sent} not estimated within {WORKER_WAIT_S} s")
 
         yield frame
         if node.frames_published != sent:

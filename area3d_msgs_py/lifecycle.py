@@ -63,13 +63,16 @@ class PublishGate:
     and only while `open_` is true; `close()` (from `run_node`'s `on_stop`) waits for a publish in
     progress to end and refuses every later one."""
 
-    def __init__(self) -> None:
+    def __init__(self, context_ok: Callable[[], bool] | None = None) -> None:
         self._lock = threading.Lock()
         self._open = True
+        self._context_ok = context_ok  # the node's `context.ok`
 
     def __enter__(self) -> bool:
         self._lock.acquire()
-        return self._open
+        # closed too once rclpy's signal handler has shut the context down: a Ctrl-C lands
+        # before `run_node` gets to `on_stop`, and a publish in between raises in the worker
+        return self._open and (self._context_ok is None or self._context_ok())
 
     def __exit__(self, *exc: object) -> None:
         self._lock.release()

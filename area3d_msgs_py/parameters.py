@@ -145,7 +145,7 @@ MIN_PAIRING_RATE_PARAM = Param(
     "min_pairing_rate",
     0.8,
     "below this share of frames paired (of the last 100) /diagnostics warns: parts are lost "
-    "on the way (best effort) or stamped too far apart (sync_slop_s)",
+    "on the way (best effort) or stamped too far apart (sync_slop_s), a fraction 0-1",
     range=(0.0, 1.0),
 )
 

@@ -65,6 +65,8 @@ class FrameWorker:
         # held while a frame is processed and handed on, and while `cleared` runs
         self._step = threading.Lock()
         self._generation = 0  # frames submitted before the last `cleared` are not processed
+        self._idle = threading.Condition()
+        self._pending = 0  # frames submitted and not yet processed or dropped
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
 
@@ -75,12 +77,25 @@ class FrameWorker:
 
     def submit(self, stamp_ns: int, frame: Any, K: Any) -> bool:
         """Queue a whole frame; False (and counted in `dropped`) if the backlog is full."""
-        try:
-            self._queue.put_nowait((stamp_ns, frame, K, self._now_ns(), self._generation))
+        with self._idle:
+            try:
+                self._queue.put_nowait((stamp_ns, frame, K, self._now_ns(), self._generation))
+            except queue.Full:
+                self.dropped += 1
+                return False
+            self._pending += 1
             return True
-        except queue.Full:
-            self.dropped += 1
-            return False
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Wait until every frame submitted so far is processed (or dropped by `cleared`); True
+        if so within `timeout_s`."""
+        with self._idle:
+            return self._idle.wait_for(lambda: self._pending == 0, timeout_s)
+
+    def _finished(self, frames: int = 1) -> None:
+        with self._idle:
+            self._pending -= frames
+            self._idle.notify_all()
 
     def stop(self, timeout_s: float) -> None:
         """Stop after the frame in flight (frames still queued are not processed); wait up to
@@ -112,6 +127,7 @@ class FrameWorker:
                     self._queue.put_nowait(None)
                     break
                 waiting += 1
+            self._finished(waiting)
             self._published = -np.inf
             self.last_process_s = self.last_paired_age_s = self.last_done_age_s = None
             yield waiting
@@ -126,8 +142,11 @@ class FrameWorker:
             if item is None:
                 return
             with self._step:
-                if item[4] == self._generation and not self._step_one(*item[:4]):
-                    return
+                try:
+                    if item[4] == self._generation and not self._step_one(*item[:4]):
+                        return
+                finally:
+                    self._finished()
 
     def _step_one(self, stamp: int, frame: Any, K: Any, submitted_ns: int) -> bool:
         """Process one frame and hand it on; False once the node has stopped."""
@@ -146,4 +165,9 @@ class FrameWorker:
             if self._queue.empty() or now - self._published >= self.publish_period_s:
                 self._published = now
                 publish = True
-        return self._on_done(stamp, done, publish)
+        try:
+            return self._on_done(stamp, done, publish)
+        except Exception:
+            if self.stopping:  # a stopping node's publish may fail: the worker ends quietly
+                return False
+            raise  # the thread ends: the node reports its worker dead (`alive`)

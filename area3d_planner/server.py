@@ -781,6 +781,16 @@ class NextBestViewServer:
                 self._cache_waiters -= 1
 
     def _refresh_loop(self) -> None:
+        """The background worker; an exception it did not expect ends it (`worker_alive` turns
+        false: ERROR on /diagnostics) unless the server was closed meanwhile (the process is
+        stopping: nothing to report)."""
+        try:
+            self._refresh_forever()
+        except Exception:
+            if not self._closed:
+                raise
+
+    def _refresh_forever(self) -> None:
         self.worker_tid = threading.get_native_id()
         if self.rebuild_nice > 0:
             # Linux: the nice value is a thread's own, and the build's threads inherit it

@@ -143,7 +143,7 @@ class SemanticsNode(Node):
         self._lock = threading.Lock()
         # the VLM query runs on a worker thread, so callbacks keep running meanwhile
         self.worker = AnalysisWorker(self._analyse, self._requery)
-        self.gate = PublishGate()  # the worker publishes only while the node runs
+        self.gate = PublishGate(self.context.ok)  # the worker publishes only while the node runs
 
         self.pub_regions, self.pub_weight, self.pub_usem = (
             self.create_publisher(topic.msg_type, topic.name, topic.qos())

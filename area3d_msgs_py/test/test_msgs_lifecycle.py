@@ -32,6 +32,17 @@ def test_a_closed_gate_refuses_later_publishes_and_waits_for_one_in_progress():
         assert not running  # every publish after close is refused
 
 
+def test_a_gate_is_closed_once_the_context_is_shut_down():
+    """A Ctrl-C shuts the context down before the node's on_stop closes the gate."""
+    context_ok = [True]
+    gate = PublishGate(lambda: context_ok[0])
+    with gate as running:
+        assert running
+    context_ok[0] = False
+    with gate as running:
+        assert not running
+
+
 ARENA_PROBE = """
 import ctypes, re, sys, tempfile, threading
 from area3d_msgs_py.lifecycle import limit_malloc_arenas

@@ -185,3 +185,48 @@ def test_a_stop_asked_before_a_clearing_still_ends_the_worker():
     with fusion.cleared():
         pass
     assert wait_for(lambda: not fusion.alive)
+
+
+def test_wait_idle_returns_once_every_submitted_frame_is_processed():
+    rec = Recorder()
+    rec.release.clear()
+    fusion = worker(rec)
+    try:
+        assert fusion.submit(1, "frame", K) and fusion.submit(2, "frame", K)
+        assert rec.entered.wait(TIMEOUT_S)
+        assert not fusion.wait_idle(0.05)  # frame 1 in flight, 2 waits
+        rec.release.set()
+        assert fusion.wait_idle(TIMEOUT_S)
+        assert rec.fused == [1, 2] and len(rec.done) == 2
+        rec.release.clear()
+        assert fusion.submit(3, "frame", K)
+        assert rec.entered.wait(TIMEOUT_S)
+        with fusion.cleared():  # waits for 3, then nothing is pending
+            pass
+        assert fusion.wait_idle(0.0)
+    finally:
+        rec.release.set()
+        fusion.stop(TIMEOUT_S)
+
+
+def test_a_failing_hand_on_ends_the_worker_quietly_only_when_it_is_stopping(monkeypatch):
+    """A publish that raises ends the worker (the node then reports it dead), with the thread's
+    traceback; while the node stops it ends without one (a Ctrl-C's publish on a shut context)."""
+    raised = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: raised.append(args.exc_type))
+
+    def on_done(stamp, fused, publish_grid):
+        raise RuntimeError("publisher's context is invalid")
+
+    for stopping in (False, True):
+        rec = Recorder()
+        fusion = FrameWorker(rec.fuse, on_done, rec.on_failed, "test-worker")
+        fusion.stopping = stopping
+        try:
+            assert fusion.submit(1, "frame", K)
+            assert wait_for(lambda f=fusion: not f.alive)
+            assert fusion.wait_idle(TIMEOUT_S)
+        finally:
+            fusion.stop(TIMEOUT_S)
+        assert rec.failed == []
+    assert raised == [RuntimeError]  # the first only
