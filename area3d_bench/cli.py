@@ -84,6 +84,30 @@ def bench_soak(
     )
 
 
+@app.command("robot")
+def bench_robot(
+    runs: str = typer.Option(
+        "triggered,stream,stream-default-dds",
+        help="missions side by side: triggered (one frame per view, the reference), stream, "
+        "stream-lossy (the driver loses a third of its parts), stream-default-dds (the driver "
+        "on Fast DDS' default profile)",
+    ),
+    seeds: int = typer.Option(1, help="seeds per mission (mean and range are printed)"),
+    planned: int = typer.Option(10, help="views asked for after the initial ones"),
+    rate: float = typer.Option(30.0, help="the streaming camera's rate, Hz"),
+    render_scale: float = typer.Option(1.0, help="the driver renders at this fraction of 848x480"),
+    scene: str = typer.Option("single_object"),
+    json_out: Path = typer.Option(None, "--json", help="also write every figure to this file"),
+) -> None:
+    """Benchmark: a mission beside a streaming robot driver (see area3d_bench.robot_bench)."""
+    from area3d_bench.robot_bench import run_bench
+
+    try:
+        run_bench(runs, seeds, planned, rate, render_scale, scene, json_out)
+    except ValueError as err:
+        _fail(str(err))
+
+
 @app.command("episode")
 def bench_episode(
     seeds: int = typer.Option(3),

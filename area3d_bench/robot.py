@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from area3d_bench.soak import rss_mb
 from area3d_bringup.launch_description import (
     GRAPH_NODES,
     build_graph,
@@ -37,6 +38,9 @@ from sim_bridge.scenes import load_scene
 
 DRIVER = Path(__file__).parent / "robot_driver.py"
 WAIT_S = 180.0  # processes, DDS and software rendering on a loaded 2-core machine
+# a triggered camera's frame not fused after this long is taken as lost on the way (best effort:
+# a frame sent while a reader is still being matched never arrives) and captured again
+RETRIGGER_S = 15.0
 # the driver's topics (a RealSense driver's names), remapped onto the graph's
 REMAPS = {
     topics.COLOR.name: "/camera/camera/color/image_raw",
@@ -83,6 +87,9 @@ class MissionResult:
     driver: dict
     log: list[str]
     exit_codes: dict
+    retriggers: int = 0  # triggered frames captured again: the first never fused
+    # each node process's resident memory (MB) at the first view request and at the end
+    rss_mb: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 class Mission:
@@ -101,18 +108,24 @@ class Mission:
             )
         }
         self.client = None
+        self.retriggers = 0  # triggered frames captured again (the first never fused)
         self.grids = probe.listen(
             msgs.PointCloud2, topics.UNCERTAINTY_GRID.name, topics.UNCERTAINTY_GRID.qos()
         )
 
-    def wait(self, predicate, what: str) -> None:
-        deadline = time.monotonic() + WAIT_S
+    def wait(self, predicate, what: str, timeout_s: float = WAIT_S) -> bool:
+        """Wait for `predicate`; past `timeout_s` False, or with the default timeout an
+        AssertionError naming `what` (and the nodes' last lines printed)."""
+        deadline = time.monotonic() + timeout_s
         while not predicate():
             self.launcher.check()  # a node that died fails here, by name
             if time.monotonic() > deadline:
+                if timeout_s != WAIT_S:
+                    return False
                 print("\n".join(self.lines[-60:]))  # what the nodes said, with the failure
                 raise AssertionError(f"waited {WAIT_S:.0f} s for {what}")
             time.sleep(0.05)
+        return True
 
     def last_status(self, node: str) -> dict:
         messages = self.status[node]
@@ -120,7 +133,18 @@ class Mission:
 
     def drive(self, T_camera: np.ndarray, wait_fused: bool) -> int:
         """Send the driver's camera to the pose; the stamp of its capture there (with
-        `wait_fused`, once the planner fused it: a triggered camera's one frame per view)."""
+        `wait_fused`, once the planner fused it: a triggered camera's one frame per view, captured
+        again after `RETRIGGER_S` without it, as a mission manager does with a lossy camera)."""
+        if not wait_fused:
+            return self._goal(T_camera, wait_fused)
+        for _ in range(int(WAIT_S / RETRIGGER_S)):
+            try:
+                return self._goal(T_camera, wait_fused, RETRIGGER_S)
+            except TimeoutError:
+                self.retriggers += 1
+        return self._goal(T_camera, wait_fused)
+
+    def _goal(self, T_camera: np.ndarray, wait_fused: bool, fuse_s: float = WAIT_S) -> int:
         goal_ns = time.time_ns()
         fused = self.last_status("planner").get("frames_fused", 0)
         self.goal.publish(
@@ -135,11 +159,12 @@ class Mission:
             ]
 
         self.wait(captured, f"the driver's capture at {T_camera[:3, 3]}")
-        if wait_fused:
-            self.wait(
-                lambda: self.last_status("planner").get("frames_fused", 0) > fused,
-                "the planner fusing the driver's frame",
-            )
+        if wait_fused and not self.wait(
+            lambda: self.last_status("planner").get("frames_fused", 0) > fused,
+            "the planner fusing the driver's frame",
+            fuse_s,
+        ):
+            raise TimeoutError(f"the frame at {T_camera[:3, 3]} was not fused in {fuse_s} s")
         return captured()[0]["stamp_ns"]
 
     def ask(self, T: np.ndarray, stamp: int) -> tuple[ViewAnswer, float]:
@@ -228,6 +253,8 @@ def run_mission(options: MissionOptions, workdir: Path) -> MissionResult:
         for T in scene.initial_views:  # O_0, where the operator put the camera
             stamp = mission.drive(T, triggered)
             captures.append(stamp)
+        rss_first = {name: _rss(p.pid) for name, p in launcher.processes.items()}
+        rss: dict = {}
         for _ in range(options.planned):
             answer, seconds = mission.ask(T, stamp)
             answers.append((answer, seconds))
@@ -242,6 +269,8 @@ def run_mission(options: MissionOptions, workdir: Path) -> MissionResult:
         planner_status = mission.last_status("planner")
         statuses = {node: mission.last_status(node) for node in mission.status}
         grid = mission.grids[-1]
+        retriggers = mission.retriggers
+        rss = {name: (rss_first.get(name), _rss(p.pid)) for name, p in launcher.processes.items()}
     finally:
         probe.close()
         codes = launcher.stop()
@@ -265,7 +294,16 @@ def run_mission(options: MissionOptions, workdir: Path) -> MissionResult:
         driver=json.loads(sent[-1]) if sent else {},
         log=lines,
         exit_codes=codes,
+        rss_mb=rss,
+        retriggers=retriggers,
     )
+
+
+def _rss(pid: int) -> float:
+    try:
+        return rss_mb(pid)
+    except OSError:  # the process has ended
+        return float("nan")
 
 
 def aimed_at(T: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_range: float) -> bool:

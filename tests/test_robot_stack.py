@@ -81,7 +81,11 @@ def test_the_graph_plans_for_a_robot_driver_and_odometry_it_has_never_seen(tmp_p
     result = run_mission(MissionOptions(planned=PLANNED), tmp_path)
     check_mission(result, "single_object", PLANNED)
     status = result.planner_status
-    assert status["frames_fused"] == len(result.captures) and status["rejected"]["total"] == 0
+    # one frame per view; a frame lost on the way (best effort) was captured again
+    assert (
+        len(result.captures) <= status["frames_fused"] <= len(result.captures) + result.retriggers
+    )
+    assert status["rejected"]["total"] == 0
     assert all(answer.message == "" for answer, _ in result.answers)
 
 
