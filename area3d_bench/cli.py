@@ -36,7 +36,8 @@ BENCHES = {
 
 
 def _fail(message: str) -> None:
-    console.print(f"[bold red]error:[/] {escape(message)}")
+    # one line, never wrapped by rich: a path or value in it stays whole (to copy, to grep)
+    console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
     raise typer.Exit(code=2)
 
 
