@@ -30,7 +30,16 @@ $(STAMP): pyproject.toml $(FOXGLOVE_CLIENT)/package-lock.json
 $(INTERFACES): $(STAMP) $(INTERFACE_SOURCES)
 	$(PY) tools/build_interfaces.py
 
-install: $(INTERFACES)
+# The numba kernels compiled into their on-disk cache, so that no node compiles one while the
+# graph runs (area3d_bringup/kernels.py); again when a source file changes.
+KERNELS := $(VENV)/.kernels
+KERNEL_SOURCES := $(shell find area3d_* sim_bridge -name '*.py' -not -path '*/test/*')
+
+$(KERNELS): $(INTERFACES) $(KERNEL_SOURCES)
+	$(PY) -m area3d_bringup.kernels
+	touch $(KERNELS)
+
+install: $(KERNELS)
 
 run: install
 	$(VENV)/bin/area3d run
