@@ -80,6 +80,7 @@ LINK_PITCH_DEG = 10.0
 R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 # MuJoCo cameras look along -z with y up
 MJ_FROM_OPTICAL = np.diag([1.0, -1.0, -1.0])
+SHORT_STALL_S = 0.5
 RELIABLE = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=10,
@@ -242,6 +243,9 @@ class Driver(Node):
         self.frames_published = 0
         self.parts_lost = 0
         self.frames_late = 0  # frame slots the renderer was too slow for (a camera's drops)
+        # of those, the ones in stalls of at most SHORT_STALL_S (a stream's drops; a longer stall
+        # reads as the camera pausing to whoever counts gaps in its stamps)
+        self.frames_late_short = 0
         T_link = np.eye(4)
         pitch = np.radians(LINK_PITCH_DEG)
         T_link[:3, :3] = [
@@ -357,6 +361,8 @@ class Driver(Node):
         if k <= last:
             return
         self.frames_late += k - last - 1
+        if (k - last) * period <= SHORT_STALL_S:
+            self.frames_late_short += k - last - 1
         self.slot = (t0_ns, t0_mono, k)
         ns = self.publish_frame(
             t0_ns + int(round(k * period * 1e9)), self.body_at(t0_mono + k * period)
@@ -424,6 +430,7 @@ def main(config):
                     "frames_published": node.frames_published,
                     "parts_lost": node.parts_lost,
                     "frames_late": node.frames_late,
+                    "frames_late_short": node.frames_late_short,
                 }
             ),
             flush=True,

@@ -120,8 +120,16 @@ def test_a_next_best_view_call_and_tf_between_two_processes_with_jazzys_type_has
 
             assert probe.wait_for(lambda: tf, TIMEOUT_S), "no /tf from the server"
             assert tf[0].transforms[0].child_frame_id == "camera_link"
+
+            # the writer's node name comes with its participant's discovery data, which can
+            # trail the endpoint's on a loaded machine ("_NODE_NAME_UNKNOWN_" until then)
+            def writers() -> list[str]:
+                return [p.node_name for p in probe.node.get_publishers_info_by_topic("/tf")]
+
+            assert probe.wait_for(lambda: writers() == ["next_best_view_server"], TIMEOUT_S), (
+                writers()
+            )
             publishers = probe.node.get_publishers_info_by_topic("/tf")
-            assert [p.node_name for p in publishers] == ["next_best_view_server"]
             assert str(publishers[0].topic_type_hash) == JAZZY_TFMESSAGE_HASH
     finally:
         log = interrupt(server, TIMEOUT_S)
