@@ -113,7 +113,7 @@ class Rig:
     def close(self):
         self.planner.stop()
         self.executor.shutdown()
-        self.thread.join(2)
+        self.thread.join(TIMEOUT_S)  # the spin returns once shut down; a loaded machine is slow
         self.peer.destroy_node()
         self.planner.destroy_node()
         self.context.try_shutdown()

@@ -104,7 +104,7 @@ class Rig:
 
     def close(self):
         self.executor.shutdown()
-        self.thread.join(2)
+        self.thread.join(TIMEOUT_S)  # the spin returns once shut down; a loaded machine is slow
         self.peer.destroy_node()
         self.semantics.destroy_node()
         self.context.try_shutdown()
