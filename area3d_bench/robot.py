@@ -113,19 +113,22 @@ class Mission:
             msgs.PointCloud2, topics.UNCERTAINTY_GRID.name, topics.UNCERTAINTY_GRID.qos()
         )
 
-    def wait(self, predicate, what: str, timeout_s: float = WAIT_S) -> bool:
-        """Wait for `predicate`; past `timeout_s` False, or with the default timeout an
-        AssertionError naming `what` (and the nodes' last lines printed)."""
+    def wait_until(self, predicate, timeout_s: float) -> bool:
+        """Wait for `predicate`; False past `timeout_s`."""
         deadline = time.monotonic() + timeout_s
         while not predicate():
             self.launcher.check()  # a node that died fails here, by name
             if time.monotonic() > deadline:
-                if timeout_s != WAIT_S:
-                    return False
-                print("\n".join(self.lines[-60:]))  # what the nodes said, with the failure
-                raise AssertionError(f"waited {WAIT_S:.0f} s for {what}")
+                return False
             time.sleep(0.05)
         return True
+
+    def wait(self, predicate, what: str) -> None:
+        """Wait for `predicate`; past WAIT_S an AssertionError naming `what`, with the nodes'
+        last lines printed."""
+        if not self.wait_until(predicate, WAIT_S):
+            print("\n".join(self.lines[-60:]))  # what the nodes said, with the failure
+            raise AssertionError(f"waited {WAIT_S:.0f} s for {what}")
 
     def last_status(self, node: str) -> dict:
         messages = self.status[node]
@@ -136,15 +139,21 @@ class Mission:
         `wait_fused`, once the planner fused it: a triggered camera's one frame per view, captured
         again after `RETRIGGER_S` without it, as a mission manager does with a lossy camera)."""
         if not wait_fused:
-            return self._goal(T_camera, wait_fused)
+            return self._goal(T_camera, None)
         for _ in range(int(WAIT_S / RETRIGGER_S)):
             try:
-                return self._goal(T_camera, wait_fused, RETRIGGER_S)
+                return self._goal(T_camera, RETRIGGER_S)
             except TimeoutError:
                 self.retriggers += 1
-        return self._goal(T_camera, wait_fused)
+        try:
+            return self._goal(T_camera, WAIT_S)
+        except TimeoutError as err:
+            print("\n".join(self.lines[-60:]))  # what the nodes said, with the failure
+            raise AssertionError(f"waited {WAIT_S:.0f} s: {err}") from err
 
-    def _goal(self, T_camera: np.ndarray, wait_fused: bool, fuse_s: float = WAIT_S) -> int:
+    def _goal(self, T_camera: np.ndarray, fuse_s: float | None) -> int:
+        """One goal to the driver and the stamp of its capture there; with `fuse_s`, once the
+        planner has fused a frame more, or TimeoutError after `fuse_s`."""
         goal_ns = time.time_ns()
         fused = self.last_status("planner").get("frames_fused", 0)
         self.goal.publish(
@@ -159,10 +168,8 @@ class Mission:
             ]
 
         self.wait(captured, f"the driver's capture at {T_camera[:3, 3]}")
-        if wait_fused and not self.wait(
-            lambda: self.last_status("planner").get("frames_fused", 0) > fused,
-            "the planner fusing the driver's frame",
-            fuse_s,
+        if fuse_s is not None and not self.wait_until(
+            lambda: self.last_status("planner").get("frames_fused", 0) > fused, fuse_s
         ):
             raise TimeoutError(f"the frame at {T_camera[:3, 3]} was not fused in {fuse_s} s")
         return captured()[0]["stamp_ns"]

@@ -125,9 +125,8 @@ class PerceptionNode(Node):
         self.keyframes = KeyframeSelector(
             KeyframeConfig(**{f.name: p[f.name] for f in dataclasses.fields(KeyframeConfig)})
         )
-        self.gate = PublishGate(
-            self.context.ok
-        )  # the estimator's worker publishes only while the node runs
+        # the estimator's worker publishes only while the node runs
+        self.gate = PublishGate(self.context.ok)
         self.camera: tuple[Any, int, int] | None = None
         self.right_camera: tuple[float, int, int] | None = None  # (baseline m, width, height)
         self.waiting = HeldFrames(MAX_FRAMES_WITHOUT_INFO)

@@ -153,9 +153,8 @@ class PlannerNode(Node):
         p = declare_parameters(self, PARAMS)
         report_unknown_parameters(self)
         config = config_from_parameters(p)
-        self.gate = PublishGate(
-            self.context.ok
-        )  # the rebuild worker publishes only while the node runs
+        # the rebuild worker publishes only while the node runs
+        self.gate = PublishGate(self.context.ok)
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
         self._new_server = lambda: NextBestViewServer(
