@@ -30,6 +30,7 @@ BENCHES = {
     "perception": "area3d_bench.perception",
     "semantics": "area3d_bench.semantics",
     "planner": "area3d_bench.planner",
+    "reconstruction": "area3d_bench.reconstruction",
     "eval": "area3d_bench.evaluation",
     "foxglove": "area3d_bench.foxglove",
 }

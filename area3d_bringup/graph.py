@@ -14,12 +14,18 @@ class GraphNode:
     module: str  # Python module whose `main(args)` runs the node
 
 
-#: the camera first, the planner last
+#: the camera first, then the nodes that read it
 NODES: tuple[GraphNode, ...] = (
     GraphNode("sim_bridge", "sim_bridge", "sim_bridge_node", "sim_bridge.node"),
     GraphNode("perception", "area3d_perception", "perception_node", "area3d_perception.node"),
     GraphNode("semantics", "area3d_semantics", "semantics_node", "area3d_semantics.node"),
     GraphNode("planner", "area3d_planner", "planner_node", "area3d_planner.node"),
+    GraphNode(
+        "reconstruction",
+        "area3d_reconstruction",
+        "reconstruction_node",
+        "area3d_reconstruction.node",
+    ),
 )
 
 #: (node name, module) pairs, what the launcher starts

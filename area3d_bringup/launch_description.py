@@ -60,8 +60,14 @@ def scene_parameters(scene_name: str) -> dict[str, dict]:
     from sim_bridge.scenes import load_scene
 
     scene = load_scene(scene_name)
-    planner = {**planner_region(scene), "gamma": float(scene.gamma)}
-    return {"planner": planner, "semantics": {"num_initial_views": len(scene.initial_views)}}
+    region = planner_region(scene)
+    planner = {**region, "gamma": float(scene.gamma)}
+    reconstruction = {k: region[k] for k in ("roi_min", "roi_max", "level")}
+    return {
+        "planner": planner,
+        "semantics": {"num_initial_views": len(scene.initial_views)},
+        "reconstruction": reconstruction,
+    }
 
 
 def merge(*layers: Mapping[str, Mapping] | None) -> dict[str, dict]:
@@ -115,7 +121,7 @@ def build_graph(
     merged = merge(copy.deepcopy(load_parameters() if params is None else params), overrides)
     names = {name for name, _ in nodes}
     scene = merged.get("sim_bridge", {}).get("scene")
-    if scene and names & {"planner", "semantics"}:
+    if scene and names & {"planner", "semantics", "reconstruction"}:
         merged = merge(scene_parameters(scene), merged)
     # The stereo backend matches the camera's right image: a simulated camera renders one then.
     if merged.get("perception", {}).get("backend") == "stereo" and "sim_bridge" in merged:
@@ -124,9 +130,17 @@ def build_graph(
     return [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
 
 
+class _NoAliases(yaml.SafeDumper):
+    """A value shared by two nodes (the region both the planner and the reconstruction get) is
+    written out twice: rcl's parameter parser refuses YAML aliases."""
+
+    def ignore_aliases(self, data) -> bool:
+        return True
+
+
 def write_params_file(specs: list[NodeSpec], path: Path) -> Path:
     """Write the specs' parameters as one ROS 2 parameter YAML file (what each node process reads)."""
     data = {ANY_NAMESPACE + spec.name: {"ros__parameters": spec.parameters} for spec in specs}
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    path.write_text(yaml.dump(data, Dumper=_NoAliases, sort_keys=False))
     return path

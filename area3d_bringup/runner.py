@@ -52,6 +52,8 @@ __all__ = ["EpisodeConfig", "EpisodeError", "run_episode"]
 # How often the start looks for the planner's service (rclpy's `wait_for_service` sleeps 0.25 s
 # between its looks: the episode started on average 0.12 s after the service was there).
 SERVICE_POLL_S = 0.02
+# A running graph without the reconstruction node: its reset is given up after this long.
+OPTIONAL_RESET_S = 10.0
 
 
 def run_episode(
@@ -320,13 +322,23 @@ class _Episode:
         and repeats as on a graph of its own (a resumed one then replays its frames)."""
         resets = [topics.CAMERA_RESET, topics.PLANNER_RESET]
         resets += [topics.SEMANTICS_RESET] * self.with_semantics
+        resets += [topics.RECONSTRUCTION_RESET]
         for service in resets:
             if service.server in self.started:
                 continue
+            optional = service is topics.RECONSTRUCTION_RESET  # a graph may run without it
+            timeout_s = self.config.startup_timeout_s
             try:
-                said = self.manager.reset(service, self.config.startup_timeout_s)
+                said = self.manager.reset(
+                    service, min(timeout_s, OPTIONAL_RESET_S) if optional else timeout_s
+                )
             except (NodeDied, NodeRespawned):  # a node of this run's: handled as elsewhere
                 raise
+            except TimeoutError:
+                if not optional:
+                    raise
+                self.log(f"no {service.server} in the running graph: {service.name} not called")
+                continue
             except RuntimeError as err:  # the service answered that it failed
                 raise EpisodeError(
                     f"the graph's {service.server} could not be reset: {err}"

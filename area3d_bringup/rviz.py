@@ -24,6 +24,8 @@ GRID_TOPIC = topics.UNCERTAINTY_GRID.name
 VIEWS_TOPIC = topics.NEXT_VIEWS.name
 MARKERS_TOPIC = topics.VIEW_MARKERS.name
 HARD_REGIONS_TOPIC = topics.HARD_REGION_MARKERS.name
+MESH_TOPIC = topics.RECONSTRUCTION_MESH.name
+MESH_NS = "reconstruction"  # the namespace of the mesh marker (codecs.mesh_marker_cdr's default)
 IMAGE_TOPIC = topics.COLOR.name
 
 
@@ -104,6 +106,13 @@ def rviz_config(voxel_size: float, world_frame: str = "world") -> dict:
             "Enabled": True,
             "Topic": _topic(HARD_REGIONS_TOPIC, "Transient Local", 10),
             "Namespaces": {HARD_REGIONS_NS: True},
+        },
+        {
+            "Class": "rviz_default_plugins/Marker",
+            "Name": "Reconstruction",
+            "Enabled": True,
+            "Topic": _topic(MESH_TOPIC, "Transient Local", 1),
+            "Namespaces": {MESH_NS: True},
         },
         {
             "Class": "rviz_default_plugins/Path",

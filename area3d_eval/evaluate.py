@@ -32,6 +32,7 @@ from area3d_eval.reconstruct import TsdfFusion, TsdfParams
 from area3d_eval.render import MeshRenderer
 from area3d_eval.rundir import (
     EVAL_DIR,
+    MESH_FILE,
     METRICS_FILE,
     check_depth_source,
     frame_files,
@@ -242,7 +243,7 @@ def evaluate_run(
         out = run_dir / EVAL_DIR
         out.mkdir(exist_ok=True)
         if mesh is not None and len(mesh.triangles) > 0:
-            o3d.io.write_triangle_mesh(str(out / "reconstruction.ply"), mesh)
+            o3d.io.write_triangle_mesh(str(out / MESH_FILE), mesh)
         np.save(
             out / "gt_sample.npy",
             reference.points[:: max(1, len(reference.points) // GT_PREVIEW_POINTS)].astype(

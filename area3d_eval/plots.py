@@ -265,3 +265,19 @@ def _save(fig: plt.Figure, out_path: Path) -> Path:
     fig.savefig(out_path)
     plt.close(fig)
     return out_path
+
+
+def plot_images(
+    images: Sequence[np.ndarray], titles: Sequence[str], out_path: Path, title: str = ""
+) -> Path:
+    """RGB images (H, W, 3) uint8 side by side, each with its title (the reconstructed mesh seen
+    from around the region)."""
+    fig, axes = plt.subplots(1, len(images), figsize=(4.2 * len(images), 3.6), dpi=DPI)
+    for ax, image, name in zip(np.atleast_1d(axes), images, titles, strict=True):
+        ax.imshow(image)
+        ax.set_title(name, fontsize=9)
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, out_path)

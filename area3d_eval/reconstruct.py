@@ -213,6 +213,57 @@ class TsdfFusion:
             float(p.depth_trunc),
         )
 
+    def state(self) -> dict[str, np.ndarray]:
+        """The volume as arrays (copies): the active blocks' integer coordinates `block_keys`
+        (B, 3) int32 and their voxels' `tsdf`, `weight` (B, r, r, r, 1) and `color` (B, r, r, r,
+        3) float32, r = BLOCK_RESOLUTION; what `restore` takes back."""
+        hashmap = self._grid.hashmap()
+        active = hashmap.active_buf_indices().numpy().astype(np.int64)
+        order = np.lexsort(hashmap.key_tensor().numpy()[active].T[::-1])  # by block, stable
+        active = active[order]
+        out = {"block_keys": hashmap.key_tensor().numpy()[active].astype(np.int32)}
+        for name in ("tsdf", "weight", "color"):
+            out[name] = self._grid.attribute(name).numpy()[active].copy()
+        return out
+
+    def restore(self, state: dict[str, np.ndarray], num_frames: int) -> None:
+        """Replace the volume by one `state` describes (of a volume with these params); refused,
+        the volume unchanged, when its arrays do not fit together."""
+        o3d = import_open3d()
+        keys = np.asarray(state["block_keys"])
+        r = BLOCK_RESOLUTION
+        count = keys.shape[0] if keys.ndim == 2 else -1
+        expected = {"tsdf": 1, "weight": 1, "color": 3}
+        if keys.ndim != 2 or keys.shape[1] != 3 or keys.dtype != np.int32:
+            raise InputError("block_keys", f"{keys.dtype} {keys.shape}", "(B, 3) int32")
+        for name, channels in expected.items():
+            a = np.asarray(state[name])
+            if a.shape != (count, r, r, r, channels) or a.dtype != np.float32:
+                raise InputError(
+                    name, f"{a.dtype} {a.shape}", f"({count}, {r}, {r}, {r}, {channels}) float32"
+                )
+        core = o3d.core
+        grid = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight", "color"),
+            attr_dtypes=(core.float32, core.float32, core.float32),
+            attr_channels=(1, 1, 3),
+            voxel_size=float(self.params.voxel_length),
+            block_resolution=r,
+            block_count=max(INITIAL_BLOCK_COUNT, 2 * count),
+            device=self._device,
+        )
+        if count:
+            hashmap = grid.hashmap()
+            hashmap.activate(core.Tensor(np.ascontiguousarray(keys)))
+            buffer_ids, found = hashmap.find(core.Tensor(np.ascontiguousarray(keys)))
+            ids = buffer_ids.numpy().astype(np.int64)
+            if not found.numpy().all():
+                raise InputError("block_keys", "repeated blocks", "each block once")
+            for name in expected:
+                grid.attribute(name).numpy()[ids] = state[name]
+        self._grid = grid
+        self.num_frames = int(num_frames)
+
     def extract_mesh(self) -> Any:
         """The current surface as an open3d.geometry.TriangleMesh (vertex colours in [0, 1]),
         cropped to the ROI when one was given. May be empty."""

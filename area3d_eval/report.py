@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import html
 import math
+import os
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -15,10 +16,13 @@ from typing import Any
 import numpy as np
 
 from area3d_eval import plots
+from area3d_eval.open3d_loader import import_open3d
+from area3d_eval.render import MeshRenderer
 from area3d_eval.rundir import (
     EVAL_DIR,
     GRID_FINAL_FILE,
     GRID_INITIAL_FILE,
+    MESH_FILE,
     Episode,
     iter_frames,
     read_episode,
@@ -26,6 +30,7 @@ from area3d_eval.rundir import (
     read_metrics,
     scene_name,
 )
+from area3d_msgs_py.camera_pose import look_at
 from area3d_perception.backproject import depth_to_world
 from area3d_planner.hard_regions import grid_voxel_size, points_hard_regions
 
@@ -45,6 +50,8 @@ WHOLE_IMAGE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
     ("ssim", "SSIM whole image", True, 1.0, "{:.3f}"),
 )
 CURVE_METRICS = ("completion", "fscore", "chamfer", "psnr_roi", "ssim_roi")
+MESH_AZIMUTHS = (45, 165, 285)  # degrees: the final mesh seen from three sides
+MESH_RENDER_SIZE = (320, 240)
 PREVIEW_POINTS = 4000  # scene points drawn behind the chosen views when no GT sample was saved
 
 HOW_TO_READ = """\
@@ -237,6 +244,9 @@ def _figures(
         if slices is not None:
             r.figures["uncertainty"] = slices
         r.hard_regions = hard_region_text(read_grid(r.path / GRID_FINAL_FILE))
+        mesh = _mesh_figure(r, fig_dir / f"{stem}_mesh.png")
+        if mesh is not None:
+            r.figures["mesh"] = mesh
     timings = {r.label: r.episode.timings_s for r in records if r.episode.timings_s}
     timing_png = plots.plot_timings(timings, fig_dir / "timings.png") if timings else None
     return curves, timing_png
@@ -285,8 +295,35 @@ def _scene_points(r: RunRecord) -> np.ndarray:
     return pts[:: max(1, len(pts) // PREVIEW_POINTS)]
 
 
+def _mesh_figure(r: RunRecord, out_path: Path) -> Path | None:
+    """The run's final mesh (eval/reconstruction.ply) rendered from MESH_AZIMUTHS around its
+    region, from 0.8 region diagonals away and above (white where no surface is); None without a
+    mesh or a region."""
+    ply, roi = r.path / EVAL_DIR / MESH_FILE, _roi(r)
+    if not ply.is_file() or roi is None:
+        return None
+    mesh = import_open3d().io.read_triangle_mesh(str(ply))
+    if len(mesh.triangles) == 0:
+        return None
+    renderer = MeshRenderer(mesh)
+    lo, hi = roi
+    centre, reach = 0.5 * (lo + hi), 0.8 * float(np.linalg.norm(hi - lo))
+    w, h = MESH_RENDER_SIZE
+    K = np.array([[w / 2, 0, w / 2], [0, w / 2, h / 2], [0, 0, 1]])  # 90 degrees wide
+    images, titles = [], []
+    for azimuth in MESH_AZIMUTHS:
+        a = np.radians(azimuth)
+        eye = centre + reach * np.array([np.cos(a), np.sin(a), 0.7]) / np.linalg.norm([1, 0.7])
+        rgb, depth = renderer.render(K, look_at(eye, centre), w, h)
+        images.append(np.where(np.isfinite(depth)[..., None], rgb, 255).astype(np.uint8))
+        titles.append(f"from azimuth {azimuth} deg")
+    return plots.plot_images(images, titles, out_path, title=f"{r.label}: reconstruction")
+
+
 def _roi(r: RunRecord) -> tuple[np.ndarray, np.ndarray] | None:
-    cfg = r.episode.config
+    """The region of interest the run's planner was given (its parameters in the episode's
+    config, {node: parameters}), None when the run does not say."""
+    cfg = r.episode.config.get("planner", r.episode.config)
     if "roi_min" in cfg and "roi_max" in cfg:
         return np.asarray(cfg["roi_min"], dtype=np.float64), np.asarray(
             cfg["roi_max"], dtype=np.float64
@@ -296,6 +333,11 @@ def _roi(r: RunRecord) -> tuple[np.ndarray, np.ndarray] | None:
 
 def _slug(text: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in text)
+
+
+def _mesh_path(r: RunRecord, out_dir: Path) -> str:
+    """The run's mesh file, relative to the report (the runs need not lie below it)."""
+    return Path(os.path.relpath(r.path / EVAL_DIR / MESH_FILE, out_dir)).as_posix()
 
 
 def _rel(path: Path, out_dir: Path) -> str:
@@ -376,6 +418,13 @@ def _markdown(
         lines += [f"### {r.label}", "", f"![views]({_rel(r.figures['views'], out_dir)})", ""]
         if r.episode.stopped_early:
             lines += [stopped_text(r.episode), ""]
+    lines += ["## Reconstruction", ""]
+    meshed = [r for r in records if "mesh" in r.figures]
+    for r in meshed:
+        lines += [f"### {r.label}", "", f"![mesh]({_rel(r.figures['mesh'], out_dir)})", ""]
+        lines += [f"The mesh: `{_mesh_path(r, out_dir)}`.", ""]
+    if not meshed:
+        lines += [f"No run was evaluated into a mesh ({EVAL_DIR}/{MESH_FILE}).", ""]
     lines += ["## Uncertainty before and after", ""]
     with_grids = [r for r in records if "uncertainty" in r.figures]
     for r in with_grids:
@@ -462,6 +511,15 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
         )
         if r.episode.stopped_early:
             parts.append(f"<p>{e(stopped_text(r.episode))}</p>")
+    parts.append("<h2>Reconstruction</h2>")
+    meshed = [r for r in records if "mesh" in r.figures]
+    for r in meshed:
+        parts.append(
+            f"<h3>{e(r.label)}</h3><img src='{e(_rel(r.figures['mesh'], out_dir))}' alt='mesh'>"
+            f"<p>The mesh: <code>{e(_mesh_path(r, out_dir))}</code></p>"
+        )
+    if not meshed:
+        parts.append(f"<p>No run was evaluated into a mesh ({EVAL_DIR}/{MESH_FILE}).</p>")
     parts.append("<h2>Uncertainty before and after</h2>")
     with_grids = [r for r in records if "uncertainty" in r.figures]
     for r in with_grids:

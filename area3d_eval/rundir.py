@@ -52,6 +52,7 @@ DEPTH_SOURCES = ("sensor", "estimated")
 METRICS_FILE = "metrics.json"
 FRAMES_DIR = "frames"
 EVAL_DIR = "eval"
+MESH_FILE = "reconstruction.ply"  # in EVAL_DIR: the final TSDF mesh
 GRID_INITIAL_FILE = "grid_initial.npz"
 GRID_FINAL_FILE = "grid_final.npz"
 LOG_FILE = "nodes.log"

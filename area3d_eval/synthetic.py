@@ -162,7 +162,10 @@ def make_run(
             "mode": "batch",
             "views": views,
             "timings_s": timings,
-            "config": {"source": "area3d_eval.synthetic"},
+            "config": {
+                "source": "area3d_eval.synthetic",
+                "planner": {"roi_min": scene.roi_min.tolist(), "roi_max": scene.roi_max.tolist()},
+            },
         },
     )
     return run_dir

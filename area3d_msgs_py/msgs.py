@@ -5,7 +5,7 @@
     >>> msgs.deserialize(msgs.serialize(t), "builtin_interfaces/msg/Time") == t
     True
 
-``tf2_msgs`` (TFMessage only; it is not on PyPI) and ``area3d_interfaces`` (NextBestView,
+``tf2_msgs`` (TFMessage only; it is not on PyPI) and ``area3d_interfaces`` (NextBestView, MapFile,
 HardRegion, HardRegionArray) are generated and built into the environment by ``make install``
 (``tools/build_interfaces.py``); with a sourced ROS 2 install, colcon builds ``area3d_interfaces`` and
 ROS 2 has ``tf2_msgs``.
@@ -40,7 +40,7 @@ from area3d_msgs_py.errors import InputError
 
 try:
     from area3d_interfaces.msg import HardRegion, HardRegionArray
-    from area3d_interfaces.srv import NextBestView
+    from area3d_interfaces.srv import MapFile, NextBestView
     from tf2_msgs.msg import TFMessage
 except ImportError as exc:  # built by `make install`, not installed by pip
     raise ImportError(
@@ -55,7 +55,7 @@ GetPlan_Response = GetPlan.Response
 __all__ = [
     "CameraInfo", "DiagnosticArray", "DiagnosticStatus", "KeyValue", "Marker", "MarkerArray",
     "GetPlan", "GetPlan_Request", "GetPlan_Response", "HardRegion",
-    "HardRegionArray", "Header", "Image", "NextBestView", "Odometry", "Path", "Point",
+    "HardRegionArray", "Header", "Image", "MapFile", "NextBestView", "Odometry", "Path", "Point",
     "PointCloud2", "PointField", "Pose", "PoseArray", "PoseStamped", "Quaternion",
     "RegionOfInterest", "String", "TFMessage", "Time", "Transform", "TransformStamped", "Trigger",
     "Vector3",

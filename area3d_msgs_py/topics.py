@@ -28,6 +28,7 @@ from area3d_msgs_py import msgs, qos
 
 # Graph node names, as they appear in the tables below (area3d_bringup/graph.py starts them).
 SIM_BRIDGE, PERCEPTION, SEMANTICS, PLANNER = "sim_bridge", "perception", "semantics", "planner"
+RECONSTRUCTION = "reconstruction"
 MISSION_MANAGER = "mission_manager"  # `area3d run`, or a robot's own mission manager
 ANYONE = "anyone"  # no particular writer: any program may publish it
 ROBOT = "robot"  # the robot's own drivers (its odometry, its TF tree)
@@ -110,7 +111,12 @@ GOAL = Topic(
     depth=qos.FRAME_DEPTH,
     description="where the camera goes next: optical-frame pose in `world`",
 )
-COLOR = _camera("area3d/camera/color/image_raw", msgs.Image, (PERCEPTION, SEMANTICS), "rgb8 image")
+COLOR = _camera(
+    "area3d/camera/color/image_raw",
+    msgs.Image,
+    (PERCEPTION, SEMANTICS, RECONSTRUCTION),
+    "rgb8 image",
+)
 DEPTH = _camera(
     "area3d/camera/depth/image_raw",
     msgs.Image,
@@ -118,12 +124,15 @@ DEPTH = _camera(
     "32FC1 depth along the optical axis, metres, NaN = no return",
 )
 CAMERA_INFO = _camera(
-    "area3d/camera/camera_info", msgs.CameraInfo, (PERCEPTION, PLANNER), "intrinsics"
+    "area3d/camera/camera_info",
+    msgs.CameraInfo,
+    (PERCEPTION, PLANNER, RECONSTRUCTION),
+    "intrinsics",
 )
 POSE = _camera(
     "area3d/camera/pose",
     msgs.PoseStamped,
-    (PERCEPTION, PLANNER),
+    (PERCEPTION, PLANNER, RECONSTRUCTION),
     "optical-frame pose of each captured frame in `world`",
 )
 # The right camera of a rectified stereo pair, named as a ROS stereo camera names it
@@ -151,7 +160,7 @@ TF = Topic(
     "/tf",
     msgs.TFMessage,
     SIM_BRIDGE,
-    (PERCEPTION, PLANNER),
+    (PERCEPTION, PLANNER, RECONSTRUCTION),
     depth=TF_DEPTH,
     description="world -> camera_link at each captured frame",
 )
@@ -159,7 +168,7 @@ TF_STATIC = Topic(
     "/tf_static",
     msgs.TFMessage,
     SIM_BRIDGE,
-    (PERCEPTION, PLANNER),
+    (PERCEPTION, PLANNER, RECONSTRUCTION),
     durability=TRANSIENT_LOCAL,
     # a robot has several static broadcasters, each latching its own: a reader keeps them all
     # (tf2's static listener: 100)
@@ -172,7 +181,7 @@ ODOMETRY = Topic(
     "area3d/odom",
     msgs.Odometry,
     ROBOT,
-    (PERCEPTION, PLANNER),
+    (PERCEPTION, PLANNER, RECONSTRUCTION),
     depth=qos.FRAME_DEPTH,
     camera=True,
     description="nav_msgs/Odometry of the body the camera is mounted on",
@@ -183,7 +192,7 @@ PERCEPTION_DEPTH = Topic(
     "area3d/perception/depth",
     msgs.Image,
     PERCEPTION,
-    (PLANNER,),
+    (PLANNER, RECONSTRUCTION),
     TRANSIENT_LOCAL,
     qos.FRAME_DEPTH,
     description="32FC1 metric depth per frame",
@@ -192,7 +201,7 @@ PERCEPTION_CONFIDENCE = Topic(
     "area3d/perception/confidence",
     msgs.Image,
     PERCEPTION,
-    (PLANNER, SEMANTICS),
+    (PLANNER, SEMANTICS, RECONSTRUCTION),
     TRANSIENT_LOCAL,
     qos.FRAME_DEPTH,
     description="32FC1 per-pixel confidence in [0, 1]",
@@ -299,12 +308,62 @@ PLANNER_RESET = Service(
     "forget the map, its fused frames and semantic maps and the frames waiting to be fused: the "
     "next episode starts from nothing (the latched grid goes out empty)",
 )
+PLANNER_SAVE_MAP = Service(
+    "area3d/planner/save_map",
+    msgs.MapFile,
+    PLANNER,
+    "path -> the planner's whole map written there (a map file, docs/map_format.md): success, "
+    "message, the absolute path, its size",
+)
+PLANNER_LOAD_MAP = Service(
+    "area3d/planner/load_map",
+    msgs.MapFile,
+    PLANNER,
+    "path -> the map file read and put in place of the running map, which a file that does not "
+    "fit (another grid, region or format version, truncated) leaves untouched",
+)
 SEMANTICS_RESET = Service(
     "area3d/semantics/reset",
     msgs.Trigger,
     SEMANTICS,
     "forget the collected views and their analysis: the next num_initial_views frames are "
     "analysed afresh",
+)
+
+# -- reconstruction -------------------------------------------------------------------------
+RECONSTRUCTION_MESH = Topic(
+    "area3d/reconstruction/mesh",
+    msgs.Marker,
+    RECONSTRUCTION,
+    durability=TRANSIENT_LOCAL,
+    depth=1,
+    description="the coloured TSDF mesh of the fused frames, a TRIANGLE_LIST (latched)",
+)
+RECONSTRUCTION_STATUS = _status(RECONSTRUCTION)
+RECONSTRUCTION_SAVE_MAP = Service(
+    "area3d/reconstruction/save_map",
+    msgs.MapFile,
+    RECONSTRUCTION,
+    "path -> the TSDF volume written there (a map file, docs/map_format.md)",
+)
+RECONSTRUCTION_LOAD_MAP = Service(
+    "area3d/reconstruction/load_map",
+    msgs.MapFile,
+    RECONSTRUCTION,
+    "path -> the saved volume in place of the running one (refused, the volume kept, when the "
+    "file does not fit)",
+)
+RECONSTRUCTION_EXPORT_MESH = Service(
+    "area3d/reconstruction/export_mesh",
+    msgs.MapFile,
+    RECONSTRUCTION,
+    "path (.ply) -> the current mesh written there as binary PLY with vertex colours",
+)
+RECONSTRUCTION_RESET = Service(
+    "area3d/reconstruction/reset",
+    msgs.Trigger,
+    RECONSTRUCTION,
+    "forget the volume and the frames waiting: the next episode's mesh starts from nothing",
 )
 
 # -- every node -----------------------------------------------------------------------------
@@ -322,14 +381,16 @@ TOPICS: tuple[Topic, ...] = (
     GOAL, COLOR, DEPTH, CAMERA_INFO, POSE, RIGHT_IMAGE, RIGHT_CAMERA_INFO, CAMERA_STATUS, TF,
     TF_STATIC, ODOMETRY, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_STATUS, SEMANTIC_REGIONS,
     SEMANTIC_WEIGHT, SEMANTIC_UNCERTAINTY, SEMANTIC_REQUEST, SEMANTICS_STATUS, UNCERTAINTY_GRID,
-    NEXT_VIEWS, VIEW_MARKERS, HARD_REGIONS, HARD_REGION_MARKERS, PLANNER_STATUS, DIAGNOSTICS,
-    FOXGLOVE_STATUS,
+    NEXT_VIEWS, VIEW_MARKERS, HARD_REGIONS, HARD_REGION_MARKERS, PLANNER_STATUS,
+    RECONSTRUCTION_MESH, RECONSTRUCTION_STATUS, DIAGNOSTICS, FOXGLOVE_STATUS,
 )  # fmt: skip
 
 
 #: every service of the graph
 SERVICES: tuple[Service, ...] = (
-    SELECT_VIEWS, NEXT_BEST_VIEW, CAMERA_RESET, PLANNER_RESET, SEMANTICS_RESET,
+    SELECT_VIEWS, NEXT_BEST_VIEW, CAMERA_RESET, PLANNER_RESET, PLANNER_SAVE_MAP, PLANNER_LOAD_MAP,
+    SEMANTICS_RESET, RECONSTRUCTION_SAVE_MAP, RECONSTRUCTION_LOAD_MAP, RECONSTRUCTION_EXPORT_MESH,
+    RECONSTRUCTION_RESET,
 )  # fmt: skip
 
 

@@ -8,7 +8,8 @@ during a backlog at most every grid_period_s) and with every grid the latched
 area3d/planner/hard_regions (HardRegionArray) and their boxes on area3d/planner/hard_region_markers,
 area3d/planner/status and area3d/planner/next_views (and their camera frustums on
 area3d/planner/view_markers); serves area3d/planner/select_views
-(area3d_interfaces/srv/NextBestView) and area3d/planner/next_best_view (nav_msgs/srv/GetPlan).
+(area3d_interfaces/srv/NextBestView), area3d/planner/next_best_view (nav_msgs/srv/GetPlan), and
+save_map / load_map (area3d_interfaces/srv/MapFile: the whole map, `map_io.py`) and reset.
 Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all. The region of
 interest and workspace are parameters: the planner knows only what a robot knows, never the
 simulator's scene; the candidate views' camera is the one whose frames it fuses.
@@ -27,7 +28,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
-from area3d_msgs_py import codecs, msgs, qos, topics
+from area3d_msgs_py import codecs, map_files, msgs, qos, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync, pairing_warning
 from area3d_msgs_py.guard import Rejections, guarded, reject
@@ -57,6 +58,7 @@ from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
+from area3d_planner import map_io
 from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.hard_regions import cloud_hard_regions
 from area3d_planner.markers import hard_region_markers, view_markers
@@ -254,13 +256,13 @@ class PlannerNode(Node):
                 handler,
                 callback_group=MutuallyExclusiveCallbackGroup(),
             )
-        # in the frames' group: no part of a frame is taken while the map is cleared
-        self.create_service(
-            topics.PLANNER_RESET.srv_type,
-            topics.PLANNER_RESET.name,
-            self._on_reset,
-            callback_group=frames,
-        )
+        # in the frames' group: no part of a frame is taken while the map is cleared or loaded
+        for service, handler, group in (
+            (topics.PLANNER_RESET, self._on_reset, frames),
+            (topics.PLANNER_LOAD_MAP, self._on_load_map, frames),
+            (topics.PLANNER_SAVE_MAP, self._on_save_map, MutuallyExclusiveCallbackGroup()),
+        ):
+            self.create_service(service.srv_type, service.name, handler, callback_group=group)
         self.get_logger().info(
             f"planner ready: policy={config.policy} mode={config.mode} "
             f"voxels={self.server.grid.spec.num_voxels} world_frame={self.world_frame} "
@@ -356,6 +358,47 @@ class PlannerNode(Node):
         )
         self.get_logger().info(f"{topics.PLANNER_RESET.name}: {response.message}")
         return response
+
+    def _on_save_map(self, request, response):
+        """area3d/planner/save_map (MapFile): the whole map written to `path` (`map_io`); frames
+        go on being fused meanwhile (the map is copied under its lock first)."""
+        service = topics.PLANNER_SAVE_MAP.name
+        try:
+            written, size, header = map_io.save(self.server, request.path)
+        except (InputError, OSError) as exc:
+            return map_files.refused(response, service, exc, self.get_logger())
+        return map_files.done(
+            response, service, written, size, self.get_logger(),
+            f"saved {header['frames']} fused frames and {header['committed']} views handed out",
+        )  # fmt: skip
+
+    def _on_load_map(self, request, response):
+        """area3d/planner/load_map (MapFile): a saved map in place of the running one; a file that
+        does not fit is refused before anything changes. Frames and parts waiting are dropped,
+        as by a reset: they belong to the map being replaced."""
+        service = topics.PLANNER_LOAD_MAP.name
+        server = self._new_server()
+        try:
+            loaded = map_io.read(server, request.path)
+            with self.fusion.cleared():
+                map_io.restore(server, loaded)
+                old, self.server = self.server, server
+                self.keyframes.reset()
+                self.sync.clear()
+                self.waiting.release()
+                if self.poses is not None:
+                    self.poses.forget_frames()
+        except (InputError, OSError) as exc:
+            server.close(0.0)
+            return map_files.refused(response, service, exc, self.get_logger())
+        old.close(0.0)
+        self._publish_state(self.server.last_fused_stamp or self._now_ns())
+        h = loaded.header
+        return map_files.done(
+            response, service, loaded.path, loaded.size_bytes, self.get_logger(),
+            f"loaded {h['frames']} fused frames and {h['committed']} views handed out; "
+            f"{self.server.remaining_budget()} views remain",
+        )  # fmt: skip
 
     def _on_camera_info(self, msg) -> None:
         stamp = self._stamp(msg)

@@ -443,7 +443,9 @@ def _alike(T: np.ndarray, U: np.ndarray, radius: float, angle_deg: float) -> boo
 
 
 @dataclass
-class _Frame:
+class CachedFrame:
+    """A fused frame's depth, intrinsics and pose, kept for its semantic map."""
+
     depth: np.ndarray
     K: np.ndarray
     T: np.ndarray
@@ -553,7 +555,7 @@ class NextBestViewServer:
         self._lock = threading.RLock()  # the map, the caches and the bookkeeping
         self._plan_lock = threading.Lock()  # plans one at a time (taken before `_lock`)
         self._fused = threading.Condition(self._lock)
-        self._frames: OrderedDict[int, _Frame] = OrderedDict()
+        self._frames: OrderedDict[int, CachedFrame] = OrderedDict()
         self._pending_semantic: OrderedDict[int, np.ndarray] = OrderedDict()
         self._semantic_of: dict[int, tuple] = {}  # stamp -> its semantic contribution
         self._fused_stamps: set[int] = set()
@@ -567,6 +569,7 @@ class NextBestViewServer:
         self._pipeline_base = 0
         self._previous_masks: tuple | None = None  # (map version, stamp, (candidates, caches))
         self._pipeline_map: tuple | None = None  # (map version, stamp, occupancy) to build first
+        self._base_map: tuple | None = None  # (map version, stamp, occupancy) at the base
         self._building_version = 0  # the map version the worker is building (0: none)
         self._cache_waiters = 0  # requests waiting in wait_cache
         self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
@@ -622,27 +625,25 @@ class NextBestViewServer:
             if int(stamp_ns) in self._fused_stamps:  # the same stamp, fused meanwhile
                 return False
             pipelined = self._pipelines()
-            if (
-                pipelined
-                and self._pipeline_base == self._map_version
-                and self._cache_version < self._map_version
-                and self._building_version != self._map_version
-            ):
-                # the masks of the map at the last request's frame, which the next request plans
-                # from: built now without the worker; with it, the map is kept for the worker,
-                # which may not have started on it (it coalesces frames) before this one changes it
-                if self.background:
-                    self._pipeline_map = (
-                        self._map_version,
-                        self.last_fused_stamp,
-                        self.grid.occupancy(),
-                    )
-                    self._refreshed.notify_all()
-                else:
-                    self._update_masks()
+            if pipelined and self._pipeline_base == self._map_version:
+                # the map at the last request's frame, which the next request plans from (a
+                # saved map keeps it: `map_io`)
+                self._base_map = (self._map_version, self.last_fused_stamp, self.grid.occupancy())
+                if (
+                    self._cache_version < self._map_version
+                    and self._building_version != self._map_version
+                ):
+                    # its masks: built now without the worker; with it, the map is kept for the
+                    # worker, which may not have started on it (it coalesces frames) before this
+                    # frame changes it
+                    if self.background:
+                        self._pipeline_map = self._base_map
+                        self._refreshed.notify_all()
+                    else:
+                        self._update_masks()
             self._adopt_camera(K, np.shape(depth))
             self.grid.apply_depth(observation)
-            self._frames[int(stamp_ns)] = _Frame(
+            self._frames[int(stamp_ns)] = CachedFrame(
                 np.asarray(depth, np.float32), np.asarray(K, float), np.asarray(T, float)
             )
             while len(self._frames) > self.config.frame_cache:
@@ -703,7 +704,7 @@ class NextBestViewServer:
             self.context.invalidate_fields()
             return True
 
-    def _fuse_semantic(self, stamp_ns: int, u_sem: np.ndarray, frame: _Frame) -> None:
+    def _fuse_semantic(self, stamp_ns: int, u_sem: np.ndarray, frame: CachedFrame) -> None:
         """A semantic map replaces the one fused earlier for the same frame (a re-query's newer
         analysis), rather than being averaged with it (lock held)."""
         old = self._semantic_of.pop(stamp_ns, None)
@@ -745,6 +746,23 @@ class NextBestViewServer:
             f"frame {stamp_ns} not fused within {waited_s:g} s: planned from the map up to frame "
             f"{last}, {(stamp_ns - last) / 1e9:.2f} s older"
         )
+
+    def rebuild_after_load(self) -> None:
+        """Masks for a map `map_io.restore` put in place (lock held): first those of the map at
+        the last closed-loop request's frame, which the next request plans from
+        (`pipeline_masks`), then the current map's; by the background worker, or the first now
+        without it (the current map's then at the first request, as always)."""
+        self.context.invalidate()
+        base = self._base_map
+        if base is None or base[0] != self._pipeline_base or not self._pipelines():
+            base = None
+        if self.background:
+            self._pipeline_map = base
+            self._refreshed.notify_all()
+        elif base is not None:
+            kinds = () if self.policy.relevant is None else (self.policy.relevant,)
+            self._install(self.context.build(base[2], kinds))
+            self._cache_version, self._cache_stamp = base[0], base[1]
 
     # ------------------------------------------------------------------ cache refresh
     def cache_ready(self) -> bool:

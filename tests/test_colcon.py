@@ -20,7 +20,7 @@ from area3d_bringup.graph import NODES
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = (
     "area3d_msgs_py", "sim_bridge", "area3d_perception", "area3d_semantics", "area3d_planner",
-    "area3d_bringup", "area3d_eval", "area3d_bench",
+    "area3d_reconstruction", "area3d_bringup", "area3d_eval", "area3d_bench",
 )  # fmt: skip
 ROS_PACKAGES = {
     "rclpy", "builtin_interfaces", "std_msgs", "std_srvs", "geometry_msgs", "sensor_msgs",
@@ -62,7 +62,8 @@ OPTIONAL = {
     "distributed",
 }
 # declared without an import: `ros2 launch` itself
-RUNTIME_ONLY = {"area3d_bringup": {"ros2launch"}}
+# launched, not imported: `ros2 launch` starts the reconstruction node by its executable
+RUNTIME_ONLY = {"area3d_bringup": {"ros2launch", "area3d_reconstruction"}}
 
 
 def imports(package: str) -> set[str]:

@@ -45,6 +45,7 @@ TOPICS = {
     "/area3d/planner/view_markers": "visualization_msgs/msg/MarkerArray",
     "/area3d/planner/hard_regions": "area3d_interfaces/msg/HardRegionArray",
     "/area3d/planner/hard_region_markers": "visualization_msgs/msg/MarkerArray",
+    "/area3d/reconstruction/mesh": "visualization_msgs/msg/Marker",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     "/tf": "tf2_msgs/msg/TFMessage",
     "/tf_static": "tf2_msgs/msg/TFMessage",
@@ -190,6 +191,16 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
         high = [grid["fields"][axis]["max"] for axis in "xyz"]
         assert np.all(np.array(low) >= roi_min - 0.25) and np.all(np.array(high) <= roi_max + 0.25)
 
+    # the mesh: triangles with a colour per corner, in world, inside the region (and its margin)
+    for mesh in received["/area3d/reconstruction/mesh"]:
+        assert (mesh["frame_id"], mesh["ns"], mesh["type"]) == ("world", "reconstruction", 11)
+        if mesh["points"]:
+            assert mesh["points"] % 3 == 0 and mesh["colors"] == mesh["points"]
+            assert 0.0 <= mesh["color_range"][0] <= mesh["color_range"][1] <= 1.0
+            assert np.all(np.array(mesh["min"]) >= roi_min - 0.01)
+            assert np.all(np.array(mesh["max"]) <= roi_max + 0.01)
+    assert any(mesh["points"] for mesh in received["/area3d/reconstruction/mesh"])
+
     # the planned views: every view the camera was sent to is the first pose of a decoded plan
     planned_events = [e for e in lines(plans_log.read_text()) if "topic" in e]
     for topic in PLAN_TOPICS:  # the viewer got them too, as many as its queue kept
@@ -219,7 +230,7 @@ def test_foxglove_client_decodes_a_running_episode_from_the_forwarded_cdr(tmp_pa
     statuses = [s for d in received["/diagnostics"] for s in d["status"]]
     names = {
         "sim_bridge: status", "perception: status", "semantics: status", "planner: status",
-        "foxglove_bridge: status",
+        "reconstruction: status", "foxglove_bridge: status",
     }  # fmt: skip
     assert names <= {s["name"] for s in statuses}
     assert all(s["level"] in (0, 1, 2) for s in statuses)

@@ -21,6 +21,7 @@ READY_LINE = {
     "perception": "backend=",
     "semantics": "backend=",
     "planner": "planner ready",
+    "reconstruction": "reconstruction ready",
 }
 
 

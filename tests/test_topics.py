@@ -15,13 +15,13 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 
 #: who may write a topic (the registry's writers)
 WRITERS = (
-    topics.SIM_BRIDGE, topics.PERCEPTION, topics.SEMANTICS, topics.PLANNER, topics.MISSION_MANAGER,
-    topics.FOXGLOVE_BRIDGE, topics.ROBOT, topics.ANYONE,
+    topics.SIM_BRIDGE, topics.PERCEPTION, topics.SEMANTICS, topics.PLANNER, topics.RECONSTRUCTION,
+    topics.MISSION_MANAGER, topics.FOXGLOVE_BRIDGE, topics.ROBOT, topics.ANYONE,
 )  # fmt: skip
 #: who the registry lists as a topic's readers, or as a service's server
 NODES = (
-    topics.SIM_BRIDGE, topics.PERCEPTION, topics.SEMANTICS, topics.PLANNER, topics.MISSION_MANAGER,
-    topics.FOXGLOVE_BRIDGE,
+    topics.SIM_BRIDGE, topics.PERCEPTION, topics.SEMANTICS, topics.PLANNER, topics.RECONSTRUCTION,
+    topics.MISSION_MANAGER, topics.FOXGLOVE_BRIDGE,
 )  # fmt: skip
 
 
@@ -100,9 +100,10 @@ def test_the_graph_nodes_read_what_the_mission_manager_waits_for():
         "perception": ("color", "depth", "info", "pose"),
         "semantics": ("color", "depth"),
         "planner": ("info", "pose"),
+        "reconstruction": ("color", "info", "pose"),
     }
     # the graph's readers and the mission manager's own reader of each camera topic
-    assert EXPECTED_READERS == {"goal": 1, "color": 3, "depth": 3, "info": 3, "pose": 3}
+    assert EXPECTED_READERS == {"goal": 1, "color": 4, "depth": 3, "info": 4, "pose": 4}
 
 
 def test_every_topic_has_a_known_writer_a_ros_type_and_a_reliable_keep_last_qos():
@@ -141,5 +142,10 @@ def test_the_planner_reads_these_topics_and_drivers_provide_these():
     assert [(s.name, s.server) for s in topics.SERVICES] == [
         ("area3d/planner/select_views", "planner"), ("area3d/planner/next_best_view", "planner"),
         ("area3d/camera/reset", "sim_bridge"), ("area3d/planner/reset", "planner"),
+        ("area3d/planner/save_map", "planner"), ("area3d/planner/load_map", "planner"),
         ("area3d/semantics/reset", "semantics"),
+        ("area3d/reconstruction/save_map", "reconstruction"),
+        ("area3d/reconstruction/load_map", "reconstruction"),
+        ("area3d/reconstruction/export_mesh", "reconstruction"),
+        ("area3d/reconstruction/reset", "reconstruction"),
     ]  # fmt: skip

@@ -41,9 +41,9 @@ LOG_TAIL_LINES = 40
 SMOKE_TEST = (
     "from rclpy.serialization import serialize_message\n"
     "from area3d_interfaces.msg import HardRegionArray\n"
-    "from area3d_interfaces.srv import NextBestView\n"
+    "from area3d_interfaces.srv import MapFile, NextBestView\n"
     "from tf2_msgs.msg import TFMessage\n"
-    "for msg in (TFMessage(), NextBestView.Request(), NextBestView.Response(), HardRegionArray()):\n"
+    "for msg in (TFMessage(), NextBestView.Request(), MapFile.Response(), HardRegionArray()):\n"
     "    serialize_message(msg)\n"
 )
 

@@ -56,6 +56,7 @@ def test_topics_are_relative_names_the_graph_publishes_with_matching_durability(
         "Uncertainty grid": (topics.UNCERTAINTY_GRID.name, "Transient Local"),
         "Planned views": (topics.VIEW_MARKERS.name, "Transient Local"),
         "Hard regions": (topics.HARD_REGION_MARKERS.name, "Transient Local"),
+        "Reconstruction": (topics.RECONSTRUCTION_MESH.name, "Transient Local"),
         "Next views": (topics.NEXT_VIEWS.name, "Volatile"),
         "Camera": (topics.COLOR.name, "Volatile"),
     }
@@ -66,6 +67,8 @@ def test_topics_are_relative_names_the_graph_publishes_with_matching_durability(
     for name, namespace in (("Planned views", VIEWS_NS), ("Hard regions", HARD_REGIONS_NS)):
         assert displays[name]["Class"] == "rviz_default_plugins/MarkerArray"
         assert displays[name]["Namespaces"] == {namespace: True}
+    assert displays["Reconstruction"]["Class"] == "rviz_default_plugins/Marker"
+    assert displays["Reconstruction"]["Namespaces"] == {"reconstruction": True}
     grid = displays["Uncertainty grid"]
     assert (grid["Style"], grid["Channel Name"]) == ("Boxes", "uncertainty")
 

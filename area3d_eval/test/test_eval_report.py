@@ -3,6 +3,7 @@
 import json
 import re
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
@@ -142,7 +143,13 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
     srcs = re.findall(r"<img src='([^']+)'", page)
     assert sorted(links) == sorted(srcs)
-    assert len(links) == 5 + 3 + 1 + 1  # curves, views per run, one uncertainty figure, timings
+    # curves, views per run, one uncertainty figure, timings, and each run's mesh seen around
+    meshed = [r for r in runs if (r / "eval" / "reconstruction.ply").is_file()]
+    assert meshed and len(links) == 5 + 3 + 1 + 1 + len(meshed)
+    mesh_figures = [link for link in links if link.endswith("_mesh.png")]
+    assert len(mesh_figures) == len(meshed) and md.count("## Reconstruction") == 1
+    image = plt.imread(md_path.parent / mesh_figures[0])[..., :3]
+    assert (image.max(axis=-1) - image.min(axis=-1)).max() > 0.1  # colour, not a blank page
     assert any("psnr_roi" in link for link in links) and not any(
         link.endswith("_psnr.png") for link in links
     )  # the curves show the region's PSNR, not the whole image's

@@ -4,6 +4,8 @@ family, used as one namespace (`codecs.image_to_msg`, `codecs.pose_to_matrix`, .
 - ``header``: stamps and std_msgs/Header
 - ``images``: sensor_msgs/Image
 - ``clouds``: sensor_msgs/PointCloud2
+- ``meshes``: coloured triangle meshes as visualization_msgs/Marker (TRIANGLE_LIST), encoded
+  straight to CDR bytes for ``Publisher.publish``
 - ``poses``: Pose / Transform / PoseArray / TransformStamped, TF (tf2_msgs/TFMessage)
 - ``camera_info``: sensor_msgs/CameraInfo
 - ``views``: the NextBestView service
@@ -23,6 +25,7 @@ from area3d_msgs_py.codecs.clouds import msg_to_pointcloud, pointcloud_dtype, po
 from area3d_msgs_py.codecs.hard_regions import hard_regions_to_msg, msg_to_hard_regions
 from area3d_msgs_py.codecs.header import header, ns_to_stamp, stamp_to_ns
 from area3d_msgs_py.codecs.images import image_to_msg, msg_to_image
+from area3d_msgs_py.codecs.meshes import marker_to_mesh, mesh_marker_cdr
 from area3d_msgs_py.codecs.poses import (
     matrices_to_pose_array,
     matrix_to_pose,
@@ -58,9 +61,11 @@ __all__ = [
     "header",
     "image_to_msg",
     "intrinsics_to_camera_info",
+    "marker_to_mesh",
     "matrices_to_pose_array",
     "matrix_to_pose",
     "matrix_to_transform",
+    "mesh_marker_cdr",
     "msg_to_hard_regions",
     "msg_to_image",
     "msg_to_pointcloud",

@@ -278,3 +278,55 @@ def test_a_reset_empties_the_map_and_what_waits_and_the_same_frames_fuse_again(r
     assert r.status[-1]["last_fused_stamp_ns"] == stamps[-1]
     assert r.planner.sync.pending("confidence") == [lone]  # still waiting for its depth
     assert r.planner.sync.pending("depth") == []
+
+
+def _ask(r: Rig, T: np.ndarray, stamp: int) -> tuple[np.ndarray, np.ndarray]:
+    """One closed-loop view from the planner's select_views service: (poses, gains)."""
+    client = r.peer.create_client(topics.SELECT_VIEWS.srv_type, topics.SELECT_VIEWS.name)
+    assert client.wait_for_service(timeout_sec=TIMEOUT_S)
+    request = codecs.view_request_to_msg(1, T, stamp, "world")
+    answer = codecs.msg_to_view_answer(services.call(client, request, TIMEOUT_S))
+    assert answer.success, answer.message
+    return np.array(answer.views), np.array(answer.gains)
+
+
+def _map_call(r: Rig, service: topics.Service, path) -> object:
+    client = r.peer.create_client(service.srv_type, service.name)
+    assert client.wait_for_service(timeout_sec=TIMEOUT_S)
+    return services.call(client, service.srv_type.Request(path=str(path)), TIMEOUT_S)
+
+
+def test_a_mission_resumed_from_a_saved_map_over_the_services_chooses_the_same_views(rig, tmp_path):
+    """Save the planner's map over area3d/planner/save_map mid-mission, stop the planner, load
+    the map into a new one over load_map: the views it answers with from there are those of the
+    mission never stopped. A file that does not fit is refused and the running map kept."""
+    views = [banded_wall_view(*d, WALL_X, BANDS_Y, BAND_Z) for d in WALL_DIRECTIONS]
+    stamps = [6_000_000_000 + i * 10**8 for i in range(len(views))]
+    parameters = {"mode": "closed_loop", "budget": 20, "eager_cache": True}
+
+    def continue_mission(r: Rig, steps: range) -> list:
+        answers = []
+        for i in steps:
+            r.frame(stamps[i], *views[i])
+            assert r.fused(i + 1)
+            answers.append(_ask(r, views[i][2], stamps[i]))
+        return answers
+
+    first = rig(**parameters)
+    continue_mission(first, range(2))
+    saved = _map_call(first, topics.PLANNER_SAVE_MAP, tmp_path / "planner.a3map")
+    assert saved.success and "saved 2 fused frames and 2 views" in saved.message, saved.message
+    never_stopped = continue_mission(first, range(2, 5))
+    first.close()
+    first.close = lambda: None  # the fixture closes it again
+
+    resumed = rig(**parameters)
+    (tmp_path / "foreign.a3map").write_bytes(b"PK\x03\x04 not a whole zip")
+    refused = _map_call(resumed, topics.PLANNER_LOAD_MAP, tmp_path / "foreign.a3map")
+    assert not refused.success and "complete area3d map file" in refused.message
+    loaded = _map_call(resumed, topics.PLANNER_LOAD_MAP, tmp_path / "planner.a3map")
+    assert loaded.success and "loaded 2 fused frames" in loaded.message, loaded.message
+    assert "17 views remain" in loaded.message  # 20 - (1 initial + 2 handed out)
+    for (a, ga), (b, gb) in zip(never_stopped, continue_mission(resumed, range(2, 5)), strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(ga, gb)

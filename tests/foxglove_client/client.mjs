@@ -106,6 +106,16 @@ const SUMMARIES = {
       color: [m.color.r, m.color.g, m.color.b, m.color.a],
     })),
   }),
+  // a mesh: its size, bounds and colour range (not its 10^5 points, one JSON line each message)
+  "visualization_msgs/msg/Marker": (m) => ({
+    stamp_ns: stampNs(m.header.stamp), frame_id: m.header.frame_id, ns: m.ns, type: m.type,
+    points: m.points.length, colors: m.colors.length,
+    // reduce, not Math.min(...): a spread of 10^5 arguments overflows the call stack
+    min: ["x", "y", "z"].map((a) => m.points.reduce((v, p) => Math.min(v, p[a]), Infinity)),
+    max: ["x", "y", "z"].map((a) => m.points.reduce((v, p) => Math.max(v, p[a]), -Infinity)),
+    color_range: [m.colors.reduce((v, c) => Math.min(v, c.r, c.g, c.b), Infinity),
+      m.colors.reduce((v, c) => Math.max(v, c.r, c.g, c.b), -Infinity)],
+  }),
   "area3d_interfaces/msg/HardRegionArray": (msg) => ({
     stamp_ns: stampNs(msg.header.stamp),
     frame_id: msg.header.frame_id,

@@ -1,0 +1,28 @@
+"""The answer of a MapFile service (area3d_interfaces/srv/MapFile: save_map, load_map,
+export_mesh), the same from every node that serves one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+
+def done(response: Any, service: str, path: Path, size: int, logger: Any, what: str) -> Any:
+    """Success: what was done, the absolute path and its size, logged."""
+    response.success = True
+    response.path = str(path)
+    response.size_bytes = int(size)
+    response.message = f"{what}: {path} ({size / 1e6:.2f} MB)"
+    logger.info(f"{service}: {response.message}")
+    return response
+
+
+def refused(response: Any, service: str, exc: Exception, logger: Any) -> Any:
+    """A refusal (a path that cannot be written, a file that does not fit): why, logged; the
+    node's map is as it was."""
+    response.success = False
+    response.path = ""
+    response.size_bytes = 0
+    response.message = f"{type(exc).__name__}: {exc}" if isinstance(exc, OSError) else str(exc)
+    logger.warning(f"{service}: {response.message}")
+    return response

@@ -1,0 +1,158 @@
+"""The map file: what the planner and the reconstruction save and load, one versioned format.
+
+A map file is a zip archive of NumPy `.npy` arrays (what `numpy.savez` writes and `numpy.load`
+reads, no pickles): `header.npy` holds a JSON object as UTF-8 bytes,
+
+    {"format": "area3d_map", "version": 1, "content": "planner" | "reconstruction",
+     "saved_at": ISO 8601 UTC, ...what the content needs to be checked against a running map}
+
+and every other entry is one array the content names (docs/map_format.md lists them). Arrays are
+stored uncompressed: a room's planner map is tens of MB and zlib would take seconds to write it;
+sparse fields are stored as (ids, values) pairs by their writer.
+
+A save writes a temporary file beside the target and renames it over the target once complete
+(`os.replace`, atomic on POSIX), so no reader ever sees a half-written file under the final name
+and a failed save leaves the previous file as it was. A load reads and checks everything before
+the caller changes its running map.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from area3d_msgs_py.errors import InputError
+
+FORMAT = "area3d_map"
+VERSION = 1
+CONTENTS = ("planner", "reconstruction")
+HEADER = "header"
+
+
+@dataclass(frozen=True)
+class MapFile:
+    """A map file's header (a dict, checked) and arrays, as read by `read_map`."""
+
+    path: Path
+    header: dict
+    arrays: dict[str, np.ndarray]
+    size_bytes: int
+
+    def array(self, name: str, dtype: Any = None, shape: tuple | None = None) -> np.ndarray:
+        """The array `name`, refused with the file's path named when it is missing or has another
+        dtype (`dtype`) or shape (`shape`: None for any length on that axis)."""
+        if name not in self.arrays:
+            raise InputError(f"{self.path}: array {name!r}", "missing", "an area3d map file whole")
+        value = self.arrays[name]
+        if dtype is not None and value.dtype != np.dtype(dtype):
+            raise InputError(f"{self.path}: array {name!r}", str(value.dtype), f"dtype {dtype}")
+        if shape is not None and (
+            value.ndim != len(shape)
+            or any(
+                want is not None and got != want
+                for got, want in zip(value.shape, shape, strict=True)
+            )
+        ):
+            raise InputError(f"{self.path}: array {name!r}", value.shape, f"shape {shape}")
+        return value
+
+
+def resolve(path: str | os.PathLike) -> Path:
+    """`path` as an absolute path (relative to the working directory); an empty one refused."""
+    if not str(path).strip():
+        raise InputError("path", str(path), "a file path")
+    return Path(os.path.abspath(os.path.expanduser(str(path))))
+
+
+def write_map(
+    path: str | os.PathLike, content: str, header: dict, arrays: dict
+) -> tuple[Path, int]:
+    """Write a map file of `content` atomically: (the absolute path, its size in bytes).
+
+    `header` is the content's part of the header (JSON-serialisable); `arrays` maps names to
+    NumPy arrays. A directory that does not exist or cannot be written is refused by name; a
+    failure while writing removes the temporary file and leaves any previous file untouched."""
+    if content not in CONTENTS:
+        raise InputError("content", content, f"one of {', '.join(CONTENTS)}")
+    target = resolve(path)
+    if target.is_dir():
+        raise InputError("path", str(target), "a file path, not a directory")
+    folder = target.parent
+    if not folder.is_dir():
+        raise InputError("path", str(target), f"a path in an existing directory ({folder} is not)")
+    if not os.access(folder, os.W_OK):
+        raise InputError(
+            "path", str(target), f"a path in a directory this node may write ({folder})"
+        )
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "content": content,
+        "saved_at": datetime.now(UTC).isoformat(timespec="seconds"),
+        **header,
+    }
+    if HEADER in arrays:
+        raise InputError("arrays", HEADER, "names other than 'header'")
+    encoded = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as out:
+            np.savez(out, **{HEADER: encoded}, **{k: np.asarray(v) for k, v in arrays.items()})
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return target, target.stat().st_size
+
+
+def read_map(path: str | os.PathLike, content: str) -> MapFile:
+    """Read a map file of `content` whole. Refused by name, with nothing returned: a missing
+    file, one that is not a complete map file (truncated, another program's), another content
+    or a format version this code does not know."""
+    source = resolve(path)
+    if not source.is_file():
+        raise InputError("path", str(source), "an existing map file")
+    try:
+        with np.load(source, allow_pickle=False) as archive:
+            arrays = {name: archive[name] for name in archive.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        raise InputError(
+            "path", str(source), f"a complete area3d map file (read failed: {exc})"
+        ) from exc
+    if HEADER not in arrays:
+        raise InputError("path", str(source), f"an area3d map file (no {HEADER!r} entry)")
+    try:
+        header = json.loads(arrays.pop(HEADER).tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError("path", str(source), f"an area3d map file (header: {exc})") from exc
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        found = header.get("format") if isinstance(header, dict) else header
+        raise InputError(f"{source}: format", found, repr(FORMAT))
+    if header.get("version") != VERSION:
+        raise InputError(f"{source}: version", header.get("version"), f"{VERSION}")
+    if header.get("content") != content:
+        raise InputError(f"{source}: content", header.get("content"), f"{content!r}")
+    return MapFile(source, header, arrays, source.stat().st_size)
+
+
+def check_same(source: Path, field: str, saved: Any, running: Any, tol: float = 1e-9) -> None:
+    """Refuse a map whose `field` (a number or a sequence of numbers, or a string) differs from
+    the running map's: the file and both values named."""
+    if isinstance(running, str) or isinstance(saved, str):
+        same = saved == running
+    else:
+        a = np.asarray(saved, dtype=np.float64)
+        b = np.asarray(running, dtype=np.float64)
+        same = a.shape == b.shape and bool(np.all(np.abs(a - b) <= tol))
+    if not same:
+        raise InputError(f"{source}: {field}", saved, f"{running} (the running map's)")

@@ -1,0 +1,204 @@
+"""The planner's map saved and loaded (`map_io`): a mission resumed from a saved map chooses the
+views of the mission never stopped; a map that does not fit is refused and the running map kept."""
+
+import zipfile
+
+import numpy as np
+import pytest
+
+from area3d_msgs_py import mapfile
+from area3d_msgs_py.camera_pose import look_at
+from area3d_msgs_py.errors import InputError
+from area3d_planner import map_io
+from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+
+K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
+
+
+def config(**kw):
+    base = dict(
+        workspace_min=(0.0, 0.0, 0.0),
+        workspace_max=(1.0, 1.0, 1.0),
+        roi_min=(0.3, 0.0, 0.0),
+        roi_max=(1.0, 1.0, 1.0),
+        voxel_size=0.05,
+        level="room",
+        seed_spacing=0.2,
+        yaw_bins=6,
+        pitch_bins=2,
+        face_res=32,
+        budget=30,
+        mode="closed_loop",
+    )
+    base.update(kw)
+    return PlannerConfig(**base)
+
+
+def frame(i: int):
+    """Frame i: a camera moving along y looking at a slanted wall, confidence falling with i."""
+    y = 0.15 + 0.09 * (i % 9)
+    T = look_at(np.array([0.1, y, 0.4 + 0.03 * (i % 4)]), np.array([1.0, y, 0.5]))
+    cols = np.linspace(0.0, 1.0, 64, dtype=np.float32)
+    depth = np.tile(0.45 + 0.2 * cols * (1 + (i % 3)) / 3, (48, 1)).astype(np.float32)
+    depth[:, :4] = np.nan  # no return at one edge
+    conf = np.full_like(depth, 0.5 + 0.04 * (i % 5))
+    return (i + 1) * 10**8, depth, conf, K, T
+
+
+def semantic(i: int):
+    u = np.zeros((48, 64), np.float32)
+    u[10 + i : 30, 20:40] = 0.8
+    return u
+
+
+def step(srv: NextBestViewServer, i: int, sem_late: bool = False) -> tuple:
+    """Fuse frame i (its semantic map before, or with sem_late after, the frame), then ask for the
+    next view from it."""
+    stamp, depth, conf, K_, T = frame(i)
+    if i % 3 == 0 and not sem_late:
+        srv.add_semantic(stamp, semantic(i))  # waits for its frame
+    srv.add_frame(stamp, depth, conf, K_, T)
+    if i % 3 == 0 and sem_late:
+        srv.add_semantic(stamp, semantic(i))
+    plan = srv.plan_views(PlanRequest(T, stamp, 1))
+    assert plan.reason == ""
+    return np.array(plan.poses), np.array(plan.gains)
+
+
+def run(srv: NextBestViewServer, steps: range) -> list:
+    return [step(srv, i, sem_late=i % 2 == 0) for i in steps]
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {},  # closed loop, masks pipelined
+        {"pipeline_masks": False},
+        {"policy": "uniform"},  # a sequential policy: its remaining views are saved
+        {"mode": "batch", "budget": 40},
+    ],
+)
+def test_a_mission_resumed_from_a_saved_map_chooses_the_views_of_the_mission_never_stopped(
+    tmp_path, kw
+):
+    whole = NextBestViewServer(config(**kw))
+    first = NextBestViewServer(config(**kw))
+    run(whole, range(4))
+    run(first, range(4))
+    # a semantic map for a frame not yet fused (kept pending) and a re-analysis of a fused one
+    for srv in (whole, first):
+        srv.add_semantic(frame(7)[0], semantic(7))
+        srv.add_semantic(frame(0)[0], semantic(2))
+    path = tmp_path / "planner.a3map"
+    written, size, header = map_io.save(first, path)
+    assert written == path and size == path.stat().st_size > 0
+    assert header["frames"] == 4 and header["committed"] == 4
+    resumed = NextBestViewServer(config(**kw))
+    map_io.restore(resumed, map_io.read(resumed, path))
+    assert resumed.status()["budget"] == whole.status()["budget"]
+    for a, b in zip(run(whole, range(4, 9)), run(resumed, range(4, 9)), strict=True):
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+    for name in map_io.VOXEL_FIELDS:
+        np.testing.assert_array_equal(getattr(whole.grid, name), getattr(resumed.grid, name))
+
+
+def test_a_map_saved_from_a_server_with_the_background_worker_resumes_there_too(tmp_path):
+    kw = config()
+    whole, first = NextBestViewServer(kw), NextBestViewServer(kw, background=True)
+    resumed = NextBestViewServer(kw, background=True)
+    try:
+        run(whole, range(3))
+        run(first, range(3))
+        path = tmp_path / "planner.a3map"
+        map_io.save(first, path)
+        map_io.restore(resumed, map_io.read(resumed, path))
+        for a, b in zip(run(whole, range(3, 7)), run(resumed, range(3, 7)), strict=True):
+            np.testing.assert_array_equal(a[0], b[0])
+            np.testing.assert_array_equal(a[1], b[1])
+    finally:
+        first.close()
+        resumed.close()
+
+
+def saved(tmp_path, **kw):
+    srv = NextBestViewServer(config(**kw))
+    run(srv, range(2))
+    path = tmp_path / "planner.a3map"
+    map_io.save(srv, path)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("kw", "field"),
+    [
+        ({"voxel_size": 0.04}, "voxel_size"),
+        ({"roi_min": (0.2, 0.0, 0.0)}, "roi_min"),
+        ({"roi_max": (0.9, 1.0, 1.0)}, "shape"),  # the grid grows with it
+        ({"workspace_max": (1.2, 1.0, 1.0)}, "origin|shape"),  # the room grid spans it
+    ],
+)
+def test_a_map_of_another_grid_or_region_is_refused_naming_the_field(tmp_path, kw, field):
+    path = saved(tmp_path)
+    other = NextBestViewServer(config(**kw))
+    with pytest.raises(InputError, match=field):
+        map_io.read(other, path)
+
+
+def test_truncated_foreign_missing_and_future_files_are_refused(tmp_path):
+    path = saved(tmp_path)
+    srv = NextBestViewServer(config())
+    data = path.read_bytes()
+    truncated = tmp_path / "truncated.a3map"
+    truncated.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match="complete area3d map file"):
+        map_io.read(srv, truncated)
+    foreign = tmp_path / "foreign.ply"
+    foreign.write_text("ply\nformat ascii 1.0\nend_header\n")
+    with pytest.raises(InputError, match="complete area3d map file"):
+        map_io.read(srv, foreign)
+    with pytest.raises(InputError, match="existing map file"):
+        map_io.read(srv, tmp_path / "nowhere.a3map")
+    future = tmp_path / "future.a3map"
+    mapfile.write_map(future, "planner", {"x": 1}, {})
+    with zipfile.ZipFile(future) as z:
+        header = z.read("header.npy")
+    assert b'"version": 1' in header
+    other = tmp_path / "other.a3map"
+    mapfile.write_map(other, "reconstruction", {}, {})
+    with pytest.raises(InputError, match="content"):
+        map_io.read(srv, other)
+
+
+def test_a_file_of_a_newer_format_version_is_refused(tmp_path, monkeypatch):
+    monkeypatch.setattr(mapfile, "VERSION", 2)
+    path = saved(tmp_path)
+    monkeypatch.setattr(mapfile, "VERSION", 1)
+    with pytest.raises(InputError, match="version: got 2, expected 1"):
+        map_io.read(NextBestViewServer(config()), path)
+
+
+def test_a_save_that_fails_leaves_the_previous_file_and_no_temporary_one(tmp_path, monkeypatch):
+    path = saved(tmp_path)
+    before = path.read_bytes()
+    srv = NextBestViewServer(config())
+    run(srv, range(3))
+
+    def broken(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", broken)
+    with pytest.raises(OSError, match="No space"):
+        map_io.save(srv, path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+def test_unwritable_paths_are_refused_by_name(tmp_path):
+    srv = NextBestViewServer(config())
+    with pytest.raises(InputError, match="existing directory"):
+        map_io.save(srv, tmp_path / "missing" / "planner.a3map")
+    with pytest.raises(InputError, match="not a directory"):
+        map_io.save(srv, tmp_path)
+    with pytest.raises(InputError, match="path"):
+        map_io.save(srv, "")

@@ -1,0 +1,95 @@
+"""The reconstruction's volume in a map file (`area3d_msgs_py/mapfile.py`, content
+"reconstruction") and its mesh as PLY.
+
+The file holds the TSDF volume's active blocks (`TsdfFusion.state`: block coordinates, each
+voxel's signed distance, weight and colour), the stamps of the frames integrated (a frame is
+integrated once, after a load too) and, in the header, the volume's parameters and region: a
+file of another voxel length, truncation or region is refused. docs/map_format.md lists every
+entry.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from area3d_eval.open3d_loader import import_open3d
+from area3d_eval.reconstruct import TsdfFusion
+from area3d_msgs_py import mapfile
+from area3d_msgs_py.errors import InputError
+
+CONTENT = "reconstruction"
+
+
+def volume_header(fusion: TsdfFusion) -> dict:
+    """What a file must match to be loaded into `fusion`: its TSDF parameters and region."""
+    return {
+        **{f"tsdf_{k}": v for k, v in asdict(fusion.params).items()},
+        "roi_min": None if fusion.roi_lo is None else fusion.roi_lo.tolist(),
+        "roi_max": None if fusion.roi_hi is None else fusion.roi_hi.tolist(),
+    }
+
+
+def save(fusion: TsdfFusion, stamps: list[int], path) -> tuple[Path, int]:
+    """Write the volume and its integrated frames' stamps to `path` atomically."""
+    arrays = {**fusion.state(), "stamps": np.asarray(stamps, np.int64)}
+    header = {
+        **volume_header(fusion),
+        "frames": fusion.num_frames,
+        "blocks": int(arrays["block_keys"].shape[0]),
+    }
+    return mapfile.write_map(path, CONTENT, header, arrays)
+
+
+def read(fusion: TsdfFusion, path) -> mapfile.MapFile:
+    """Read a reconstruction file for `fusion`, checked whole (parameters, region, arrays)."""
+    loaded = mapfile.read_map(path, CONTENT)
+    for key, running in volume_header(fusion).items():
+        if key not in loaded.header:
+            raise InputError(f"{loaded.path}: {key}", "missing", "a reconstruction file's header")
+        saved = loaded.header[key]
+        if running is None or saved is None:
+            if running != saved:
+                raise InputError(
+                    f"{loaded.path}: {key}", saved, f"{running} (the running volume's)"
+                )
+            continue
+        mapfile.check_same(loaded.path, key, saved, running)
+    blocks = int(loaded.header.get("blocks", -1))
+    loaded.array("block_keys", np.int32, (blocks, 3))
+    for name, channels in (("tsdf", 1), ("weight", 1), ("color", 3)):
+        loaded.array(name, np.float32, (blocks, None, None, None, channels))
+    loaded.array("stamps", np.int64, (None,))
+    return loaded
+
+
+def restore(fusion: TsdfFusion, loaded: mapfile.MapFile) -> list[int]:
+    """Put the file's volume in `fusion`; the stamps of its integrated frames."""
+    fusion.restore(loaded.arrays, int(loaded.header["frames"]))
+    return [int(s) for s in loaded.arrays["stamps"]]
+
+
+def export_mesh(mesh, path) -> tuple[Path, int]:
+    """Write an open3d TriangleMesh as binary PLY (vertex colours) to `path` atomically."""
+    o3d = import_open3d()
+    target = mapfile.resolve(path)
+    if target.suffix.lower() != ".ply":
+        raise InputError("path", str(target), "a file name ending in .ply")
+    if not target.parent.is_dir():
+        raise InputError("path", str(target), f"a path in an existing directory ({target.parent})")
+    if not os.access(target.parent, os.W_OK):
+        raise InputError("path", str(target), "a path in a directory this node may write")
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".ply", dir=target.parent)
+    os.close(fd)
+    try:
+        if not o3d.io.write_triangle_mesh(tmp, mesh, write_ascii=False, compressed=False):
+            raise OSError(f"open3d could not write {tmp}")
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return target, target.stat().st_size
