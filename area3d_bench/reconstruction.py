@@ -46,20 +46,14 @@ def bench_level(level: str) -> dict:
         t0 = time.perf_counter()
         fusion.integrate(rgb, depth, K, T, confidence)
         t1 = time.perf_counter()
-        mesh = fusion.extract_mesh()
+        vertices, faces, colours = fusion.surface_arrays()  # what the node publishes
         t2 = time.perf_counter()
-        codecs.mesh_marker_cdr(
-            np.asarray(mesh.vertices),
-            np.asarray(mesh.triangles),
-            np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None,
-            1,
-            "world",
-        )
+        codecs.mesh_marker_cdr(vertices, faces, colours, 1, "world")
         t3 = time.perf_counter()
         integrate.append(t1 - t0)
         extract.append(t2 - t1)
         encode.append(t3 - t2)
-        triangles.append(len(mesh.triangles))
+        triangles.append(len(faces))
     update = [a + b + c for a, b, c in zip(integrate, extract, encode, strict=True)]
     out = {
         "scene": scene.name,
@@ -96,12 +90,64 @@ def bench_level(level: str) -> dict:
     return out
 
 
-def run_bench(print_table: bool = True) -> dict:
+def _reconstruct_forever(scene_name: str, level: str, ready, stop) -> None:
+    """A reconstruction node's work without transport, as fast as it goes: the scene's views
+    integrated one after the other, each followed by the mesh's extraction and encoding, over
+    and over (a fresh volume every pass) until `stop` is set."""
+    from area3d_bench.frames import render_views
+    from area3d_eval.reconstruct import TsdfFusion, TsdfParams
+    from area3d_msgs_py import codecs
+    from area3d_perception.sensor_model import rgbd_confidence
+
+    scene, frames = render_views(scene_name, held_out=True)
+    inputs = [(rgb, depth, K, T, rgbd_confidence(depth, K)) for rgb, depth, K, T in frames]
+    ready.set()
+    while not stop.is_set():
+        fusion = TsdfFusion(TsdfParams.for_level(level), scene.roi_min, scene.roi_max)
+        for rgb, depth, K, T, confidence in inputs:
+            if stop.is_set():
+                return
+            fusion.integrate(rgb, depth, K, T, confidence)
+            codecs.mesh_marker_cdr(*fusion.surface_arrays(), 1, "world")
+
+
+def closed_loop_beside(level: str) -> dict:
+    """The planner's closed loop (`bench_closed_loop`, masks pipelined as the bundled
+    configuration has them) alone, then with a reconstruction process beside it that never
+    rests (a worst case: the node integrates one frame per view): p95 latency of each."""
+    import multiprocessing
+
+    from area3d_bench.closed_loop import CLOSED_LOOP_TARGET_S, bench_closed_loop
+
+    alone = bench_closed_loop(SCENES[level], pipelined=True)
+    context = multiprocessing.get_context("spawn")
+    ready, stop = context.Event(), context.Event()
+    worker = context.Process(target=_reconstruct_forever, args=(SCENES[level], level, ready, stop))
+    worker.start()
+    try:
+        ready.wait(300)
+        beside = bench_closed_loop(SCENES[level], pipelined=True)
+    finally:
+        stop.set()
+        worker.join(60)
+        if worker.is_alive():
+            worker.kill()
+    return {
+        "alone_p95_s": alone["p95_s"],
+        "beside_p95_s": beside["p95_s"],
+        "target_s": CLOSED_LOOP_TARGET_S[level],
+    }
+
+
+def run_bench(print_table: bool = True, closed_loop: bool = True) -> dict:
     """Both levels; a table of figures beside their targets and the ratio figure / target."""
     from area3d_msgs_py.lifecycle import tune_process
 
     tune_process()
     results = {level: bench_level(level) for level in SCENES}
+    if closed_loop:
+        for level in SCENES:
+            results[level] |= {f"closed_loop_{k}": v for k, v in closed_loop_beside(level).items()}
     if print_table:
         from rich.console import Console
         from rich.table import Table
@@ -131,6 +177,21 @@ def run_bench(print_table: bool = True) -> dict:
                             f"{s:.3f}",
                             f"< {TARGET_SAVE_LOAD_S}",
                             f"{s / TARGET_SAVE_LOAD_S:.2f}",
+                        )
+                    )
+            if "closed_loop_alone_p95_s" in r:
+                target = r["closed_loop_target_s"]
+                for label, key in (
+                    ("alone", "alone_p95_s"),
+                    ("reconstruction beside", "beside_p95_s"),
+                ):
+                    value = r[f"closed_loop_{key}"]
+                    rows.append(
+                        (
+                            f"planner closed loop p95 (s), {label}",
+                            f"{value:.3f}",
+                            f"< {target}",
+                            f"{value / target:.2f}",
                         )
                     )
             for row in rows:

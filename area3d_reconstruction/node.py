@@ -338,16 +338,12 @@ class ReconstructionNode(Node):
         """The volume's mesh on area3d/reconstruction/mesh, stamped with its last frame."""
         t0 = time.perf_counter()
         with self._lock:
-            mesh = self.volume.extract_mesh()
+            vertices, triangles, colours = self.volume.surface_arrays()
         t1 = time.perf_counter()
-        vertices = np.asarray(mesh.vertices)
-        colours = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None
-        data = codecs.mesh_marker_cdr(
-            vertices, np.asarray(mesh.triangles), colours, stamp, self.world_frame
-        )
+        data = codecs.mesh_marker_cdr(vertices, triangles, colours, stamp, self.world_frame)
         self.mesh_pub.publish(data)
         self.mesh = {
-            "triangles": len(mesh.triangles),
+            "triangles": len(triangles),
             "extract_s": round(t1 - t0, 4),
             "publish_s": round(time.perf_counter() - t1, 4),
             "stamp_ns": stamp,

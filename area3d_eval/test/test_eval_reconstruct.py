@@ -130,3 +130,35 @@ def test_pixels_with_no_confidence_add_nothing(sphere_frames):
     assert len(fusion.extract_mesh().triangles) == 0
     with pytest.raises(InputError, match="confidence"):
         fusion.integrate(rgb, depth, K, T, np.ones((3, 3), np.float32))
+
+
+def _triangle_set(vertices, triangles) -> set:
+    """Each triangle as its corners' positions (rounded to 1e-6 m), starting at the smallest
+    corner, keeping its orientation; degenerate ones left out."""
+    corners = np.round(np.asarray(vertices, np.float64)[np.asarray(triangles)], 6)
+    out = set()
+    for tri in corners:
+        keys = [tuple(c) for c in tri]
+        if len(set(keys)) < 3:
+            continue
+        k = keys.index(min(keys))
+        out.add(tuple(keys[k:] + keys[:k]))
+    return out
+
+
+def test_the_surface_for_display_is_the_extracted_meshs_triangles_cropped_alike(sphere_frames):
+    _, frames = sphere_frames
+    lo, hi = np.array([-0.2, -0.2, 0.0]), np.array([0.2, 0.2, 0.2])  # the sphere's upper half
+    fusion = TsdfFusion(TsdfParams(), lo, hi)
+    assert all(len(a) == 0 for a in fusion.surface_arrays())
+    for rgb, depth, K, T in frames[:6]:
+        fusion.integrate(rgb, depth, K, T)
+    vertices, triangles, colours = fusion.surface_arrays()
+    mesh = fusion.extract_mesh()
+    assert triangles.dtype == np.int32 and colours.shape == vertices.shape
+    assert 0.0 <= colours.min() and colours.max() <= 1.0
+    shown = _triangle_set(vertices, triangles)
+    assert len(shown) > 500
+    assert shown == _triangle_set(mesh.vertices, mesh.triangles)
+    corners = vertices[triangles].reshape(-1, 3)
+    assert np.all(corners >= lo) and np.all(corners <= hi)
