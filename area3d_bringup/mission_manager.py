@@ -13,6 +13,7 @@ import re
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -58,6 +59,7 @@ GRAPH_OUTPUTS: dict[Topic, int] = {
     topics.UNCERTAINTY_GRID: GRID_READER_DEPTH,
     topics.NEXT_VIEWS: qos.FRAME_DEPTH,
     topics.PLANNER_STATUS: qos.FRAME_DEPTH,
+    topics.RECONSTRUCTION_STATUS: qos.FRAME_DEPTH,
 }
 #: the outputs stamped with the frame they come from: those of a frame this episode did not
 #: capture or replay (a running graph's transient-local history of an earlier episode, the empty
@@ -127,6 +129,7 @@ class MissionManager(Node):
         self._parts: dict[int, dict[str, Any]] = {}
         self._status: dict[int, dict] = {}
         self.planner_status: dict = {}
+        self.reconstruction_status: dict = {}
         self.stamps: set[int] = set()  # the frames this episode captured or replayed
         self.latest_grid: bytes | None = None
         self.received: dict[str, int] = {}
@@ -202,6 +205,8 @@ class MissionManager(Node):
                 self._status[int(status.get("stamp_ns", 0))] = status
             elif topic == topics.PLANNER_STATUS:
                 self.planner_status = json.loads(msg.data)
+            elif topic == topics.RECONSTRUCTION_STATUS:
+                self.reconstruction_status = json.loads(msg.data)
             elif topic == topics.UNCERTAINTY_GRID:
                 self.latest_grid = cdr
 
@@ -415,6 +420,22 @@ class MissionManager(Node):
                 timeout_s,
             ):
                 raise TimeoutError(f"no planner status after the reset within {timeout_s:.0f} s")
+        return answer.message
+
+    def map_file(self, service: Service, path: Path, timeout_s: float) -> str:
+        """Call a MapFile service (`topics.PLANNER_SAVE_MAP`, `RECONSTRUCTION_EXPORT_MESH`, ...)
+        with `path`; its answer's message. TimeoutError when the service does not appear or
+        answer within `timeout_s`, RuntimeError when it refuses."""
+        client = self.create_client(service.srv_type, service.name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout_s):
+                raise TimeoutError(f"no service {service.name} within {timeout_s:.0f} s")
+            request = service.srv_type.Request(path=str(path))
+            answer = services.call(client, request, timeout_s)
+        finally:
+            self.destroy_client(client)
+        if not answer.success:
+            raise RuntimeError(f"{service.name}: {answer.message}")
         return answer.message
 
     def wait_until(

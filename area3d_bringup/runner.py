@@ -109,6 +109,8 @@ class _Episode:
         )
         semantics = next(spec for spec in self.specs if spec.name == topics.SEMANTICS).parameters
         self.with_semantics = semantics.get("backend", "heuristic") != "none"
+        # a graph started elsewhere may run without it (found out at its reset)
+        self.with_reconstruction = True
         self.recorder: BagRecorder | None = None
         self.launcher: Launcher | None = None
         self.manager: MissionManager | None = None
@@ -338,6 +340,7 @@ class _Episode:
                 if not optional:
                     raise
                 self.log(f"no {service.server} in the running graph: {service.name} not called")
+                self.with_reconstruction = False
                 continue
             except RuntimeError as err:  # the service answered that it failed
                 raise EpisodeError(
@@ -376,6 +379,39 @@ class _Episode:
             )
         if manager.latest_grid is not None:
             rundir.write_grid(self.run_dir / rundir.GRID_FINAL_FILE, _grid(manager.latest_grid))
+        self._save_maps()
+
+    def _save_maps(self) -> None:
+        """The graph's maps and live mesh into the run's `maps/` over its services (the planner's,
+        and the reconstruction's once it has integrated every frame); one that fails is logged,
+        the episode's results stand."""
+        manager, timeout_s = self.manager, self.config.fuse_timeout_s
+        folder = self.run_dir / rundir.MAPS_DIR
+        folder.mkdir(exist_ok=True)
+        saves = [(topics.PLANNER_SAVE_MAP, rundir.PLANNER_MAP_FILE)]
+        if self.with_reconstruction:
+            if not self.step(
+                lambda: manager.wait_until(
+                    lambda: (
+                        int(manager.reconstruction_status.get("frames_integrated", 0))
+                        >= len(self.frames)
+                    ),
+                    timeout_s,
+                )
+            ):
+                self.log("the reconstruction has not integrated every frame; saving what it has")
+            saves += [
+                (topics.RECONSTRUCTION_SAVE_MAP, rundir.RECONSTRUCTION_MAP_FILE),
+                (topics.RECONSTRUCTION_EXPORT_MESH, rundir.LIVE_MESH_FILE),
+            ]
+        for service, name in saves:
+            try:
+                said = self.step(
+                    lambda s=service, n=name: manager.map_file(s, folder / n, timeout_s)
+                )
+                self.log(f"{service.name}: {said}")
+            except (TimeoutError, RuntimeError) as err:
+                self.log(f"{service.name} failed, {name} not saved: {err}")
 
     def _initial_views(self, progress: Any) -> None:
         """Capture the views of O_0 not captured yet, then wait for their semantic maps and for

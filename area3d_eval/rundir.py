@@ -25,6 +25,9 @@ Layout (all paths relative to RUN_DIR):
 Every file is written to a temporary name in the same directory and renamed over its final name
 (`os.replace`, atomic on POSIX), so a run killed mid-write leaves the previous complete version of
 each file, never half of one; leftover `*.tmp*` files are ignored by the readers.
+- `maps/`: what the graph held when the episode ended, saved over its services: the planner's
+  map (`planner.a3map`) and the reconstruction's volume (`reconstruction.a3map`), loadable with
+  `load_map` (docs/map_format.md), and the live mesh (`mesh.ply`, `export_mesh`).
 - `eval/` (written by evaluation): `reconstruction.ply` (final TSDF mesh cropped to the ROI) and
   `gt_sample.npy` (a few thousand ground-truth surface points for plots).
 """
@@ -57,6 +60,10 @@ GRID_INITIAL_FILE = "grid_initial.npz"
 GRID_FINAL_FILE = "grid_final.npz"
 LOG_FILE = "nodes.log"
 BAG_DIR = "bag"
+MAPS_DIR = "maps"  # what the graph held at the end: its maps and the live mesh
+PLANNER_MAP_FILE = "planner.a3map"
+RECONSTRUCTION_MAP_FILE = "reconstruction.a3map"
+LIVE_MESH_FILE = "mesh.ply"
 GRID_FIELDS = ("x", "y", "z", "uncertainty", "geometric", "semantic", "occupancy", "hard")
 # Free space a new episode asks for before it starts: a 40-view room episode at 640x480 writes
 # about 90 MB of frames, and its bag holds every image and grid the graph published.

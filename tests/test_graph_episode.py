@@ -1,4 +1,5 @@
-"""A whole episode over the node graph: four node processes, the runner, the wire, the report."""
+"""A whole episode over the node graph: five node processes, the runner, the wire, the maps it
+saves, the report."""
 
 from __future__ import annotations
 
@@ -82,6 +83,49 @@ def test_the_in_process_path_chooses_the_views_the_graph_chose(episode, tmp_path
     )
     assert in_process.kinds() == graph.kinds()
     np.testing.assert_allclose(in_process.poses(), graph.poses(), atol=POSE_TOLERANCE)
+
+
+def test_a_mission_resumed_from_the_map_the_graph_saved_chooses_the_next_view_of_one_not_stopped(
+    episode, tmp_path
+):
+    """At its end the episode saved the graph's maps over the services (maps/). The planner's,
+    loaded into a planner given one view more, answers with the view that the same mission with
+    that budget, never stopped, takes next (the in-process path: it chooses the graph's views,
+    the test above). The volume and the live mesh were saved beside it."""
+    import yaml
+
+    import area3d_planner.node as planner_node
+    from area3d_bringup.inprocess import run_inprocess_episode
+    from area3d_eval.open3d_loader import import_open3d
+    from area3d_eval.rundir import read_episode
+    from area3d_msgs_py import mapfile
+    from area3d_msgs_py.parameters import parameter_values
+    from area3d_planner import map_io
+    from area3d_planner.server import NextBestViewServer, PlanRequest
+
+    graph = read_episode(episode)
+    maps = episode / "maps"
+    given = yaml.safe_load((episode / "params.yaml").read_text())["/**/planner"]["ros__parameters"]
+    config = planner_node.config_from_parameters(
+        parameter_values(planner_node.PARAMS, {**given, "budget": 8})
+    )
+    resumed = NextBestViewServer(config)
+    map_io.restore(resumed, map_io.read(resumed, maps / "planner.a3map"))
+    last = graph.views[-1]
+    plan = resumed.plan_views(PlanRequest(np.asarray(last["T_world_cam"]), last["stamp_ns"], 1))
+    assert plan.reason == "" and len(plan.poses) == 1
+    never_stopped = read_episode(
+        run_inprocess_episode("single_object", "area3d", 0, tmp_path, 8, overrides=SMALL_CAMERA)
+    )
+    np.testing.assert_allclose(plan.poses[0], never_stopped.poses()[-1], atol=POSE_TOLERANCE)
+
+    volume = mapfile.read_map(maps / "reconstruction.a3map", "reconstruction")
+    assert volume.header["frames"] == len(graph.views) and volume.header["blocks"] > 0
+    mesh = import_open3d().io.read_triangle_mesh(str(maps / "mesh.ply"))
+    vertices = np.asarray(mesh.vertices)
+    assert len(mesh.triangles) > 1000 and mesh.has_vertex_colors()
+    assert np.all(vertices >= np.asarray(given["roi_min"]) - 1e-6)
+    assert np.all(vertices <= np.asarray(given["roi_max"]) + 1e-6)
 
 
 def test_the_planner_published_the_latched_grid_before_and_after(episode):
