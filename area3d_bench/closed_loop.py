@@ -65,12 +65,8 @@ def bench_closed_loop(
     same map (not in the latency), and with `burners` busy processes running (`_burners`), the
     load average over the run. `steps`: `CLOSED_LOOP_STEPS` of the scene's level by default."""
     from area3d_perception.sensor_model import rgbd_confidence
-    from area3d_planner.server import (
-        CACHE_WAIT_S,
-        NextBestViewServer,
-        PlannerConfig,
-        PlanRequest,
-    )
+    from area3d_planner.config import PlannerConfig
+    from area3d_planner.server import CACHE_WAIT_S, NextBestViewServer, PlanRequest
     from sim_bridge.render import RgbdRenderer
     from sim_bridge.scenes import load_scene
 

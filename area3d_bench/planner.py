@@ -137,7 +137,8 @@ def bench_visibility_accuracy(scene_name: str) -> dict:
     from dataclasses import replace
 
     from area3d_perception.sensor_model import rgbd_confidence
-    from area3d_planner.server import NextBestViewServer, PlannerConfig
+    from area3d_planner.config import PlannerConfig
+    from area3d_planner.server import NextBestViewServer
     from sim_bridge.render import RgbdRenderer
     from sim_bridge.scenes import load_scene
 
@@ -180,7 +181,8 @@ def bench_visibility_accuracy(scene_name: str) -> dict:
 def bench_server(requests: int = 50) -> dict:
     """In-process `NextBestViewServer.plan` for one closed-loop view with a warm cache (object
     level, the scene's initial views fused), and the background refresh after one more frame."""
-    from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+    from area3d_planner.config import PlannerConfig
+    from area3d_planner.server import NextBestViewServer, PlanRequest
 
     scene, frames = object_frames()
     config = PlannerConfig(**{**planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})

@@ -35,7 +35,8 @@ def bench_level(level: str) -> dict:
     from area3d_msgs_py import codecs
     from area3d_perception.sensor_model import rgbd_confidence
     from area3d_planner import map_io as planner_map
-    from area3d_planner.server import NextBestViewServer, PlannerConfig
+    from area3d_planner.config import PlannerConfig
+    from area3d_planner.server import NextBestViewServer
     from area3d_reconstruction import map_io as volume_map
 
     scene, frames = render_views(SCENES[level], held_out=True)

@@ -105,6 +105,7 @@ class Mission:
                 ("planner", topics.PLANNER_STATUS),
                 ("perception", topics.PERCEPTION_STATUS),
                 ("semantics", topics.SEMANTICS_STATUS),
+                ("reconstruction", topics.RECONSTRUCTION_STATUS),
             )
         }
         self.client = None
@@ -212,6 +213,10 @@ def run_mission(options: MissionOptions, workdir: Path) -> MissionResult:
             "perception": dict(pose),
             "planner": planner,
             "semantics": {"num_initial_views": len(scene.initial_views)},
+            "reconstruction": {
+                **{key: region[key] for key in ("roi_min", "roi_max", "level")},
+                **pose,
+            },
         },
         nodes=tuple((n, m) for n, m in GRAPH_NODES if n != "sim_bridge"),
     )

@@ -76,7 +76,7 @@ def run_inprocess_episode(
     episode.json, as `area3d run` writes them, with a timing per stage). depth_source: what the
     TSDF of the evaluation integrates (rundir.DEPTH_SOURCES); "estimated" keeps perception's depth
     and confidence in every frame file."""
-    from area3d_planner.server import paper_budget
+    from area3d_planner.config import paper_budget
     from sim_bridge.scenes import load_scene
 
     check_depth_source(depth_source)

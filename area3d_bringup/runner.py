@@ -45,7 +45,7 @@ from area3d_bringup.recorder import BagRecorder
 from area3d_eval import rundir
 from area3d_eval.rundir import Frame
 from area3d_msgs_py import codecs, middleware, msgs, topics
-from area3d_planner.server import paper_budget
+from area3d_planner.config import paper_budget
 
 __all__ = ["EpisodeConfig", "EpisodeError", "run_episode"]
 

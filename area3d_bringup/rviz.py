@@ -36,7 +36,7 @@ def installed_config() -> Path:
 
 def grid_voxel_size(planner_parameters: dict) -> float:
     """The voxel size, metres, of the grid a planner with these parameters builds."""
-    from area3d_planner.server import PlannerConfig
+    from area3d_planner.config import PlannerConfig
 
     names = {f.name for f in fields(PlannerConfig)}
     config = PlannerConfig(**{k: v for k, v in planner_parameters.items() if k in names})

@@ -60,9 +60,10 @@ from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
 from area3d_planner import map_io
 from area3d_planner.cloud import grid_to_cloud
+from area3d_planner.config import PlannerConfig
 from area3d_planner.hard_regions import cloud_hard_regions
 from area3d_planner.markers import hard_region_markers, view_markers
-from area3d_planner.server import NextBestViewServer, Plan, PlannerConfig, PlanRequest
+from area3d_planner.server import NextBestViewServer, Plan, PlanRequest
 
 CAMERA_INFO_CACHE = 64
 POSES_PENDING = 2048

@@ -72,6 +72,10 @@ def check_mission(result, scene_name: str, planned: int) -> None:
     # the candidate views were planned for the driver's camera, from its CameraInfo
     assert status["camera"]["width"] == 848 and status["camera"]["height"] == 480
     assert abs(status["camera"]["hfov_deg"] - 87.0) < 1e-6
+    # the reconstruction took its frames and poses from the same stack: a mesh in the fixed frame
+    reconstruction = result.statuses["reconstruction"]
+    assert reconstruction["frames_integrated"] > 0 and reconstruction["mesh"]["triangles"] > 0
+    assert reconstruction["rejected"]["total"] == 0
     assert all(code == 0 for code in result.exit_codes.values()), (result.exit_codes, log)
     assert not any("Traceback" in line for line in result.log), log
 

@@ -8,7 +8,7 @@ import pytest
 from area3d_bringup.inprocess import run_inprocess_episode
 from area3d_bringup.launch_description import planner_region
 from area3d_eval.rundir import read_episode
-from area3d_planner.server import PlannerConfig
+from area3d_planner.config import PlannerConfig
 from sim_bridge.holdout_scenes import write_holdout_scene
 from sim_bridge.scenes import load_scene
 from sim_bridge.validity import check_pose

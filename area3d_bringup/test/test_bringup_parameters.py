@@ -9,7 +9,7 @@ import pytest
 
 from area3d_bringup.graph import NODES
 from area3d_msgs_py.param_fields import description_of
-from area3d_planner.server import PlannerConfig
+from area3d_planner.config import PlannerConfig
 from area3d_semantics.weights import SemanticParams
 
 # Numbers whose unit is the number itself (weights, factors, seeds).

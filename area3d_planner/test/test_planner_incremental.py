@@ -11,8 +11,9 @@ import pytest
 
 from area3d_perception.grid import GridSpec
 from area3d_perception.sensor_model import rgbd_confidence
+from area3d_planner.config import PlannerConfig
 from area3d_planner.fusion import FREE
-from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+from area3d_planner.server import NextBestViewServer, PlanRequest
 from area3d_planner.visibility import (
     VisibilityCache,
     VisibilityParams,

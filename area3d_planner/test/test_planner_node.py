@@ -22,7 +22,7 @@ from area3d_planner.test.conftest import WALL_DIRECTIONS, WALL_K, banded_wall_vi
 TIMEOUT_S = 120.0  # generous: a loaded machine is slow (every wait ends once its condition holds)
 OPTICAL = "camera_optical_frame"
 # The planner's grid over the unit cube at 5 cm starts half a voxel below the region's corner
-# (server.PlannerConfig.grid_spec): voxel centres at multiples of 5 cm. The wall x = 0.65 lies
+# (config.PlannerConfig.grid_spec): voxel centres at multiples of 5 cm. The wall x = 0.65 lies
 # mid-voxel; its two bands of low confidence cover 3 x 9 voxel centres each.
 WALL_X = 0.65
 BANDS_Y = ((0.125, 0.275), (0.725, 0.875))

@@ -5,7 +5,8 @@ import pytest
 
 from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
-from area3d_planner.server import NextBestViewServer, PlannerConfig, PlanRequest
+from area3d_planner.config import PlannerConfig
+from area3d_planner.server import NextBestViewServer, PlanRequest
 
 K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
 
