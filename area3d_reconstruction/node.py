@@ -315,12 +315,21 @@ class ReconstructionNode(Node):
         return True
 
     def _on_integrated(self, stamp: int, done: bool, publish: bool) -> bool:
+        """After the worker's step (its thread): the mesh (made before the publish gate is taken:
+        it takes up to a second, and a Ctrl-C meanwhile shuts the context down) and the status;
+        False once the node has stopped."""
+        data = self._mesh_message(stamp) if done and publish else None
         with self.gate as running:
             if not running:
                 return False
-            if done and publish:
-                self._publish_mesh(stamp)
-            self.status.publish()
+            try:
+                if data is not None:
+                    self.mesh_pub.publish(data)
+                self.status.publish()
+            except Exception:
+                if not self.context.ok():  # shut down between the gate's check and the publish
+                    return False
+                raise
             return True
 
     def _on_failed(self, stamp: int, exc: BaseException) -> None:
@@ -334,20 +343,25 @@ class ReconstructionNode(Node):
             if running:
                 self.status.publish()
 
-    def _publish_mesh(self, stamp: int) -> None:
-        """The volume's mesh on area3d/reconstruction/mesh, stamped with its last frame."""
+    def _mesh_message(self, stamp: int) -> bytes:
+        """The volume's mesh as a serialized Marker stamped with its last frame (what
+        area3d/reconstruction/mesh carries); its size and timings go to the status."""
         t0 = time.perf_counter()
         with self._lock:
             vertices, triangles, colours = self.volume.surface_arrays()
         t1 = time.perf_counter()
         data = codecs.mesh_marker_cdr(vertices, triangles, colours, stamp, self.world_frame)
-        self.mesh_pub.publish(data)
         self.mesh = {
             "triangles": len(triangles),
             "extract_s": round(t1 - t0, 4),
-            "publish_s": round(time.perf_counter() - t1, 4),
+            "encode_s": round(time.perf_counter() - t1, 4),
             "stamp_ns": stamp,
         }
+        return data
+
+    def _publish_mesh(self, stamp: int) -> None:
+        """The mesh on area3d/reconstruction/mesh (from a service: the executor's thread)."""
+        self.mesh_pub.publish(self._mesh_message(stamp))
 
     # ------------------------------------------------------------------ services
     def _on_save_map(self, request, response):
