@@ -30,18 +30,15 @@ from rclpy.node import Node
 
 from area3d_msgs_py import codecs, map_files, msgs, qos, topics
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync, pairing_warning
 from area3d_msgs_py.guard import Rejections, guarded, reject
 from area3d_msgs_py.inputs import (
     FLOAT_ENCODINGS,
     check_depth_values,
     check_frame_id,
-    check_stamp,
     check_unit_range,
-    decode_camera_info,
     decode_image,
 )
-from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
+from area3d_msgs_py.keyframes import KeyframeConfig
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
@@ -54,8 +51,8 @@ from area3d_msgs_py.parameters import (
     params_of,
     report_unknown_parameters,
 )
-from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
+from area3d_msgs_py.posed_frames import PosedFrames
 from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
 from area3d_planner import map_io
@@ -65,10 +62,6 @@ from area3d_planner.hard_regions import cloud_hard_regions
 from area3d_planner.markers import hard_region_markers, view_markers
 from area3d_planner.server import NextBestViewServer, Plan, PlanRequest
 
-CAMERA_INFO_CACHE = 64
-POSES_PENDING = 2048
-# Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
-MAX_FRAMES_WITHOUT_INFO = 64
 # Service requests and frame callbacks run on separate threads: a request waits for the frame it
 # names to be fused, which needs the frame callbacks to keep running.
 EXECUTOR_THREADS = 3
@@ -172,24 +165,7 @@ class PlannerNode(Node):
         self.resets = 0  # area3d/planner/reset calls served
         # view requests answered (the status after one carries its `last_request_s`)
         self.requests_answered = 0
-        pose_config = PoseSourceConfig(**{f.name: p[f.name] for f in fields(PoseSourceConfig)})
-        pose_topic = pose_config.pose_source == "topic"  # else TF or odometry (self.poses)
-        self.sync = StampSync(
-            ("depth", "confidence", "pose") if pose_topic else ("depth", "confidence"),
-            max_age_ns=int(p["sync_max_age_s"] * 1e9),
-            # the camera's poses arrive ahead of perception's images, which trail by the
-            # perception backlog: a minute of poses at 30 Hz may wait (they are small)
-            pending_caps={"pose": POSES_PENDING},
-            slop_ns=int(round(p["sync_slop_s"] * 1e9)),
-        )
         self.min_pairing_rate = p["min_pairing_rate"]
-        keyframe_config = KeyframeConfig(**{f.name: p[f.name] for f in fields(KeyframeConfig)})
-        self.keyframes = KeyframeSelector(keyframe_config)
-        # a request's frame may have been skipped (here or by perception): the map holds it when
-        # a frame as new, or one taken near its pose, was fused (`NextBestViewServer.covers`)
-        self.near = None if keyframe_config.every_frame else keyframe_config.near
-        self.camera_info = CameraInfoCache(CAMERA_INFO_CACHE)  # stamp -> K
-        self.waiting = HeldFrames(MAX_FRAMES_WITHOUT_INFO)
         self.world_frame = p["world_frame"]
         roi = np.subtract(config.roi_max, config.roi_min)
         self.marker_range = p["view_marker_range"] or 0.25 * float(np.linalg.norm(roi))
@@ -204,7 +180,6 @@ class PlannerNode(Node):
         # 7 ms under rclpy). No heartbeat: each line is one event (the soak bench's ages).
         self.status = StatusPublisher(self, topics.PLANNER_STATUS, self._status, heartbeat_s=None)
         self.rejections = Rejections(on_count=self.status.changed)
-        self.dropped = 0
         # whole frames are fused in arrival order by a worker thread, off the executor
         self.fusion = FrameWorker(
             self._fuse_frame,
@@ -223,30 +198,25 @@ class PlannerNode(Node):
             )
         )  # fmt: skip
         frames = MutuallyExclusiveCallbackGroup()
-        self.poses = None
-        if not pose_topic:
-            self.poses = PoseInputs(
-                self, pose_config, self.world_frame, self.max_stamp_ahead_s, p["camera_qos"],
-                self.rejections, self._posed, self.status.changed, callback_group=frames,
-            )  # fmt: skip
-        inputs = [
-            (topics.PERCEPTION_DEPTH, lambda m: self._part("depth", m), None),
-            (topics.PERCEPTION_CONFIDENCE, lambda m: self._part("confidence", m), None),
-            # the camera's small per-frame messages queue deep: they run ahead of perception's
-            # images, and a reader queue that overflows loses the frame for good
-            (topics.CAMERA_INFO, self._on_camera_info, POSES_PENDING),
-            (topics.SEMANTIC_UNCERTAINTY, self._on_semantic, qos.FRAME_DEPTH),
-        ]
-        if pose_topic:
-            inputs.append((topics.POSE, lambda m: self._part("pose", m), POSES_PENDING))
-        for topic, callback, depth in inputs:
-            self.create_subscription(
-                topic.msg_type,
-                topic.name,
-                guarded(self, callback, topic.name, self.rejections),
-                topic.reader_qos(p["camera_qos"], depth),
-                callback_group=frames,
-            )
+        self.inputs = PosedFrames(
+            self,
+            {
+                "depth": (topics.PERCEPTION_DEPTH, lambda m: self._decode("depth", m)),
+                "confidence": (topics.PERCEPTION_CONFIDENCE, lambda m: self._decode("confidence", m)),
+            },
+            p, self.rejections, self._fuse, self.status.changed, callback_group=frames,
+        )  # fmt: skip
+        # a request's frame may have been skipped (here or by perception): the map holds it when
+        # a frame as new, or one taken near its pose, was fused (`NextBestViewServer.covers`)
+        self.near = self.inputs.near
+        semantic = topics.SEMANTIC_UNCERTAINTY
+        self.create_subscription(
+            semantic.msg_type,
+            semantic.name,
+            guarded(self, self._on_semantic, semantic.name, self.rejections),
+            semantic.reader_qos(p["camera_qos"], qos.FRAME_DEPTH),
+            callback_group=frames,
+        )
         for service, handler in (
             (topics.SELECT_VIEWS, self._on_select_views),
             (topics.NEXT_BEST_VIEW, self._on_request),
@@ -267,7 +237,7 @@ class PlannerNode(Node):
         self.get_logger().info(
             f"planner ready: policy={config.policy} mode={config.mode} "
             f"voxels={self.server.grid.spec.num_voxels} world_frame={self.world_frame} "
-            f"pose_source={pose_config.pose_source}"
+            f"pose_source={self.inputs.pose_source}"
         )
 
     def destroy_node(self) -> None:
@@ -276,18 +246,12 @@ class PlannerNode(Node):
         super().destroy_node()
 
     def _status(self) -> dict:
-        warning = pairing_warning(self.sync, self.min_pairing_rate)
         return {
             **self.server.status(),
             "resets": self.resets,
             "requests_answered": self.requests_answered,
-            **self.keyframes.status(),
-            "frames_paired": self.sync.frames_paired,
-            "pairing_rate": self.sync.pairing_rate(),
-            "warnings": [warning] if warning else [],
-            "parts_dropped_unpaired": self.dropped,
+            **self.inputs.status(self.min_pairing_rate),
             "frames_dropped_backlog": self.fusion.dropped,
-            "frames_dropped_without_camera_info": self.waiting.dropped,
             "hard_regions": self.hard_regions,
             "fusion_failures": self.fusion_failures,
             # a worker thread that ended before the node stopped (diagnostics: ERROR)
@@ -303,12 +267,11 @@ class PlannerNode(Node):
                     ("last_fusion_s", self.fusion.last_process_s),
                 )
             },
-            **({} if self.poses is None else self.poses.status()),
             "rejected": self.rejections.snapshot(),
         }
 
     def _stamp(self, msg) -> int:
-        return check_stamp(msg, self.get_clock().now().nanoseconds, self.max_stamp_ahead_s)
+        return self.inputs.stamp(msg)
 
     def _on_refresh(self) -> None:
         with self.gate as running:  # called by the rebuild worker too
@@ -337,10 +300,7 @@ class PlannerNode(Node):
         try:
             with self.fusion.cleared() as waiting_fusion:
                 old, self.server = self.server, self._new_server()
-                self.keyframes.reset()  # the next frame starts the new map
-                parts = self.sync.clear()
-                held = len(self.waiting.release())
-                waiting_pose = 0 if self.poses is None else self.poses.forget_frames()
+                parts, held = self.inputs.clear()  # the next frame starts the new map
             old.close(0.0)  # a request still waiting on the old map gets its answer from it
             fused = old.status().get("frames_fused", 0)
             self.resets += 1
@@ -354,7 +314,7 @@ class PlannerNode(Node):
         response.success = True
         response.message = (
             f"map cleared (reset {self.resets}): {fused} frames fused, "
-            f"{waiting_fusion} waiting for fusion, {held + waiting_pose} waiting for camera info "
+            f"{waiting_fusion} waiting for fusion, {held} waiting for camera info "
             f"or a pose and {parts} parts of frames dropped"
         )
         self.get_logger().info(f"{topics.PLANNER_RESET.name}: {response.message}")
@@ -384,11 +344,7 @@ class PlannerNode(Node):
             with self.fusion.cleared():
                 map_io.restore(server, loaded)
                 old, self.server = self.server, server
-                self.keyframes.reset()
-                self.sync.clear()
-                self.waiting.release()
-                if self.poses is not None:
-                    self.poses.forget_frames()
+                self.inputs.clear()
         except (InputError, OSError) as exc:
             server.close(0.0)
             return map_files.refused(response, service, exc, self.get_logger())
@@ -401,54 +357,12 @@ class PlannerNode(Node):
             f"{self.server.remaining_budget()} views remain",
         )  # fmt: skip
 
-    def _on_camera_info(self, msg) -> None:
-        stamp = self._stamp(msg)
-        K, _, _ = decode_camera_info(msg)
-        self.camera_info.add(stamp, K)
-        for held_stamp, frame in self.waiting.release():
-            self._fuse(held_stamp, frame, self.camera_info.get(held_stamp))
-
     def _decode(self, key: str, msg) -> np.ndarray:
-        if key == "pose":
-            check_frame_id(msg, self.world_frame)
-            return codecs.pose_to_matrix(msg.pose)
         check_frame_id(msg)
         image = decode_image(msg, FLOAT_ENCODINGS)
         if key == "depth":
             return check_depth_values(image)
         return check_unit_range(image, key)
-
-    def _part(self, key: str, msg) -> None:
-        stamp = self._stamp(msg)
-        paired = self.sync.add_part(key, stamp, self._decode(key, msg))
-        for dropped in self.sync.pop_dropped():
-            self.dropped += 1
-            self.get_logger().warning(
-                f"{dropped.key} at stamp {dropped.stamp_ns} dropped: {dropped.reason}",
-                throttle_duration_sec=1.0,
-            )
-        if paired is None:
-            return
-        stamp, frame = paired
-        if self.poses is not None:  # the pose at the frame's stamp, now or once it has arrived
-            self.poses.submit(stamp, msg.header.frame_id, frame)
-            return
-        self._with_camera_info(stamp, frame)
-
-    def _posed(self, stamp: int, frame: dict, T_world_cam: np.ndarray) -> None:
-        self._with_camera_info(stamp, {**frame, "pose": T_world_cam})
-
-    def _with_camera_info(self, stamp: int, frame: dict) -> None:
-        if not self.keyframes.offer(stamp, frame["pose"]):
-            self.status.changed()
-            return  # the camera has not moved, turned or waited enough: skipped, counted
-        K = self.camera_info.get(stamp)
-        if K is None:
-            warning = self.waiting.hold(stamp, frame, topics.CAMERA_INFO.name)
-            if warning:
-                self.get_logger().warning(warning)
-            return
-        self._fuse(stamp, frame, K)
 
     def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
         """Hand a whole frame to the fusion worker; one that finds its backlog full is dropped,

@@ -20,7 +20,6 @@ import threading
 import time
 import traceback
 from collections.abc import Sequence
-from dataclasses import fields
 from typing import Any
 
 import numpy as np
@@ -31,19 +30,16 @@ from rclpy.node import Node
 from area3d_eval.reconstruct import TsdfFusion, TsdfParams
 from area3d_msgs_py import codecs, map_files, topics
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync
-from area3d_msgs_py.guard import Rejections, guarded, reject
+from area3d_msgs_py.guard import Rejections, reject
 from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
     FLOAT_ENCODINGS,
     check_depth_values,
     check_frame_id,
-    check_stamp,
     check_unit_range,
-    decode_camera_info,
     decode_image,
 )
-from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
+from area3d_msgs_py.keyframes import KeyframeConfig
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
@@ -55,16 +51,14 @@ from area3d_msgs_py.parameters import (
     params_of,
     report_unknown_parameters,
 )
-from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
+from area3d_msgs_py.posed_frames import PosedFrames
 from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
 from area3d_reconstruction import map_io
 
-CAMERA_INFO_CACHE = 64
-# The camera's parts run ahead of perception's, which trail by its backlog (as the planner's).
+# Colour parts waiting for perception's depth of their frame, at most.
 PARTS_PENDING = 2048
-MAX_FRAMES_WITHOUT_INFO = 64
 # Frame callbacks, the services and the worker's publishing run on separate threads.
 EXECUTOR_THREADS = 3
 CLOSE_WAIT_S = 1.0
@@ -143,24 +137,8 @@ class ReconstructionNode(Node):
         self._lock = threading.Lock()
         self.gate = PublishGate(self.context.ok)
         self.world_frame = p["world_frame"]
-        self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        pose_config = PoseSourceConfig(**{f.name: p[f.name] for f in fields(PoseSourceConfig)})
-        pose_topic = pose_config.pose_source == "topic"
-        keys = ("color", "depth", "confidence") + (("pose",) if pose_topic else ())
-        self.sync = StampSync(
-            keys,
-            max_age_ns=int(p["sync_max_age_s"] * 1e9),
-            pending_caps={"color": PARTS_PENDING, "pose": PARTS_PENDING},
-            slop_ns=int(round(p["sync_slop_s"] * 1e9)),
-        )
-        self.keyframes = KeyframeSelector(
-            KeyframeConfig(**{f.name: p[f.name] for f in fields(KeyframeConfig)})
-        )
-        self.camera_info = CameraInfoCache(CAMERA_INFO_CACHE)
-        self.waiting = HeldFrames(MAX_FRAMES_WITHOUT_INFO)
         self.resets = 0
         self.failures = 0
-        self.dropped = 0
         self.mesh: dict = {}  # the last mesh published: triangles, seconds to extract and send
         self.status = StatusPublisher(self, topics.RECONSTRUCTION_STATUS, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
@@ -177,29 +155,18 @@ class ReconstructionNode(Node):
             topics.RECONSTRUCTION_MESH.name,
             topics.RECONSTRUCTION_MESH.qos(),
         )
-        frames = MutuallyExclusiveCallbackGroup()
-        self.poses = None
-        if not pose_topic:
-            self.poses = PoseInputs(
-                self, pose_config, self.world_frame, self.max_stamp_ahead_s, p["camera_qos"],
-                self.rejections, self._posed, self.status.changed, callback_group=frames,
-            )  # fmt: skip
-        inputs = [
-            (topics.PERCEPTION_DEPTH, lambda m: self._part("depth", m), None),
-            (topics.PERCEPTION_CONFIDENCE, lambda m: self._part("confidence", m), None),
-            (topics.COLOR, lambda m: self._part("color", m), None),
-            (topics.CAMERA_INFO, self._on_camera_info, PARTS_PENDING),
-        ]
-        if pose_topic:
-            inputs.append((topics.POSE, lambda m: self._part("pose", m), PARTS_PENDING))
-        for topic, callback, depth in inputs:
-            self.create_subscription(
-                topic.msg_type,
-                topic.name,
-                guarded(self, callback, topic.name, self.rejections),
-                topic.reader_qos(p["camera_qos"], depth),
-                callback_group=frames,
-            )
+        self.inputs = PosedFrames(
+            self,
+            {
+                "depth": (topics.PERCEPTION_DEPTH, lambda m: self._decode("depth", m)),
+                "confidence": (topics.PERCEPTION_CONFIDENCE, lambda m: self._decode("confidence", m)),
+                "color": (topics.COLOR, lambda m: self._decode("color", m)),
+            },
+            p, self.rejections, self._submit, self.status.changed,
+            callback_group=MutuallyExclusiveCallbackGroup(),
+            # the camera's colour runs ahead of perception's depth, which trails by its backlog
+            pending_caps={"color": PARTS_PENDING},
+        )  # fmt: skip
         services = MutuallyExclusiveCallbackGroup()
         for service, handler in (
             (topics.RECONSTRUCTION_SAVE_MAP, self._on_save_map),
@@ -211,7 +178,7 @@ class ReconstructionNode(Node):
         v = self.volume.params
         self.get_logger().info(
             f"reconstruction ready: voxel_length={v.voxel_length} level={p['level']} "
-            f"world_frame={self.world_frame} pose_source={pose_config.pose_source}"
+            f"world_frame={self.world_frame} pose_source={self.inputs.pose_source}"
         )
 
     def destroy_node(self) -> None:
@@ -232,64 +199,24 @@ class ReconstructionNode(Node):
             "voxel_length": self.volume.params.voxel_length,
             "mesh": self.mesh,
             "resets": self.resets,
-            "frames_skipped": self.keyframes.skipped,  # the keyframe rule's
-            "frames_paired": self.sync.frames_paired,
-            "parts_dropped_unpaired": self.dropped,
+            # the keyframe rule's counts but its "frames_integrated" (frames it let through)
+            **{k: v for k, v in self.inputs.status().items() if k != "frames_integrated"},
             "frames_dropped_backlog": self.worker.dropped,
-            "frames_dropped_without_camera_info": self.waiting.dropped,
             "integration_failures": self.failures,
             "workers": {"integration": self.worker.alive or self.worker.stopping},
             "last_integration_s": None
             if self.worker.last_process_s is None
             else round(self.worker.last_process_s, 4),
-            **({} if self.poses is None else self.poses.status()),
             "rejected": self.rejections.snapshot(),
         }
 
     # ------------------------------------------------------------------ frames
     def _decode(self, key: str, msg) -> np.ndarray:
-        if key == "pose":
-            check_frame_id(msg, self.world_frame)
-            return codecs.pose_to_matrix(msg.pose)
         check_frame_id(msg)
         if key == "color":
             return decode_image(msg, COLOR_ENCODINGS)
         image = decode_image(msg, FLOAT_ENCODINGS)
         return check_depth_values(image) if key == "depth" else check_unit_range(image, key)
-
-    def _part(self, key: str, msg) -> None:
-        stamp = check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
-        paired = self.sync.add_part(key, stamp, self._decode(key, msg))
-        self.dropped += len(self.sync.pop_dropped())
-        if paired is None:
-            return
-        stamp, frame = paired
-        if self.poses is not None:
-            self.poses.submit(stamp, msg.header.frame_id, frame)
-            return
-        self._with_camera_info(stamp, frame)
-
-    def _posed(self, stamp: int, frame: dict, T_world_cam: np.ndarray) -> None:
-        self._with_camera_info(stamp, {**frame, "pose": T_world_cam})
-
-    def _on_camera_info(self, msg) -> None:
-        stamp = check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
-        K, _, _ = decode_camera_info(msg)
-        self.camera_info.add(stamp, K)
-        for held_stamp, frame in self.waiting.release():
-            self._submit(held_stamp, frame, self.camera_info.get(held_stamp))
-
-    def _with_camera_info(self, stamp: int, frame: dict) -> None:
-        if not self.keyframes.offer(stamp, frame["pose"]):
-            self.status.changed()
-            return
-        K = self.camera_info.get(stamp)
-        if K is None:
-            warning = self.waiting.hold(stamp, frame, topics.CAMERA_INFO.name)
-            if warning:
-                self.get_logger().warning(warning)
-            return
-        self._submit(stamp, frame, K)
 
     def _submit(self, stamp: int, frame: dict, K: np.ndarray) -> None:
         if not self.worker.submit(stamp, frame, K):
@@ -386,9 +313,7 @@ class ReconstructionNode(Node):
             return map_files.refused(response, service, exc, self.get_logger())
         with self.worker.cleared(), self._lock:
             self.volume, self.stamps, self._integrated = volume, stamps, set(stamps)
-            self.keyframes.reset()
-            self.sync.clear()
-            self.waiting.release()
+            self.inputs.clear()
         with self.gate as running:
             if running:
                 self._publish_mesh(stamps[-1] if stamps else self._now_ns())
@@ -417,9 +342,7 @@ class ReconstructionNode(Node):
         with self.worker.cleared() as waiting, self._lock:
             frames = len(self.stamps)
             self.volume, self.stamps, self._integrated = self._new_volume(), [], set()
-            self.keyframes.reset()
-            parts = self.sync.clear()
-            held = len(self.waiting.release())
+            parts, held = self.inputs.clear()
         self.resets += 1
         with self.gate as running:
             if running:
@@ -428,7 +351,7 @@ class ReconstructionNode(Node):
         response.success = True
         response.message = (
             f"volume cleared (reset {self.resets}): {frames} frames integrated, {waiting} waiting, "
-            f"{held} waiting for camera info and {parts} parts of frames dropped"
+            f"{held} waiting for camera info or a pose and {parts} parts of frames dropped"
         )
         self.get_logger().info(f"{topics.RECONSTRUCTION_RESET.name}: {response.message}")
         return response

@@ -1,5 +1,5 @@
 """The in-process path (`area3d bench episode --in-process`) chooses the views `area3d run`
-chooses over the node graph (four node processes), closed loop, same scene, preset and seed: in
+chooses over the node graph (its node processes), closed loop, same scene, preset and seed: in
 a room, and with depth estimated from a simulated stereo pair (reconstruction from the
 estimate). The object scene with the camera's depth is compared in test_graph_episode.py."""
 

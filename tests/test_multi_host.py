@@ -94,7 +94,7 @@ def test_camera_and_perception_on_one_host_the_rest_on_another_complete_an_episo
         episode = subprocess.run(
             [
                 "ip", "netns", "exec", hosts["b"], sys.executable, "-m", "area3d_bringup.cli",
-                "run", "--nodes", "semantics,planner", "--budget", str(BUDGET),
+                "run", "--nodes", "semantics,planner,reconstruction", "--budget", str(BUDGET),
                 "--no-evaluate", "--out", str(tmp_path / "runs"), *size,
             ],
             env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path,

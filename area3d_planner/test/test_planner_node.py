@@ -247,7 +247,7 @@ def test_a_reset_empties_the_map_and_what_waits_and_the_same_frames_fuse_again(r
     depth, _, _ = banded_wall_view(*WALL_DIRECTIONS[0], WALL_X, BANDS_Y, BAND_Z)
     lone = 5_900_000_000
     r.pubs["depth"].publish(codecs.image_to_msg(depth, "32FC1", lone, OPTICAL))
-    assert r.wait(lambda: lone in r.planner.sync.pending("depth"))
+    assert r.wait(lambda: lone in r.planner.inputs.sync.pending("depth"))
     views, frustums = [], []
     for topic, into in ((topics.NEXT_VIEWS, views), (topics.VIEW_MARKERS, frustums)):
         r.peer.create_subscription(topic.msg_type, topic.name, into.append, topic.qos())
@@ -276,8 +276,8 @@ def test_a_reset_empties_the_map_and_what_waits_and_the_same_frames_fuse_again(r
     assert r.fused(len(stamps)) and r.wait(lambda: r.status[-1]["hard_regions"] == 2)
     assert r.status[-1]["frames_fused"] == len(stamps)  # not the lone frame
     assert r.status[-1]["last_fused_stamp_ns"] == stamps[-1]
-    assert r.planner.sync.pending("confidence") == [lone]  # still waiting for its depth
-    assert r.planner.sync.pending("depth") == []
+    assert r.planner.inputs.sync.pending("confidence") == [lone]  # still waiting for its depth
+    assert r.planner.inputs.sync.pending("depth") == []
 
 
 def _ask(r: Rig, T: np.ndarray, stamp: int) -> tuple[np.ndarray, np.ndarray]:

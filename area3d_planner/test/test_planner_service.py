@@ -72,11 +72,13 @@ def feed_frame(node: PlannerNode, stamp: int, T_odom_cam: np.ndarray) -> None:
     """Odometry 10 ms before and after the frame, the camera info, perception's outputs."""
     base = T_odom_cam @ invert(MOUNT)
     for t in (stamp - S // 100, stamp + S // 100):
-        node.poses._on_odometry(odometry(t, base))
+        node.inputs.poses._on_odometry(odometry(t, base))
     depth = np.full((48, 64), 0.525, np.float32)
-    node._on_camera_info(codecs.intrinsics_to_camera_info(K, 64, 48, stamp, FRAME))
-    node._part("depth", codecs.image_to_msg(depth, "32FC1", stamp, FRAME))
-    node._part("confidence", codecs.image_to_msg(np.full_like(depth, 0.8), "32FC1", stamp, FRAME))
+    node.inputs._on_camera_info(codecs.intrinsics_to_camera_info(K, 64, 48, stamp, FRAME))
+    node.inputs._part("depth", codecs.image_to_msg(depth, "32FC1", stamp, FRAME))
+    node.inputs._part(
+        "confidence", codecs.image_to_msg(np.full_like(depth, 0.8), "32FC1", stamp, FRAME)
+    )
 
 
 def ask(node: PlannerNode, count: int, T: np.ndarray, stamp: int, frame_id="odom", mode=""):
@@ -141,12 +143,15 @@ def test_a_request_with_an_unknown_mode_or_a_bad_pose_is_refused_by_field(planne
 
 
 def test_a_frame_without_odometry_is_dropped_and_counted_not_fused(planner):
-    planner.poses.core.wait_ns = 0  # pose_wait_s 0: a frame whose pose has not come is dropped
+    # pose_wait_s 0: a frame whose pose has not come is dropped
+    planner.inputs.poses.core.wait_ns = 0
     depth = np.full((48, 64), 0.525, np.float32)
-    planner._on_camera_info(codecs.intrinsics_to_camera_info(K, 64, 48, T0, FRAME))
-    planner._part("depth", codecs.image_to_msg(depth, "32FC1", T0, FRAME))
-    planner._part("confidence", codecs.image_to_msg(np.full_like(depth, 0.8), "32FC1", T0, FRAME))
-    planner.poses.release()
+    planner.inputs._on_camera_info(codecs.intrinsics_to_camera_info(K, 64, 48, T0, FRAME))
+    planner.inputs._part("depth", codecs.image_to_msg(depth, "32FC1", T0, FRAME))
+    planner.inputs._part(
+        "confidence", codecs.image_to_msg(np.full_like(depth, 0.8), "32FC1", T0, FRAME)
+    )
+    planner.inputs.poses.release()
     status = planner._status()
     assert status["frames_dropped_no_pose"] == {"no_transform": 1}
     assert status["frames_fused"] == 0

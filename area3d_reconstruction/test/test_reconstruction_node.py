@@ -213,14 +213,17 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
         assert not answer.success and why in answer.message, answer.message
     assert not (tmp_path / "nowhere").exists() and not (tmp_path / "mesh.txt").exists()
     assert rig.node._status()["frames_integrated"] == 3
+    # one node at a time from here: two would both serve area3d/reconstruction/load_map
+    rig.close()
+    rig.close = lambda: None  # for the fixture
 
     other = Rig({"voxel_length": 0.02})  # another voxel length: refused by name
     try:
         answer = other.call(topics.RECONSTRUCTION_LOAD_MAP, tmp_path / "volume.a3map")
         assert not answer.success and "tsdf_voxel_length" in answer.message
+        assert other.node._status()["frames_integrated"] == 0
     finally:
         other.close()
-    rig.close()
     fresh = Rig()
     try:
         loaded = fresh.call(topics.RECONSTRUCTION_LOAD_MAP, tmp_path / "volume.a3map")
@@ -240,4 +243,3 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
         assert fresh.wait(lambda: len(fresh.meshes[-1].points) == 0)
     finally:
         fresh.close()
-    rig.close = lambda: None  # closed above
