@@ -111,12 +111,7 @@ GOAL = Topic(
     depth=qos.FRAME_DEPTH,
     description="where the camera goes next: optical-frame pose in `world`",
 )
-COLOR = _camera(
-    "area3d/camera/color/image_raw",
-    msgs.Image,
-    (PERCEPTION, SEMANTICS, RECONSTRUCTION),
-    "rgb8 image",
-)
+COLOR = _camera("area3d/camera/color/image_raw", msgs.Image, (PERCEPTION, SEMANTICS), "rgb8 image")
 DEPTH = _camera(
     "area3d/camera/depth/image_raw",
     msgs.Image,
@@ -205,6 +200,17 @@ PERCEPTION_CONFIDENCE = Topic(
     TRANSIENT_LOCAL,
     qos.FRAME_DEPTH,
     description="32FC1 per-pixel confidence in [0, 1]",
+)
+# The colour of each frame perception answered (its keyframes): what the reconstruction colours
+# the surface with, at the rate of perception's outputs rather than the camera's stream.
+PERCEPTION_COLOR = Topic(
+    "area3d/perception/color",
+    msgs.Image,
+    PERCEPTION,
+    (RECONSTRUCTION,),
+    TRANSIENT_LOCAL,
+    qos.FRAME_DEPTH,
+    description="rgb8 colour of each frame perception answered",
 )
 PERCEPTION_STATUS = _status(PERCEPTION)
 
@@ -379,7 +385,7 @@ FOXGLOVE_STATUS = _status(FOXGLOVE_BRIDGE)
 #: every topic of the graph, camera first
 TOPICS: tuple[Topic, ...] = (
     GOAL, COLOR, DEPTH, CAMERA_INFO, POSE, RIGHT_IMAGE, RIGHT_CAMERA_INFO, CAMERA_STATUS, TF,
-    TF_STATIC, ODOMETRY, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_STATUS, SEMANTIC_REGIONS,
+    TF_STATIC, ODOMETRY, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_COLOR, PERCEPTION_STATUS, SEMANTIC_REGIONS,
     SEMANTIC_WEIGHT, SEMANTIC_UNCERTAINTY, SEMANTIC_REQUEST, SEMANTICS_STATUS, UNCERTAINTY_GRID,
     NEXT_VIEWS, VIEW_MARKERS, HARD_REGIONS, HARD_REGION_MARKERS, PLANNER_STATUS,
     RECONSTRUCTION_MESH, RECONSTRUCTION_STATUS, DIAGNOSTICS, FOXGLOVE_STATUS,

@@ -153,6 +153,7 @@ class PerceptionNode(Node):
         )
         self.pub_depth = self._publisher(topics.PERCEPTION_DEPTH)
         self.pub_conf = self._publisher(topics.PERCEPTION_CONFIDENCE)
+        self.pub_color = self._publisher(topics.PERCEPTION_COLOR)
         self.poses = None
         if not pose_topic:
             self.poses = PoseInputs(
@@ -360,6 +361,7 @@ class PerceptionNode(Node):
                 return False
             self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
             self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
+            self.pub_color.publish(codecs.image_to_msg(rgb, "rgb8", stamp, frame_id))
         self.frames_published += 1
         # how old the frame was when its outputs went out, by this node's clock (the camera's
         # stamp is its capture time; recorded or simulated stamps make this meaningless)

@@ -2,7 +2,8 @@
 coloured mesh, live.
 
 Subscribes area3d/perception/depth and area3d/perception/confidence (camera or estimated depth:
-each pixel weighs by its confidence), area3d/camera/color/image_raw, area3d/camera/camera_info
+each pixel weighs by its confidence) and area3d/perception/color (the colour of the frames
+perception answered), area3d/camera/camera_info
 and the camera pose of its `pose_source` (as the planner: the pose topic paired by stamp, or TF
 or odometry at the frame's stamp), with the planner's keyframe rule. Integrates each frame once,
 with the evaluation's code (`area3d_eval.reconstruct.TsdfFusion`: one reconstruction in the
@@ -57,8 +58,6 @@ from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
 from area3d_reconstruction import map_io
 
-# Colour parts waiting for perception's depth of their frame, at most.
-PARTS_PENDING = 2048
 # Frame callbacks, the services and the worker's publishing run on separate threads.
 EXECUTOR_THREADS = 3
 CLOSE_WAIT_S = 1.0
@@ -160,12 +159,10 @@ class ReconstructionNode(Node):
             {
                 "depth": (topics.PERCEPTION_DEPTH, lambda m: self._decode("depth", m)),
                 "confidence": (topics.PERCEPTION_CONFIDENCE, lambda m: self._decode("confidence", m)),
-                "color": (topics.COLOR, lambda m: self._decode("color", m)),
+                "color": (topics.PERCEPTION_COLOR, lambda m: self._decode("color", m)),
             },
             p, self.rejections, self._submit, self.status.changed,
             callback_group=MutuallyExclusiveCallbackGroup(),
-            # the camera's colour runs ahead of perception's depth, which trails by its backlog
-            pending_caps={"color": PARTS_PENDING},
         )  # fmt: skip
         services = MutuallyExclusiveCallbackGroup()
         for service, handler in (
@@ -229,7 +226,7 @@ class ReconstructionNode(Node):
         rgb, depth = frame["color"], frame["depth"]
         if rgb.shape[:2] != depth.shape:
             raise InputError(
-                f"{topics.COLOR.name} at stamp {stamp}",
+                f"{topics.PERCEPTION_COLOR.name} at stamp {stamp}",
                 f"{rgb.shape[1]}x{rgb.shape[0]}",
                 f"the depth's size {depth.shape[1]}x{depth.shape[0]}",
             )

@@ -100,10 +100,10 @@ def test_the_graph_nodes_read_what_the_mission_manager_waits_for():
         "perception": ("color", "depth", "info", "pose"),
         "semantics": ("color", "depth"),
         "planner": ("info", "pose"),
-        "reconstruction": ("color", "info", "pose"),
+        "reconstruction": ("info", "pose"),
     }
     # the graph's readers and the mission manager's own reader of each camera topic
-    assert EXPECTED_READERS == {"goal": 1, "color": 4, "depth": 3, "info": 4, "pose": 4}
+    assert EXPECTED_READERS == {"goal": 1, "color": 3, "depth": 3, "info": 4, "pose": 4}
 
 
 def test_every_topic_has_a_known_writer_a_ros_type_and_a_reliable_keep_last_qos():

@@ -191,6 +191,14 @@ def test_frames_that_never_arrive_are_counted_from_the_gaps_of_a_streaming_camer
     assert sync.frames_missed == len(lost) - (1 if 199 in lost else 0)
     assert sync.frames_paired == 200 - len(lost)
     assert 0.6 < sync.pairing_rate() < 0.72
+    # a stream where fewer than one gap in ten is a single period (frames lost and a camera
+    # often late) still counts each gap as the frames it lost
+    sparse = StampSync(("color", "depth"), count_gaps=True)
+    kept = [i for i in range(600) if i < 20 or i % 10 in (0, 3) or i % 60 == 1]
+    for i in kept:
+        sparse.add_part("color", i * period, i)
+        sparse.add_part("depth", i * period, i)
+    assert sparse.frames_missed == kept[-1] + 1 - len(kept)
     # a camera that pauses 3 s and resumes loses nothing
     paused = StampSync(("color", "depth"), count_gaps=True)
     for i in list(range(30)) + list(range(120, 150)):

@@ -78,7 +78,7 @@ class Rig:
         self.pubs = {
             key: self.peer.create_publisher(topic.msg_type, topic.name, topic.qos())
             for key, topic in (
-                ("color", topics.COLOR),
+                ("color", topics.PERCEPTION_COLOR),
                 ("depth", topics.PERCEPTION_DEPTH),
                 ("confidence", topics.PERCEPTION_CONFIDENCE),
                 ("pose", topics.POSE),
