@@ -6,6 +6,7 @@ do not fit with the running volume kept, and resets."""
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 
@@ -56,12 +57,20 @@ def sphere_frame(i: int):
 class Rig:
     """The reconstruction node under test and a peer that feeds frames and calls its services."""
 
+    count = 0
+
     def __init__(self, parameters: dict | None = None):
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         overrides = [Parameter(k, value=v) for k, v in {**PARAMETERS, **(parameters or {})}.items()]
-        self.node = ReconstructionNode(context=self.context, parameter_overrides=overrides)
-        self.peer = rclpy.create_node("feeder", context=self.context)
+        # a namespace of its own: other tests' nodes on this domain (a perception node's latched
+        # outputs) must not reach it
+        Rig.count += 1
+        namespace = f"/reconstruction_test_{os.getpid()}_{Rig.count}"
+        self.node = ReconstructionNode(
+            context=self.context, parameter_overrides=overrides, namespace=namespace
+        )
+        self.peer = rclpy.create_node("feeder", context=self.context, namespace=namespace)
         self.status, self.meshes = [], []
         self.peer.create_subscription(
             msgs.String,
