@@ -22,6 +22,7 @@ import json
 import os
 import tempfile
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -72,16 +73,14 @@ def resolve(path: str | os.PathLike) -> Path:
     return Path(os.path.abspath(os.path.expanduser(str(path))))
 
 
-def write_map(
-    path: str | os.PathLike, content: str, header: dict, arrays: dict
+def write_file(
+    path: str | os.PathLike, write: Callable[[Path], None], suffix: str = ".tmp"
 ) -> tuple[Path, int]:
-    """Write a map file of `content` atomically: (the absolute path, its size in bytes).
-
-    `header` is the content's part of the header (JSON-serialisable); `arrays` maps names to
-    NumPy arrays. A directory that does not exist or cannot be written is refused by name; a
-    failure while writing removes the temporary file and leaves any previous file untouched."""
-    if content not in CONTENTS:
-        raise InputError("content", content, f"one of {', '.join(CONTENTS)}")
+    """Write the file `path` atomically: `write(tmp)` fills a temporary file (ending in `suffix`)
+    beside it, which is flushed to the disk and renamed over `path`. (The absolute path, its size
+    in bytes.) A directory as `path`, or one that does not exist or cannot be written, is refused
+    by name before anything is written; a failure while writing removes the temporary file and
+    leaves any previous file untouched."""
     target = resolve(path)
     if target.is_dir():
         raise InputError("path", str(target), "a file path, not a directory")
@@ -92,6 +91,30 @@ def write_map(
         raise InputError(
             "path", str(target), f"a path in a directory this node may write ({folder})"
         )
+    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=folder)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        write(tmp)
+        with tmp.open("rb") as written:
+            os.fsync(written.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return target, target.stat().st_size
+
+
+def write_map(
+    path: str | os.PathLike, content: str, header: dict, arrays: dict
+) -> tuple[Path, int]:
+    """Write a map file of `content` atomically (`write_file`): (the absolute path, its size in
+    bytes). `header` is the content's part of the header (JSON-serialisable); `arrays` maps names
+    to NumPy arrays."""
+    if content not in CONTENTS:
+        raise InputError("content", content, f"one of {', '.join(CONTENTS)}")
+    if HEADER in arrays:
+        raise InputError("arrays", HEADER, "names other than 'header'")
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -99,20 +122,13 @@ def write_map(
         "saved_at": datetime.now(UTC).isoformat(timespec="seconds"),
         **header,
     }
-    if HEADER in arrays:
-        raise InputError("arrays", HEADER, "names other than 'header'")
     encoded = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as out:
+
+    def write(tmp: Path) -> None:
+        with tmp.open("wb") as out:
             np.savez(out, **{HEADER: encoded}, **{k: np.asarray(v) for k, v in arrays.items()})
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return target, target.stat().st_size
+
+    return write_file(path, write)
 
 
 def read_map(path: str | os.PathLike, content: str) -> MapFile:

@@ -10,8 +10,6 @@ entry.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -74,22 +72,14 @@ def restore(fusion: TsdfFusion, loaded: mapfile.MapFile) -> list[int]:
 
 
 def export_mesh(mesh, path) -> tuple[Path, int]:
-    """Write an open3d TriangleMesh as binary PLY (vertex colours) to `path` atomically."""
+    """Write an open3d TriangleMesh as binary PLY (vertex colours) to `path` atomically
+    (`mapfile.write_file`)."""
     o3d = import_open3d()
-    target = mapfile.resolve(path)
-    if target.suffix.lower() != ".ply":
-        raise InputError("path", str(target), "a file name ending in .ply")
-    if not target.parent.is_dir():
-        raise InputError("path", str(target), f"a path in an existing directory ({target.parent})")
-    if not os.access(target.parent, os.W_OK):
-        raise InputError("path", str(target), "a path in a directory this node may write")
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".ply", dir=target.parent)
-    os.close(fd)
-    try:
-        if not o3d.io.write_triangle_mesh(tmp, mesh, write_ascii=False, compressed=False):
+    if mapfile.resolve(path).suffix.lower() != ".ply":
+        raise InputError("path", str(mapfile.resolve(path)), "a file name ending in .ply")
+
+    def write(tmp: Path) -> None:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False):
             raise OSError(f"open3d could not write {tmp}")
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return target, target.stat().st_size
+
+    return mapfile.write_file(path, write, suffix=".ply")
