@@ -66,7 +66,8 @@ def bench_closed_loop(
     load average over the run. `steps`: `CLOSED_LOOP_STEPS` of the scene's level by default."""
     from area3d_perception.sensor_model import rgbd_confidence
     from area3d_planner.config import PlannerConfig
-    from area3d_planner.server import CACHE_WAIT_S, NextBestViewServer, PlanRequest
+    from area3d_planner.scheduler import PlannerScheduler
+    from area3d_planner.server import CACHE_WAIT_S, PlanRequest
     from sim_bridge.render import RgbdRenderer
     from sim_bridge.scenes import load_scene
 
@@ -78,7 +79,7 @@ def bench_closed_loop(
         budget=10**6,
         pipeline_masks=pipelined,
     )
-    server = NextBestViewServer(config, background=True)
+    server = PlannerScheduler(config, background=True)
     renderer = RgbdRenderer(scene)
     latencies, incremental, full, updated, changed = [], [], [], [], []
     try:
@@ -102,11 +103,11 @@ def bench_closed_loop(
                 latencies.append(time.perf_counter() - t0)
                 if not server.wait_cache(stamp, CACHE_WAIT_S):  # the camera moves meanwhile
                     raise RuntimeError(f"masks not rebuilt within {CACHE_WAIT_S} s")
-                rebuild = dict(server.last_rebuild)
+                rebuild = dict(server.core.last_rebuild)
                 incremental.append(rebuild["seconds"])
                 updated.append(rebuild.get("updated", 0) / max(1, rebuild["positions"]))
                 changed.append(rebuild.get("positions_changed", 0) / max(1, rebuild["positions"]))
-                full.append(_full_rebuild_s(server.context, server.grid.occupancy()))
+                full.append(_full_rebuild_s(server.core.context, server.core.grid.occupancy()))
             load = os.getloadavg()[0]
     finally:
         renderer.close()
@@ -114,7 +115,7 @@ def bench_closed_loop(
     lat = np.asarray(latencies)
     return {
         "level": scene.level,
-        "voxels": server.grid.spec.num_voxels,
+        "voxels": server.core.grid.spec.num_voxels,
         "steps": len(latencies),
         "burners": burners,
         "pipelined": pipelined,

@@ -144,7 +144,7 @@ def bench_visibility_accuracy(scene_name: str) -> dict:
 
     scene = load_scene(scene_name)
     config = PlannerConfig(**{**planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
-    server = NextBestViewServer(config, background=False)
+    server = NextBestViewServer(config)
     renderer = RgbdRenderer(scene)
     try:
         for stamp, T in enumerate(scene.initial_views, start=1):
@@ -163,7 +163,6 @@ def bench_visibility_accuracy(scene_name: str) -> dict:
         cache = context._build_cache("roi_not_free", occupancy, *candidates)
         scores[res] = cache.score(field)
     context.visibility = replace(context.visibility, face_res=face_res)
-    server.close()
     reference = scores[4 * face_res]
     useful = reference > 0
     error = np.abs(scores[face_res][useful] - reference[useful]) / reference[useful]
@@ -179,14 +178,15 @@ def bench_visibility_accuracy(scene_name: str) -> dict:
 
 
 def bench_server(requests: int = 50) -> dict:
-    """In-process `NextBestViewServer.plan` for one closed-loop view with a warm cache (object
+    """In-process `PlannerScheduler.plan` for one closed-loop view with a warm cache (object
     level, the scene's initial views fused), and the background refresh after one more frame."""
     from area3d_planner.config import PlannerConfig
-    from area3d_planner.server import NextBestViewServer, PlanRequest
+    from area3d_planner.scheduler import PlannerScheduler
+    from area3d_planner.server import PlanRequest
 
     scene, frames = object_frames()
     config = PlannerConfig(**{**planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
-    server = NextBestViewServer(config, background=True)
+    server = PlannerScheduler(config, background=True)
     try:
         t0 = time.perf_counter()
         for i, (depth, conf, K, T) in enumerate(frames):
@@ -206,12 +206,12 @@ def bench_server(requests: int = 50) -> dict:
         t0 = time.perf_counter()
         server.wait_cache(len(frames) + 1)
         t_refresh = time.perf_counter() - t0
-        cache = server.context.cache()
+        cache = server.core.context.cache()
     finally:
         server.close()
     lat = np.asarray(latencies)
     return {
-        "voxels": server.grid.spec.num_voxels,
+        "voxels": server.core.grid.spec.num_voxels,
         "seeds": cache.num_seeds,
         "mask_entries": int(cache.voxel_ids.size),
         "fuse_initial_s": t_fuse,

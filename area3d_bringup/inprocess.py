@@ -59,7 +59,6 @@ class _Graph:
 
     def close(self) -> None:
         self.camera.close()
-        self.server.close()
 
 
 def run_inprocess_episode(

@@ -61,7 +61,9 @@ class PublishGate:
     A publish (or a timer reset) from a thread other than the executor's, on a node being destroyed,
     can crash the process in the middleware. Such a thread publishes inside `with gate as open_:`
     and only while `open_` is true; `close()` (from `run_node`'s `on_stop`) waits for a publish in
-    progress to end and refuses every later one."""
+    progress to end and refuses every later one. A publish that raises because rclpy's signal
+    handler shut the context down after the check is the node stopping: the gate swallows it,
+    closes, and the code after the `with` block runs (a worker ends quietly there)."""
 
     def __init__(self, context_ok: Callable[[], bool] | None = None) -> None:
         self._lock = threading.Lock()
@@ -74,8 +76,15 @@ class PublishGate:
         # before `run_node` gets to `on_stop`, and a publish in between raises in the worker
         return self._open and (self._context_ok is None or self._context_ok())
 
-    def __exit__(self, *exc: object) -> None:
-        self._lock.release()
+    def __exit__(self, exc_type: type | None, *exc: object) -> bool:
+        try:
+            stopped = self._context_ok is not None and not self._context_ok()
+            if exc_type is not None and issubclass(exc_type, Exception) and stopped:
+                self._open = False
+                return True
+            return False
+        finally:
+            self._lock.release()
 
     def close(self) -> None:
         with self._lock:

@@ -1,5 +1,14 @@
-"""Whole frames processed one at a time on a thread of the node's own, off its executor: the
-scheduling of the nodes (the cores they call are synchronous and own no thread).
+"""The scheduling of the nodes: every thread, queue, priority and wait around the cores they
+call, which are synchronous and own no thread. No ROS here: a node passes what to run.
+
+- `FrameWorker`: whole frames processed one at a time on a thread of the node's own, off its
+  executor (the planner's fusion, perception's depth estimate, the reconstruction's integration).
+- `AnalysisWorker`: long analyses (a VLM query: seconds to minutes) one at a time, requests that
+  arrive meanwhile coalesced into one more (the semantics node).
+- `StateWaits` and `BackgroundSteps`: callers that wait on a core's state, and a core's upkeep
+  (the planner's mask rebuilds) stepped on a thread of its own, at a lower CPU priority if asked.
+
+FrameWorker:
 
 A frame's work (the planner's fusion, perception's depth estimate) takes tens of milliseconds or
 more; run in a callback it kept the executor busy while the camera's next messages were ready,
@@ -17,6 +26,7 @@ No ROS here: the node passes what to do with a processed frame.
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 import time
@@ -171,3 +181,194 @@ class FrameWorker:
             if self.stopping:  # a stopping node's publish may fail: the worker ends quietly
                 return False
             raise  # the thread ends: the node reports its worker dead (`alive`)
+
+
+class AnalysisWorker:
+    """Runs `analyse(stamps, reason)` on a worker thread, one analysis at a time.
+
+    A request that arrives while an analysis runs is not lost: it runs next, in the same worker,
+    on the frames `requery()` names at that moment (every frame complete by then); requests that
+    arrive during one analysis coalesce into that one next run.
+    """
+
+    def __init__(
+        self,
+        analyse: Callable[[list[int], str], None],
+        requery: Callable[[], list[int]],
+        name: str,
+    ) -> None:
+        self._analyse = analyse
+        self._requery = requery
+        self._name = name
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._pending = False
+        self.runs = 0  # analyses finished
+        self.failures = 0  # analyses that raised (each ended its thread)
+        self.healthy = True  # False from an analysis that raised until one finishes
+
+    @property
+    def busy(self) -> bool:
+        """An analysis is running (or about to)."""
+        with self._lock:
+            return self._thread is not None
+
+    @property
+    def pending(self) -> bool:
+        """A request waits for the running analysis to end."""
+        with self._lock:
+            return self._pending
+
+    def submit(self, stamps: list[int], reason: str) -> bool:
+        """Analyse `stamps` now (True), or, while an analysis runs, the frames of `requery()`
+        right after it (False)."""
+        with self._lock:
+            if self._thread is not None:
+                self._pending = True
+                return False
+            self._thread = threading.Thread(
+                target=self._run, args=(list(stamps), reason), name=self._name, daemon=True
+            )
+            self._thread.start()
+            return True
+
+    def join(self, timeout_s: float | None = None) -> bool:
+        """Wait until no analysis runs or is pending; True if none does."""
+        with self._lock:
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout_s)
+        return not self.busy
+
+    def _run(self, stamps: list[int], reason: str) -> None:
+        while True:
+            finished = False
+            try:
+                self._analyse(stamps, reason)
+                finished = True
+            finally:  # an analysis that raised ends the worker; the next submit starts a new one
+                with self._lock:
+                    self.runs += 1
+                    self.failures += not finished
+                    self.healthy = finished
+                    again = finished and self._pending
+                    self._pending = False
+                    if not again:
+                        self._thread = None
+            if not again:
+                return
+            stamps, reason = self._requery(), "request"
+
+
+class StateWaits:
+    """Callers that wait for a core's state to reach something (`wait_for`), woken by whoever
+    changes it (`changed`). `close()` ends every wait at once (a stopping node)."""
+
+    def __init__(self) -> None:
+        self._changed = threading.Condition()
+        self.waiting = 0  # callers in `wait_for` now
+        self.closed = False
+
+    def changed(self) -> None:
+        with self._changed:
+            self._changed.notify_all()
+
+    def wait_for(
+        self, predicate: Callable[[], bool], timeout_s: float | None, closed: bool = False
+    ) -> bool:
+        """Block until `predicate()` holds, or `timeout_s` passes, or `close()`; the predicate's
+        last value, or `closed` once closed."""
+        with self._changed:
+            self.waiting += 1
+            self._changed.notify_all()  # a background step may be holding back: one waits
+            try:
+                held = self._changed.wait_for(lambda: self.closed or predicate(), timeout_s)
+            finally:
+                self.waiting -= 1
+            if self.closed:
+                return closed or bool(predicate())
+            return bool(held)
+
+    def close(self) -> None:
+        with self._changed:
+            self.closed = True
+            self._changed.notify_all()
+
+
+class BackgroundSteps(StateWaits):
+    """A core's upkeep run one step at a time on a thread named `name`, and the waits on the state
+    it changes.
+
+    `due()` says what is to do: "now" (a step at once), "due" (a step once `interval_s` has
+    passed since the last one started, or at once while a caller waits in `wait_for`) or None
+    (nothing: the thread sleeps until `changed()`). `step()` runs one; `after()` is called after
+    each (what it raises is ignored: a listener must not stop the upkeep); `warm_up()` runs once
+    first, on the thread. With `nice` > 0 the thread runs that much nicer than the process (Linux:
+    a thread's own nice value, which the threads it starts inherit). An exception a step raises
+    ends the thread (`alive` turns False) unless `close()` was called meanwhile."""
+
+    def __init__(
+        self,
+        due: Callable[[], str | None],
+        step: Callable[[], Any],
+        name: str,
+        interval_s: float = 0.0,
+        nice: int = 0,
+        warm_up: Callable[[], Any] | None = None,
+        after: Callable[[], Any] | None = None,
+    ) -> None:
+        super().__init__()
+        self._due, self._step, self._warm_up, self._after = due, step, warm_up, after
+        self.interval_s = float(interval_s)
+        self.nice = int(nice)
+        self.tid: int | None = None  # the thread's id (Linux), once it runs
+        self._last = -np.inf  # time.monotonic() at the start of the last step
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    @property
+    def alive(self) -> bool:
+        """The thread runs, or was stopped by `close` (False: it died)."""
+        return self._thread.is_alive() or self.closed
+
+    def close(self, timeout_s: float | None = None) -> None:
+        """Stop: a step in flight finishes first, or is left to die with the process after
+        `timeout_s` (the thread is a daemon)."""
+        super().close()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        try:
+            self._steps()
+        except Exception:
+            if not self.closed:
+                raise
+
+    def _steps(self) -> None:
+        self.tid = threading.get_native_id()
+        if self.nice > 0:
+            base = os.getpriority(os.PRIO_PROCESS, self.tid)
+            os.setpriority(os.PRIO_PROCESS, self.tid, min(19, base + self.nice))
+        if self._warm_up is not None:
+            self._warm_up()
+        while True:
+            with self._changed:
+                while not self.closed:
+                    due = self._due()
+                    if due == "now":
+                        break
+                    wait_s = self._last + self.interval_s - time.monotonic()
+                    if due == "due" and (wait_s <= 0 or self.waiting > 0):
+                        break
+                    self._changed.wait(wait_s if due == "due" else None)
+                if self.closed:
+                    return
+                self._last = time.monotonic()
+            self._step()
+            self.changed()
+            if self._after is not None:
+                try:
+                    self._after()
+                except Exception:  # noqa: BLE001 - a failing listener must not stop the upkeep
+                    pass

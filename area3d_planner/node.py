@@ -60,6 +60,7 @@ from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.config import PlannerConfig
 from area3d_planner.hard_regions import cloud_hard_regions
 from area3d_planner.markers import hard_region_markers, view_markers
+from area3d_planner.scheduler import PlannerScheduler
 from area3d_planner.server import NextBestViewServer, Plan, PlanRequest
 
 # Service requests and frame callbacks run on separate threads: a request waits for the frame it
@@ -142,7 +143,8 @@ PARAMS = (
 
 
 class PlannerNode(Node):
-    """Wires parameters, subscriptions, publishers and the service around `NextBestViewServer`."""
+    """Wires parameters, subscriptions, publishers and the services around the planner's core
+    (`server.NextBestViewServer`) and its scheduling (`scheduler.PlannerScheduler`)."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("planner", **kwargs)
@@ -153,7 +155,7 @@ class PlannerNode(Node):
         self.gate = PublishGate(self.context.ok)
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
-        self._new_server = lambda: NextBestViewServer(
+        self._new_map = lambda: PlannerScheduler(
             config,
             background=p["eager_cache"],
             on_refresh=self._on_refresh,
@@ -161,7 +163,7 @@ class PlannerNode(Node):
             mask_lag_s=p["mask_lag_s"],
             rebuild_nice=p["rebuild_nice"],
         )
-        self.server = self._new_server()
+        self.scheduler = self._new_map()
         self.resets = 0  # area3d/planner/reset calls served
         # view requests answered (the status after one carries its `last_request_s`)
         self.requests_answered = 0
@@ -236,18 +238,18 @@ class PlannerNode(Node):
             self.create_service(service.srv_type, service.name, handler, callback_group=group)
         self.get_logger().info(
             f"planner ready: policy={config.policy} mode={config.mode} "
-            f"voxels={self.server.grid.spec.num_voxels} world_frame={self.world_frame} "
+            f"voxels={self.scheduler.core.grid.spec.num_voxels} world_frame={self.world_frame} "
             f"pose_source={self.inputs.pose_source}"
         )
 
     def destroy_node(self) -> None:
         self.fusion.stop(CLOSE_WAIT_S)
-        self.server.close(CLOSE_WAIT_S)
+        self.scheduler.close(CLOSE_WAIT_S)
         super().destroy_node()
 
     def _status(self) -> dict:
         return {
-            **self.server.status(),
+            **self.scheduler.core.status(),
             "resets": self.resets,
             "requests_answered": self.requests_answered,
             **self.inputs.status(self.min_pairing_rate),
@@ -257,7 +259,7 @@ class PlannerNode(Node):
             # a worker thread that ended before the node stopped (diagnostics: ERROR)
             "workers": {
                 "fusion": self.fusion.alive or self.fusion.stopping,
-                **({"rebuild": self.server.worker_alive} if self.server.background else {}),
+                **({"rebuild": self.scheduler.worker_alive} if self.scheduler.background else {}),
             },
             **{
                 key: None if value is None else round(value, 4)
@@ -276,10 +278,10 @@ class PlannerNode(Node):
     def _on_refresh(self) -> None:
         with self.gate as running:  # called by the rebuild worker too
             if running:
-                if self.server.rebuild_failures > self.rebuild_failures_logged:
-                    self.rebuild_failures_logged = self.server.rebuild_failures
+                if self.scheduler.core.rebuild_failures > self.rebuild_failures_logged:
+                    self.rebuild_failures_logged = self.scheduler.core.rebuild_failures
                     self.get_logger().error(
-                        f"mask rebuild failed ({self.server.last_rebuild_error}); the next "
+                        f"mask rebuild failed ({self.scheduler.core.last_rebuild_error}); the next "
                         "frame or request rebuilds them"
                     )
                 self.status.publish()
@@ -290,7 +292,7 @@ class PlannerNode(Node):
         shutdown."""
         self.gate.close()
         self.fusion.stop(0.0)
-        self.server.close(0.0)
+        self.scheduler.close(0.0)
 
     def _on_reset(self, request, response):
         """area3d/planner/reset (std_srvs/Trigger): a new, empty map with the same parameters;
@@ -299,13 +301,13 @@ class PlannerNode(Node):
         info and transforms stay: they describe the robot, not the episode."""
         try:
             with self.fusion.cleared() as waiting_fusion:
-                old, self.server = self.server, self._new_server()
+                old, self.scheduler = self.scheduler, self._new_map()
                 parts, held = self.inputs.clear()  # the next frame starts the new map
             old.close(0.0)  # a request still waiting on the old map gets its answer from it
-            fused = old.status().get("frames_fused", 0)
+            fused = old.core.status().get("frames_fused", 0)
             self.resets += 1
             self._publish_state(self._now_ns())  # the empty grid replaces the latched one
-            self._publish_views([], self.server)  # and no planned view is drawn
+            self._publish_views([], self.scheduler.core)  # and no planned view is drawn
         except Exception as exc:  # the node keeps serving; the caller learns why
             response.success = False
             response.message = f"reset failed: {type(exc).__name__}: {exc}"
@@ -325,7 +327,7 @@ class PlannerNode(Node):
         go on being fused meanwhile (the map is copied under its lock first)."""
         service = topics.PLANNER_SAVE_MAP.name
         try:
-            written, size, header = map_io.save(self.server, request.path)
+            written, size, header = map_io.save(self.scheduler.core, request.path)
         except (InputError, OSError) as exc:
             return map_files.refused(response, service, exc, self.get_logger())
         return map_files.done(
@@ -338,23 +340,24 @@ class PlannerNode(Node):
         does not fit is refused before anything changes. Frames and parts waiting are dropped,
         as by a reset: they belong to the map being replaced."""
         service = topics.PLANNER_LOAD_MAP.name
-        server = self._new_server()
+        scheduler = self._new_map()
         try:
-            loaded = map_io.read(server, request.path)
+            loaded = map_io.read(scheduler.core, request.path)
             with self.fusion.cleared():
-                map_io.restore(server, loaded)
-                old, self.server = self.server, server
+                map_io.restore(scheduler.core, loaded)
+                scheduler.loaded()
+                old, self.scheduler = self.scheduler, scheduler
                 self.inputs.clear()
         except (InputError, OSError) as exc:
-            server.close(0.0)
+            scheduler.close(0.0)
             return map_files.refused(response, service, exc, self.get_logger())
         old.close(0.0)
-        self._publish_state(self.server.last_fused_stamp or self._now_ns())
+        self._publish_state(self.scheduler.core.last_fused_stamp or self._now_ns())
         h = loaded.header
         return map_files.done(
             response, service, loaded.path, loaded.size_bytes, self.get_logger(),
             f"loaded {h['frames']} fused frames and {h['committed']} views handed out; "
-            f"{self.server.remaining_budget()} views remain",
+            f"{self.scheduler.core.remaining_budget()} views remain",
         )  # fmt: skip
 
     def _decode(self, key: str, msg) -> np.ndarray:
@@ -375,7 +378,9 @@ class PlannerNode(Node):
 
     def _fuse_frame(self, stamp: int, frame: dict, K: np.ndarray) -> bool:
         """The fusion worker's step: fuse one frame into the map (False: fused already)."""
-        return self.server.add_frame(stamp, frame["depth"], frame["confidence"], K, frame["pose"])
+        return self.scheduler.add_frame(
+            stamp, frame["depth"], frame["confidence"], K, frame["pose"]
+        )
 
     def _on_fused(self, stamp: int, fused: bool, publish_grid: bool) -> bool:
         """After the fusion worker's step (its thread): the grid and status, or the status only
@@ -392,6 +397,7 @@ class PlannerNode(Node):
             else:
                 self.status.publish()
             return True
+        return False  # the context was shut down during the publish (the gate swallowed it)
 
     def _on_fusion_failed(self, stamp: int, exc: BaseException) -> None:
         """A frame whose fusion raised is dropped; the node keeps fusing the frames that follow."""
@@ -410,12 +416,12 @@ class PlannerNode(Node):
         stamp = self._stamp(msg)
         check_frame_id(msg)
         u_sem = check_unit_range(decode_image(msg, FLOAT_ENCODINGS), "semantic uncertainty")
-        if self.server.add_semantic(stamp, u_sem):
+        if self.scheduler.add_semantic(stamp, u_sem):
             self._publish_state(stamp)
 
     def _publish_state(self, stamp_ns: int) -> None:
         """The grid, its hard regions (boxes too) and the status, stamped with the last frame."""
-        grid = self.server.grid
+        grid = self.scheduler.core.grid
         cloud = grid_to_cloud(grid)
         self.grid_pub.publish(codecs.pointcloud_to_msg(cloud, stamp_ns, self.world_frame))
         regions = cloud_hard_regions(cloud, grid)
@@ -489,15 +495,17 @@ class PlannerNode(Node):
         """Wait for the request's frame, plan, publish the views (the Path returned) and their
         markers."""
         log = self.get_logger()
-        server = self.server  # the map of the whole request, even if a reset replaces it meanwhile
+        # the map of the whole request, even if a reset replaces it meanwhile
+        scheduler = self.scheduler
+        server = scheduler.core
         sync_timeout_s = self.get_parameter("sync_timeout_s").value
         t0 = time.perf_counter()
         stale = ""
-        if not server.wait_fused(request.stamp_ns, sync_timeout_s, request.start, self.near):
+        if not scheduler.wait_fused(request.stamp_ns, sync_timeout_s, request.start, self.near):
             stale = server.stale_note(request.stamp_ns, sync_timeout_s)
             log.warning(f"{service}: {stale}")
         t1 = time.perf_counter()
-        plan = server.plan_views(request)
+        plan = scheduler.plan_views(request)
         if not plan.reason and stale:
             plan = plan._replace(note="; ".join(n for n in (stale, plan.note) if n))
         # where the last request's time went, in the status (a mission manager's latency budget)

@@ -1,13 +1,15 @@
-"""The planner's state and the next-best-view service logic, without transport.
+"""The planner's state and the next-best-view service logic, without transport or threads.
 
 `NextBestViewServer` fuses frames (paired by stamp upstream), keeps a bounded per-stamp cache so
-semantic maps arriving later can be back-projected with their own depth and pose, and answers
-plan requests with `(poses, reason)`: an empty pose list always comes with the reason.
+semantic maps arriving later can be back-projected with their own depth and pose, rebuilds seeds
+and visibility masks, and answers plan requests with `(poses, reason)`: an empty pose list always
+comes with the reason. Everything runs when it is called, on the caller's thread; a lock keeps
+the map consistent when the node calls it from several (fusion, requests, the rebuild). Waiting
+for a frame or for masks, and rebuilding in the background: `area3d_planner/scheduler.py`.
 """
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections import OrderedDict
@@ -63,6 +65,21 @@ def _alike(T: np.ndarray, U: np.ndarray, radius: float, angle_deg: float) -> boo
 
 
 @dataclass
+class PlanTicket:
+    """A request checked and counted (`begin_plan`), before its masks are waited for: what it
+    wants, and the map versions whose masks it plans from."""
+
+    request: PlanRequest
+    want: int
+    remaining: int
+    closed_loop: bool
+    target: int  # the map version that holds the request's frame
+    pipelines: bool  # planned from the masks of the previous request's frame (`pipeline_masks`)
+    base: int  # that frame's map version when those masks are to be waited for (0: none)
+    started: float  # time.perf_counter() when the request was checked
+
+
+@dataclass
 class CachedFrame:
     """A fused frame's depth, intrinsics and pose, kept for its semantic map."""
 
@@ -73,28 +90,19 @@ class CachedFrame:
 
 @dataclass
 class NextBestViewServer:
-    """Planner state. With `background=True` a worker thread rebuilds seeds, visibility masks and
-    the utility field after every change of the map (bursts coalesce into one more rebuild at the
-    end), and a request waits for the rebuild that covers its stamp, then plans from the cached
-    masks only. Without it, they are rebuilt at the first request after the map changed.
-    `on_refresh` (optional) is called from the worker after each rebuild. Call `close()` to stop it.
-    With `refresh_interval_s` > 0 the worker starts a rebuild at most that often while no request
-    waits for one: a camera streaming at 10 Hz would otherwise keep a core busy rebuilding masks
-    that no request reads; a waiting request still starts its rebuild at once.
+    """Planner state. With `background=True` seeds, visibility masks and the utility field are
+    rebuilt by `rebuild()` calls after the map changed (a scheduler's thread: bursts of frames
+    coalesce into one rebuild), and a request plans from the masks in place: its caller waits for
+    the ones that cover its stamp first (`masks_target`, `masks_cover`). Without it they are
+    rebuilt at the first request after the map changed.
     """
 
     config: PlannerConfig
     background: bool = False
-    on_refresh: object | None = None  # Callable[[], None]
-    refresh_interval_s: float = 0.0
     # A request accepts masks built from a map whose newest frame was captured at most this long
     # before the request's frame (0: it waits for masks that cover its frame). The uncertainty
     # field is always the current one; only which voxels each candidate sees may lag.
     mask_lag_s: float = 0.0
-    # The background rebuild runs this much nicer than the process (its threads yield the CPU to
-    # fusion and requests). For a streaming camera with `mask_lag_s` > 0, where no request waits
-    # for a rebuild, fusing every frame on time comes first; with 0, a request waits on it.
-    rebuild_nice: int = 0
     grid: FusedGrid = field(init=False)
     committed: int = field(init=False, default=0)
     # the last closed-loop plan's views, until a frame comes: (request stamp, frames fused, count)
@@ -173,13 +181,10 @@ class NextBestViewServer:
         self.context.greedy.validate()
         self.policy = make_policy(c.policy)
         self._lock = threading.RLock()  # the map, the caches and the bookkeeping
-        self._plan_lock = threading.Lock()  # plans one at a time (taken before `_lock`)
-        self._fused = threading.Condition(self._lock)
         self._frames: OrderedDict[int, CachedFrame] = OrderedDict()
         self._pending_semantic: OrderedDict[int, np.ndarray] = OrderedDict()
         self._semantic_of: dict[int, tuple] = {}  # stamp -> its semantic contribution
         self._fused_stamps: set[int] = set()
-        self._refreshed = threading.Condition(self._lock)
         self._map_version = 0  # occupancy changes (fused frames)
         self._stamp_version: dict[int, int] = {}  # map version that holds each stamp
         self._cache_version = 0  # map version of the installed seeds and masks
@@ -190,31 +195,12 @@ class NextBestViewServer:
         self._previous_masks: tuple | None = None  # (map version, stamp, (candidates, caches))
         self._pipeline_map: tuple | None = None  # (map version, stamp, occupancy) to build first
         self._base_map: tuple | None = None  # (map version, stamp, occupancy) at the base
-        self._building_version = 0  # the map version the worker is building (0: none)
-        self._cache_waiters = 0  # requests waiting in wait_cache
-        self._last_refresh = -np.inf  # time.monotonic() at the start of the last rebuild
-        self._closed = False
+        self._building_version = 0  # the map version `rebuild` is building (0: none)
         self.refresh_count = 0  # background rebuilds run so far
         self.rebuild_failures = 0  # background rebuilds that raised (the request path rebuilds)
         self.last_rebuild_error = ""
         # the last background rebuild: its seconds and what it did (`VisibilityCache.report`)
         self.last_rebuild: dict = {}
-        self.worker_tid: int | None = None  # the rebuild worker's thread id (Linux)
-        self._worker: threading.Thread | None = None
-        if self.background:
-            self._worker = threading.Thread(
-                target=self._refresh_loop, name="planner-cache-refresh", daemon=True
-            )
-            self._worker.start()
-
-    def close(self, timeout_s: float | None = None) -> None:
-        """Stop the background worker: a rebuild in flight finishes first, or is left to die with
-        the process after `timeout_s` (the worker is a daemon thread)."""
-        with self._lock:
-            self._closed = True
-            self._refreshed.notify_all()
-        if self._worker is not None and self._worker is not threading.current_thread():
-            self._worker.join(timeout_s)
 
     # ------------------------------------------------------------------ fusion
     def add_frame(
@@ -253,12 +239,11 @@ class NextBestViewServer:
                     self._cache_version < self._map_version
                     and self._building_version != self._map_version
                 ):
-                    # its masks: built now without the worker; with it, the map is kept for the
-                    # worker, which may not have started on it (it coalesces frames) before this
-                    # frame changes it
+                    # its masks: built now without the background rebuild; with it, the map is
+                    # kept for `rebuild`, which may not have started on it (it coalesces frames)
+                    # before this frame changes it
                     if self.background:
                         self._pipeline_map = self._base_map
-                        self._refreshed.notify_all()
                     else:
                         self._update_masks()
             self._adopt_camera(K, np.shape(depth))
@@ -283,8 +268,6 @@ class NextBestViewServer:
             pending = self._pending_semantic.pop(int(stamp_ns), None)
             if pending is not None:
                 self._fuse_semantic(int(stamp_ns), pending, self._frames[int(stamp_ns)])
-            self._fused.notify_all()
-            self._refreshed.notify_all()
             return True
 
     def camera(self) -> tuple[float, int, int]:
@@ -347,14 +330,6 @@ class NextBestViewServer:
             return True
         return pose is not None and any(near(pose, T) for T in self.context.camera_poses[::-1])
 
-    def wait_fused(
-        self, stamp_ns: int, timeout_s: float, pose: np.ndarray | None = None, near=None
-    ) -> bool:
-        """Block until the map covers the frame `stamp_ns` (`covers`), or timeout; True if it
-        does."""
-        with self._fused:
-            return self._fused.wait_for(lambda: self.covers(stamp_ns, pose, near), timeout_s)
-
     def stale_note(self, stamp_ns: int, waited_s: float) -> str:
         """What an answer planned without the request's frame says: the newest frame it planned
         from and how much older it is."""
@@ -370,15 +345,14 @@ class NextBestViewServer:
     def rebuild_after_load(self) -> None:
         """Masks for a map `map_io.restore` put in place (lock held): first those of the map at
         the last closed-loop request's frame, which the next request plans from
-        (`pipeline_masks`), then the current map's; by the background worker, or the first now
-        without it (the current map's then at the first request, as always)."""
+        (`pipeline_masks`), then the current map's; by `rebuild` in the background, or the first
+        now without it (the current map's then at the first request, as always)."""
         self.context.invalidate()
         base = self._base_map
         if base is None or base[0] != self._pipeline_base or not self._pipelines():
             base = None
         if self.background:
             self._pipeline_map = base
-            self._refreshed.notify_all()
         elif base is not None:
             kinds = () if self.policy.relevant is None else (self.policy.relevant,)
             self._install(self.context.build(base[2], kinds))
@@ -394,105 +368,83 @@ class NextBestViewServer:
                 return self._cache_version == self._map_version
             return self.context._candidates is not None
 
-    def wait_cache(
-        self, stamp_ns: int = 0, timeout_s: float | None = None, version: int = 0
-    ) -> bool:
-        """Background mode: block until the masks cover the frame `stamp_ns` (0 or a stamp not
-        fused: every fused frame), or timeout; True if they do. Always True without background.
-        With `mask_lag_s` > 0, masks built from a map whose newest frame is at most that much
-        older than `stamp_ns` (any, for 0) do without waiting; with `version` > 0, masks of that
-        map version or a newer one (`pipeline_masks`)."""
-        if not self.background:
-            return True
-        with self._refreshed:
+    def masks_target(self, stamp_ns: int = 0, version: int = 0) -> int | None:
+        """The map version whose masks (or a newer one's) cover the frame `stamp_ns` (0 or a stamp
+        not fused: every fused frame), or with `version` > 0 that version (`pipeline_masks`); None
+        when the masks in place will do: with `mask_lag_s` > 0, built from a map whose newest
+        frame is at most that much older than `stamp_ns`."""
+        with self._lock:
             lag_ns = int(self.mask_lag_s * 1e9)
             if lag_ns > 0 and self._cache_version > 0 and stamp_ns - self._cache_stamp <= lag_ns:
-                return True  # recent enough (`mask_lag_s`)
-            target = version or self._stamp_version.get(int(stamp_ns), self._map_version)
-            self._cache_waiters += 1
-            self._refreshed.notify_all()  # the worker may be holding back: a request waits
-            try:
-                return self._refreshed.wait_for(
-                    lambda: self._cache_version >= target or self._closed, timeout_s
-                )
-            finally:
-                self._cache_waiters -= 1
+                return None  # recent enough (`mask_lag_s`)
+            return version or self._stamp_version.get(int(stamp_ns), self._map_version)
 
-    def _refresh_loop(self) -> None:
-        """The background worker; an exception it did not expect ends it (`worker_alive` turns
-        false: ERROR on /diagnostics) unless the server was closed meanwhile (the process is
-        stopping: nothing to report)."""
-        try:
-            self._refresh_forever()
-        except Exception:
-            if not self._closed:
-                raise
+    def masks_cover(self, version: int) -> bool:
+        """The masks in place were built from map version `version` or a newer one."""
+        return self._cache_version >= version
 
-    def _refresh_forever(self) -> None:
-        self.worker_tid = threading.get_native_id()
-        if self.rebuild_nice > 0:
-            # Linux: the nice value is a thread's own, and the build's threads inherit it
-            base = os.getpriority(os.PRIO_PROCESS, self.worker_tid)
-            os.setpriority(os.PRIO_PROCESS, self.worker_tid, min(19, base + self.rebuild_nice))
+    def rebuild_due(self) -> str | None:
+        """What `rebuild` would do: "now" (the map at the last closed-loop request's frame waits:
+        the next request plans from its masks), "due" (the masks lag the map) or None."""
+        with self._lock:
+            kept = self._pipeline_map
+            if kept is not None and kept[0] <= self._cache_version:
+                kept = self._pipeline_map = None  # built already
+            if kept is not None:
+                return "now"
+            return "due" if self._map_version > self._cache_version else None
+
+    def warm_up(self) -> None:
+        """Load the compiled selection kernels (0.1-0.3 s), so that no request pays for it."""
+        if self.policy.relevant is not None:
+            warm_up_kernels()
+
+    def rebuild(self) -> bool:
+        """Rebuild seeds, visibility masks and, for the current map, the utility field: of the map
+        at the last closed-loop request's frame when one is kept (`pipeline_masks`), else of the
+        current map when the masks lag it; False when there was nothing to rebuild. The build
+        runs outside the map's lock on a snapshot of the occupancy, so frames are fused meanwhile.
+        A build that raises is counted (`rebuild_failures`) and the masks are left to the next
+        request to rebuild."""
         kinds = () if self.policy.relevant is None else (self.policy.relevant,)
-        if kinds:
-            warm_up_kernels()  # loading the compiled kernels takes 0.1-0.3 s: not at a request
-        while True:
-            with self._refreshed:
-                while not self._closed:
-                    kept = self._pipeline_map
-                    if kept is not None and kept[0] <= self._cache_version:
-                        kept = self._pipeline_map = None  # built already
-                    if kept is not None:
-                        break  # the next request plans from it: at once
-                    stale = self._map_version > self._cache_version
-                    wait_s = self._last_refresh + self.refresh_interval_s - time.monotonic()
-                    if stale and (wait_s <= 0 or self._cache_waiters > 0):
-                        break
-                    self._refreshed.wait(wait_s if stale else None)
-                if self._closed:
-                    return
-                self._last_refresh = time.monotonic()
-                if kept is not None:  # the map at the last request's frame (`pipeline_masks`)
-                    version, stamp, occupancy = kept
-                    self._pipeline_map = None
-                else:
-                    version = self._map_version
-                    stamp = self.last_fused_stamp
-                    occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
-                self._building_version = version
-            started = time.perf_counter()
-            try:
-                built = self.context.build(occupancy, kinds)
-            except Exception as exc:  # noqa: BLE001 - the request path rebuilds and reports it
-                built = None
-                self._rebuild_failed(exc)
-            rebuild_s = time.perf_counter() - started
-            with self._refreshed:
-                if built is None:
-                    self.context.invalidate()
-                else:
-                    self._install(built)
-                    if self.policy.relevant is not None and version == self._map_version:
-                        try:  # the field of the current evidence, ready for the next request
-                            self.context.policy_field(self.policy)
-                            self.context.evidence()
-                        except Exception as exc:  # noqa: BLE001 - reported by the request path
-                            self.context.invalidate_fields()
-                            self._rebuild_failed(exc)
-                self._cache_version = version
-                self._cache_stamp = stamp
-                self._building_version = 0
-                self.refresh_count += 1
-                reports = [cache.report for cache in built[1].values()] if built else []
-                self.last_rebuild = {"seconds": rebuild_s, "version": version}
-                self.last_rebuild |= reports[0] if reports else {}
-                self._refreshed.notify_all()
-            if self.on_refresh is not None:
-                try:
-                    self.on_refresh()
-                except Exception:  # noqa: BLE001 - a failing listener must not stop the refresh
-                    pass
+        with self._lock:
+            kept = self._pipeline_map
+            self._pipeline_map = None
+            if kept is not None and kept[0] > self._cache_version:
+                version, stamp, occupancy = kept  # the map at the last request's frame
+            elif self._map_version > self._cache_version:
+                version, stamp = self._map_version, self.last_fused_stamp
+                occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
+            else:
+                return False
+            self._building_version = version
+        started = time.perf_counter()
+        try:
+            built = self.context.build(occupancy, kinds)
+        except Exception as exc:  # noqa: BLE001 - the request path rebuilds and reports it
+            built = None
+            self._rebuild_failed(exc)
+        rebuild_s = time.perf_counter() - started
+        with self._lock:
+            if built is None:
+                self.context.invalidate()
+            else:
+                self._install(built)
+                if self.policy.relevant is not None and version == self._map_version:
+                    try:  # the field of the current evidence, ready for the next request
+                        self.context.policy_field(self.policy)
+                        self.context.evidence()
+                    except Exception as exc:  # noqa: BLE001 - reported by the request path
+                        self.context.invalidate_fields()
+                        self._rebuild_failed(exc)
+            self._cache_version = version
+            self._cache_stamp = stamp
+            self._building_version = 0
+            self.refresh_count += 1
+            reports = [cache.report for cache in built[1].values()] if built else []
+            self.last_rebuild = {"seconds": rebuild_s, "version": version}
+            self.last_rebuild |= reports[0] if reports else {}
+        return True
 
     def _update_masks(self) -> None:
         """Without the background worker: seeds and masks of the current map, built (updated
@@ -520,19 +472,11 @@ class NextBestViewServer:
             return True
         return (request.mode or self.config.mode) == "closed_loop" and self.policy.map_free
 
-    def _pipelined_masks(
-        self, request: PlanRequest, target: int
-    ) -> tuple[int, int, tuple | None] | None:
-        """For a pipelined request (`_pipelines`) whose frame is map version `target`, the masks
-        of the previous request's frame: (their map version, the newest stamp in that map,
-        (candidates, caches) when they are the ones the installed masks replaced, None when
-        installed); None when the request waits for masks of its own frame (lock held). The
-        background worker may still be building them: this waits for it."""
-        base = self._pipeline_base
-        if base == 0 or base >= target:  # the first request, or the same frame again
-            return None
-        if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S, version=base):
-            return None  # the request path then waits for masks of its own frame, and reports
+    def _pipelined_masks(self, base: int) -> tuple[int, int, tuple | None]:
+        """For a pipelined request (`_pipelines`), the masks of the previous request's frame, map
+        version `base`: (their map version, the newest stamp in that map, (candidates, caches)
+        when they are the ones the installed masks replaced, None when installed); lock held,
+        with the background rebuild those masks were waited for."""
         if not self.background and self._cache_version < base:
             self._update_masks()  # frames came without a request between them: the newest
         previous = self._previous_masks
@@ -545,11 +489,6 @@ class NextBestViewServer:
     def _rebuild_failed(self, exc: Exception) -> None:
         self.rebuild_failures += 1
         self.last_rebuild_error = f"{exc.__class__.__name__}: {exc}"
-
-    @property
-    def worker_alive(self) -> bool:
-        """The background rebuild worker runs, or was stopped by `close` (False: it died)."""
-        return self._worker is None or self._worker.is_alive() or self._closed
 
     # ------------------------------------------------------------------ planning
     def remaining_budget(self) -> int:
@@ -597,106 +536,121 @@ class NextBestViewServer:
         return plan.poses, plan.reason
 
     def plan_views(self, request: PlanRequest) -> Plan:
-        """Poses (T_world_cam, optical frame) for the request, their predicted gains, and a reason
-        ("" when all is well).
+        """`begin_plan` and `finish_plan` at once: with the background rebuild, from the masks in
+        place, whether or not they cover the request's frame (`scheduler.py` waits for them)."""
+        ticket = self.begin_plan(request)
+        return ticket if isinstance(ticket, Plan) else self.finish_plan(ticket)
 
-        Empty plan when: no frame fused yet, the budget is spent, the request asks for more views
-        than there are candidates, no valid candidate seed, a non-finite field, a bad start pose
-        or an unknown mode.
+    def begin_plan(self, request: PlanRequest) -> PlanTicket | Plan:
+        """Check a request and count what it tells the budget (`_settle`): its ticket for
+        `finish_plan`, or an empty plan with the reason it gets none."""
+        with self._lock:
+            self._settle(request)
+            checked = self._check_request(request)
+            if isinstance(checked, str):
+                return Plan([], [], checked)
+            want, remaining = checked
+            target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
+            pipelines = self._pipelines(request)
+            base = self._pipeline_base
+            # the first request, or the same frame again: masks of its own frame
+            base = base if pipelines and 0 < base < target else 0
+            closed_loop = (request.mode or self.config.mode) == "closed_loop"
+            return PlanTicket(
+                request, want, remaining, closed_loop, target, pipelines, base, time.perf_counter()
+            )
 
-        Plans run one at a time. A policy that selects from a snapshot (`Policy.map_free`: AREA3D
-        and the other greedy fields) does so outside the map's lock, so frames arriving meanwhile
-        are fused at once; the map is only locked to take the snapshot (the field of the current
-        evidence) and to keep the committed views afterwards.
+    def finish_plan(self, ticket: PlanTicket, base_ready: bool = True, ready: bool = True) -> Plan:
+        """Poses (T_world_cam, optical frame) for a checked request, their predicted gains, and a
+        reason ("" when all is well). With the background rebuild the caller says whether the
+        masks of the previous request's frame (`base_ready`, pipelined) or those of its own frame
+        (`ready`) were rebuilt in time.
+
+        Empty plan when: the request asks for more views than there are candidates, no valid
+        candidate seed, masks not rebuilt in time, or no candidate sees the region of interest.
+
+        A policy that selects from a snapshot (`Policy.map_free`: AREA3D and the other greedy
+        fields) does so outside the map's lock, so frames arriving meanwhile are fused at once;
+        the map is only locked to take the snapshot (the field of the current evidence) and to
+        keep the committed views afterwards. Plans are to run one at a time.
         """
-        with self._plan_lock:
-            snapshot = None
-            with self._lock:
-                self._settle(request)
-                checked = self._check_request(request)
-                if isinstance(checked, str):
-                    return Plan([], [], checked)
-                want, remaining = checked
-                closed_loop = (request.mode or self.config.mode) == "closed_loop"
-                target = self._stamp_version.get(int(request.stamp_ns), self._map_version)
-                t0 = time.perf_counter()
-                pipelines = self._pipelines(request)
-                pipelined = self._pipelined_masks(request, target) if pipelines else None
-                if pipelined is None:
-                    if not self.wait_cache(request.stamp_ns, CACHE_WAIT_S):
-                        return Plan(
-                            [], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s"
-                        )
-                    if self._pipelines() and not self.background:
-                        if self._cache_version < self._map_version:
-                            self._update_masks()
-                    version, stamp, masks = self._cache_version, self._cache_stamp, None
-                else:
-                    version, stamp, masks = pipelined
-                if pipelines:
-                    self._pipeline_base = target  # the next request plans from these masks
-                t1 = time.perf_counter()
-                behind = 0  # fused frames the masks leave out
-                if self.background or self._pipelines():
-                    behind = max(0, self._map_version - version)
-                # published whole, never changed after: the node reads it from other threads
-                timings = {"wait_cache": t1 - t0, "masks_frames_behind": behind}
-                if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
-                    timings["masks_behind"] = max(0, int(request.stamp_ns) - stamp) / 1e9
-                self.last_plan_s = timings
-                start = None if request.start is None else np.asarray(request.start, float)
-                self.context.start = start
-                try:
-                    seeds, rotations = masks[0] if masks else self.context.candidates()
-                    # positions the frames the masks leave out show too close to geometry
-                    self.context.blocked_seeds = (
-                        ~self.context.valid_positions(seeds, self.grid.occupancy())
-                        if behind > 0 and self.policy.map_free
-                        else None
-                    )
-                    if seeds.shape[0] == 0:
-                        return Plan(
-                            [],
-                            [],
-                            "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
-                        )
-                    candidates = seeds.shape[0] * rotations.shape[1]
-                    if want > candidates:
-                        return Plan(
-                            [],
-                            [],
-                            f"num_views: got {want}, expected at most the {candidates} candidate views",
-                        )
-                    if self.policy.sequential:
-                        if self._sequence is None:  # planned once, handed out in order
-                            self._sequence = self.policy.select_views(self.context, remaining)
-                        views, self._sequence = self._sequence.split(want)
-                    elif self.policy.map_free:
-                        snapshot = self.context.snapshot(self.policy, masks)
-                    else:
-                        views = self.policy.select_views(self.context, want)
-                except InputError as exc:
-                    return Plan([], [], str(exc))
-            if snapshot is not None:  # the selection itself: fusion goes on meanwhile
-                try:
-                    views = self.policy.select_views(snapshot, want)
-                except InputError as exc:
-                    return Plan([], [], str(exc))
-            with self._lock:
-                if snapshot is not None:
-                    self.context.adopt(snapshot)
-                self.last_plan_s = timings | {"select": time.perf_counter() - t1}
-                if not views.poses:
-                    return Plan([], [], "no candidate view sees the region of interest")
-                self.committed += len(views.poses)
-                self._handed_out = (
-                    (int(request.stamp_ns), self.grid.frames, len(views.poses))
-                    if closed_loop and request.stamp_ns > 0
+        request, want, remaining = ticket.request, ticket.want, ticket.remaining
+        snapshot = None
+        with self._lock:
+            pipelined = self._pipelined_masks(ticket.base) if ticket.base and base_ready else None
+            if pipelined is None:
+                if not ready:
+                    return Plan([], [], f"visibility cache: not rebuilt within {CACHE_WAIT_S} s")
+                if self._pipelines() and not self.background:
+                    if self._cache_version < self._map_version:
+                        self._update_masks()
+                version, stamp, masks = self._cache_version, self._cache_stamp, None
+            else:
+                version, stamp, masks = pipelined
+            if ticket.pipelines:
+                self._pipeline_base = ticket.target  # the next request plans from these masks
+            t1 = time.perf_counter()
+            behind = 0  # fused frames the masks leave out
+            if self.background or self._pipelines():
+                behind = max(0, self._map_version - version)
+            # published whole, never changed after: the node reads it from other threads
+            timings = {"wait_cache": t1 - ticket.started, "masks_frames_behind": behind}
+            if request.stamp_ns > 0:  # how far the masks planned with lag the request's frame
+                timings["masks_behind"] = max(0, int(request.stamp_ns) - stamp) / 1e9
+            self.last_plan_s = timings
+            start = None if request.start is None else np.asarray(request.start, float)
+            self.context.start = start
+            try:
+                seeds, rotations = masks[0] if masks else self.context.candidates()
+                # positions the frames the masks leave out show too close to geometry
+                self.context.blocked_seeds = (
+                    ~self.context.valid_positions(seeds, self.grid.occupancy())
+                    if behind > 0 and self.policy.map_free
                     else None
                 )
-                note = self._repeats(views.poses)
-                self._answered += [(np.array(T, float), int(request.stamp_ns)) for T in views.poses]
-                return Plan(list(views.poses), list(views.gains), "", note)
+                if seeds.shape[0] == 0:
+                    return Plan(
+                        [],
+                        [],
+                        "workspace: no valid candidate seed (empty or degenerate workspace, or all of it too close to geometry)",
+                    )
+                candidates = seeds.shape[0] * rotations.shape[1]
+                if want > candidates:
+                    return Plan(
+                        [],
+                        [],
+                        f"num_views: got {want}, expected at most the {candidates} candidate views",
+                    )
+                if self.policy.sequential:
+                    if self._sequence is None:  # planned once, handed out in order
+                        self._sequence = self.policy.select_views(self.context, remaining)
+                    views, self._sequence = self._sequence.split(want)
+                elif self.policy.map_free:
+                    snapshot = self.context.snapshot(self.policy, masks)
+                else:
+                    views = self.policy.select_views(self.context, want)
+            except InputError as exc:
+                return Plan([], [], str(exc))
+        if snapshot is not None:  # the selection itself: fusion goes on meanwhile
+            try:
+                views = self.policy.select_views(snapshot, want)
+            except InputError as exc:
+                return Plan([], [], str(exc))
+        with self._lock:
+            if snapshot is not None:
+                self.context.adopt(snapshot)
+            self.last_plan_s = timings | {"select": time.perf_counter() - t1}
+            if not views.poses:
+                return Plan([], [], "no candidate view sees the region of interest")
+            self.committed += len(views.poses)
+            self._handed_out = (
+                (int(request.stamp_ns), self.grid.frames, len(views.poses))
+                if ticket.closed_loop and request.stamp_ns > 0
+                else None
+            )
+            note = self._repeats(views.poses)
+            self._answered += [(np.array(T, float), int(request.stamp_ns)) for T in views.poses]
+            return Plan(list(views.poses), list(views.gains), "", note)
 
     def _repeats(self, poses: list) -> str:
         """What to say of views that repeat one handed out before (within nms_radius and

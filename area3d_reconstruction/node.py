@@ -246,15 +246,11 @@ class ReconstructionNode(Node):
         with self.gate as running:
             if not running:
                 return False
-            try:
-                if data is not None:
-                    self.mesh_pub.publish(data)
-                self.status.publish()
-            except Exception:
-                if not self.context.ok():  # shut down between the gate's check and the publish
-                    return False
-                raise
+            if data is not None:
+                self.mesh_pub.publish(data)
+            self.status.publish()
             return True
+        return False  # the context was shut down during the publish (the gate swallowed it)
 
     def _on_failed(self, stamp: int, exc: BaseException) -> None:
         if isinstance(exc, InputError):

@@ -38,6 +38,7 @@ from area3d_msgs_py.parameters import (
     declare_parameters,
     report_unknown_parameters,
 )
+from area3d_msgs_py.scheduling import AnalysisWorker
 from area3d_msgs_py.status import StatusPublisher
 from area3d_semantics.analysis import FALLBACKS, Analysis, analyze_views
 from area3d_semantics.backends import (
@@ -50,7 +51,6 @@ from area3d_semantics.backends import (
 )
 from area3d_semantics.views import ViewCollector
 from area3d_semantics.weights import SIGMA_SOURCES, SemanticParams, frame_uncertainty, weight_map
-from area3d_semantics.worker import AnalysisWorker
 
 IMAGE_QUEUE_DEPTH = 64  # the initial views (15 at room level) can arrive in one burst
 
@@ -142,7 +142,7 @@ class SemanticsNode(Node):
         self._epoch = 0  # an analysis of views collected before the last reset is not published
         self._lock = threading.Lock()
         # the VLM query runs on a worker thread, so callbacks keep running meanwhile
-        self.worker = AnalysisWorker(self._analyse, self._requery)
+        self.worker = AnalysisWorker(self._analyse, self._requery, "semantics-vlm")
         self.gate = PublishGate(self.context.ok)  # the worker publishes only while the node runs
 
         self.pub_regions, self.pub_weight, self.pub_usem = (

@@ -1,5 +1,7 @@
 import threading
 
+import pytest
+
 from area3d_msgs_py.lifecycle import PublishGate
 
 
@@ -41,6 +43,27 @@ def test_a_gate_is_closed_once_the_context_is_shut_down():
     context_ok[0] = False
     with gate as running:
         assert not running
+
+
+def test_a_publish_the_shutdown_interrupts_ends_quietly_and_any_other_failure_is_raised():
+    context_ok = [True]
+    gate = PublishGate(lambda: context_ok[0])
+    with pytest.raises(RuntimeError, match="a bug"):  # the context is up: a real failure
+        with gate as running:
+            assert running
+            raise RuntimeError("a bug")
+
+    def publish_during_shutdown() -> str:
+        with gate as running:
+            assert running
+            context_ok[0] = False  # Ctrl-C between the gate's check and the publish
+            raise RuntimeError("publisher's context is invalid")
+        return "after the gate"
+
+    assert publish_during_shutdown() == "after the gate"
+    context_ok[0] = True
+    with gate as running:
+        assert not running  # and the gate stays closed
 
 
 ARENA_PROBE = """

@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
+from area3d_msgs_py.camera_pose import look_at
 from area3d_perception.grid import GridSpec
+from area3d_planner.config import PlannerConfig
 from area3d_planner.fusion import FusedGrid
 
 
@@ -57,7 +59,6 @@ def banded_wall_view(
     away, with `WALL_K`: its depth (H, W) float32, a confidence of 0.2 on the bands of the wall
     (world y in each of `bands_y`, z in `band_z`) and 0.9 elsewhere, wherever it is seen from,
     and the pose T_world_cam (4, 4)."""
-    from area3d_msgs_py.camera_pose import look_at
 
     target = np.array([wall_x, 0.5, 0.5])
     a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
@@ -74,3 +75,45 @@ def banded_wall_view(
         bands |= (y > low) & (y < high)
     bands &= (z > band_z[0]) & (z < band_z[1])
     return depth, np.where(bands, 0.2, 0.9).astype(np.float32), T
+
+
+def server_config(**kw) -> PlannerConfig:
+    """A small room-level planner over a 1 m cube at 5 cm, the region of interest its far 70 %
+    along x (`wall_frame` looks at it)."""
+    base = dict(
+        workspace_min=(0.0, 0.0, 0.0),
+        workspace_max=(1.0, 1.0, 1.0),
+        roi_min=(0.3, 0.0, 0.0),
+        roi_max=(1.0, 1.0, 1.0),
+        voxel_size=0.05,
+        level="room",
+        seed_spacing=0.2,
+        yaw_bins=6,
+        pitch_bins=2,
+        face_res=32,
+        budget=6,
+    )
+    base.update(kw)
+    return PlannerConfig(**base)
+
+
+def closed_loop_config() -> PlannerConfig:
+    return server_config(budget=20, mode="closed_loop")
+
+
+def wall_frame() -> tuple:
+    """(depth, confidence, K, T): a 64x48 view along +x onto a wall 0.525 m away."""
+    T = look_at(np.array([0.1, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
+    depth = np.full((48, 64), 0.525, np.float32)
+    return depth, np.full_like(depth, 0.8), WALL_K, T
+
+
+def wall_frames() -> list:
+    """(stamp, depth, confidence, K, T) of three frames from different places, each seeing a wall
+    at another depth (stamps 1, 2, 3)."""
+    out = []
+    for i, (y, d) in enumerate([(0.5, 0.525), (0.3, 0.6), (0.7, 0.45)]):
+        T = look_at(np.array([0.1, y, 0.5]), np.array([1.0, y, 0.5]))
+        depth = np.full((48, 64), d, np.float32)
+        out.append((i + 1, depth, np.full_like(depth, 0.6 + 0.1 * i), WALL_K, T))
+    return out

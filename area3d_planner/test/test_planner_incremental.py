@@ -88,7 +88,6 @@ def closed_loop_reports(scene_name: str, frames: int, **overrides) -> list[dict]
             server.add_frame(stamp, depth, rgbd_confidence(depth, renderer.K), renderer.K, T)
     finally:
         renderer.close()
-        server.close()
     return reports[1:]  # the first plan built its masks in full
 
 

@@ -11,6 +11,7 @@ from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
 from area3d_planner import map_io
 from area3d_planner.config import PlannerConfig
+from area3d_planner.scheduler import PlannerScheduler
 from area3d_planner.server import NextBestViewServer, PlanRequest
 
 K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
@@ -52,7 +53,7 @@ def semantic(i: int):
     return u
 
 
-def step(srv: NextBestViewServer, i: int, sem_late: bool = False) -> tuple:
+def step(srv: NextBestViewServer | PlannerScheduler, i: int, sem_late: bool = False) -> tuple:
     """Fuse frame i (its semantic map before, or with sem_late after, the frame), then ask for the
     next view from it."""
     stamp, depth, conf, K_, T = frame(i)
@@ -66,7 +67,7 @@ def step(srv: NextBestViewServer, i: int, sem_late: bool = False) -> tuple:
     return np.array(plan.poses), np.array(plan.gains)
 
 
-def run(srv: NextBestViewServer, steps: range) -> list:
+def run(srv: NextBestViewServer | PlannerScheduler, steps: range) -> list:
     return [step(srv, i, sem_late=i % 2 == 0) for i in steps]
 
 
@@ -106,14 +107,15 @@ def test_a_mission_resumed_from_a_saved_map_chooses_the_views_of_the_mission_nev
 
 def test_a_map_saved_from_a_server_with_the_background_worker_resumes_there_too(tmp_path):
     kw = config()
-    whole, first = NextBestViewServer(kw), NextBestViewServer(kw, background=True)
-    resumed = NextBestViewServer(kw, background=True)
+    whole, first = NextBestViewServer(kw), PlannerScheduler(kw, background=True)
+    resumed = PlannerScheduler(kw, background=True)
     try:
         run(whole, range(3))
         run(first, range(3))
         path = tmp_path / "planner.a3map"
-        map_io.save(first, path)
-        map_io.restore(resumed, map_io.read(resumed, path))
+        map_io.save(first.core, path)
+        map_io.restore(resumed.core, map_io.read(resumed.core, path))
+        resumed.loaded()
         for a, b in zip(run(whole, range(3, 7)), run(resumed, range(3, 7)), strict=True):
             np.testing.assert_array_equal(a[0], b[0])
             np.testing.assert_array_equal(a[1], b[1])

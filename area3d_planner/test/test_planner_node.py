@@ -175,7 +175,7 @@ def test_at_most_hard_regions_max_are_published_and_all_are_counted(rig):
 
 def test_a_failed_mask_rebuild_is_an_error_on_diagnostics_then_ok_again(rig):
     r = rig(eager_cache=True, refresh_interval_s=0.0)
-    build = r.planner.server.context.build
+    build = r.planner.scheduler.core.context.build
     calls = []
 
     def failing_once(*args, **kwargs):
@@ -184,7 +184,7 @@ def test_a_failed_mask_rebuild_is_an_error_on_diagnostics_then_ok_again(rig):
             raise RuntimeError("out of memory building masks")
         return build(*args, **kwargs)
 
-    r.planner.server.context.build = failing_once
+    r.planner.scheduler.core.context.build = failing_once
     assert r.wait(lambda: OK in r.levels()), "no OK status before the failure"
     r.wall(3_000_000_000, WALL_DIRECTIONS[:1])
     assert r.wait(lambda: ERROR in r.levels()), "no ERROR after the failed rebuild"
@@ -204,14 +204,14 @@ def test_a_failed_mask_rebuild_is_an_error_on_diagnostics_then_ok_again(rig):
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
 def test_a_failed_fusion_is_an_error_and_a_dead_fusion_worker_stays_one(rig):
     r = rig(eager_cache=False)
-    add_frame = r.planner.server.add_frame
+    add_frame = r.planner.scheduler.add_frame
 
     def failing_once(stamp, *args):
         if stamp == 4_000_000_000:
             raise RuntimeError("numba kernel crashed")
         return add_frame(stamp, *args)
 
-    r.planner.server.add_frame = failing_once
+    r.planner.scheduler.add_frame = failing_once
     r.wall(4_000_000_000, WALL_DIRECTIONS[:1])
     assert r.wait(lambda: ERROR in r.levels()), "no ERROR after the failed fusion"
     error = next(s for s in r.diagnostics if int.from_bytes(s.level, "little") == ERROR)

@@ -3,47 +3,25 @@ import threading
 import numpy as np
 import pytest
 
-from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
-from area3d_planner.config import PlannerConfig
 from area3d_planner.server import NextBestViewServer, PlanRequest
-
-K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
-
-
-def config(**kw):
-    base = dict(
-        workspace_min=(0.0, 0.0, 0.0),
-        workspace_max=(1.0, 1.0, 1.0),
-        roi_min=(0.3, 0.0, 0.0),
-        roi_max=(1.0, 1.0, 1.0),
-        voxel_size=0.05,
-        level="room",
-        seed_spacing=0.2,
-        yaw_bins=6,
-        pitch_bins=2,
-        face_res=32,
-        budget=6,
-    )
-    base.update(kw)
-    return PlannerConfig(**base)
-
-
-def frame():
-    T = look_at(np.array([0.1, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
-    depth = np.full((48, 64), 0.525, np.float32)
-    return depth, np.full_like(depth, 0.8), K, T
+from area3d_planner.test.conftest import (
+    closed_loop_config,
+    server_config,
+    wall_frame,
+    wall_frames,
+)
 
 
 def test_request_before_any_frame_gives_an_empty_plan_with_a_reason():
-    poses, reason = NextBestViewServer(config()).plan(PlanRequest(None))
+    poses, reason = NextBestViewServer(server_config()).plan(PlanRequest(None))
     assert poses == [] and "no frame" in reason
 
 
 def test_batch_request_for_zero_views_plans_the_remaining_budget_then_reports_it_spent():
-    srv = NextBestViewServer(config(budget=6))
-    srv.add_frame(1, *frame())
-    poses, reason = srv.plan(PlanRequest(frame()[3], 1, 0))
+    srv = NextBestViewServer(server_config(budget=6))
+    srv.add_frame(1, *wall_frame())
+    poses, reason = srv.plan(PlanRequest(wall_frame()[3], 1, 0))
     assert reason == "" and len(poses) == 5  # 6 in total, 1 captured
     for T in poses:
         np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9)
@@ -53,19 +31,19 @@ def test_batch_request_for_zero_views_plans_the_remaining_budget_then_reports_it
 
 
 def test_closed_loop_counts_captured_and_committed_views_against_the_budget():
-    srv = NextBestViewServer(config(budget=4, mode="closed_loop"))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(budget=4, mode="closed_loop"))
+    srv.add_frame(1, *wall_frame())
     poses, _ = srv.plan(PlanRequest(None, 1, 0))
     assert len(poses) == 1 and srv.remaining_budget() == 2
-    srv.add_frame(2, *frame())  # the planned view was captured: still 2 left
+    srv.add_frame(2, *wall_frame())  # the planned view was captured: still 2 left
     assert srv.remaining_budget() == 2
     poses, reason = srv.plan(PlanRequest(None, 2, 3))
     assert poses == [] and "remaining budget 2" in reason
 
 
 def test_more_views_than_candidates_and_nan_uncertainty_give_empty_plans():
-    srv = NextBestViewServer(config(budget=10_000))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(budget=10_000))
+    srv.add_frame(1, *wall_frame())
     poses, reason = srv.plan(PlanRequest(None, 1, 5000))
     assert poses == [] and "candidate" in reason
     srv.grid.conf_sum[3] = np.nan
@@ -78,25 +56,25 @@ def test_more_views_than_candidates_and_nan_uncertainty_give_empty_plans():
 def test_workspace_without_a_valid_seed_gives_an_empty_plan():
     # workspace entirely inside unobserved space: no known-free position for a camera
     srv = NextBestViewServer(
-        config(workspace_min=(0.8, 0.8, 0.8), workspace_max=(0.95, 0.95, 0.95))
+        server_config(workspace_min=(0.8, 0.8, 0.8), workspace_max=(0.95, 0.95, 0.95))
     )
-    srv.add_frame(1, *frame())
+    srv.add_frame(1, *wall_frame())
     poses, reason = srv.plan(PlanRequest(None, 1, 1))
     assert poses == [] and "workspace" in reason
 
 
 def test_degenerate_configuration_is_rejected_naming_the_field():
     with pytest.raises(InputError, match="workspace"):
-        NextBestViewServer(config(workspace_min=(0, 0, 1), workspace_max=(1, 1, 1)))
+        NextBestViewServer(server_config(workspace_min=(0, 0, 1), workspace_max=(1, 1, 1)))
     with pytest.raises(InputError, match="policy"):
-        NextBestViewServer(config(policy="best"))
+        NextBestViewServer(server_config(policy="best"))
     with pytest.raises(InputError, match="mode"):
-        NextBestViewServer(config(mode="online"))
+        NextBestViewServer(server_config(mode="online"))
 
 
 def test_semantic_map_arriving_before_its_frame_is_fused_when_the_frame_arrives():
-    srv = NextBestViewServer(config())
-    depth, conf, K_, T = frame()
+    srv = NextBestViewServer(server_config())
+    depth, conf, K_, T = wall_frame()
     assert srv.add_semantic(7, np.full_like(depth, 0.5)) is False
     assert srv.grid.semantic_frames == 0
     srv.add_frame(7, depth, conf, K_, T)
@@ -104,19 +82,10 @@ def test_semantic_map_arriving_before_its_frame_is_fused_when_the_frame_arrives(
     assert srv.add_semantic(7, np.full_like(depth, 0.5)) is True
 
 
-def test_request_waits_until_its_stamp_is_fused():
-    srv = NextBestViewServer(config())
-    assert srv.wait_fused(5, timeout_s=0.05) is False
-    timer = threading.Timer(0.1, lambda: srv.add_frame(5, *frame()))
-    timer.start()
-    assert srv.wait_fused(5, timeout_s=120.0) is True  # ends once fused (the first compiles)
-    timer.join()
-
-
 @pytest.mark.parametrize("policy", ["area3d", "volumetric_ig", "vlm_naive", "random", "uniform"])
 def test_every_policy_returns_the_requested_number_of_valid_poses(policy):
-    srv = NextBestViewServer(config(policy=policy, budget=10))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(policy=policy, budget=10))
+    srv.add_frame(1, *wall_frame())
     poses, reason = srv.plan(PlanRequest(None, 1, 3))
     assert reason == "" and len(poses) == 3
     for T in poses:
@@ -126,17 +95,17 @@ def test_every_policy_returns_the_requested_number_of_valid_poses(policy):
 
 @pytest.mark.parametrize("policy", ["uniform", "random"])
 def test_field_independent_policies_continue_their_sequence_in_closed_loop(policy):
-    batch = NextBestViewServer(config(budget=5, policy=policy, mode="batch"))
-    batch.add_frame(1, *frame())
+    batch = NextBestViewServer(server_config(budget=5, policy=policy, mode="batch"))
+    batch.add_frame(1, *wall_frame())
     planned, _ = batch.plan(PlanRequest(None, 1, 0))
-    loop = NextBestViewServer(config(budget=5, policy=policy, mode="closed_loop"))
-    loop.add_frame(1, *frame())
+    loop = NextBestViewServer(server_config(budget=5, policy=policy, mode="closed_loop"))
+    loop.add_frame(1, *wall_frame())
     handed_out = []
     for stamp in range(2, 6):
         poses, reason = loop.plan(PlanRequest(None, stamp - 1, 1))
         assert reason == "" and len(poses) == 1
         handed_out.append(poses[0])
-        loop.add_frame(stamp, *frame())
+        loop.add_frame(stamp, *wall_frame())
     assert len(planned) == 4
     for a, b in zip(planned, handed_out, strict=True):
         np.testing.assert_allclose(a, b)  # the same sequence, one view per request
@@ -146,11 +115,11 @@ def test_field_independent_policies_continue_their_sequence_in_closed_loop(polic
 
 def test_uniform_views_keep_the_working_distance_of_the_captured_frames():
     roomy = dict(workspace_min=(-1.0, -1.0, 0.0), workspace_max=(2.0, 2.0, 2.0))
-    srv = NextBestViewServer(config(budget=8, policy="uniform", level="object", **roomy))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(budget=8, policy="uniform", level="object", **roomy))
+    srv.add_frame(1, *wall_frame())
     poses, _ = srv.plan(PlanRequest(None, 1, 0))
     centre = np.array([0.65, 0.5, 0.5])  # ROI centre
-    working = np.linalg.norm(frame()[3][:3, 3] - centre)
+    working = np.linalg.norm(wall_frame()[3][:3, 3] - centre)
     distances = [np.linalg.norm(T[:3, 3] - centre) for T in poses]
     assert np.median(distances) == pytest.approx(working, rel=0.25)
 
@@ -158,8 +127,8 @@ def test_uniform_views_keep_the_working_distance_of_the_captured_frames():
 def test_a_committed_view_is_turned_to_centre_the_uncertainty_it_sees():
     from area3d_planner.policies import aim_at_uncertainty
 
-    srv = NextBestViewServer(config(budget=6))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(budget=6))
+    srv.add_frame(1, *wall_frame())
     cache = srv.context.cache()
     view = next(v for v in range(cache.num_views) if cache.mask(v)[0].size > 10)
     ids, _ = cache.mask(view)
@@ -180,8 +149,8 @@ def test_a_committed_view_is_turned_to_centre_the_uncertainty_it_sees():
 
 
 def test_closed_loop_requests_remember_the_decay_of_views_already_committed():
-    srv = NextBestViewServer(config(budget=6, mode="closed_loop", eta=0.3))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(budget=6, mode="closed_loop", eta=0.3))
+    srv.add_frame(1, *wall_frame())
     first, _ = srv.plan(PlanRequest(None, 1, 1))
     cache = srv.context.cache()
     decay = srv.context.committed_decay
@@ -194,110 +163,8 @@ def test_closed_loop_requests_remember_the_decay_of_views_already_committed():
     assert not np.allclose(first[0], second[0])
 
 
-# -- background cache refresh ----------------------------------------------------------------
-
-
-def refresh_config():
-    return config(budget=20, mode="closed_loop")
-
-
-def frames():
-    """Three frames from different places, each seeing a wall at another depth."""
-    out = []
-    for i, (y, d) in enumerate([(0.5, 0.525), (0.3, 0.6), (0.7, 0.45)]):
-        T = look_at(np.array([0.1, y, 0.5]), np.array([1.0, y, 0.5]))
-        depth = np.full((48, 64), d, np.float32)
-        out.append((i + 1, depth, np.full_like(depth, 0.6 + 0.1 * i), K, T))
-    return out
-
-
-def test_background_refresh_plans_the_same_views_as_a_synchronous_rebuild():
-    sync = NextBestViewServer(refresh_config())
-    eager = NextBestViewServer(refresh_config(), background=True)
-    try:
-        for f in frames():
-            sync.add_frame(*f)
-            eager.add_frame(*f)
-        start = frames()[-1][4]
-        for _ in range(3):  # several closed-loop requests, views committed in between
-            a, reason_a = sync.plan(PlanRequest(start, 3, 1))
-            b, reason_b = eager.plan(PlanRequest(start, 3, 1))
-            assert reason_a == reason_b == ""
-            np.testing.assert_array_equal(np.array(a), np.array(b))
-        assert eager.cache_ready() and eager.status()["cache_ready"] is True
-        assert eager.refresh_count >= 1
-    finally:
-        eager.close()
-
-
-def test_cache_is_rebuilt_after_frames_without_a_request():
-    srv = NextBestViewServer(refresh_config(), background=True)
-    try:
-        assert not srv.cache_ready()
-        srv.add_frame(*frames()[0])
-        assert srv.wait_cache(1, timeout_s=30.0)
-        assert srv.cache_ready() and srv.refresh_count == 1
-        assert srv.context._caches, "masks were not built eagerly"
-    finally:
-        srv.close()
-
-
-def test_frames_arriving_during_a_rebuild_coalesce_into_one_more_rebuild():
-    srv = NextBestViewServer(refresh_config(), background=True)
-    gate = threading.Event()
-    started = threading.Event()
-    versions = []
-    build = srv.context.build
-
-    def slow_build(occupancy, kinds=(), evidence=None):
-        versions.append(srv._map_version)
-        started.set()
-        gate.wait(30.0)
-        return build(occupancy, kinds, evidence)
-
-    srv.context.build = slow_build
-    try:
-        f = frames()
-        srv.add_frame(*f[0])
-        assert started.wait(30.0)  # the first rebuild is in flight ...
-        srv.add_frame(*f[1])  # ... while two more frames arrive
-        srv.add_frame(*f[2])
-        assert not srv.cache_ready()
-        gate.set()
-        assert srv.wait_cache(3, timeout_s=30.0)
-        assert srv.refresh_count == 2 and versions == [1, 3]
-        assert srv.cache_ready()
-    finally:
-        gate.set()
-        srv.close()
-
-
-def test_a_request_waits_for_the_rebuild_that_covers_its_stamp():
-    srv = NextBestViewServer(refresh_config(), background=True)
-    gate = threading.Event()
-    build = srv.context.build
-    srv.context.build = lambda occ, kinds=(), ev=None: gate.wait(30.0) and build(occ, kinds, ev)
-    try:
-        f = frames()
-        srv.add_frame(*f[0])
-        result = {}
-        t = threading.Thread(
-            target=lambda: result.update(plan=srv.plan(PlanRequest(f[0][4], 1, 1)))
-        )
-        t.start()
-        t.join(0.3)
-        assert t.is_alive(), "the request did not wait for the masks of its frame"
-        gate.set()
-        t.join(30.0)
-        poses, reason = result["plan"]
-        assert reason == "" and len(poses) == 1
-    finally:
-        gate.set()
-        srv.close()
-
-
 def test_the_grid_keeps_within_its_voxel_budget_and_puts_box_faces_mid_voxel():
-    big = config(
+    big = server_config(
         workspace_min=(-3.0, -2.0, 0.0),
         workspace_max=(3.0, 2.0, 2.5),
         roi_min=(-3.0, -2.0, 0.0),
@@ -309,7 +176,7 @@ def test_the_grid_keeps_within_its_voxel_budget_and_puts_box_faces_mid_voxel():
     spec = big.grid_spec()
     assert spec.num_voxels <= 200_000
     assert big.resolved_level() == "room" and spec.voxel_size > 0.05  # coarser than the level's
-    small = config(voxel_size=0.0, level="object", roi_min=(0.3, 0.0, 0.73))
+    small = server_config(voxel_size=0.0, level="object", roi_min=(0.3, 0.0, 0.73))
     spec = small.grid_spec()
     assert spec.voxel_size == 0.01  # object level default fits the budget
     # a support plane at the ROI's floor (a table top at z = 0.73) lies mid-voxel
@@ -318,21 +185,21 @@ def test_the_grid_keeps_within_its_voxel_budget_and_puts_box_faces_mid_voxel():
 
 
 def test_level_is_room_when_the_camera_works_inside_the_region():
-    inside = config(
+    inside = server_config(
         level="auto",
         workspace_min=(0.1, 0.1, 0.1),
         workspace_max=(0.9, 0.9, 0.9),
         roi_min=(0, 0, 0),
     )
-    around = config(level="auto", workspace_min=(-1, -1, 0), workspace_max=(2, 2, 2))
+    around = server_config(level="auto", workspace_min=(-1, -1, 0), workspace_max=(2, 2, 2))
     assert inside.resolved_level() == "room" and around.resolved_level() == "object"
     with pytest.raises(InputError, match="level"):
-        NextBestViewServer(config(level="galaxy"))
+        NextBestViewServer(server_config(level="galaxy"))
 
 
 def test_a_newer_semantic_map_of_a_frame_replaces_the_older_one():
-    srv = NextBestViewServer(config())
-    depth, conf, K_, T = frame()
+    srv = NextBestViewServer(server_config())
+    depth, conf, K_, T = wall_frame()
     srv.add_frame(7, depth, conf, K_, T)
     assert srv.add_semantic(7, np.full_like(depth, 0.2))
     assert srv.add_semantic(7, np.full_like(depth, 0.6))  # a re-query's newer analysis
@@ -349,50 +216,14 @@ def test_a_newer_semantic_map_of_a_frame_replaces_the_older_one():
 
 def test_a_frame_replayed_with_the_same_stamp_is_fused_once():
     """After a restart every saved frame is replayed; the ones the planner has must not count twice."""
-    server = NextBestViewServer(config())
-    assert server.add_frame(5, *frame()) is True
+    server = NextBestViewServer(server_config())
+    assert server.add_frame(5, *wall_frame()) is True
     grid_after_one = (server.grid.conf_sum.copy(), server.grid.frames)
-    assert server.add_frame(5, *frame()) is False
+    assert server.add_frame(5, *wall_frame()) is False
     np.testing.assert_array_equal(server.grid.conf_sum, grid_after_one[0])
     assert server.grid.frames == grid_after_one[1] == 1
     assert server.status()["frames_fused"] == 1
-    assert server.add_frame(6, *frame()) is True and server.grid.frames == 2
-
-
-def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a_rebuild():
-    """mask_lag_s: masks built from a map at most that much older (capture time) than the
-    request's frame do; an older map still makes the request wait for the rebuild."""
-    f = frames()  # stamps 1, 2, 3 ns
-    srv = NextBestViewServer(refresh_config(), background=True, mask_lag_s=1e-9)  # 1 ns
-    build = srv.context.build
-    gate = threading.Event()
-    builds = []
-
-    def held_build(occupancy, kinds=()):
-        builds.append(srv._map_version)
-        if len(builds) > 1:
-            gate.wait(30.0)  # every rebuild after the first waits for the test
-        return build(occupancy, kinds)
-
-    srv.context.build = held_build
-    try:
-        srv.add_frame(*f[0])
-        assert srv.wait_cache(1, timeout_s=30.0)
-        srv.add_frame(*f[1])  # 1 ns after the masks' newest frame: within the lag
-        poses, reason = srv.plan(PlanRequest(f[1][4], 2, 1))
-        assert reason == "" and len(poses) == 1
-        assert not srv.cache_ready()  # planned while the masks lag the map
-        assert srv.last_plan_s["masks_behind"] == pytest.approx(1e-9)  # by 1 ns, as reported
-        srv.add_frame(*f[2])  # 2 ns after it: beyond the lag, the request waits for a rebuild
-        assert not srv.wait_cache(3, timeout_s=0.2)
-        gate.set()
-        assert srv.wait_cache(3, timeout_s=30.0) and srv.cache_ready()
-        assert srv.rebuild_failures == 0  # the rebuilds ran in the worker, not the request
-        assert srv._previous_masks is None  # streaming: no second set of masks is kept
-        assert srv._pipeline_base == 0  # nor a map kept for the worker to build first
-    finally:
-        gate.set()
-        srv.close()
+    assert server.add_frame(6, *wall_frame()) is True and server.grid.frames == 2
 
 
 def _masks(server):
@@ -405,9 +236,9 @@ def test_pipelined_masks_plan_each_request_from_the_masks_of_the_previous_reques
     masks of its frame; each next one from the masks of the map at the previous request's frame,
     exactly as built from that map, leaving out the positions its own frame shows too close to
     geometry; a batch request gets masks that cover every frame."""
-    f = frames()
-    piped = NextBestViewServer(config(budget=20, mode="closed_loop", pipeline_masks=True))
-    exact = NextBestViewServer(config(budget=20, mode="closed_loop", pipeline_masks=False))
+    f = wall_frames()
+    piped = NextBestViewServer(server_config(budget=20, mode="closed_loop", pipeline_masks=True))
+    exact = NextBestViewServer(server_config(budget=20, mode="closed_loop", pipeline_masks=False))
     masks_of = []  # the exact masks after each frame
     for i, x in enumerate(f):
         piped.add_frame(*x)
@@ -435,8 +266,8 @@ def test_pipelined_masks_plan_each_request_from_the_masks_of_the_previous_reques
 
 
 def test_selection_never_takes_a_view_from_a_blocked_position():
-    srv = NextBestViewServer(refresh_config())
-    for x in frames():
+    srv = NextBestViewServer(closed_loop_config())
+    for x in wall_frames():
         srv.add_frame(*x)
     srv.plan(PlanRequest(None, 3, 1))  # builds the masks
     context, policy = srv.context, srv.policy
@@ -449,77 +280,11 @@ def test_selection_never_takes_a_view_from_a_blocked_position():
     assert second and all(v // bins != first for v in second)
 
 
-def test_pipelined_masks_with_the_background_worker_plan_as_without_it():
-    """pipeline_masks with the background worker: a request does not wait for the rebuild of its
-    frame, and plans from the masks of the previous request's frame even when the rebuild of
-    its own has finished: the views are those planned without the worker, whatever the timing."""
-    f = frames()
-    piped = config(budget=20, mode="closed_loop", pipeline_masks=True)
-    srv = NextBestViewServer(piped, background=True)
-    sync = NextBestViewServer(piped)
-    build = srv.context.build
-    gate = threading.Event()
-    builds = []
-
-    def held_build(occupancy, kinds=()):
-        builds.append(srv._map_version)
-        if len(builds) == 2:
-            gate.wait(30.0)  # the rebuild after the second frame waits for the test
-        return build(occupancy, kinds)
-
-    srv.context.build = held_build
-    try:
-        answers = []
-        for i, x in enumerate(f):
-            srv.add_frame(*x)
-            sync.add_frame(*x)
-            if i == 2:  # the third frame's rebuild finishes before its request
-                assert srv.wait_cache(3, timeout_s=30.0) and srv.cache_ready()
-            a, reason_a = srv.plan(PlanRequest(x[4], x[0], 1))
-            b, reason_b = sync.plan(PlanRequest(x[4], x[0], 1))
-            assert reason_a == reason_b == ""
-            answers.append((a, b, srv.last_plan_s["masks_frames_behind"]))
-            if i == 1:  # planned while the rebuild of its frame is held
-                assert not srv.cache_ready()
-                gate.set()
-        for a, b, _ in answers:
-            np.testing.assert_array_equal(np.array(a), np.array(b))
-        assert [behind for *_, behind in answers] == [0, 1, 1]
-        # the last one planned from the masks of the second frame, which the third's replaced
-        assert srv.last_plan_s["masks_behind"] == pytest.approx(1e-9)
-        assert srv.rebuild_failures == 0
-    finally:
-        gate.set()
-        srv.close()
-
-
-def test_pipelined_masks_are_built_for_the_requests_map_even_when_the_next_frame_came_first():
-    """The worker coalesces frames (and starts a rebuild at most every refresh_interval_s unless a
-    request waits): when the next frame is fused before it has started on the map of the last
-    request's frame, that map is kept and built first, so the next request still plans from it."""
-    f = frames()
-    piped = config(budget=20, mode="closed_loop", pipeline_masks=True)
-    srv = NextBestViewServer(piped, background=True, refresh_interval_s=3600.0)
-    sync = NextBestViewServer(piped)
-    try:
-        for i, x in enumerate(f):
-            srv.add_frame(*x)
-            sync.add_frame(*x)
-            a, reason_a = srv.plan(PlanRequest(x[4], x[0], 1))
-            b, reason_b = sync.plan(PlanRequest(x[4], x[0], 1))
-            assert reason_a == reason_b == ""
-            np.testing.assert_array_equal(np.array(a), np.array(b))
-            assert srv.last_plan_s["masks_frames_behind"] == (1 if i else 0)
-        assert srv.rebuild_failures == 0
-    finally:
-        srv.close()
-
-
 def test_frames_are_fused_while_a_plan_selects_its_views():
     """The selection runs on a snapshot outside the map's lock: a frame arriving meanwhile is
     fused at once, and the plan's committed decay is kept afterwards."""
-    f = frames()
-    srv = NextBestViewServer(refresh_config())
+    f = wall_frames()
+    srv = NextBestViewServer(closed_loop_config())
     srv.add_frame(*f[0])
     select = srv.policy.select_views
     selecting, release = threading.Event(), threading.Event()
@@ -550,27 +315,13 @@ def test_frames_are_fused_while_a_plan_selects_its_views():
     assert decay is not None and np.isclose(decay.min(), 0.7)
 
 
-def test_the_background_rebuild_runs_at_the_niceness_asked_for():
-    import os
-
-    srv = NextBestViewServer(refresh_config(), background=True, rebuild_nice=5)
-    try:
-        srv.add_frame(*frames()[0])
-        assert srv.wait_cache(1, timeout_s=60.0)
-        base = os.getpriority(os.PRIO_PROCESS, 0)
-        assert os.getpriority(os.PRIO_PROCESS, srv.worker_tid) == min(19, base + 5)
-        assert base == os.getpriority(os.PRIO_PROCESS, threading.get_native_id())  # only it
-    finally:
-        srv.close()
-
-
 def test_a_plan_carries_the_greedy_utility_of_each_view_without_changing_the_views():
     """Gains are the utilities the greedy selection committed the views with (best first), and
     asking for them chooses the same views as a plan without them."""
-    with_gains, without = NextBestViewServer(config()), NextBestViewServer(config())
+    with_gains, without = NextBestViewServer(server_config()), NextBestViewServer(server_config())
     for srv in (with_gains, without):
-        srv.add_frame(1, *frame())
-    start = frame()[3]
+        srv.add_frame(1, *wall_frame())
+    start = wall_frame()[3]
     expected = with_gains.policy.selection(with_gains.context, 3)
     assert isinstance(expected.utilities[0], float)
     plan = with_gains.plan_views(PlanRequest(start, 1, 3))
@@ -583,15 +334,15 @@ def test_a_plan_carries_the_greedy_utility_of_each_view_without_changing_the_vie
 
 @pytest.mark.parametrize("policy", ["uniform", "random"])
 def test_policies_without_a_gain_model_report_zero_gains(policy):
-    srv = NextBestViewServer(config(policy=policy, budget=10))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(policy=policy, budget=10))
+    srv.add_frame(1, *wall_frame())
     plan = srv.plan_views(PlanRequest(None, 1, 2))
     assert plan.reason == "" and plan.gains == [0.0, 0.0]
 
 
 def test_a_request_may_name_its_mode_and_a_bad_one_is_refused_by_name():
-    srv = NextBestViewServer(config(budget=6, mode="batch"))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(budget=6, mode="batch"))
+    srv.add_frame(1, *wall_frame())
     plan = srv.plan_views(PlanRequest(None, 1, 0, mode="closed_loop"))
     assert plan.reason == "" and len(plan.poses) == 1  # closed loop: one view for count 0
     plan = srv.plan_views(PlanRequest(None, 1, 0, mode="sideways"))
@@ -603,13 +354,13 @@ def test_a_request_may_name_its_mode_and_a_bad_one_is_refused_by_name():
 def test_candidate_views_take_the_camera_of_the_fused_frames():
     """The frustum and resolution come from the frames' intrinsics (any size and field of view);
     a camera equal to the parameters changes nothing."""
-    srv = NextBestViewServer(config(width=64, height=48, hfov_deg=90.0))
+    srv = NextBestViewServer(server_config(width=64, height=48, hfov_deg=90.0))
     visibility = srv.context.visibility
-    srv.add_frame(1, *frame())  # K: fx 32 over 64 pixels, 90 degrees: the parameters' camera
+    srv.add_frame(1, *wall_frame())  # fx 32 over 64 pixels, 90 degrees: the parameters' camera
     assert srv.context.visibility is visibility and srv.camera() == (90.0, 64, 48)
     wide = np.array([[424 / np.tan(np.radians(43.5)), 0, 424], [0, 400.0, 240], [0, 0, 1]])
     depth = np.full((480, 848), 0.525, np.float32)
-    srv.add_frame(2, depth, np.full_like(depth, 0.8), wide, frame()[3])
+    srv.add_frame(2, depth, np.full_like(depth, 0.8), wide, wall_frame()[3])
     hfov, width, height = srv.camera()
     assert (width, height) == (848, 480) and hfov == pytest.approx(87.0, abs=1e-9)
     v = srv.context.visibility
@@ -620,17 +371,17 @@ def test_candidate_views_take_the_camera_of_the_fused_frames():
 
 
 def test_a_closed_loop_view_the_camera_did_not_capture_stops_counting_against_the_budget():
-    srv = NextBestViewServer(config(budget=3, mode="closed_loop"))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(budget=3, mode="closed_loop"))
+    srv.add_frame(1, *wall_frame())
     first, _ = srv.plan(PlanRequest(None, 1, 1))
     assert len(first) == 1 and srv.remaining_budget() == 1
     # asked again from the same frame, nothing fused since: the first view was never captured
     second, reason = srv.plan(PlanRequest(None, 1, 1))
     assert reason == "" and len(second) == 1 and srv.remaining_budget() == 1
-    srv.add_frame(2, *frame())  # this one was captured
+    srv.add_frame(2, *wall_frame())  # this one was captured
     third, reason = srv.plan(PlanRequest(None, 2, 1))
     assert reason == "" and len(third) == 1 and srv.remaining_budget() == 0
-    srv.add_frame(3, *frame())
+    srv.add_frame(3, *wall_frame())
     assert srv.plan(PlanRequest(None, 3, 1)) == (
         [],
         "budget: all 3 views are spent (1 initial, 2 handed out)",
@@ -647,8 +398,8 @@ def test_frames_streamed_between_views_are_fused_but_never_spend_the_budget():
     """A streaming camera: 12 frames fused before the first request count as the level's |O_0|
     at most (initial_views 4 here), and the 30 streamed while the robot drives to each view
     count nothing: only the views handed out do."""
-    srv = NextBestViewServer(config(budget=7, mode="closed_loop", initial_views=4))
-    depth, conf, K_, T = frame()
+    srv = NextBestViewServer(server_config(budget=7, mode="closed_loop", initial_views=4))
+    depth, conf, K_, T = wall_frame()
     stamp = 0
     for i in range(12):
         stamp += 1
@@ -668,7 +419,7 @@ def test_frames_streamed_between_views_are_fused_but_never_spend_the_budget():
     assert reason == "budget: all 7 views are spent (4 initial, 3 handed out)"
     # one frame per view (initial_views 0: the level's 15 at most): every frame before the
     # first request counts, as before
-    triggered = NextBestViewServer(config(budget=6))
+    triggered = NextBestViewServer(server_config(budget=6))
     triggered.add_frame(1, depth, conf, K_, T)
     triggered.add_frame(2, depth, conf, K_, _moved(T, 0.1))
     assert triggered.remaining_budget() == 4
@@ -678,23 +429,23 @@ def test_with_keyframes_a_skipped_frame_is_covered_by_a_newer_one_or_one_from_ne
     from area3d_msgs_py.keyframes import KeyframeConfig
 
     near = KeyframeConfig(0.1, 10.0, 1.0).near
-    srv = NextBestViewServer(config())
-    depth, conf, K_, T = frame()
+    srv = NextBestViewServer(server_config())
+    depth, conf, K_, T = wall_frame()
     srv.add_frame(10, depth, conf, K_, T)
     assert srv.covers(10) and srv.covers(0) and not srv.covers(11)
     # stamp 11 was skipped (the camera had not moved): the map holds its view
     assert srv.covers(11, _moved(T, 0.05), near) and not srv.covers(11, _moved(T, 0.3), near)
-    assert not srv.wait_fused(12, 0.01, _moved(T, 0.3), near)
+    assert not srv.covers(12, _moved(T, 0.3), near)
     srv.add_frame(13, depth, conf, K_, _moved(T, 0.5))  # a newer frame holds what 12 saw
-    assert srv.wait_fused(12, 0.01, _moved(T, 0.3), near)
+    assert srv.covers(12, _moved(T, 0.3), near)
     note = srv.stale_note(20 * 10**9, 5.0)
     assert note.startswith(f"frame {20 * 10**9} not fused within 5 s: planned from the map up to")
     assert "frame 13, 20.00 s older" in note
 
 
 def test_a_view_handed_out_again_says_so_and_whether_a_frame_from_there_was_fused():
-    srv = NextBestViewServer(config(budget=10, mode="closed_loop"))
-    srv.add_frame(1, *frame())
+    srv = NextBestViewServer(server_config(budget=10, mode="closed_loop"))
+    srv.add_frame(1, *wall_frame())
     first = srv.plan_views(PlanRequest(None, 1, 1))
     assert first.reason == "" and first.note == ""
     (view,) = first.poses
@@ -703,6 +454,6 @@ def test_a_view_handed_out_again_says_so_and_whether_a_frame_from_there_was_fuse
         "view 0 was handed out before (view 0 of this map): no frame from there has been fused since"
     )
     assert srv._repeats([_moved(view, 0.5)]) == ""  # elsewhere: nothing to say
-    depth, conf, K_, _ = frame()
+    depth, conf, K_, _ = wall_frame()
     srv.add_frame(2, depth, conf, K_, view)  # now a frame from there was fused
     assert "a frame from there was fused (stamp 2)" in srv._repeats([view])

@@ -94,9 +94,9 @@ def test_next_best_view_answers_views_with_gains_in_world_frame_or_says_why_not(
     assert refused.views.header.frame_id == "odom"
 
     feed_frame(planner, T0, T)
-    assert planner.server.wait_fused(T0, WAIT_S)
+    assert planner.scheduler.wait_fused(T0, WAIT_S)
     # the frame's pose is the odometry composed with the mount
-    np.testing.assert_allclose(planner.server.context.camera_poses[0], T, atol=1e-9)
+    np.testing.assert_allclose(planner.scheduler.core.context.camera_poses[0], T, atol=1e-9)
     answer = codecs.msg_to_view_answer(ask(planner, 2, T, T0))
     assert answer.success and answer.message == "" and answer.frame_id == "odom"
     assert answer.stamp_ns == T0 and len(answer.views) == 2
@@ -130,7 +130,7 @@ def test_next_best_view_answers_views_with_gains_in_world_frame_or_says_why_not(
 def test_a_request_with_an_unknown_mode_or_a_bad_pose_is_refused_by_field(planner):
     T = look_at(np.array([0.1, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
     feed_frame(planner, T0, T)
-    assert planner.server.wait_fused(T0, WAIT_S)
+    assert planner.scheduler.wait_fused(T0, WAIT_S)
     request = codecs.view_request_to_msg(1, T, T0, "odom")
     request.mode = "sideways"
     refused = planner._on_select_views(request, msgs.NextBestView.Response())
@@ -139,7 +139,7 @@ def test_a_request_with_an_unknown_mode_or_a_bad_pose_is_refused_by_field(planne
     request.current.pose.orientation.w = 2.0
     refused = planner._on_select_views(request, msgs.NextBestView.Response())
     assert not refused.success and "current.pose.orientation: got" in refused.message
-    assert planner.server.committed == 0  # nothing was planned for them
+    assert planner.scheduler.core.committed == 0  # nothing was planned for them
 
 
 def test_a_frame_without_odometry_is_dropped_and_counted_not_fused(planner):
@@ -161,7 +161,7 @@ def test_a_request_with_an_empty_frame_id_is_read_in_world_frame(planner):
     """`ros2 service call area3d/planner/select_views ... "{count: 1}"` sends no frame_id."""
     T = look_at(np.array([0.1, 0.5, 0.5]), np.array([1.0, 0.5, 0.5]))
     feed_frame(planner, T0, T)
-    assert planner.server.wait_fused(T0, WAIT_S)
+    assert planner.scheduler.wait_fused(T0, WAIT_S)
     answer = codecs.msg_to_view_answer(ask(planner, 1, T, T0, frame_id=""))
     assert answer.success and answer.frame_id == "odom" and len(answer.views) == 1
 
@@ -176,7 +176,7 @@ def test_a_streaming_camera_fuses_keyframes_and_an_answer_without_its_frame_says
     status = planner._status()
     assert status["frames_integrated"] == 2 and status["frames_skipped"] == 38
     assert status["frames_paired"] == 40 and status["pairing_rate"] == 1.0
-    assert planner.server.wait_fused(T0 + 31 * period, WAIT_S)
+    assert planner.scheduler.wait_fused(T0 + 31 * period, WAIT_S)
     # a skipped frame from where the camera stands is covered at once
     covered = codecs.msg_to_view_answer(ask(planner, 1, T, T0 + 35 * period))
     assert covered.success and covered.message == ""

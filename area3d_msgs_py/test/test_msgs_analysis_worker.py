@@ -2,7 +2,7 @@
 
 import threading
 
-from area3d_semantics.worker import AnalysisWorker
+from area3d_msgs_py.scheduling import AnalysisWorker
 
 TIMEOUT_S = 120.0  # generous: every wait ends as soon as its condition holds
 
@@ -34,7 +34,7 @@ class Analyses:
 
 def test_requests_during_an_analysis_run_once_after_it_with_the_frames_of_then():
     work = Analyses()
-    worker = AnalysisWorker(work.analyse, work.requery)
+    worker = AnalysisWorker(work.analyse, work.requery, "analysis")
     assert worker.submit([1, 2], "initial views")
     assert work.entered.wait(TIMEOUT_S)
     work.frames.append(3)  # a frame completes while the first query runs
@@ -49,7 +49,7 @@ def test_requests_during_an_analysis_run_once_after_it_with_the_frames_of_then()
 def test_a_request_after_the_analysis_ended_starts_a_new_one():
     work = Analyses()
     work.release.set()
-    worker = AnalysisWorker(work.analyse, work.requery)
+    worker = AnalysisWorker(work.analyse, work.requery, "analysis")
     assert worker.submit([1], "initial views")
     assert worker.join(TIMEOUT_S)
     assert worker.submit([1, 2], "request")
@@ -68,7 +68,7 @@ def test_an_analysis_that_raises_frees_the_worker_for_the_next_request():
     previous = threading.excepthook
     threading.excepthook = lambda args: None  # the thread's traceback is expected here
     try:
-        worker = AnalysisWorker(analyse, lambda: [1])
+        worker = AnalysisWorker(analyse, lambda: [1], "analysis")
         worker.submit([1], "broken")
         assert worker.join(TIMEOUT_S)
         assert (worker.failures, worker.healthy) == (1, False)  # the status says so
