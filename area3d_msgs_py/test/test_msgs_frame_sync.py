@@ -7,7 +7,7 @@ import random
 import pytest
 
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync
+from area3d_msgs_py.frame_sync import MIN_GAPS, CameraInfoCache, HeldFrames, StampSync
 
 S = 1_000_000_000
 
@@ -199,6 +199,18 @@ def test_frames_that_never_arrive_are_counted_from_the_gaps_of_a_streaming_camer
         sparse.add_part("color", i * period, i)
         sparse.add_part("depth", i * period, i)
     assert sparse.frames_missed == kept[-1] + 1 - len(kept)
+    # and one that never sends two in a row: gaps of two and three periods only
+    alternate = StampSync(("color", "depth"), count_gaps=True)
+    kept = [i for i in range(300) if i % 5 in (0, 2)]
+    for i in kept:
+        jitter = (i % 7) * ms // 2
+        alternate.add_part("color", i * period + jitter, i)
+        alternate.add_part("depth", i * period + jitter, i)
+    # the first MIN_GAPS gaps only teach the period
+    first_counted = kept[MIN_GAPS]
+    assert alternate.frames_missed == sum(
+        1 for i in range(first_counted, kept[-1]) if i not in kept
+    )
     # a camera that pauses 3 s and resumes loses nothing
     paused = StampSync(("color", "depth"), count_gaps=True)
     for i in list(range(30)) + list(range(120, 150)):
