@@ -4,6 +4,11 @@ It sends the camera its goals and collects each frame, records every topic of th
 bag, calls the planner's next-best-view service, replays saved frames onto the camera topics (for
 `--resume` and after a restart), and tracks the graph's readers so that it knows when a restarted
 node's new process is up. Topics: `area3d_msgs_py/topics.py`.
+
+This module is the node: its wiring, callbacks, discovery queries, publishing, and its calls over
+the graph (a capture, a plan, a reset, a map file). The logic over what the callbacks collect (the
+restarts caught up with, the readers of new processes, the waits on the planner's status, replays)
+is its base `mission_sync.GraphSync`.
 """
 
 from __future__ import annotations
@@ -20,8 +25,15 @@ import numpy as np
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 
-from area3d_bringup.graph import GRAPH_NODES
 from area3d_bringup.launcher import Launcher, NodeDied
+from area3d_bringup.mission_sync import (
+    CAMERA_PARTS,
+    EXPECTED_READERS,
+    READS,
+    RUNNER_TOPICS,
+    GraphSync,
+    NodeRespawned,
+)
 from area3d_bringup.recorder import BagRecorder
 from area3d_eval.rundir import Frame
 from area3d_msgs_py import codecs, msgs, qos, services, topics
@@ -30,17 +42,6 @@ from area3d_msgs_py.topics import Service, Topic
 NAME = topics.MISSION_MANAGER
 # The simulated camera's fixed frame: goals, replayed poses and requests are in it.
 WORLD_FRAME = "world"
-#: the topics the mission manager writes and graph nodes read: the goals, and the camera's
-#: topics onto which saved frames are replayed
-RUNNER_TOPICS: dict[str, Topic] = {
-    "goal": topics.GOAL,
-    "color": topics.COLOR,
-    "depth": topics.DEPTH,
-    "info": topics.CAMERA_INFO,
-    "pose": topics.POSE,
-}
-#: the parts of a captured frame (the camera's topics, read back by the mission manager too)
-CAMERA_PARTS = ("color", "depth", "info", "pose")
 # The grid is published after every fusion (in a burst, at most once a second and after the
 # last); the mission manager's reader keeps a backlog of them.
 GRID_READER_DEPTH = 100
@@ -68,39 +69,12 @@ FRAME_OUTPUTS = (
     topics.PERCEPTION_DEPTH, topics.PERCEPTION_CONFIDENCE, topics.SEMANTIC_WEIGHT,
     topics.SEMANTIC_UNCERTAINTY, topics.UNCERTAINTY_GRID,
 )  # fmt: skip
-# Readers each runner topic has once the graph is up (the mission manager's own included):
-# volatile topics drop what is published before a reader has matched, so goals and replayed
-# frames wait.
-EXPECTED_READERS = {
-    key: len(topic.readers) + (key in CAMERA_PARTS) for key, topic in RUNNER_TOPICS.items()
-}
-# The runner's topics each graph node reads: once a new process of a restarted node reads them
-# all, and the runner's writers have matched every reader discovery lists, it is up (a dead
-# process's readers linger in discovery for a while, and a reader discovery lists a moment
-# before the writer has matched it would miss what is published in between).
-READS = {
-    name: tuple(key for key, topic in RUNNER_TOPICS.items() if name in topic.readers)
-    for name, _ in GRAPH_NODES
-}
-# The nodes whose restart loses fused evidence until the saved frames are replayed.
-FUSION_NODES = (topics.PERCEPTION, topics.SEMANTICS, topics.PLANNER)
-# A replayed frame that perception has not answered within this long is published again (its
-# first copy may have gone out before a restarted node's readers had matched).
-REPLAY_RESEND_S = 10.0
 # After the camera was restarted, a goal whose frame has not arrived whole is sent again this often
 # (the camera answers a repeated stamp with the same frame; the graph fuses each stamp once).
 CAPTURE_RESEND_S = 5.0
 
 
-class NodeRespawned(RuntimeError):
-    """A graph node was restarted while a step that depends on it was under way."""
-
-    def __init__(self, name: str):
-        self.name = name
-        super().__init__(f"node {name!r} was restarted")
-
-
-class MissionManager(Node):
+class MissionManager(GraphSync, Node):
     """The runner's node: sends goals, collects frames, records the graph, calls the planner."""
 
     def __init__(
@@ -212,37 +186,7 @@ class MissionManager(Node):
 
         return handle
 
-    # -- restarts -----------------------------------------------------------------------------
-    def respawns(self) -> dict[str, int]:
-        return {} if self.launcher is None else dict(self.launcher.respawns)
-
-    def alive_check(self) -> None:
-        """Raise `NodeDied` if a node of the graph has died for good."""
-        if self.launcher is not None:
-            self.launcher.check()
-
-    def check(self, *nodes: str) -> None:
-        """Raise `NodeDied` for a node dead for good, `NodeRespawned` if one of `nodes` was
-        restarted since the runner last caught up with it."""
-        self.alive_check()
-        counts = self.respawns()
-        for name in nodes:
-            if counts.get(name, 0) != self.acknowledged.get(name, 0):
-                raise NodeRespawned(name)
-
-    def restarted(self) -> list[str]:
-        """Nodes restarted since the runner last caught up with them."""
-        counts = self.respawns()
-        return [n for n, c in counts.items() if c != self.acknowledged.get(n, 0)]
-
-    def acknowledge(self, names: list[str]) -> None:
-        counts = self.respawns()
-        with self._lock:
-            for name in names:
-                self.acknowledged[name] = counts.get(name, 0)
-            if "planner" in names:
-                self.planner_status = {}  # the new planner starts from nothing
-
+    # -- discovery -------------------------------------------------------------------------------
     def _list(self, key: str) -> list:
         """The readers discovery lists on the runner's topic `key` (all remembered in `listed`)."""
         infos = self.get_subscriptions_info_by_topic(self.runner_pubs[key].topic_name)
@@ -258,58 +202,6 @@ class MissionManager(Node):
             if info.node_name == name
         }
 
-    def _all_matched(self, key: str) -> bool:
-        """The writer has matched every reader ever listed on `key`. Exact where a live count
-        is not: discovery can list a new reader before the writer has matched it, and drop a
-        dead process's reader before (or after) the writer unmatches it."""
-        with self._lock:
-            matched = self.matched_total.get(key, 0) - self.unlisted_matches.get(key, 0)
-        return matched >= len(self.listed.get(key, ()))
-
-    def note_readers(self, names: list[str]) -> None:
-        """Remember the readers the graph's nodes have now (a later new one is a new process)."""
-        for name in names:
-            self.known_readers |= self._readers(name)
-        for key in self.runner_pubs:
-            self._list(key)
-            listed = len(self.listed[key])
-            with self._lock:
-                if key not in self.unlisted_matches:
-                    self.unlisted_matches[key] = max(0, self.matched_total.get(key, 0) - listed)
-
-    def _up(self, name: str) -> bool:
-        """A new process of `name` reads every topic it reads from the runner, all matched."""
-        new_on = {key for key, _ in self._readers(name) - self.known_readers}
-        return new_on == set(READS[name]) and all(self._all_matched(k) for k in READS[name])
-
-    def wait_new_readers(self, names: list[str], timeout_s: float) -> None:
-        """Wait until each restarted node reads the runner's topics from its new process."""
-        deadline = time.monotonic() + timeout_s
-        for name in names:
-            while not self._up(name):
-                if time.monotonic() > deadline:
-                    raise TimeoutError(
-                        f"restarted node {name!r} did not come up within {timeout_s:.0f} s"
-                    )
-                self.check(*READS)
-                time.sleep(0.05)
-        self.note_readers(names)
-
-    # -- episode steps (main thread) --------------------------------------------------------
-    def wait_for_readers(self, timeout_s: float) -> list[str]:
-        """Wait until the camera topics have their graph readers; the topics still short of them.
-        A topic has them once each graph node that reads it has a reader discovery lists, and
-        the runner's writer has matched every listed reader: a reader of another program (a
-        Foxglove client through the bridge, `ros2 topic echo`) never stands in for a graph node
-        that has not subscribed yet, whose goal or frame would then be lost."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            short = [key for key in self.runner_pubs if not self._has_graph_readers(key)]
-            if not short or time.monotonic() > deadline:
-                return short
-            self.alive_check()
-            time.sleep(0.05)
-
     def _has_graph_readers(self, key: str) -> bool:
         pub = self.runner_pubs[key]
         infos = self.get_subscriptions_info_by_topic(pub.topic_name)
@@ -318,6 +210,7 @@ class MissionManager(Node):
             EXPECTED_READERS[key], len(infos)
         )
 
+    # -- calls over the graph (main thread) ------------------------------------------------------
     def capture(
         self, T_world_cam: np.ndarray, timeout_s: float, stamp: int | None = None
     ) -> Frame | str:
@@ -387,11 +280,6 @@ class MissionManager(Node):
             )
         )
 
-    def estimates_received(self) -> dict[int, dict[str, np.ndarray]]:
-        """{stamp: {"depth", "confidence"}} of what perception has published so far."""
-        with self._lock:
-            return dict(self.estimates or {})
-
     def reset(self, service: Service, timeout_s: float) -> str:
         """Call a node's reset service (std_srvs/Trigger: `topics.CAMERA_RESET`,
         `topics.PLANNER_RESET`, `topics.SEMANTICS_RESET`) and return its answer's message; a
@@ -437,83 +325,6 @@ class MissionManager(Node):
         if not answer.success:
             raise RuntimeError(f"{service.name}: {answer.message}")
         return answer.message
-
-    def wait_until(
-        self,
-        predicate: Callable[[], bool],
-        timeout_s: float,
-        interrupted_by: tuple = FUSION_NODES,
-    ) -> bool:
-        """Wait for `predicate` (lock held while it runs); a restart of `interrupted_by` raises:
-        what the wait counts on may never come without the replay that follows a restart."""
-        deadline = time.monotonic() + timeout_s
-        with self._lock:
-            while not predicate():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                self._lock.wait(min(remaining, 0.1))
-                self.check(*interrupted_by)
-        return True
-
-    def replay_all(self, frames: list[Frame], timeout_s: float, log: Callable[[str], None]) -> None:
-        """Replay saved frames so the graph knows them (after `--resume` or a restart).
-
-        One frame at a time, each waited for until perception has answered it: parts of a later
-        frame never overtake an earlier one, however far apart the saved stamps are. Then wait
-        until the planner has fused every one; if it has not within `REPLAY_RESEND_S`, replay
-        them all again (a restarted planner's reader can be listed by discovery a moment before
-        the runner's writer has matched it; the planner fuses each stamp once, so frames it
-        already has change nothing). Any restart meanwhile raises `NodeRespawned`: the caller
-        starts over."""
-        deadline = None
-        while True:
-            for i, frame in enumerate(frames):
-                self._replay_one(i, frame, timeout_s, log)
-            deadline = deadline or time.monotonic() + timeout_s
-            if self.wait_until(
-                lambda: int(self.planner_status.get("frames_fused", 0)) >= len(frames),
-                min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
-                interrupted_by=tuple(READS),
-            ):
-                return
-            fused = self.planner_status.get("frames_fused", 0)
-            if time.monotonic() >= deadline:
-                log(
-                    f"[mission_manager] the planner has fused {fused} of {len(frames)} replayed "
-                    f"frames after {timeout_s:.0f} s; going on"
-                )
-                return
-            log(
-                f"[mission_manager] the planner has fused {fused} of {len(frames)} replayed "
-                "frames; replaying them again"
-            )
-
-    def _replay_one(
-        self, index: int, frame: Frame, timeout_s: float, log: Callable[[str], None]
-    ) -> None:
-        """Replay one frame and wait until perception has answered it (publishing it again every
-        `REPLAY_RESEND_S`: its first copy may have gone out before a new reader matched)."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            seen = self.perceived.get(frame.stamp_ns, 0)
-            self.replay(frame)
-            if self.wait_until(
-                lambda n=seen: self.perceived.get(frame.stamp_ns, 0) > n,
-                min(REPLAY_RESEND_S, max(0.0, deadline - time.monotonic())),
-                interrupted_by=tuple(READS),
-            ):
-                return
-            if time.monotonic() >= deadline:
-                log(
-                    f"[mission_manager] replayed frame {index} (stamp {frame.stamp_ns}) not "
-                    f"processed by perception after {timeout_s:.0f} s; going on"
-                )
-                return
-
-    def wait_fused(self, count: int, timeout_s: float, key: str = "frames_fused") -> bool:
-        """Wait until the planner reports at least `count` fused frames (or semantic maps, by `key`)."""
-        return self.wait_until(lambda: int(self.planner_status.get(key, 0)) >= count, timeout_s)
 
     def plan(self, current: Frame, count: int, timeout_s: float) -> list[np.ndarray]:
         """Ask the planner for `count` views (0 = what the budget allows) from the current pose

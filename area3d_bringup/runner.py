@@ -12,13 +12,13 @@ the new process is up, and the graph is brought up to date from the same saved f
 `--resume` replays, so the restarted planner fuses again everything it had fused (perception and
 semantics recompute their outputs from the frames; the planner fuses each stamp once).
 
-The episode's parameters come from `presets.episode_specs`, as the in-process path's do; the
-runner's node is `mission_manager.MissionManager`.
+The episode's state and run directory are `episode_record.EpisodeRecord`'s, its parameters from
+`presets.episode_specs` as the in-process path's are; the runner's node is
+`mission_manager.MissionManager`.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import threading
 import time
@@ -31,21 +31,13 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
 from area3d_bringup.episode_config import EpisodeConfig, EpisodeError
-from area3d_bringup.launch_description import merge
+from area3d_bringup.episode_record import EpisodeRecord
 from area3d_bringup.launcher import Launcher, NodeDied
-from area3d_bringup.mission_manager import (
-    NAME,
-    READS,
-    REPLAY_RESEND_S,
-    MissionManager,
-    NodeRespawned,
-)
-from area3d_bringup.presets import episode_specs
+from area3d_bringup.mission_manager import NAME, MissionManager
+from area3d_bringup.mission_sync import READS, REPLAY_RESEND_S, NodeRespawned
 from area3d_bringup.recorder import BagRecorder
 from area3d_eval import rundir
-from area3d_eval.rundir import Frame
 from area3d_msgs_py import codecs, middleware, msgs, topics
-from area3d_planner.config import paper_budget
 
 __all__ = ["EpisodeConfig", "EpisodeError", "run_episode"]
 
@@ -64,57 +56,11 @@ def run_episode(
     return _Episode(config, resume).run(progress)
 
 
-class _Episode:
-    """One episode's state (frames, views, timings) and its steps, in the order they run."""
+class _Episode(EpisodeRecord):
+    """One episode's steps over the graph, in the order they run, on its record."""
 
     def __init__(self, config: EpisodeConfig, resume: Path | None) -> None:
-        from sim_bridge.scenes import load_scene
-
-        config.validate()
-        self.config = config
-        self.scene = load_scene(config.scene)
-        self.budget = (
-            paper_budget(self.scene.level) if config.budget is None else int(config.budget)
-        )
-        if self.budget < len(self.scene.initial_views):
-            raise ValueError(
-                f"budget: got {self.budget}, expected the total number of views, at least "
-                f"|O_0| = {len(self.scene.initial_views)}"
-            )
-        self.timings: dict[str, float] = {}
-        self.views: list[dict] = []
-        self.frames: list[Frame] = []
-        self.recorded: dict[str, int] = {}  # messages recorded before a resume, per topic
-        self.stopped_early = ""  # why this run of the episode ended before the budget, if it did
-        if resume is not None:
-            self._resume(Path(resume))
-        else:
-            name = (
-                config.run_name
-                or f"{self.scene.name}_{config.policy}_s{config.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-            )
-            rundir.check_output_dir(config.out_dir, config.min_free_mb)
-            self.run_dir = Path(config.out_dir) / name
-            self.run_dir.mkdir(parents=True, exist_ok=False)
-        self.n_init = len(self.scene.initial_views)
-        rundir.check_depth_source(config.depth_source)
-        self.specs = episode_specs(
-            config.scene,
-            config.policy,
-            config.seed,
-            self.budget,
-            config.mode,
-            merge({"sim_bridge": {"readers.all": [NAME]}}, config.overrides),
-            config.params_file,
-        )
-        semantics = next(spec for spec in self.specs if spec.name == topics.SEMANTICS).parameters
-        self.with_semantics = semantics.get("backend", "heuristic") != "none"
-        # a graph started elsewhere may run without it (found out at its reset)
-        self.with_reconstruction = True
-        self.recorder: BagRecorder | None = None
-        self.launcher: Launcher | None = None
-        self.manager: MissionManager | None = None
-        self.task = None  # the progress bar's task
+        super().__init__(config, resume)
         self.catching_up: set[str] = set()  # restarted nodes whose new process is not up yet
         self.replay_due = False  # a restart lost fused evidence that the saved frames give back
         # After a restart, the camera's own writers may match the new process's readers only
@@ -122,101 +68,6 @@ class _Episode:
         # the runner can wait on): the first frame captured after a restart is checked as fused,
         # and replayed through the runner's writers (matched, waited for) if it is not.
         self.check_next_capture = False
-
-    def _resume(self, run_dir: Path) -> None:
-        """Take the saved episode of `run_dir` up where it stopped."""
-        from sim_bridge.scenes import load_scene
-
-        config = self.config
-        episode_path = run_dir / rundir.EPISODE_FILE
-        if not episode_path.is_file():
-            raise FileNotFoundError(
-                f"resume: got {str(run_dir)!r}, expected a run directory with episode.json"
-            )
-        rundir.check_output_dir(run_dir, config.min_free_mb)
-        saved = json.loads(episode_path.read_text())
-        config.scene, config.policy, config.mode = saved["scene"], saved["policy"], saved["mode"]
-        config.seed, self.budget = saved["seed"], saved["budget"]
-        config.depth_source = saved.get("depth_source", config.depth_source)
-        self.scene = load_scene(config.scene)
-        self.run_dir = run_dir
-        self.views = saved["views"]
-        self.frames = [
-            rundir.read_frame(rundir.frame_path(run_dir, v["index"])) for v in self.views
-        ]
-        self.timings = saved.get("timings_s", {})
-        self.recorded = dict(saved.get("recorded", {}))
-
-    # -- the run directory ----------------------------------------------------------------------
-    def save(self) -> None:
-        """Rewrite episode.json with everything known so far."""
-        counts = dict(self.recorded)
-        if self.recorder is not None:
-            for topic, n in self.recorder.counts.items():
-                counts[topic] = counts.get(topic, 0) + n
-        config = self.config
-        rundir.write_episode(
-            self.run_dir,
-            {
-                "scene": config.scene,
-                "policy": config.policy,
-                "seed": config.seed,
-                "budget": self.budget,
-                "level": self.scene.level,
-                "mode": config.mode,
-                "depth_source": config.depth_source,
-                "views": self.views,
-                "timings_s": self.timings,
-                "config": {spec.name: spec.parameters for spec in self.specs},
-                "ros": {"domain_id": self.domain_id, "namespace": config.namespace},
-                "recorded": counts,
-                "respawns": dict(self.launcher.respawns) if self.launcher else {},
-                "planner_status": self.manager.planner_status if self.manager else {},
-                "stopped_early": self.stopped_early,  # empty when the budget was spent
-            },
-        )
-
-    def _kept(self) -> str:
-        return f"kept {len(self.frames)} captured views in {self.run_dir}; "
-
-    def add_time(self, stage: str, seconds: float) -> None:
-        self.timings[stage] = self.timings.get(stage, 0.0) + seconds
-
-    def log(self, line: str) -> None:
-        """A line of the mission manager's in nodes.log."""
-        with self._log_lock:
-            self._log_file.write(f"[{NAME}] {line}\n")
-            self._log_file.flush()
-
-    def _log_sink(self, line: str) -> None:
-        with self._log_lock:
-            self._log_file.write(line + "\n")
-            self._log_file.flush()
-
-    def keep(self, frame: Frame, kind: str, stage_times: dict, progress: Any) -> None:
-        """Save a captured frame and its view, and show it."""
-        index = len(self.frames)
-        rundir.write_frame(self.run_dir, index, *frame, stamp_ns=frame.stamp_ns)
-        self.frames.append(frame)
-        self.views.append(
-            {
-                "index": index,
-                "stamp_ns": frame.stamp_ns,
-                "T_world_cam": frame.T_world_cam.tolist(),
-                "kind": kind,
-                "stage_times_s": stage_times,
-            }
-        )
-        self.save()
-        if progress is not None:
-            metric = self.manager.planner_status.get("uncertainty_total")
-            extra = f" | U={metric:.1f}" if isinstance(metric, int | float) else ""
-            progress.update(
-                self.task,
-                completed=len(self.frames),
-                description=f"{self.scene.name} / {self.config.policy}: view "
-                f"{len(self.frames)}/{self.budget} ({kind}){extra}",
-            )
 
     # -- the run --------------------------------------------------------------------------------
     def run(self, progress: Any) -> Path:

@@ -1,6 +1,7 @@
 """The evaluation report: a policy x scene table as in the paper, metric-vs-views curves, the chosen
 views, uncertainty slices and time per stage, as Markdown and as one HTML page (figures as PNG files
-beside them, linked relatively)."""
+beside them, linked relatively). This module reads the runs, aggregates their metrics into the table
+and assembles the pages; the figures are drawn by `report_figures`."""
 
 from __future__ import annotations
 
@@ -15,24 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from area3d_eval import plots
-from area3d_eval.open3d_loader import import_open3d
-from area3d_eval.render import MeshRenderer
-from area3d_eval.rundir import (
-    EVAL_DIR,
-    GRID_FINAL_FILE,
-    GRID_INITIAL_FILE,
-    MESH_FILE,
-    Episode,
-    iter_frames,
-    read_episode,
-    read_grid,
-    read_metrics,
-    scene_name,
-)
-from area3d_msgs_py.camera_pose import look_at
-from area3d_perception.backproject import depth_to_world
-from area3d_planner.hard_regions import grid_voxel_size, points_hard_regions
+from area3d_eval.report_figures import draw_figures
+from area3d_eval.rundir import EVAL_DIR, MESH_FILE, Episode, read_episode, read_metrics, scene_name
 
 # (key in metrics.json, column title, higher is better, scale for display, format). PSNR and SSIM
 # are the region's (pixels where the ground truth sees the ROI): the whole-image figures also score
@@ -49,10 +34,6 @@ WHOLE_IMAGE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
     ("psnr", "PSNR whole image [dB]", True, 1.0, "{:.2f}"),
     ("ssim", "SSIM whole image", True, 1.0, "{:.3f}"),
 )
-CURVE_METRICS = ("completion", "fscore", "chamfer", "psnr_roi", "ssim_roi")
-MESH_AZIMUTHS = (45, 165, 285)  # degrees: the final mesh seen from three sides
-MESH_RENDER_SIZE = (320, 240)
-PREVIEW_POINTS = 4000  # scene points drawn behind the chosen views when no GT sample was saved
 
 HOW_TO_READ = """\
 Each run is one episode: a policy chose camera views of a scene under a view budget, starting from
@@ -207,132 +188,12 @@ def _table(
     return [names[s] for s in scenes], policies, cells, bold
 
 
-def _figures(
-    records: list[RunRecord], fig_dir: Path
-) -> tuple[dict[str, dict[str, Path]], Path | None]:
-    """Draw every figure; returns ({scene name: {metric: png}}, timing png)."""
-    curves: dict[str, dict[str, dict[str, list]]] = defaultdict(lambda: defaultdict(dict))
-    by_scene: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
-    for r in records:
-        by_scene[r.scene][r.episode.policy].append(r.metrics.get("curve", []))
-    for scene, policies in by_scene.items():
-        for metric in CURVE_METRICS:
-            curves[scene][metric] = plots.plot_metric_curves(
-                policies,
-                metric,
-                fig_dir / f"curve_{_slug(scene)}_{metric}.png",
-                title=f"{scene}: {metric}",
-            )
-    for i, r in enumerate(records):
-        stem = f"run{i:02d}_{_slug(r.scene)}_{_slug(r.episode.policy)}_s{r.episode.seed}"
-        points = _scene_points(r)
-        roi = _roi(r)
-        r.figures["views"] = plots.plot_views(
-            points,
-            r.episode.poses(),
-            r.episode.kinds(),
-            fig_dir / f"{stem}_views.png",
-            title=r.label,
-            roi=roi,
-        )
-        slices = plots.plot_grid_slices(
-            read_grid(r.path / GRID_INITIAL_FILE),
-            read_grid(r.path / GRID_FINAL_FILE),
-            fig_dir / f"{stem}_uncertainty.png",
-            title=r.label,
-        )
-        if slices is not None:
-            r.figures["uncertainty"] = slices
-        r.hard_regions = hard_region_text(read_grid(r.path / GRID_FINAL_FILE))
-        mesh = _mesh_figure(r, fig_dir / f"{stem}_mesh.png")
-        if mesh is not None:
-            r.figures["mesh"] = mesh
-    timings = {r.label: r.episode.timings_s for r in records if r.episode.timings_s}
-    timing_png = plots.plot_timings(timings, fig_dir / "timings.png") if timings else None
-    return curves, timing_png
-
-
 def stopped_text(episode: Episode) -> str:
     """A run that ended before its budget, in a sentence."""
     return (
         f"Stopped early after {len(episode.views)} of {episode.budget} views: "
         f"{episode.stopped_early}."
     )
-
-
-def hard_region_text(grid: dict[str, np.ndarray] | None) -> str:
-    """What the camera could not resolve, in a sentence: the hard regions of a saved grid (its
-    `hard` field grouped as the planner groups them, `area3d_planner.hard_regions`), the hard
-    voxels they hold and where the largest is; "" for a grid without a `hard` field."""
-    if grid is None or "hard" not in grid:
-        return ""
-    xyz = np.stack([np.asarray(grid[axis], np.float64) for axis in "xyz"], axis=1)
-    hard = np.asarray(grid["hard"]) > 0
-    voxel = grid_voxel_size(xyz)
-    if not hard.any() or voxel is None:
-        return "Hard regions in the final grid: none (every observed surface was resolved)."
-    regions = points_hard_regions(xyz[hard], np.asarray(grid["uncertainty"])[hard], voxel)
-    largest = regions[0]
-    centre = ", ".join(f"{c:.2f}" for c in largest["centroid"])
-    return (
-        f"Hard regions in the final grid: {len(regions)} ({int(hard.sum())} hard voxels of "
-        f"{voxel * 100:.3g} cm; the largest, {int(largest['voxel_count'])} voxels, around "
-        f"({centre}) m)."
-    )
-
-
-def _scene_points(r: RunRecord) -> np.ndarray:
-    sample = r.path / EVAL_DIR / "gt_sample.npy"
-    if sample.is_file():
-        return np.load(sample)
-    points = []
-    for frame in iter_frames(r.path):
-        world = depth_to_world(frame.depth, frame.K, frame.T_world_cam)[::4, ::4].reshape(-1, 3)
-        points.append(world[np.all(np.isfinite(world), axis=1)])
-    if not points:
-        return np.zeros((0, 3))
-    pts = np.concatenate(points)
-    return pts[:: max(1, len(pts) // PREVIEW_POINTS)]
-
-
-def _mesh_figure(r: RunRecord, out_path: Path) -> Path | None:
-    """The run's final mesh (eval/reconstruction.ply) rendered from MESH_AZIMUTHS around its
-    region, from 0.8 region diagonals away and above (white where no surface is); None without a
-    mesh or a region."""
-    ply, roi = r.path / EVAL_DIR / MESH_FILE, _roi(r)
-    if not ply.is_file() or roi is None:
-        return None
-    mesh = import_open3d().io.read_triangle_mesh(str(ply))
-    if len(mesh.triangles) == 0:
-        return None
-    renderer = MeshRenderer(mesh)
-    lo, hi = roi
-    centre, reach = 0.5 * (lo + hi), 0.8 * float(np.linalg.norm(hi - lo))
-    w, h = MESH_RENDER_SIZE
-    K = np.array([[w / 2, 0, w / 2], [0, w / 2, h / 2], [0, 0, 1]])  # 90 degrees wide
-    images, titles = [], []
-    for azimuth in MESH_AZIMUTHS:
-        a = np.radians(azimuth)
-        eye = centre + reach * np.array([np.cos(a), np.sin(a), 0.7]) / np.linalg.norm([1, 0.7])
-        rgb, depth = renderer.render(K, look_at(eye, centre), w, h)
-        images.append(np.where(np.isfinite(depth)[..., None], rgb, 255).astype(np.uint8))
-        titles.append(f"from azimuth {azimuth} deg")
-    return plots.plot_images(images, titles, out_path, title=f"{r.label}: reconstruction")
-
-
-def _roi(r: RunRecord) -> tuple[np.ndarray, np.ndarray] | None:
-    """The region of interest the run's planner was given (its parameters in the episode's
-    config, {node: parameters}), None when the run does not say."""
-    cfg = r.episode.config.get("planner", r.episode.config)
-    if "roi_min" in cfg and "roi_max" in cfg:
-        return np.asarray(cfg["roi_min"], dtype=np.float64), np.asarray(
-            cfg["roi_max"], dtype=np.float64
-        )
-    return None
-
-
-def _slug(text: str) -> str:
-    return "".join(c if c.isalnum() else "_" for c in text)
 
 
 def _mesh_path(r: RunRecord, out_dir: Path) -> str:
@@ -362,7 +223,7 @@ def write_report(
     rows = aggregate(records)
     scenes, policies, cells, bold = _table(rows)
     whole = _table(rows, WHOLE_IMAGE_METRICS)[2:]
-    curves, timing_png = _figures(records, fig_dir) if records else ({}, None)
+    curves, timing_png = draw_figures(records, fig_dir) if records else ({}, None)
     md_path = out_dir / "report.md"
     html_path = out_dir / "report.html"
     md_path.write_text(

@@ -93,7 +93,7 @@ def test_the_readme_row_of_a_service_gives_its_type_and_server(service):
 
 
 def test_the_graph_nodes_read_what_the_mission_manager_waits_for():
-    from area3d_bringup.mission_manager import EXPECTED_READERS, READS
+    from area3d_bringup.mission_sync import EXPECTED_READERS, READS
 
     assert READS == {
         "sim_bridge": ("goal",),

@@ -9,7 +9,8 @@ import pytest
 
 from area3d_eval.evaluate import default_checkpoints, evaluate_run, image_metrics, reference_images
 from area3d_eval.render import MeshRenderer
-from area3d_eval.report import aggregate, hard_region_text, write_report
+from area3d_eval.report import aggregate, write_report
+from area3d_eval.report_figures import hard_region_text
 from area3d_eval.rundir import stopped_early
 from area3d_eval.synthetic import SyntheticRenderer, SyntheticScene, hemisphere_views, make_run
 
