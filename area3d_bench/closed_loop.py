@@ -66,8 +66,9 @@ def bench_closed_loop(
     load average over the run. `steps`: `CLOSED_LOOP_STEPS` of the scene's level by default."""
     from area3d_perception.sensor_model import rgbd_confidence
     from area3d_planner.config import PlannerConfig
-    from area3d_planner.scheduler import PlannerScheduler
-    from area3d_planner.server import CACHE_WAIT_S, PlanRequest
+    from area3d_planner.requests import PlanRequest
+    from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
+    from area3d_planner.server import CACHE_WAIT_S
     from sim_bridge.render import RgbdRenderer
     from sim_bridge.scenes import load_scene
 
@@ -79,7 +80,7 @@ def bench_closed_loop(
         budget=10**6,
         pipeline_masks=pipelined,
     )
-    server = PlannerScheduler(config, background=True)
+    server = PlannerScheduler(config, SchedulerConfig(refresh_interval_s=0.0))
     renderer = RgbdRenderer(scene)
     latencies, incremental, full, updated, changed = [], [], [], [], []
     try:

@@ -21,9 +21,9 @@ from area3d_bench.frames import object_frames
 from area3d_bench.planner_service import TARGET_ROUND_TRIP_P95_S
 from area3d_msgs_py.lifecycle import tune_process
 from area3d_perception.grid import GridSpec
+from area3d_planner.candidates import VisibilityParams
 from area3d_planner.fusion import FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy
-from area3d_planner.visibility import VisibilityParams
 
 TARGET_CACHE_S = 5.0
 TARGET_SELECT_S = 1.0
@@ -93,7 +93,7 @@ def bench_grid(
     and by plain greedy."""
     from dataclasses import replace
 
-    from area3d_planner.policies import PlanningContext
+    from area3d_planner.context import PlanningContext
 
     occ = grid.occupancy()
     context = PlanningContext(
@@ -181,12 +181,12 @@ def bench_server(requests: int = 50) -> dict:
     """In-process `PlannerScheduler.plan` for one closed-loop view with a warm cache (object
     level, the scene's initial views fused), and the background refresh after one more frame."""
     from area3d_planner.config import PlannerConfig
-    from area3d_planner.scheduler import PlannerScheduler
-    from area3d_planner.server import PlanRequest
+    from area3d_planner.requests import PlanRequest
+    from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
 
     scene, frames = object_frames()
     config = PlannerConfig(**{**planner_overrides(scene), "mode": "closed_loop", "budget": 10**6})
-    server = PlannerScheduler(config, background=True)
+    server = PlannerScheduler(config, SchedulerConfig(refresh_interval_s=0.0))
     try:
         t0 = time.perf_counter()
         for i, (depth, conf, K, T) in enumerate(frames):

@@ -125,7 +125,7 @@ def run_inprocess_episode(
 
 
 def _plan_request(T_world_cam: np.ndarray, stamp_ns: int) -> Any:
-    from area3d_planner.server import PlanRequest
+    from area3d_planner.requests import PlanRequest
 
     return PlanRequest(T_world_cam, stamp_ns, 1)
 

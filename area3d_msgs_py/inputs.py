@@ -120,3 +120,14 @@ def decode_camera_info(msg: Any, max_pixels: int = MAX_IMAGE_PIXELS) -> tuple[np
     if width * height > max_pixels:
         raise InputError("width x height", f"{width}x{height}", f"at most {max_pixels} pixels")
     return K, width, height
+
+
+def decode_frame_part(key: str, msg: Any) -> np.ndarray:
+    """A part of a frame from perception or semantics, decoded and checked: its frame id, its
+    encoding and its values: "color" rgb8 or bgr8, "depth" 32FC1 depth (`check_depth_values`),
+    any other key 32FC1 values in [0, 1] named by the key (confidence, semantic uncertainty)."""
+    check_frame_id(msg)
+    if key == "color":
+        return decode_image(msg, COLOR_ENCODINGS)
+    image = decode_image(msg, FLOAT_ENCODINGS)
+    return check_depth_values(image) if key == "depth" else check_unit_range(image, key)

@@ -46,10 +46,3 @@ def grid_to_cloud(grid: FusedGrid, field: np.ndarray | None = None) -> np.ndarra
     cloud["occupancy"] = occ[keep]
     cloud["hard"] = grid.hard(occ)[keep]
     return cloud
-
-
-def grid_to_msg(grid: FusedGrid, stamp_ns: int, frame_id: str = "world"):
-    """sensor_msgs/PointCloud2 of `grid_to_cloud(grid)` (area3d_msgs_py codecs)."""
-    from area3d_msgs_py.codecs import pointcloud_to_msg
-
-    return pointcloud_to_msg(grid_to_cloud(grid), stamp_ns, frame_id)

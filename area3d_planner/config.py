@@ -1,6 +1,7 @@
 """The planner's configuration: every parameter with its default and description
 (`PlannerConfig`), the paper's settings per level (`LEVEL_DEFAULTS`: |O_0|, T, gamma and ours),
-and the grid the configuration describes. No state: `server.py` builds the planner from it."""
+and the grid and planning context the configuration describes. No state: `server.py` builds the
+planner from it."""
 
 from __future__ import annotations
 
@@ -11,8 +12,11 @@ import numpy as np
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
 from area3d_perception.grid import GridSpec
-from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, NO_RETURN_RULES
-from area3d_planner.greedy import DECAY_REGIONS
+from area3d_planner.candidates import VisibilityParams
+from area3d_planner.context import PlanningContext
+from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, FusedGrid
+from area3d_planner.greedy import DECAY_REGIONS, GreedyParams
+from area3d_planner.observation import NO_RETURN_RULES
 from area3d_planner.policies import POLICIES, make_policy
 
 MODES = ("batch", "closed_loop")
@@ -393,3 +397,59 @@ class PlannerConfig:
 
     def resolved_initial_views(self) -> int:
         return int(self.initial_views) or LEVEL_DEFAULTS[self.resolved_level()]["initial_views"]
+
+    def fused_grid(self) -> FusedGrid:
+        """An empty evidence grid of this configuration."""
+        return FusedGrid(
+            self.grid_spec(),
+            self.roi_min,
+            self.roi_max,
+            self.resolved_gamma(),
+            self.unobserved_uncertainty,
+            self.semantic_weight,
+            self.geometric_rule,
+            self.max_confidence,
+            self.gain_rule,
+            self.retry_gain,
+            self.hard_min_directions,
+            self.hard_max_confidence,
+        )
+
+    def planning_context(self, grid: FusedGrid) -> PlanningContext:
+        """The planning context of this configuration over `grid`: its workspace, candidate views
+        (for the parameters' camera until a frame says otherwise) and greedy selection."""
+        level = self.resolved_level()
+        return PlanningContext(
+            grid=grid,
+            workspace_lo=np.asarray(self.workspace_min, float),
+            workspace_hi=np.asarray(self.workspace_max, float),
+            clearance=self.clearance,
+            visibility=VisibilityParams(
+                level=level,
+                shell_scales=tuple(float(v) for v in self.shell_scales),
+                fan_deg=self.fan_deg,
+                seed_spacing=self.seed_spacing,
+                yaw_bins=self.yaw_bins,
+                pitch_bins=self.pitch_bins,
+                hfov_deg=self.hfov_deg,
+                width=self.width,
+                height=self.height,
+                max_range=self.max_range,
+                face_res=self.face_res or LEVEL_DEFAULTS[level]["face_res"],
+                pixels_per_voxel=self.pixels_per_voxel or LEVEL_DEFAULTS[level]["pixels_per_voxel"],
+                unknown_occludes=self.unknown_occludes,
+                incidence=self.incidence,
+                range_profile=self.range_profile,
+                repeat_gain=self.repeat_gain,
+            ),
+            greedy=GreedyParams(
+                eta=self.eta,
+                w_dist=self.w_dist,
+                nms_radius=self.nms_radius,
+                nms_angle_deg=self.nms_angle_deg,
+                nms_centre_angle_deg=self.nms_centre_angle_deg,
+                range_sigma=self.range_sigma,
+                decay=self.decay,
+            ),
+            rng_seed=self.seed,
+        )

@@ -6,17 +6,19 @@ demand, so the planner can copy `fused()` and decay the copy while it selects vi
 
 from __future__ import annotations
 
-import threading
-from dataclasses import dataclass
-
-import cv2
 import numpy as np
 from numba import njit
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import backproject, pixel_to_world
-from area3d_perception.geometric import carve_depth_frame
+from area3d_perception.backproject import backproject
 from area3d_perception.grid import GridSpec
+from area3d_planner.observation import (
+    DIRECTION_BINS,
+    DepthObservation,
+    FrameObserver,
+    check_K,
+    check_pose,
+)
 
 # Log-odds of one occupied / one free observation (OctoMap defaults p_hit = 0.7, p_miss = 0.4).
 LOG_ODDS_HIT = float(np.log(0.7 / 0.3))
@@ -34,81 +36,10 @@ GEOMETRIC_RULES = ("product", "mean")
 GAIN_RULES = ("removable", "held")
 
 
-def _direction_bins(count: int) -> np.ndarray:
-    """(count, 3) unit vectors spread evenly over the sphere (Fibonacci lattice)."""
-    i = np.arange(count) + 0.5
-    z = 1.0 - 2.0 * i / count
-    r = np.sqrt(1.0 - z * z)
-    phi = i * np.pi * (3.0 - np.sqrt(5.0))
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
 # The depth backend's confidence by range, tallied in bins of this width (metres) from every hit;
 # a bin needs this many hits before it counts (else its nearest counted neighbour's value).
 RANGE_BIN = 0.1
 RANGE_BIN_MIN_HITS = 50
-
-# Directions a voxel is observed from, in bins about 45 degrees wide (one bit each of a uint32):
-# two views count as distinct directions when they fall into different bins.
-DIRECTION_BINS = _direction_bins(20)
-NO_RETURN_RULES = ("none", "regions", "all")
-# No-return pixels farther than this from any return (pixels) are open space (sky, a window, a
-# doorway beyond range); nearer ones are dropouts of a surface and carve nothing.
-NO_RETURN_REGION_PX = 6
-
-
-def _check_pose(T: np.ndarray, field: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputError(field, T if T.size <= 16 else T.shape, "a finite (4, 4) T_world_cam")
-    R = T[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-        raise InputError(field, R.tolist(), "a proper rotation in the upper-left 3x3 block")
-    return T
-
-
-def _check_K(K: np.ndarray) -> np.ndarray:
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(
-            "K", K.tolist() if K.size == 9 else K.shape, "3x3 intrinsics with fx, fy > 0"
-        )
-    return K
-
-
-def _no_return_carving(depth: np.ndarray, rule: str) -> bool | np.ndarray:
-    """What `carve_depth_frame` may carve along no-return pixels under `rule` (see integrate_depth)."""
-    if rule != "regions":
-        return rule == "all"
-    returns = np.isfinite(depth).astype(np.uint8)
-    size = 2 * NO_RETURN_REGION_PX + 1
-    near_return = cv2.dilate(returns, np.ones((size, size), np.uint8)) > 0
-    return ~near_return
-
-
-def direction_bits(centres: np.ndarray, camera: np.ndarray) -> np.ndarray:
-    """(K,) uint32: one bit per voxel, the `DIRECTION_BINS` bin of the direction from each voxel
-    centre (K, 3) to the camera centre (3,) (or to its own point of (K, 3))."""
-    d = np.asarray(camera, np.float64) - np.asarray(centres, np.float64)
-    bins = np.argmax(d @ DIRECTION_BINS.T, axis=1)
-    return np.left_shift(np.uint32(1), bins.astype(np.uint32))
-
-
-@dataclass(frozen=True)
-class DepthObservation:
-    """One frame's evidence: hit voxel ids (ascending) with the frame's mean confidence and
-    log(1 - capped confidence) in each, and the bit of the direction they were seen from; the ids
-    of voxels its rays crossed as free; and the region voxels it looked at without a return
-    (`missed`: in view, within range, their pixel has no depth) with their direction bits."""
-
-    hit: np.ndarray  # (M,) int64
-    confidence: np.ndarray  # (M,) float32
-    log_residual: np.ndarray  # (M,) float32
-    free: np.ndarray  # (F,) int64
-    hit_bits: np.ndarray | None = None  # (M,) uint32
-    hit_range: np.ndarray | None = None  # (M,) float32 metres: optical depth of each hit voxel
-    missed: np.ndarray | None = None  # (K,) int64
-    missed_bits: np.ndarray | None = None  # (K,) uint32
 
 
 class FusedGrid:
@@ -205,10 +136,10 @@ class FusedGrid:
         self.roi_centres = np.ascontiguousarray(centers[self.roi_ids])
         self.frames = 0
         self.semantic_frames = 0
-        # one frame's per-voxel tallies, allocated once and cleared after each frame (see
-        # `_FrameScratch`); one frame at a time
-        self._scratch: _FrameScratch | None = None
-        self._scratch_lock = threading.Lock()
+        # what a frame tells the grid, from its layout alone (scratch tallies allocated once)
+        self._observer = FrameObserver(
+            self.spec, self.roi_ids, self.roi_centres, self.max_confidence
+        )
 
     # ------------------------------------------------------------------ integration
     def integrate_depth(
@@ -248,97 +179,7 @@ class FusedGrid:
         NO_RETURN_REGION_PX from any return: sky, open space beyond range); an isolated dropout of
         a real sensor (dark, specular or grazing surface, noise) is not empty space.
         """
-        if no_return not in NO_RETURN_RULES:
-            raise InputError("no_return", no_return, f"one of {', '.join(NO_RETURN_RULES)}")
-        depth = np.asarray(depth)
-        conf = np.asarray(conf)
-        if depth.ndim != 2:
-            raise InputError("depth", depth.shape, "an (H, W) float32 image")
-        if conf.shape != depth.shape:
-            raise InputError("confidence", conf.shape, f"the depth image shape {depth.shape}")
-        K = _check_K(K)
-        T = _check_pose(T_world_cam, "T_world_cam")
-        if not (max_range > 0 and np.isfinite(max_range)):
-            raise InputError("max_range", max_range, "a finite value > 0 metres")
-        if int(stride) < 1:
-            raise InputError("stride", stride, "an integer >= 1")
-        stride = int(stride)
-        depth = np.ascontiguousarray(depth, dtype=np.float32)
-        conf = np.ascontiguousarray(conf)
-        with self._scratch_lock:
-            if self._scratch is None:
-                self._scratch = _FrameScratch(self.spec)
-            scratch = self._scratch
-            try:
-                # Surface hits: every pixel with a return and a confidence, back-projected
-                # (X = T D K^-1 x) into its voxel; each voxel's sample is the mean confidence
-                # of its pixels. One pass, tallied in the scratch, not arrays of every pixel.
-                touched = _tally_surface_hits(
-                    depth,
-                    conf,
-                    float(K[0, 0]),
-                    float(K[1, 1]),
-                    float(K[0, 2]),
-                    float(K[1, 2]),
-                    T,
-                    self.spec.lower,
-                    float(self.spec.voxel_size),
-                    np.asarray(self.spec.shape, np.int64),
-                    scratch.pixels,
-                    scratch.conf_sum,
-                    scratch.touched,
-                )
-                hit = np.sort(scratch.touched[:touched])
-                frame_conf = scratch.conf_sum[hit] / scratch.pixels[hit]
-                # Free space: the perception package's carving (the one DDA for camera rays),
-                # counted once per voxel per frame here; pixels with no return carve out to
-                # max_range. A voxel hit in this frame is not free in it.
-                carve_depth_frame(
-                    self.spec,
-                    depth,
-                    K,
-                    T,
-                    scratch.crossed,
-                    stride,
-                    max_range,
-                    carve_no_return=_no_return_carving(depth, no_return),
-                    count=False,  # crossed or not: the rays run in parallel
-                )
-                crossed = np.flatnonzero(scratch.crossed)
-                free = crossed[scratch.pixels[crossed] == 0]
-                # Region voxels in view whose pixel has no depth: looked at, not resolved
-                # (neither hit nor carved), e.g. a glossy or blank surface without a return.
-                missed_at = _unresolved_in_view(
-                    depth,
-                    float(K[0, 0]),
-                    float(K[1, 1]),
-                    float(K[0, 2]),
-                    float(K[1, 2]),
-                    np.ascontiguousarray(np.linalg.inv(T)),
-                    self.roi_centres,
-                    float(max_range),
-                    scratch.pixels,
-                    scratch.crossed.reshape(-1),
-                    self.roi_ids,
-                )
-                missed = self.roi_ids[missed_at]
-            except BaseException:
-                scratch.reset()  # a frame that fails part way leaves nothing behind
-                raise
-            scratch.clear(hit, crossed)
-        capped = np.minimum(frame_conf, self.max_confidence)
-        camera = T[:3, 3]
-        hit_centres = self.spec.centers_of(hit)
-        return DepthObservation(
-            hit=hit,
-            confidence=frame_conf.astype(np.float32),
-            log_residual=np.log1p(-capped).astype(np.float32),
-            free=free,
-            hit_bits=direction_bits(hit_centres, camera),
-            hit_range=((hit_centres - camera) @ T[:3, 2]).astype(np.float32),
-            missed=missed,
-            missed_bits=direction_bits(self.roi_centres[missed_at], camera),
-        )
+        return self._observer.observe(depth, conf, K, T_world_cam, max_range, stride, no_return)
 
     def apply_depth(self, observation: DepthObservation) -> None:
         """Add one frame's observation (from `observe_depth` on this grid) to the evidence."""
@@ -376,8 +217,8 @@ class FusedGrid:
             raise InputError(
                 "semantic_uncertainty", u_sem.shape, f"the depth image shape {depth.shape}"
             )
-        K = _check_K(K)
-        T = _check_pose(T_world_cam, "T_world_cam")
+        K = check_K(K)
+        T = check_pose(T_world_cam, "T_world_cam")
         n = self.spec.num_voxels
         points, pixel = backproject(depth.astype(np.float32, copy=False), K, T)
         u = u_sem.reshape(-1)[pixel].astype(np.float64)
@@ -600,99 +441,3 @@ def _occupancy(hit_count, free_count, hit, miss):  # pragma: no cover - compiled
         else:
             out[i] = UNKNOWN
     return out
-
-
-class _FrameScratch:
-    """Per-voxel tallies of one frame, allocated once per grid and cleared after each frame.
-
-    A frame's fusion used to allocate arrays of every pixel (points, indices, masks: megabytes
-    each) and of every voxel (two bincounts) per frame: 20-30 ms of a 10 Hz stream went to
-    allocating, filling and freeing them, and the heap they cycled through fragmented."""
-
-    def __init__(self, spec: GridSpec) -> None:
-        n = spec.num_voxels
-        self.pixels = np.zeros(n, np.int32)  # the frame's pixels that landed in each voxel
-        self.conf_sum = np.zeros(n, np.float64)  # ... and the sum of their confidences
-        self.touched = np.empty(n, np.int64)  # the voxels with pixels, in first-touch order
-        self.crossed = np.zeros(spec.shape, np.uint8)  # voxels the frame's rays crossed
-
-    def clear(self, hit: np.ndarray, crossed: np.ndarray) -> None:
-        """Zero what a frame wrote: its hit voxels and the voxels its rays crossed."""
-        self.pixels[hit] = 0
-        self.conf_sum[hit] = 0.0
-        self.crossed.reshape(-1)[crossed] = 0
-
-    def reset(self) -> None:
-        self.pixels.fill(0)
-        self.conf_sum.fill(0.0)
-        self.crossed.fill(0)
-
-
-@njit(cache=True, nogil=True)
-def _unresolved_in_view(
-    depth, fx, fy, cx, cy, T_cam_world, centres, max_range, pixels, crossed, ids
-):  # pragma: no cover - compiled
-    """Positions (into `centres` (K, 3), flat voxel `ids` (K,)) of the voxels in front of the
-    camera, within max_range, inside the image, whose centre's pixel has no finite depth and
-    which the frame neither hit (`pixels` of the voxel 0) nor carved (`crossed` 0)."""
-    h, w = depth.shape
-    out = np.empty(centres.shape[0], np.int64)
-    count = 0
-    for k in range(centres.shape[0]):
-        x, y, z = centres[k, 0], centres[k, 1], centres[k, 2]
-        zc = T_cam_world[2, 0] * x + T_cam_world[2, 1] * y + T_cam_world[2, 2] * z
-        zc += T_cam_world[2, 3]
-        if not (zc > 0 and zc <= max_range):
-            continue
-        xc = T_cam_world[0, 0] * x + T_cam_world[0, 1] * y + T_cam_world[0, 2] * z
-        yc = T_cam_world[1, 0] * x + T_cam_world[1, 1] * y + T_cam_world[1, 2] * z
-        u = np.floor(fx * (xc + T_cam_world[0, 3]) / zc + cx)
-        v = np.floor(fy * (yc + T_cam_world[1, 3]) / zc + cy)
-        if not (0 <= u < w and 0 <= v < h):
-            continue
-        if np.isfinite(depth[int(v), int(u)]):
-            continue
-        voxel = ids[k]
-        if pixels[voxel] == 0 and crossed[voxel] == 0:
-            out[count] = k
-            count += 1
-    return out[:count]
-
-
-@njit(cache=True, nogil=True)
-def _tally_surface_hits(
-    depth, conf, fx, fy, cx, cy, T, lower, voxel_size, shape, pixels, conf_sum, touched
-):  # pragma: no cover - compiled
-    """Back-project each pixel with a finite depth > 0 and a finite confidence (clipped to
-    [0, 1]) into its voxel (`pixel_to_world`, then the voxel rule of `GridSpec.flat_index`), and
-    tally pixels and confidence per voxel inside the grid; returns how many voxels it touched
-    (their ids in touched[:count]). Reads only its inputs and the scratch, so it releases the
-    GIL."""
-    h, w = depth.shape
-    point = np.empty(3, np.float64)
-    count = 0
-    for v in range(h):
-        for u in range(w):
-            d = np.float64(depth[v, u])
-            if not (np.isfinite(d) and d > 0):
-                continue
-            c = np.float64(conf[v, u])
-            if not np.isfinite(c):
-                continue
-            pixel_to_world(u, v, d, fx, fy, cx, cy, T, point)
-            index = 0
-            inside = True
-            for a in range(3):
-                x = np.floor((point[a] - lower[a]) / voxel_size)
-                if not (np.isfinite(x) and 0 <= x < shape[a]):
-                    inside = False
-                    break
-                index = index * shape[a] + int(x)
-            if not inside:
-                continue
-            if pixels[index] == 0:
-                touched[count] = index
-                count += 1
-            pixels[index] += 1
-            conf_sum[index] += min(max(c, 0.0), 1.0)
-    return count

@@ -18,9 +18,10 @@ from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.grid import GridSpec
+from area3d_planner.candidates import VisibilityParams, orientation_bins
 from area3d_planner.lazy import lazy_select
 from area3d_planner.masks import decay_view
-from area3d_planner.visibility import VisibilityCache, VisibilityParams, orientation_bins
+from area3d_planner.visibility import VisibilityCache
 
 DECAY_REGIONS = ("frustum", "visible")
 

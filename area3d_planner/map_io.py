@@ -23,7 +23,7 @@ import numpy as np
 
 from area3d_msgs_py import mapfile
 from area3d_msgs_py.errors import InputError
-from area3d_planner.policies import SelectedViews
+from area3d_planner.context import SelectedViews
 from area3d_planner.server import CachedFrame
 
 CONTENT = "planner"

@@ -18,8 +18,10 @@ from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from area3d_msgs_py import codecs
+from area3d_msgs_py import codecs, msgs
 from area3d_msgs_py.errors import InputError
+from area3d_planner.cloud import grid_to_cloud
+from area3d_planner.hard_regions import cloud_hard_regions
 
 VIEWS_NS = "planned_views"
 HARD_REGIONS_NS = "hard_regions"
@@ -138,3 +140,27 @@ def hard_region_markers(
             )
         )
     return MarkerArray(markers=markers)
+
+
+def grid_messages(grid, stamp_ns: int, frame_id: str, regions_max: int) -> tuple:
+    """What the planner publishes of its grid, stamped `stamp_ns` in `frame_id`: the uncertainty
+    grid (sensor_msgs/PointCloud2), its hard regions, the `regions_max` largest
+    (HardRegionArray), their boxes (MarkerArray), and how many hard regions there are in all."""
+    cloud = grid_to_cloud(grid)
+    regions = cloud_hard_regions(cloud, grid)
+    shown = regions[:regions_max]
+    return (
+        codecs.pointcloud_to_msg(cloud, stamp_ns, frame_id),
+        codecs.hard_regions_to_msg(shown, stamp_ns, frame_id),
+        hard_region_markers(shown["centroid"], shown["extent"], frame_id, stamp_ns),
+        len(regions),
+    )
+
+
+def views_path(poses: Sequence, frame_id: str, stamp_ns: int) -> msgs.Path:
+    """Views (4x4 T_world_cam) as nav_msgs/Path in `frame_id`."""
+    header = codecs.header(stamp_ns, frame_id)
+    return msgs.Path(
+        header=header,
+        poses=[msgs.PoseStamped(header=header, pose=codecs.matrix_to_pose(T)) for T in poses],
+    )

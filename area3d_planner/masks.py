@@ -4,7 +4,7 @@ decaying the field on one view's mask.
 A mask set is the tuple `masks = (indptr, ids, weights, range_bins, direction_bins)`: the entries of
 view v are k in indptr[v]:indptr[v+1], voxel ids[k] (int32) with its geometric weight weights[k]
 (float64, the share of a full observation the view's resolution gives it), the range bin of its
-optical depth (`fusion.RANGE_BIN` metres each) and the `fusion.DIRECTION_BINS` row of the direction
+optical depth (`fusion.RANGE_BIN` metres each) and the `observation.DIRECTION_BINS` row of the direction
 from the voxel to the camera (uint8). The evidence the fused frames give, `evidence = (directions,
 profile, repeat_gain)`, weighs each entry when a view is scored, so the masks depend on the map's
 geometry alone: directions (N,) uint32 the bins each voxel was already observed from

@@ -21,6 +21,7 @@ import time
 import traceback
 from collections.abc import Sequence
 from dataclasses import fields
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -32,11 +33,7 @@ from area3d_msgs_py import codecs, map_files, msgs, qos, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded, reject
 from area3d_msgs_py.inputs import (
-    FLOAT_ENCODINGS,
-    check_depth_values,
-    check_frame_id,
-    check_unit_range,
-    decode_image,
+    decode_frame_part,
 )
 from area3d_msgs_py.keyframes import KeyframeConfig
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
@@ -56,12 +53,11 @@ from area3d_msgs_py.posed_frames import PosedFrames
 from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
 from area3d_planner import map_io
-from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.config import PlannerConfig
-from area3d_planner.hard_regions import cloud_hard_regions
-from area3d_planner.markers import hard_region_markers, view_markers
-from area3d_planner.scheduler import PlannerScheduler
-from area3d_planner.server import NextBestViewServer, Plan, PlanRequest
+from area3d_planner.markers import grid_messages, view_markers, views_path
+from area3d_planner.requests import Plan, PlanRequest
+from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
+from area3d_planner.server import NextBestViewServer
 
 # Service requests and frame callbacks run on separate threads: a request waits for the frame it
 # names to be fused, which needs the frame callbacks to keep running.
@@ -82,34 +78,13 @@ PARAMS = (
         read_only=False,
         range=(0.0, 600.0),
     ),
-    Param("eager_cache", True, "rebuild seeds and visibility masks right after each fused frame"),
-    Param(
-        "refresh_interval_s",
-        0.5,
-        "eager rebuilds start at most this often unless a request waits for one, seconds",
-        range=(0.0, 60.0),
-    ),
-    Param(
-        "mask_lag_s",
-        0.0,
-        "a request plans from masks built up to this long (in capture time) before its frame "
-        "instead of waiting for a rebuild; 0 = masks that cover its frame (a streaming camera: "
-        "0.5), seconds",
-        range=(0.0, 60.0),
-    ),
+    *params_of(SchedulerConfig),
     Param(
         "grid_period_s",
         1.0,
         "while frames wait for fusion, the grid goes out at most this often (it goes out after "
         "every frame otherwise, and once fusion has caught up), seconds",
         range=(0.0, 3600.0),
-    ),
-    Param(
-        "rebuild_nice",
-        0,
-        "the background rebuild runs this much nicer (lower CPU priority) than the node, so "
-        "fusion comes first (a streaming camera with mask_lag_s > 0: 10); 0 = the same, nice levels",
-        range=(0, 19),
     ),
     # Perception's output for a frame can trail the camera's pose by seconds (first frames, a
     # feed-forward model on CPU), so parts wait this long for their partners.
@@ -155,14 +130,8 @@ class PlannerNode(Node):
         self.gate = PublishGate(self.context.ok)
         # Rebuild seeds and visibility masks in a worker right after each fused frame, so that a
         # request only waits for a rebuild in flight and then plans from the cached masks.
-        self._new_map = lambda: PlannerScheduler(
-            config,
-            background=p["eager_cache"],
-            on_refresh=self._on_refresh,
-            refresh_interval_s=p["refresh_interval_s"],
-            mask_lag_s=p["mask_lag_s"],
-            rebuild_nice=p["rebuild_nice"],
-        )
+        scheduling = SchedulerConfig(**{f.name: p[f.name] for f in fields(SchedulerConfig)})
+        self._new_map = lambda: PlannerScheduler(config, scheduling, self._on_refresh)
         self.scheduler = self._new_map()
         self.resets = 0  # area3d/planner/reset calls served
         # view requests answered (the status after one carries its `last_request_s`)
@@ -203,8 +172,8 @@ class PlannerNode(Node):
         self.inputs = PosedFrames(
             self,
             {
-                "depth": (topics.PERCEPTION_DEPTH, lambda m: self._decode("depth", m)),
-                "confidence": (topics.PERCEPTION_CONFIDENCE, lambda m: self._decode("confidence", m)),
+                "depth": (topics.PERCEPTION_DEPTH, partial(decode_frame_part, "depth")),
+                "confidence": (topics.PERCEPTION_CONFIDENCE, partial(decode_frame_part, "confidence")),
             },
             p, self.rejections, self._fuse, self.status.changed, callback_group=frames,
         )  # fmt: skip
@@ -271,9 +240,6 @@ class PlannerNode(Node):
             },
             "rejected": self.rejections.snapshot(),
         }
-
-    def _stamp(self, msg) -> int:
-        return self.inputs.stamp(msg)
 
     def _on_refresh(self) -> None:
         with self.gate as running:  # called by the rebuild worker too
@@ -360,13 +326,6 @@ class PlannerNode(Node):
             f"{self.scheduler.core.remaining_budget()} views remain",
         )  # fmt: skip
 
-    def _decode(self, key: str, msg) -> np.ndarray:
-        check_frame_id(msg)
-        image = decode_image(msg, FLOAT_ENCODINGS)
-        if key == "depth":
-            return check_depth_values(image)
-        return check_unit_range(image, key)
-
     def _fuse(self, stamp: int, frame: dict, K: np.ndarray) -> None:
         """Hand a whole frame to the fusion worker; one that finds its backlog full is dropped,
         logged and counted (`frames_dropped_backlog`)."""
@@ -413,24 +372,19 @@ class PlannerNode(Node):
                 self.status.publish()
 
     def _on_semantic(self, msg) -> None:
-        stamp = self._stamp(msg)
-        check_frame_id(msg)
-        u_sem = check_unit_range(decode_image(msg, FLOAT_ENCODINGS), "semantic uncertainty")
+        stamp = self.inputs.stamp(msg)
+        u_sem = decode_frame_part("semantic uncertainty", msg)
         if self.scheduler.add_semantic(stamp, u_sem):
             self._publish_state(stamp)
 
     def _publish_state(self, stamp_ns: int) -> None:
         """The grid, its hard regions (boxes too) and the status, stamped with the last frame."""
-        grid = self.scheduler.core.grid
-        cloud = grid_to_cloud(grid)
-        self.grid_pub.publish(codecs.pointcloud_to_msg(cloud, stamp_ns, self.world_frame))
-        regions = cloud_hard_regions(cloud, grid)
-        self.hard_regions = len(regions)
-        shown = regions[: self.hard_regions_max]
-        self.hard_pub.publish(codecs.hard_regions_to_msg(shown, stamp_ns, self.world_frame))
-        self.hard_markers_pub.publish(
-            hard_region_markers(shown["centroid"], shown["extent"], self.world_frame, stamp_ns)
+        cloud, regions, boxes, self.hard_regions = grid_messages(
+            self.scheduler.core.grid, stamp_ns, self.world_frame, self.hard_regions_max
         )
+        self.grid_pub.publish(cloud)
+        self.hard_pub.publish(regions)
+        self.hard_markers_pub.publish(boxes)
         self.status.publish()
 
     def _on_request(self, request: msgs.GetPlan_Request, response: msgs.GetPlan_Response):
@@ -449,7 +403,7 @@ class PlannerNode(Node):
             _, response.plan = self._serve("next_best_view", PlanRequest(start, stamp, count))
         except Exception as exc:  # an empty plan, and the node keeps serving
             self.get_logger().error(f"next_best_view: request failed: {exc}")
-            response.plan = self._path([], self._now_ns())
+            response.plan = views_path([], self.world_frame, self._now_ns())
         return response
 
     def _on_select_views(self, request, response):
@@ -483,14 +437,6 @@ class PlannerNode(Node):
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _path(self, poses: list, stamp_ns: int) -> msgs.Path:
-        """The views as nav_msgs/Path in world_frame."""
-        header = codecs.header(stamp_ns, self.world_frame)
-        return msgs.Path(
-            header=header,
-            poses=[msgs.PoseStamped(header=header, pose=codecs.matrix_to_pose(T)) for T in poses],
-        )
-
     def _serve(self, service: str, request: PlanRequest) -> tuple[Plan, msgs.Path]:
         """Wait for the request's frame, plan, publish the views (the Path returned) and their
         markers."""
@@ -523,7 +469,7 @@ class PlannerNode(Node):
     def _publish_views(self, poses: list, server: NextBestViewServer) -> msgs.Path:
         """The views on next_views and as frustums on view_markers (none: both cleared)."""
         now = self._now_ns()
-        path = self._path(poses, now)
+        path = views_path(poses, self.world_frame, now)
         self.views_pub.publish(path)
         hfov_deg, width, height = server.camera()
         self.markers_pub.publish(

@@ -1,6 +1,6 @@
 """The planner node's scheduling around its synchronous core (`server.NextBestViewServer`): a
 request waits for its frame and for masks that cover it, plans run one at a time, and with
-`background=True` the masks are rebuilt on a thread of their own after the map changes
+`eager_cache` the masks are rebuilt on a thread of their own after the map changes
 (`area3d_msgs_py.scheduling.BackgroundSteps`). No ROS here.
 
 With `refresh_interval_s` > 0 a rebuild starts at most that often while no request waits for one:
@@ -15,38 +15,68 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
+from area3d_msgs_py.param_fields import described
 from area3d_msgs_py.scheduling import BackgroundSteps, StateWaits
 from area3d_planner.config import PlannerConfig
-from area3d_planner.server import CACHE_WAIT_S, NextBestViewServer, Plan, PlanRequest
+from area3d_planner.requests import Plan, PlanRequest
+from area3d_planner.server import CACHE_WAIT_S, NextBestViewServer
 
 REBUILD_THREAD = "planner-cache-refresh"
 
 
+@dataclass
+class SchedulerConfig:
+    """When the planner rebuilds its masks and how long a request waits for them (the planner
+    node's parameters)."""
+
+    eager_cache: bool = described(
+        True, "rebuild seeds and visibility masks right after each fused frame"
+    )
+    refresh_interval_s: float = described(
+        0.5, "eager rebuilds start at most this often unless a request waits for one", "seconds",
+        range=(0.0, 60.0),
+    )  # fmt: skip
+    mask_lag_s: float = described(
+        0.0,
+        "a request plans from masks built up to this long (in capture time) before its frame "
+        "instead of waiting for a rebuild; 0 = masks that cover its frame (a streaming camera: "
+        "0.5)",
+        "seconds",
+        range=(0.0, 60.0),
+    )
+    rebuild_nice: int = described(
+        0,
+        "the background rebuild runs this much nicer (lower CPU priority) than the node, so "
+        "fusion comes first (a streaming camera with mask_lag_s > 0: 10); 0 = the same",
+        "nice levels",
+        range=(0, 19),
+    )
+
+
 class PlannerScheduler:
-    """`core`: the map and the planning; this: when they run. `on_refresh` (optional) is called
-    from the rebuild thread after each rebuild. Call `close()` to stop it."""
+    """`core`: the map and the planning; this: when they run (`scheduling`). `on_refresh`
+    (optional) is called from the rebuild thread after each rebuild. Call `close()` to stop it."""
 
     def __init__(
         self,
         config: PlannerConfig,
-        background: bool = False,
+        scheduling: SchedulerConfig | None = None,
         on_refresh: Callable[[], None] | None = None,
-        refresh_interval_s: float = 0.0,
-        mask_lag_s: float = 0.0,
-        rebuild_nice: int = 0,
     ) -> None:
-        self.core = NextBestViewServer(config, background=background, mask_lag_s=mask_lag_s)
+        s = scheduling or SchedulerConfig()
+        self.core = NextBestViewServer(config, background=s.eager_cache, mask_lag_s=s.mask_lag_s)
         self._plan_lock = threading.Lock()  # plans one at a time
-        if background:
+        if s.eager_cache:
             self.waits: StateWaits = BackgroundSteps(
                 self.core.rebuild_due,
                 self.core.rebuild,
                 REBUILD_THREAD,
-                interval_s=refresh_interval_s,
-                nice=rebuild_nice,
+                interval_s=s.refresh_interval_s,
+                nice=s.rebuild_nice,
                 warm_up=self.core.warm_up,
                 after=on_refresh,
             )

@@ -5,7 +5,9 @@ semantic maps arriving later can be back-projected with their own depth and pose
 and visibility masks, and answers plan requests with `(poses, reason)`: an empty pose list always
 comes with the reason. Everything runs when it is called, on the caller's thread; a lock keeps
 the map consistent when the node calls it from several (fusion, requests, the rebuild). Waiting
-for a frame or for masks, and rebuilding in the background: `area3d_planner/scheduler.py`.
+for a frame or for masks, and rebuilding in the background: `scheduler.py`; the masks' versions
+and rebuilds: `rebuilds.py`; requests, answers and their checks: `requests.py`; the grid and
+planning context a configuration describes: `config.py`.
 """
 
 from __future__ import annotations
@@ -14,69 +16,21 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
-from typing import NamedTuple
 
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
-from area3d_planner.config import LEVEL_DEFAULTS, MODES, PlannerConfig
+from area3d_planner.config import PlannerConfig
+from area3d_planner.context import SelectedViews
 from area3d_planner.fusion import FusedGrid
-from area3d_planner.greedy import GreedyParams, warm_up_kernels
-from area3d_planner.policies import PlanningContext, SelectedViews, make_policy
-from area3d_planner.visibility import VisibilityParams
+from area3d_planner.policies import make_policy
+from area3d_planner.rebuilds import MaskRebuilds
+from area3d_planner.requests import Plan, PlanRequest, PlanTicket, check_request, repeats_note
 
 CACHE_WAIT_S = 120.0  # a request waits at most this long for the background rebuild of the masks
 # A camera's field of view within this of the planner's (degrees) is the same camera: the
 # intrinsics of a 90 degree camera, fx = (W / 2) / tan(45 deg), give back 90 to within 1e-13.
 CAMERA_FOV_EPS = 1e-6
-
-
-@dataclass
-class PlanRequest:
-    """A next-best-view request: current camera pose, the stamp of the last captured frame
-    (0 = do not wait), how many views (0 = all that the remaining budget allows in batch mode,
-    one in closed loop) and the mode ("" = the planner's `mode`)."""
-
-    start: np.ndarray | None
-    stamp_ns: int = 0
-    num_views: int = 0
-    mode: str = ""
-
-
-class Plan(NamedTuple):
-    """A request's answer: poses (T_world_cam, optical frame) best first, the predicted gain of
-    each (`SelectedViews`), the reason when there are none ("" when all is well), and with views
-    what the caller should know about them (`note`: a view handed out before, the map lacking
-    the request's frame; "" when nothing)."""
-
-    poses: list
-    gains: list
-    reason: str
-    note: str = ""
-
-
-def _alike(T: np.ndarray, U: np.ndarray, radius: float, angle_deg: float) -> bool:
-    """Two camera poses within `radius` metres of each other looking within `angle_deg`."""
-    T, U = np.asarray(T, float), np.asarray(U, float)
-    if np.linalg.norm(T[:3, 3] - U[:3, 3]) > radius:
-        return False
-    cos = float(np.clip(T[:3, 2] @ U[:3, 2], -1.0, 1.0))
-    return np.degrees(np.arccos(cos)) <= angle_deg
-
-
-@dataclass
-class PlanTicket:
-    """A request checked and counted (`begin_plan`), before its masks are waited for: what it
-    wants, and the map versions whose masks it plans from."""
-
-    request: PlanRequest
-    want: int
-    remaining: int
-    closed_loop: bool
-    target: int  # the map version that holds the request's frame
-    pipelines: bool  # planned from the masks of the previous request's frame (`pipeline_masks`)
-    base: int  # that frame's map version when those masks are to be waited for (0: none)
-    started: float  # time.perf_counter() when the request was checked
 
 
 @dataclass
@@ -89,7 +43,7 @@ class CachedFrame:
 
 
 @dataclass
-class NextBestViewServer:
+class NextBestViewServer(MaskRebuilds):
     """Planner state. With `background=True` seeds, visibility masks and the utility field are
     rebuilt by `rebuild()` calls after the map changed (a scheduler's thread: bursts of frames
     coalesce into one rebuild), and a request plans from the masks in place: its caller waits for
@@ -123,60 +77,13 @@ class NextBestViewServer:
     def __post_init__(self) -> None:
         c = self.config
         c.validate()
-        level = c.resolved_level()
         self.budget = c.resolved_budget()
         self.initial_limit = c.resolved_initial_views()
         # every view handed out: (pose, request stamp), to say when one repeats (`_repeats`)
         self._answered: list[tuple[np.ndarray, int]] = []
         self._fused_order: list[int] = []  # fused stamps in fusion order (context.camera_poses')
-        self.grid = FusedGrid(
-            c.grid_spec(),
-            c.roi_min,
-            c.roi_max,
-            c.resolved_gamma(),
-            c.unobserved_uncertainty,
-            c.semantic_weight,
-            c.geometric_rule,
-            c.max_confidence,
-            c.gain_rule,
-            c.retry_gain,
-            c.hard_min_directions,
-            c.hard_max_confidence,
-        )
-        self.context = PlanningContext(
-            grid=self.grid,
-            workspace_lo=np.asarray(c.workspace_min, float),
-            workspace_hi=np.asarray(c.workspace_max, float),
-            clearance=c.clearance,
-            visibility=VisibilityParams(
-                level=level,
-                shell_scales=tuple(float(v) for v in c.shell_scales),
-                fan_deg=c.fan_deg,
-                seed_spacing=c.seed_spacing,
-                yaw_bins=c.yaw_bins,
-                pitch_bins=c.pitch_bins,
-                hfov_deg=c.hfov_deg,
-                width=c.width,
-                height=c.height,
-                max_range=c.max_range,
-                face_res=c.face_res or LEVEL_DEFAULTS[level]["face_res"],
-                pixels_per_voxel=c.pixels_per_voxel or LEVEL_DEFAULTS[level]["pixels_per_voxel"],
-                unknown_occludes=c.unknown_occludes,
-                incidence=c.incidence,
-                range_profile=c.range_profile,
-                repeat_gain=c.repeat_gain,
-            ),
-            greedy=GreedyParams(
-                eta=c.eta,
-                w_dist=c.w_dist,
-                nms_radius=c.nms_radius,
-                nms_angle_deg=c.nms_angle_deg,
-                nms_centre_angle_deg=c.nms_centre_angle_deg,
-                range_sigma=c.range_sigma,
-                decay=c.decay,
-            ),
-            rng_seed=c.seed,
-        )
+        self.grid = c.fused_grid()
+        self.context = c.planning_context(self.grid)
         self.context.visibility.validate()
         self.context.greedy.validate()
         self.policy = make_policy(c.policy)
@@ -342,154 +249,6 @@ class NextBestViewServer:
             f"{last}, {(stamp_ns - last) / 1e9:.2f} s older"
         )
 
-    def rebuild_after_load(self) -> None:
-        """Masks for a map `map_io.restore` put in place (lock held): first those of the map at
-        the last closed-loop request's frame, which the next request plans from
-        (`pipeline_masks`), then the current map's; by `rebuild` in the background, or the first
-        now without it (the current map's then at the first request, as always)."""
-        self.context.invalidate()
-        base = self._base_map
-        if base is None or base[0] != self._pipeline_base or not self._pipelines():
-            base = None
-        if self.background:
-            self._pipeline_map = base
-        elif base is not None:
-            kinds = () if self.policy.relevant is None else (self.policy.relevant,)
-            self._install(self.context.build(base[2], kinds))
-            self._cache_version, self._cache_stamp = base[0], base[1]
-
-    # ------------------------------------------------------------------ cache refresh
-    def cache_ready(self) -> bool:
-        """True when seeds and masks reflect every fused frame (always False before the first)."""
-        with self._lock:
-            if self._map_version == 0:
-                return False
-            if self.background:
-                return self._cache_version == self._map_version
-            return self.context._candidates is not None
-
-    def masks_target(self, stamp_ns: int = 0, version: int = 0) -> int | None:
-        """The map version whose masks (or a newer one's) cover the frame `stamp_ns` (0 or a stamp
-        not fused: every fused frame), or with `version` > 0 that version (`pipeline_masks`); None
-        when the masks in place will do: with `mask_lag_s` > 0, built from a map whose newest
-        frame is at most that much older than `stamp_ns`."""
-        with self._lock:
-            lag_ns = int(self.mask_lag_s * 1e9)
-            if lag_ns > 0 and self._cache_version > 0 and stamp_ns - self._cache_stamp <= lag_ns:
-                return None  # recent enough (`mask_lag_s`)
-            return version or self._stamp_version.get(int(stamp_ns), self._map_version)
-
-    def masks_cover(self, version: int) -> bool:
-        """The masks in place were built from map version `version` or a newer one."""
-        return self._cache_version >= version
-
-    def rebuild_due(self) -> str | None:
-        """What `rebuild` would do: "now" (the map at the last closed-loop request's frame waits:
-        the next request plans from its masks), "due" (the masks lag the map) or None."""
-        with self._lock:
-            kept = self._pipeline_map
-            if kept is not None and kept[0] <= self._cache_version:
-                kept = self._pipeline_map = None  # built already
-            if kept is not None:
-                return "now"
-            return "due" if self._map_version > self._cache_version else None
-
-    def warm_up(self) -> None:
-        """Load the compiled selection kernels (0.1-0.3 s), so that no request pays for it."""
-        if self.policy.relevant is not None:
-            warm_up_kernels()
-
-    def rebuild(self) -> bool:
-        """Rebuild seeds, visibility masks and, for the current map, the utility field: of the map
-        at the last closed-loop request's frame when one is kept (`pipeline_masks`), else of the
-        current map when the masks lag it; False when there was nothing to rebuild. The build
-        runs outside the map's lock on a snapshot of the occupancy, so frames are fused meanwhile.
-        A build that raises is counted (`rebuild_failures`) and the masks are left to the next
-        request to rebuild."""
-        kinds = () if self.policy.relevant is None else (self.policy.relevant,)
-        with self._lock:
-            kept = self._pipeline_map
-            self._pipeline_map = None
-            if kept is not None and kept[0] > self._cache_version:
-                version, stamp, occupancy = kept  # the map at the last request's frame
-            elif self._map_version > self._cache_version:
-                version, stamp = self._map_version, self.last_fused_stamp
-                occupancy = self.grid.occupancy()  # snapshot: fusion goes on meanwhile
-            else:
-                return False
-            self._building_version = version
-        started = time.perf_counter()
-        try:
-            built = self.context.build(occupancy, kinds)
-        except Exception as exc:  # noqa: BLE001 - the request path rebuilds and reports it
-            built = None
-            self._rebuild_failed(exc)
-        rebuild_s = time.perf_counter() - started
-        with self._lock:
-            if built is None:
-                self.context.invalidate()
-            else:
-                self._install(built)
-                if self.policy.relevant is not None and version == self._map_version:
-                    try:  # the field of the current evidence, ready for the next request
-                        self.context.policy_field(self.policy)
-                        self.context.evidence()
-                    except Exception as exc:  # noqa: BLE001 - reported by the request path
-                        self.context.invalidate_fields()
-                        self._rebuild_failed(exc)
-            self._cache_version = version
-            self._cache_stamp = stamp
-            self._building_version = 0
-            self.refresh_count += 1
-            reports = [cache.report for cache in built[1].values()] if built else []
-            self.last_rebuild = {"seconds": rebuild_s, "version": version}
-            self.last_rebuild |= reports[0] if reports else {}
-        return True
-
-    def _update_masks(self) -> None:
-        """Without the background worker: seeds and masks of the current map, built (updated
-        from the installed ones) and installed now (lock held)."""
-        kinds = () if self.policy.relevant is None else (self.policy.relevant,)
-        self._install(self.context.build(self.grid.occupancy(), kinds))
-        self._cache_version = self._map_version
-        self._cache_stamp = self.last_fused_stamp
-
-    def _install(self, built: tuple) -> None:
-        """Install seeds and masks made by `PlanningContext.build`; while masks are pipelined
-        the ones they replace are kept (with their map version) for the next request (lock
-        held)."""
-        if self._pipelines() and self._cache_version > 0:
-            self._previous_masks = (self._cache_version, self._cache_stamp, self.context.masks())
-        self.context.install(*built)
-
-    def _pipelines(self, request: PlanRequest | None = None) -> bool:
-        """Masks are pipelined (`pipeline_masks`, and no streaming camera's `mask_lag_s`, whose
-        rule on the masks' age in capture time applies instead); with `request`: and it is a
-        closed-loop request of a policy that selects from a snapshot."""
-        if not self.config.pipeline_masks or self.mask_lag_s > 0:
-            return False
-        if request is None:
-            return True
-        return (request.mode or self.config.mode) == "closed_loop" and self.policy.map_free
-
-    def _pipelined_masks(self, base: int) -> tuple[int, int, tuple | None]:
-        """For a pipelined request (`_pipelines`), the masks of the previous request's frame, map
-        version `base`: (their map version, the newest stamp in that map, (candidates, caches)
-        when they are the ones the installed masks replaced, None when installed); lock held,
-        with the background rebuild those masks were waited for."""
-        if not self.background and self._cache_version < base:
-            self._update_masks()  # frames came without a request between them: the newest
-        previous = self._previous_masks
-        if self._cache_version > base and previous is not None and previous[0] == base:
-            candidates, caches = previous[2]
-            if candidates is not None and self.policy.relevant in caches:
-                return previous
-        return self._cache_version, self._cache_stamp, None
-
-    def _rebuild_failed(self, exc: Exception) -> None:
-        self.rebuild_failures += 1
-        self.last_rebuild_error = f"{exc.__class__.__name__}: {exc}"
-
     # ------------------------------------------------------------------ planning
     def remaining_budget(self) -> int:
         """Views the budget still allows: budget - (initial views + views handed out). Before
@@ -653,29 +412,10 @@ class NextBestViewServer:
             return Plan(list(views.poses), list(views.gains), "", note)
 
     def _repeats(self, poses: list) -> str:
-        """What to say of views that repeat one handed out before (within nms_radius and
-        nms_angle_deg of it): which, and whether a frame from there was fused since (lock
-        held). "" when none repeats."""
+        """`requests.repeats_note` for views about to be handed out (lock held)."""
         g = self.context.greedy
-        notes = []
-        for i, T in enumerate(poses):
-            for j, (U, stamp) in enumerate(self._answered):
-                if not _alike(T, U, g.nms_radius, g.nms_angle_deg):
-                    continue
-                fused = [
-                    s
-                    for s, F in zip(self._fused_order, self.context.camera_poses, strict=False)
-                    if s > stamp and _alike(F, U, g.nms_radius, g.nms_angle_deg)
-                ]
-                seen = (
-                    f"a frame from there was fused (stamp {fused[-1]}) and it still sees the most "
-                    "uncertainty"
-                    if fused
-                    else "no frame from there has been fused since"
-                )
-                notes.append(f"view {i} was handed out before (view {j} of this map): {seen}")
-                break
-        return "; ".join(notes)
+        fused = list(zip(self._fused_order, self.context.camera_poses, strict=False))
+        return repeats_note(poses, self._answered, fused, g.nms_radius, g.nms_angle_deg)
 
     def _settle(self, request: PlanRequest) -> None:
         """What a request tells the budget's bookkeeping, before it is checked (lock held): the
@@ -701,35 +441,11 @@ class NextBestViewServer:
             self._handed_out = None
 
     def _check_request(self, request: PlanRequest) -> tuple[int, int] | str:
-        """(views wanted, remaining budget) for a request, or the reason it gets no plan (lock
-        held, after `_settle`; changes nothing)."""
-        if self.grid.frames == 0:
-            return "no frame fused yet: capture the initial views first"
-        if request.start is not None:
-            s = np.asarray(request.start, float)
-            if s.shape != (4, 4) or not np.all(np.isfinite(s)):
-                return f"start: got {s.shape} with non-finite values, expected a finite (4, 4) pose"
-        try:
-            num = int(request.num_views)
-        except (TypeError, ValueError):
-            return f"num_views: got {request.num_views!r}, expected an integer >= 0"
-        if num < 0:
-            return f"num_views: got {num}, expected an integer >= 0 (0 = the remaining budget)"
-        mode = request.mode or self.config.mode
-        if mode not in MODES:
-            return f"mode: got {mode!r}, expected one of {', '.join(MODES)} (empty: the planner's)"
+        """`requests.check_request` on this map (lock held, after `_settle`; changes nothing)."""
+        spent = (
+            f"budget: all {self.budget} views are spent ({self.initial_counted} initial, "
+            f"{self.committed} handed out)"
+        )
+        sums = {"geometric": self.grid.conf_sum, "semantic": self.grid.sem_sum}
         remaining = self.remaining_budget()
-        if remaining == 0:
-            return (
-                f"budget: all {self.budget} views are spent ({self.initial_counted} initial, "
-                f"{self.committed} handed out)"
-            )
-        # 0: batch plans the whole remaining budget at once, closed loop the next best view only
-        want = num or (remaining if mode == "batch" else 1)
-        if want > remaining:
-            return f"num_views: got {num}, expected at most the remaining budget {remaining}"
-        for name, arr in (("geometric", self.grid.conf_sum), ("semantic", self.grid.sem_sum)):
-            # a float64 sum of float32 values cannot overflow: it is finite iff every value is
-            if not np.isfinite(arr.sum(dtype=np.float64)):
-                return f"{name} uncertainty: got NaN voxels, expected finite values"
-        return want, remaining
+        return check_request(request, self.grid.frames, self.config.mode, remaining, spent, sums)

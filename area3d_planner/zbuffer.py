@@ -160,7 +160,7 @@ def visible_from(origin, centres, zbuf, voxel_size, tol, max_range, out):
 @njit(cache=True, nogil=True, inline="always")
 def direction_bin(direction_bins, dx, dy, dz):
     """Index of the row of direction_bins (D, 3) nearest the direction (dx, dy, dz) (the first of
-    equals): the bin `fusion.direction_bits` gives the same direction."""
+    equals): the bin `observation.direction_bits` gives the same direction."""
     best, bin_of = -2.0, 0
     for d in range(direction_bins.shape[0]):
         dot = direction_bins[d, 0] * dx + direction_bins[d, 1] * dy + direction_bins[d, 2] * dz

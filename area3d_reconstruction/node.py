@@ -21,6 +21,7 @@ import threading
 import time
 import traceback
 from collections.abc import Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -33,12 +34,7 @@ from area3d_msgs_py import codecs, map_files, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, reject
 from area3d_msgs_py.inputs import (
-    COLOR_ENCODINGS,
-    FLOAT_ENCODINGS,
-    check_depth_values,
-    check_frame_id,
-    check_unit_range,
-    decode_image,
+    decode_frame_part,
 )
 from area3d_msgs_py.keyframes import KeyframeConfig
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
@@ -157,9 +153,9 @@ class ReconstructionNode(Node):
         self.inputs = PosedFrames(
             self,
             {
-                "depth": (topics.PERCEPTION_DEPTH, lambda m: self._decode("depth", m)),
-                "confidence": (topics.PERCEPTION_CONFIDENCE, lambda m: self._decode("confidence", m)),
-                "color": (topics.PERCEPTION_COLOR, lambda m: self._decode("color", m)),
+                "depth": (topics.PERCEPTION_DEPTH, partial(decode_frame_part, "depth")),
+                "confidence": (topics.PERCEPTION_CONFIDENCE, partial(decode_frame_part, "confidence")),
+                "color": (topics.PERCEPTION_COLOR, partial(decode_frame_part, "color")),
             },
             p, self.rejections, self._submit, self.status.changed,
             callback_group=MutuallyExclusiveCallbackGroup(),
@@ -208,13 +204,6 @@ class ReconstructionNode(Node):
         }
 
     # ------------------------------------------------------------------ frames
-    def _decode(self, key: str, msg) -> np.ndarray:
-        check_frame_id(msg)
-        if key == "color":
-            return decode_image(msg, COLOR_ENCODINGS)
-        image = decode_image(msg, FLOAT_ENCODINGS)
-        return check_depth_values(image) if key == "depth" else check_unit_range(image, key)
-
     def _submit(self, stamp: int, frame: dict, K: np.ndarray) -> None:
         if not self.worker.submit(stamp, frame, K):
             self.get_logger().warning(

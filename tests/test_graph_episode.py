@@ -101,7 +101,8 @@ def test_a_mission_resumed_from_the_map_the_graph_saved_chooses_the_next_view_of
     from area3d_msgs_py import mapfile
     from area3d_msgs_py.parameters import parameter_values
     from area3d_planner import map_io
-    from area3d_planner.server import NextBestViewServer, PlanRequest
+    from area3d_planner.requests import PlanRequest
+    from area3d_planner.server import NextBestViewServer
 
     graph = read_episode(episode)
     maps = episode / "maps"

@@ -255,7 +255,7 @@ def _observation_by_arrays(grid, depth, conf, K, T, max_range, stride, no_return
     arrays, a bincount over the voxels, the carving into a fresh grid."""
     from area3d_perception.backproject import backproject
     from area3d_perception.geometric import carve_depth_frame
-    from area3d_planner.fusion import _no_return_carving
+    from area3d_planner.observation import _no_return_carving
 
     n = grid.spec.num_voxels
     points, pixel = backproject(depth, K, T)
@@ -308,21 +308,21 @@ def test_a_frame_tallied_in_one_pass_tells_the_grid_what_the_direct_computation_
 
 
 def test_a_frame_that_fails_part_way_leaves_nothing_in_the_next_frames_tally(monkeypatch):
-    import area3d_planner.fusion as fusion
+    import area3d_planner.observation as observation
 
     grid = make_grid(gamma=0.01)
     depth, T = wall_frame()
     conf = np.full_like(depth, 0.75)
-    real_carve = fusion.carve_depth_frame
+    real_carve = observation.carve_depth_frame
 
     def failing_carve(*args, **kwargs):
         real_carve(*args, **kwargs)  # the scratch has the frame's hits and crossings by now
         raise RuntimeError("carving failed")
 
-    monkeypatch.setattr(fusion, "carve_depth_frame", failing_carve)
+    monkeypatch.setattr(observation, "carve_depth_frame", failing_carve)
     with pytest.raises(RuntimeError):
         grid.observe_depth(depth, conf, K, T, 5.0, 1, "regions")
-    monkeypatch.setattr(fusion, "carve_depth_frame", real_carve)
+    monkeypatch.setattr(observation, "carve_depth_frame", real_carve)
     got = grid.observe_depth(depth, conf, K, T, 5.0, 1, "regions")
     hit, frame_conf, free = _observation_by_arrays(grid, depth, conf, K, T, 5.0, 1, "regions")
     np.testing.assert_array_equal(got.hit, hit)

@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
+from area3d_msgs_py.camera_pose import look_rotation
 from area3d_perception.grid import GridSpec
+from area3d_planner.candidates import VisibilityParams, orientation_bins
 from area3d_planner.greedy import (
     GreedyParams,
     lazy_greedy,
@@ -9,12 +11,7 @@ from area3d_planner.greedy import (
     range_gain,
     taken_views,
 )
-from area3d_planner.visibility import (
-    VisibilityCache,
-    VisibilityParams,
-    look_rotation,
-    orientation_bins,
-)
+from area3d_planner.visibility import VisibilityCache
 
 SMALL = VisibilityParams(
     level="room", yaw_bins=6, pitch_bins=2, pitch_min_deg=-30, pitch_max_deg=15, face_res=32

@@ -11,11 +11,7 @@ import pytest
 
 from area3d_perception.grid import GridSpec
 from area3d_perception.sensor_model import rgbd_confidence
-from area3d_planner.config import PlannerConfig
-from area3d_planner.fusion import FREE
-from area3d_planner.server import NextBestViewServer, PlanRequest
-from area3d_planner.visibility import (
-    VisibilityCache,
+from area3d_planner.candidates import (
     VisibilityParams,
     lattice_positions,
     orientation_bins,
@@ -23,6 +19,11 @@ from area3d_planner.visibility import (
     shell_rotations,
     valid_seeds,
 )
+from area3d_planner.config import PlannerConfig
+from area3d_planner.fusion import FREE
+from area3d_planner.requests import PlanRequest
+from area3d_planner.server import NextBestViewServer
+from area3d_planner.visibility import VisibilityCache
 
 ARRAYS = ("indptr", "voxel_ids", "weights", "range_bins", "direction_bins", "record_ids", "seeds")
 

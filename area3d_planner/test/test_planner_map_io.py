@@ -11,8 +11,9 @@ from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
 from area3d_planner import map_io
 from area3d_planner.config import PlannerConfig
-from area3d_planner.scheduler import PlannerScheduler
-from area3d_planner.server import NextBestViewServer, PlanRequest
+from area3d_planner.requests import PlanRequest
+from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
+from area3d_planner.server import NextBestViewServer
 
 K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
 
@@ -107,8 +108,11 @@ def test_a_mission_resumed_from_a_saved_map_chooses_the_views_of_the_mission_nev
 
 def test_a_map_saved_from_a_server_with_the_background_worker_resumes_there_too(tmp_path):
     kw = config()
-    whole, first = NextBestViewServer(kw), PlannerScheduler(kw, background=True)
-    resumed = PlannerScheduler(kw, background=True)
+    whole, first = (
+        NextBestViewServer(kw),
+        PlannerScheduler(kw, SchedulerConfig(refresh_interval_s=0.0)),
+    )
+    resumed = PlannerScheduler(kw, SchedulerConfig(refresh_interval_s=0.0))
     try:
         run(whole, range(3))
         run(first, range(3))

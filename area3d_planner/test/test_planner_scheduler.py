@@ -7,13 +7,14 @@ import threading
 import numpy as np
 import pytest
 
-from area3d_planner.scheduler import PlannerScheduler
-from area3d_planner.server import NextBestViewServer, PlanRequest
+from area3d_planner.requests import PlanRequest
+from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
+from area3d_planner.server import NextBestViewServer
 from area3d_planner.test.conftest import closed_loop_config, server_config, wall_frame, wall_frames
 
 
 def test_request_waits_until_its_stamp_is_fused():
-    srv = PlannerScheduler(server_config())
+    srv = PlannerScheduler(server_config(), SchedulerConfig(eager_cache=False))
     assert srv.wait_fused(5, timeout_s=0.05) is False
     timer = threading.Timer(0.1, lambda: srv.add_frame(5, *wall_frame()))
     timer.start()
@@ -23,7 +24,7 @@ def test_request_waits_until_its_stamp_is_fused():
 
 def test_background_refresh_plans_the_same_views_as_a_synchronous_rebuild():
     sync = NextBestViewServer(closed_loop_config())
-    eager = PlannerScheduler(closed_loop_config(), background=True)
+    eager = PlannerScheduler(closed_loop_config(), SchedulerConfig(refresh_interval_s=0.0))
     try:
         for f in wall_frames():
             sync.add_frame(*f)
@@ -41,7 +42,7 @@ def test_background_refresh_plans_the_same_views_as_a_synchronous_rebuild():
 
 
 def test_cache_is_rebuilt_after_frames_without_a_request():
-    srv = PlannerScheduler(closed_loop_config(), background=True)
+    srv = PlannerScheduler(closed_loop_config(), SchedulerConfig(refresh_interval_s=0.0))
     try:
         assert not srv.core.cache_ready()
         srv.add_frame(*wall_frames()[0])
@@ -53,7 +54,7 @@ def test_cache_is_rebuilt_after_frames_without_a_request():
 
 
 def test_frames_arriving_during_a_rebuild_coalesce_into_one_more_rebuild():
-    srv = PlannerScheduler(closed_loop_config(), background=True)
+    srv = PlannerScheduler(closed_loop_config(), SchedulerConfig(refresh_interval_s=0.0))
     gate = threading.Event()
     started = threading.Event()
     versions = []
@@ -83,7 +84,7 @@ def test_frames_arriving_during_a_rebuild_coalesce_into_one_more_rebuild():
 
 
 def test_a_request_waits_for_the_rebuild_that_covers_its_stamp():
-    srv = PlannerScheduler(closed_loop_config(), background=True)
+    srv = PlannerScheduler(closed_loop_config(), SchedulerConfig(refresh_interval_s=0.0))
     gate = threading.Event()
     build = srv.core.context.build
     srv.core.context.build = lambda occ, kinds=(), ev=None: (
@@ -112,7 +113,9 @@ def test_with_a_mask_lag_a_request_plans_from_recent_masks_without_waiting_for_a
     """mask_lag_s: masks built from a map at most that much older (capture time) than the
     request's frame do; an older map still makes the request wait for the rebuild."""
     f = wall_frames()  # stamps 1, 2, 3 ns
-    srv = PlannerScheduler(closed_loop_config(), background=True, mask_lag_s=1e-9)  # 1 ns
+    srv = PlannerScheduler(
+        closed_loop_config(), SchedulerConfig(refresh_interval_s=0.0, mask_lag_s=1e-9)
+    )  # 1 ns
     build = srv.core.context.build
     gate = threading.Event()
     builds = []
@@ -150,7 +153,7 @@ def test_pipelined_masks_with_the_background_worker_plan_as_without_it():
     its own has finished: the views are those planned without the worker, whatever the timing."""
     f = wall_frames()
     piped = server_config(budget=20, mode="closed_loop", pipeline_masks=True)
-    srv = PlannerScheduler(piped, background=True)
+    srv = PlannerScheduler(piped, SchedulerConfig(refresh_interval_s=0.0))
     sync = NextBestViewServer(piped)
     build = srv.core.context.build
     gate = threading.Event()
@@ -194,7 +197,7 @@ def test_pipelined_masks_are_built_for_the_requests_map_even_when_the_next_frame
     request's frame, that map is kept and built first, so the next request still plans from it."""
     f = wall_frames()
     piped = server_config(budget=20, mode="closed_loop", pipeline_masks=True)
-    srv = PlannerScheduler(piped, background=True, refresh_interval_s=3600.0)
+    srv = PlannerScheduler(piped, SchedulerConfig(refresh_interval_s=3600.0))
     sync = NextBestViewServer(piped)
     try:
         for i, x in enumerate(f):
@@ -211,7 +214,9 @@ def test_pipelined_masks_are_built_for_the_requests_map_even_when_the_next_frame
 
 
 def test_the_background_rebuild_runs_at_the_niceness_asked_for():
-    srv = PlannerScheduler(closed_loop_config(), background=True, rebuild_nice=5)
+    srv = PlannerScheduler(
+        closed_loop_config(), SchedulerConfig(refresh_interval_s=0.0, rebuild_nice=5)
+    )
     try:
         srv.add_frame(*wall_frames()[0])
         assert srv.wait_cache(1, timeout_s=60.0)

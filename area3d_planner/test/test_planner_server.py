@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from area3d_msgs_py.errors import InputError
-from area3d_planner.server import NextBestViewServer, PlanRequest
+from area3d_planner.requests import PlanRequest
+from area3d_planner.server import NextBestViewServer
 from area3d_planner.test.conftest import (
     closed_loop_config,
     server_config,

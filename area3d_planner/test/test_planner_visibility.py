@@ -9,11 +9,7 @@ from scipy.spatial.distance import cdist
 
 from area3d_msgs_py.camera_pose import look_at, look_rotation
 from area3d_perception.grid import GridSpec
-from area3d_planner.fusion import RANGE_BIN, FusedGrid
-from area3d_planner.greedy import GreedyParams, lazy_greedy
-from area3d_planner.visibility import (
-    ViewEvidence,
-    VisibilityCache,
+from area3d_planner.candidates import (
     VisibilityParams,
     _clear_of_occupied,
     lattice_positions,
@@ -22,6 +18,9 @@ from area3d_planner.visibility import (
     shell_rotations,
     valid_seeds,
 )
+from area3d_planner.fusion import RANGE_BIN, FusedGrid
+from area3d_planner.greedy import GreedyParams, lazy_greedy
+from area3d_planner.visibility import ViewEvidence, VisibilityCache
 
 FAST = VisibilityParams(
     level="room", yaw_bins=8, pitch_bins=3, pitch_min_deg=-30, pitch_max_deg=30, face_res=32
@@ -240,7 +239,7 @@ def test_a_range_profile_scales_each_weight_by_the_confidence_reached_at_that_ra
 
 
 def test_a_voxel_already_seen_from_the_seeds_direction_counts_repeat_gain_of_a_new_one():
-    from area3d_planner.fusion import direction_bits
+    from area3d_planner.observation import direction_bits
 
     spec, occ, _ = wall_scene(1.2)
     params = VisibilityParams(level="room", face_res=128, repeat_gain=0.25)
@@ -268,7 +267,7 @@ def test_an_entrys_weight_is_rounded_once_as_a_mask_built_with_the_evidence_stor
     that order: bit for bit the weight the masks stored when the evidence was applied at build
     time, so the planner scores and aims views exactly as it did then (one rounding of the share
     to float32 first moved an aimed view by 1e-8 and the episode's next views apart)."""
-    from area3d_planner.fusion import direction_bits
+    from area3d_planner.observation import direction_bits
 
     spec, occ, _ = wall_scene(1.19)
     params = VisibilityParams(level="room", face_res=128, repeat_gain=0.3)
@@ -433,7 +432,7 @@ def test_with_unknown_occluding_a_view_counts_the_first_unknown_layer_not_the_co
 
 
 def test_free_side_normals_point_to_the_carved_side_and_grazing_views_count_less():
-    from area3d_planner.visibility import free_side_normals
+    from area3d_planner.visibility_build import free_side_normals
 
     spec, occ, wall_i = wall_scene(0.5, 0.05)
     wall = np.flatnonzero(np.unravel_index(np.arange(spec.num_voxels), spec.shape)[0] == wall_i)
