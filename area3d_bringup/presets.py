@@ -5,6 +5,7 @@ A preset is not a planner policy (`area3d_planner.policies`): it names a configu
 whole graph. The paper's ablations are configurations: `no_vlm` switches the semantics off and
 the planner's semantic weight to 0, `no_ff` makes the planner take every confidence as 1,
 `gamma0` removes the planner's global initial weight (gamma and the weight of unobserved voxels).
+`paper` is the published method as written, element by element.
 """
 
 from __future__ import annotations
@@ -14,6 +15,10 @@ from pathlib import Path
 
 from area3d_bringup.graph import GRAPH_NODES
 from area3d_bringup.launch_description import NodeSpec, build_graph, load_parameters, merge
+
+# A voxel seen over this many pixels counts whole: any voxel a view sees, as the paper's ray-cast
+# masks count it (the least the parameter takes above 0, which means the level's).
+PAPER_PIXELS_PER_VOXEL = 1e-6
 
 #: preset name -> parameter overrides {node: {param: value}}
 RUN_PRESETS: dict[str, dict[str, dict]] = {
@@ -37,6 +42,22 @@ RUN_PRESETS: dict[str, dict[str, dict]] = {
     # no global initial weight: nothing on the voxels no frame has covered (the planner's
     # unobserved_uncertainty) and no gamma on any voxel (planner README, "The ablations")
     "gamma0": {"planner": {"policy": "area3d", "gamma": 0.0, "unobserved_uncertainty": 0.0}},
+    # the published method as written (planner README, "The paper, element by element"): U_geo =
+    # 1 - mean confidence, a voxel no view covered carries gamma only, a view scores the fused
+    # uncertainty under its visibility mask (every visible voxel counts whole: no achievability,
+    # range, direction or resolution term); `--mode batch` plans every view from O_0 as the paper
+    # does. Candidate positions and the orientation fan stay the project's.
+    "paper": {
+        "planner": {
+            "policy": "area3d",
+            "geometric_rule": "mean",
+            "unobserved_uncertainty": 0.0,
+            "gain_rule": "held",
+            "range_profile": False,
+            "repeat_gain": 1.0,
+            "pixels_per_voxel": PAPER_PIXELS_PER_VOXEL,
+        }
+    },
 }
 
 
