@@ -11,8 +11,8 @@ Layout (all paths relative to RUN_DIR):
   `stopped_early`)}
 - `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
   K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index. Optional:
-  estimated_depth (H, W) float32 metres NaN = missing and confidence (H, W) float32 in [0, 1],
-  what perception made of the frame (the depth and the weights the TSDF uses with depth_source
+  estimated_depth (H, W) float32 metres (NaN = no estimate, +Inf = no return within range) and
+  confidence (H, W) float32 in [0, 1], what perception made of the frame (the depth and the weights the TSDF uses with depth_source
   "estimated").
 - `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays
   x, y, z, uncertainty, geometric, semantic, occupancy, hard (one entry per voxel; older runs

@@ -104,12 +104,15 @@ def check_unit_range(image: np.ndarray, field: str) -> np.ndarray:
 
 
 def check_depth_values(depth: np.ndarray, field: str = "depth") -> np.ndarray:
-    """Metric depth computed by the graph: finite and > 0, NaN = no return; +-inf or <= 0 refused."""
-    lo, hi = _range_ignoring_nan(depth)
-    if lo <= 0.0 or hi == np.inf:
-        bad = int(np.count_nonzero(np.isinf(depth) | (depth <= 0.0)))
+    """Metric depth computed by the graph (REP 117): metres > 0, NaN = no estimate, +Inf = no
+    return within range; -Inf or <= 0 refused."""
+    lo, _ = _range_ignoring_nan(depth)
+    if lo <= 0.0:  # -inf included; False for NaN
+        bad = int(np.count_nonzero(depth <= 0.0))
         raise InputError(
-            field, f"{bad} pixels infinite or <= 0", "finite metres > 0, NaN = no return"
+            field,
+            f"{bad} pixels -inf or <= 0",
+            "metres > 0, NaN = no estimate, +inf = no return within range",
         )
     return depth
 

@@ -10,6 +10,11 @@ Backends:
 This is the pure core of the perception node: no transport, arrays in and out. It never alters the
 depth it is given (a real camera's noise is in its depth already; the simulated camera adds its own,
 `sim_bridge.camera`): invalid values become NaN, and depth beyond the sensor's range is cut.
+
+Its depth follows REP 117: NaN = no estimate (unknown: the planner carves nothing through it),
++Inf = no return within range, measured (free space up to the sensor's range). Only a depth
+camera measures that (`no_return`: which of its pixels without a return are taken as such); a
+stereo match or a feed-forward model that fails on a pixel says nothing about the space behind it.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from area3d_msgs_py.depth_sensor import RgbdSensorParams
@@ -35,6 +41,11 @@ from area3d_perception.sensor_model import rgbd_confidence
 from area3d_perception.stereo import StereoMatcher, StereoParams
 
 BACKENDS = ("rgbd", "vggt", "depth_anything_3", "uniform", "stereo")
+# Which of a depth camera's pixels without a return are a return beyond its range (+Inf): those
+# in regions of no return (farther than NO_RETURN_REGION_PX from any return: sky, open space
+# beyond range; an isolated dropout of a dark, specular or grazing surface is not), all or none.
+NO_RETURN_RULES = ("none", "regions", "all")
+NO_RETURN_REGION_PX = 6
 FEEDFORWARD_BACKENDS = ("vggt", "depth_anything_3")
 # Views per feed-forward pass: the new frame plus up to 7 recent ones (our choice; VGGT is
 # multi-view and its depth improves with context, while memory and time grow with the window).
@@ -45,8 +56,8 @@ MIN_ALIGNMENT_PIXELS = 100
 
 @dataclass
 class FrameResult:
-    """depth: (H, W) float32 metres, NaN = missing; confidence: (H, W) float32 in [0, 1], 0 where
-    depth is missing; notes: human-readable warnings about this frame (bad input, fallbacks)."""
+    """depth: (H, W) float32 metres, NaN = no estimate, +Inf = no return within range (REP 117);
+    confidence: (H, W) float32 in [0, 1], 0 where depth is not finite; notes: human-readable warnings about this frame (bad input, fallbacks)."""
 
     depth: np.ndarray
     confidence: np.ndarray
@@ -56,22 +67,38 @@ class FrameResult:
 def sanitize_depth(depth: np.ndarray, field_name: str = "depth") -> tuple[np.ndarray, list[str]]:
     """Depth with every unusable value set to NaN, and a note per kind of bad value found.
 
-    NaN already means "no return" and is kept silently; +-inf and values <= 0 are not valid depth
-    and are reported with their count. Returns (depth (H, W) float32, notes).
+    NaN (no return) and +Inf (no return within range, REP 117) are kept silently; -Inf (too
+    near, REP 117) and values <= 0 are not a depth and are reported with their count. Returns
+    (depth (H, W) float32, notes).
     """
     d = np.array(depth, dtype=np.float32, copy=True)
     notes = []
-    n_inf = int(np.isinf(d).sum())
+    near = np.isneginf(d)
+    n_inf = int(near.sum())
+    if n_inf:
+        notes.append(f"{field_name}: {n_inf} values -inf (too near) set to missing (NaN)")
+        d[near] = np.nan
     with np.errstate(invalid="ignore"):
         nonpos = d <= 0
     n_nonpos = int(nonpos.sum())
-    if n_inf:
-        notes.append(f"{field_name}: {n_inf} infinite values set to missing (NaN)")
-        d[np.isinf(d)] = np.nan
     if n_nonpos:
         notes.append(f"{field_name}: {n_nonpos} values <= 0 set to missing (NaN)")
         d[nonpos] = np.nan
     return d, notes
+
+
+def declare_no_return(depth: np.ndarray, rule: str) -> np.ndarray:
+    """`depth` (changed in place and returned) with the pixels without a return (NaN) that `rule`
+    (one of NO_RETURN_RULES) takes as a return beyond range set to +Inf."""
+    missing = np.isnan(depth)
+    if rule == "none" or not missing.any():
+        return depth
+    if rule == "regions":
+        size = 2 * NO_RETURN_REGION_PX + 1
+        returns = (~missing).astype(np.uint8)
+        missing &= cv2.dilate(returns, np.ones((size, size), np.uint8)) == 0
+    depth[missing] = np.inf
+    return depth
 
 
 def check_frame(
@@ -115,6 +142,8 @@ class FrameEstimator:
     window: views per feed-forward pass. confidence_normalization: see `normalize_confidence`.
     model_factory: builds the feed-forward model (defaults to the real backends; tests inject one).
     stereo: matcher settings of the stereo backend.
+    no_return: which of a depth camera's pixels without a return are a return beyond its range
+    (`declare_no_return`; the depth camera backends only).
     uniform_confidence: replace every backend's confidence by 1 on each valid pixel (the paper's
     "w/o feed-forward" ablation, on the depth that backend estimates).
     """
@@ -130,9 +159,13 @@ class FrameEstimator:
         model_factory: Callable[[str, str], object] | None = None,
         stereo: StereoParams | None = None,
         uniform_confidence: bool = False,
+        no_return: str = "regions",
     ) -> None:
         if backend not in BACKENDS:
             raise InputError("backend", backend, f"one of {', '.join(BACKENDS)}")
+        if no_return not in NO_RETURN_RULES:
+            raise InputError("no_return", no_return, f"one of {', '.join(NO_RETURN_RULES)}")
+        self.no_return = no_return
         if int(window) != window or window < 1:
             raise InputError("window", window, "an integer >= 1")
         normalize_confidence(np.ones((1, 1)), confidence_normalization)  # validates the name
@@ -164,9 +197,9 @@ class FrameEstimator:
         """Depth and confidence of one frame.
 
         rgb: (H, W, 3) uint8 (needed by feed-forward and stereo backends; the left image of a
-        stereo pair). depth: (H, W) float32 metres from the sensor, NaN = no return (needed by
-        rgbd/uniform; optional for feed-forward, which then scales by the poses; not used by
-        stereo). K: (3, 3). T_world_cam: (4, 4) optical-frame pose. right: (H, W, 3) uint8 right
+        stereo pair). depth: (H, W) float32 metres from the sensor, NaN = no return, +Inf = none
+        within range (needed by rgbd/uniform; optional for feed-forward, which then scales by the
+        poses; not used by stereo). K: (3, 3). T_world_cam: (4, 4) optical-frame pose. right: (H, W, 3) uint8 right
         image of the rectified pair and baseline: metres, both for the stereo backend only.
         """
         result = self._estimate(rgb, depth, K, T_world_cam, right, baseline)
@@ -200,7 +233,8 @@ class FrameEstimator:
         if metric is None:
             raise InputError("depth", None, f"a depth image for the {self.backend} backend")
         with np.errstate(invalid="ignore"):
-            metric[metric > self.sensor.max_range] = np.nan
+            metric[np.isfinite(metric) & (metric > self.sensor.max_range)] = np.nan
+        declare_no_return(metric, self.no_return)
         if self.backend == "uniform":
             confidence = np.isfinite(metric).astype(np.float32)
         else:

@@ -48,7 +48,13 @@ from area3d_msgs_py.pose_inputs import PoseInputs
 from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.scheduling import FrameWorker
 from area3d_msgs_py.status import StatusPublisher
-from area3d_perception.estimator import BACKENDS, FEEDFORWARD_WINDOW, FrameEstimator, check_frame
+from area3d_perception.estimator import (
+    BACKENDS,
+    FEEDFORWARD_WINDOW,
+    NO_RETURN_RULES,
+    FrameEstimator,
+    check_frame,
+)
 from area3d_perception.sensor_model import RgbdSensorParams
 from area3d_perception.stereo import StereoParams
 
@@ -71,6 +77,15 @@ PARAMS = (
         "inverse",
         "how a feed-forward confidence >= 1 maps to [0, 1]",
         choices=("inverse", "percentile"),
+    ),
+    Param(
+        "no_return",
+        "regions",
+        "which of a depth camera's pixels without a return are a return beyond its range, "
+        "published as +Inf (REP 117) and carved free by the planner: those in regions of no "
+        "return (sky, open space; not the dropouts of a dark or specular surface), all or none; "
+        "the stereo and feed-forward backends never declare one (a failed estimate is unknown)",
+        choices=NO_RETURN_RULES,
     ),
     Param(
         "uniform_confidence",
@@ -391,6 +406,7 @@ def estimator_from_parameters(p: dict) -> FrameEstimator:
         confidence_normalization=p["confidence_normalization"],
         stereo=stereo,
         uniform_confidence=p["uniform_confidence"],
+        no_return=p["no_return"],
     )
 
 

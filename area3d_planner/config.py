@@ -16,7 +16,6 @@ from area3d_planner.candidates import VisibilityParams
 from area3d_planner.context import PlanningContext
 from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, FusedGrid
 from area3d_planner.greedy import DECAY_REGIONS, GreedyParams
-from area3d_planner.observation import NO_RETURN_RULES
 from area3d_planner.policies import POLICIES, make_policy
 
 MODES = ("batch", "closed_loop")
@@ -180,12 +179,6 @@ class PlannerConfig:
         "... whose best confidence stayed below this is a hard voxel (reported, not chased)",
         "",
         (0.0, 1.0),
-    )
-    no_return: str = described(
-        "regions",
-        "which pixels with no return carve free space up to max_range: regions (sky, not "
-        "dropouts), all or none",
-        choices=NO_RETURN_RULES,
     )
     clearance: float = described(
         0.05, "least distance from a camera centre to an occupied voxel", "metres", (0.0, 10.0)

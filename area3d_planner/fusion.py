@@ -150,12 +150,9 @@ class FusedGrid:
         T_world_cam: np.ndarray,
         max_range: float = 5.0,  # paper, supplement: max depth 5 m
         stride: int = 2,  # carve every 2nd pixel row/column; surface hits use every pixel
-        no_return: str = "regions",
     ) -> None:
         """Fuse one frame: `apply_depth(observe_depth(...))` (see `observe_depth`)."""
-        self.apply_depth(
-            self.observe_depth(depth, conf, K, T_world_cam, max_range, stride, no_return)
-        )
+        self.apply_depth(self.observe_depth(depth, conf, K, T_world_cam, max_range, stride))
 
     def observe_depth(
         self,
@@ -165,21 +162,20 @@ class FusedGrid:
         T_world_cam: np.ndarray,
         max_range: float = 5.0,  # paper, supplement: max depth 5 m
         stride: int = 2,  # carve every 2nd pixel row/column; surface hits use every pixel
-        no_return: str = "regions",
     ) -> DepthObservation:
         """What one frame tells the grid: surface evidence of hit voxels, free space along every
         ray. Reads only the grid's layout, never its evidence, so it runs while the grid is in
         use elsewhere (a plan); `apply_depth` then adds it in a few milliseconds.
 
-        depth: (H, W) float32 metres along optical z, NaN = no return. conf: (H, W) float32 in
-        [0, 1] (NaN = no confidence, pixel skipped). Each voxel counts at most one hit and one
-        free observation per frame (hits win); its confidence sample is the frame's mean over
-        the pixels that land in it. Pixels with no return carve out to z = max_range by
-        `no_return`: "all" of them, "none", or only those in "regions" of no return (farther than
-        NO_RETURN_REGION_PX from any return: sky, open space beyond range); an isolated dropout of
-        a real sensor (dark, specular or grazing surface, noise) is not empty space.
+        depth: (H, W) float32 metres along optical z (REP 117): +Inf = no return within range,
+        NaN = no estimate. conf: (H, W) float32 in [0, 1] (NaN = no confidence, pixel skipped).
+        Each voxel counts at most one hit and one free observation per frame (hits win); its
+        confidence sample is the frame's mean over the pixels that land in it. A +Inf pixel
+        carves free space out to max_range; a NaN pixel carves nothing: a dropout of a depth
+        camera, a failed stereo match or a feed-forward model's gap says nothing of the space
+        behind it (which of a depth camera's missing pixels are +Inf: perception's `no_return`).
         """
-        return self._observer.observe(depth, conf, K, T_world_cam, max_range, stride, no_return)
+        return self._observer.observe(depth, conf, K, T_world_cam, max_range, stride)
 
     def apply_depth(self, observation: DepthObservation) -> None:
         """Add one frame's observation (from `observe_depth` on this grid) to the evidence."""

@@ -10,7 +10,6 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numba import njit
 
@@ -32,10 +31,6 @@ def _direction_bins(count: int) -> np.ndarray:
 # Directions a voxel is observed from, in bins about 45 degrees wide (one bit each of a uint32):
 # two views count as distinct directions when they fall into different bins.
 DIRECTION_BINS = _direction_bins(20)
-NO_RETURN_RULES = ("none", "regions", "all")
-# No-return pixels farther than this from any return (pixels) are open space (sky, a window, a
-# doorway beyond range); nearer ones are dropouts of a surface and carve nothing.
-NO_RETURN_REGION_PX = 6
 
 
 def check_pose(T: np.ndarray, field: str) -> np.ndarray:
@@ -57,14 +52,11 @@ def check_K(K: np.ndarray) -> np.ndarray:
     return K
 
 
-def _no_return_carving(depth: np.ndarray, rule: str) -> bool | np.ndarray:
-    """What `carve_depth_frame` may carve along no-return pixels under `rule` (see `observe`)."""
-    if rule != "regions":
-        return rule == "all"
-    returns = np.isfinite(depth).astype(np.uint8)
-    size = 2 * NO_RETURN_REGION_PX + 1
-    near_return = cv2.dilate(returns, np.ones((size, size), np.uint8)) > 0
-    return ~near_return
+def _declared_no_return(depth: np.ndarray) -> bool | np.ndarray:
+    """What `carve_depth_frame` may carve along pixels without a return: those that say there is
+    none within range (+Inf, REP 117), never those without an estimate (NaN)."""
+    declared = np.isposinf(depth)
+    return declared if declared.any() else False
 
 
 def direction_bits(centres: np.ndarray, camera: np.ndarray) -> np.ndarray:
@@ -113,11 +105,8 @@ class FrameObserver:
         T_world_cam: np.ndarray,
         max_range: float,
         stride: int,
-        no_return: str,
     ) -> DepthObservation:
         """`FusedGrid.observe_depth`, which says what the arguments are."""
-        if no_return not in NO_RETURN_RULES:
-            raise InputError("no_return", no_return, f"one of {', '.join(NO_RETURN_RULES)}")
         depth = np.asarray(depth)
         conf = np.asarray(conf)
         if depth.ndim != 2:
@@ -169,7 +158,7 @@ class FrameObserver:
                     scratch.crossed,
                     stride,
                     max_range,
-                    carve_no_return=_no_return_carving(depth, no_return),
+                    carve_no_return=_declared_no_return(depth),
                     count=False,  # crossed or not: the rays run in parallel
                 )
                 crossed = np.flatnonzero(scratch.crossed)

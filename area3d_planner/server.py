@@ -132,7 +132,6 @@ class NextBestViewServer(MaskRebuilds):
             T,
             self.config.max_range,
             self.config.carve_stride,
-            self.config.no_return,
         )
         with self._lock:
             if int(stamp_ns) in self._fused_stamps:  # the same stamp, fused meanwhile

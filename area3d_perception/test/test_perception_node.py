@@ -247,18 +247,20 @@ def test_mismatched_color_and_depth_sizes_reject_the_frame_with_a_reason():
     assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
 
 
-def test_infinite_and_negative_depth_are_logged_and_treated_as_missing():
+def test_rep_117_depth_passes_and_bad_depth_is_logged_and_treated_as_missing():
     node = FakeNode()
     depth = np.full((H, W), 2.0, np.float32)
-    depth[0, :4] = np.inf
+    depth[0, :4] = np.inf  # no return within range (REP 117): published as such
     depth[1, :3] = -0.5
+    depth[2, :2] = -np.inf  # too near (REP 117): no estimate
     send_frame(node, 1 * S, depth=depth)
     out = codecs.msg_to_image(node.pubs[OUT_DEPTH_TOPIC].sent[0])
     conf = codecs.msg_to_image(node.pubs[OUT_CONFIDENCE_TOPIC].sent[0])
-    assert np.isnan(out[0, :4]).all() and np.isnan(out[1, :3]).all()
-    assert np.all(conf[0, :4] == 0) and np.all(conf[1, :3] == 0)
+    assert np.isposinf(out[0, :4]).all()
+    assert np.isnan(out[1, :3]).all() and np.isnan(out[2, :2]).all()
+    assert np.all(conf[:3, :4][~np.isfinite(out[:3, :4])] == 0)
     warnings = node.log.warnings()
-    assert any("depth: 4 infinite" in w for w in warnings)
+    assert any("depth: 2 values -inf" in w for w in warnings)
     assert any("depth: 3 values <= 0" in w for w in warnings)
 
 

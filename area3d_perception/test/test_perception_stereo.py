@@ -167,3 +167,13 @@ def test_estimator_stereo_backend_needs_the_right_image_and_ignores_sensor_depth
         est.process(left, truth, K, np.eye(4))
     out = est.process(left, np.full_like(truth, 3.0), K, np.eye(4), right=right, baseline=BASELINE)
     assert abs(float(np.nanmedian(_centre(out.depth))) - 1.0) < 0.02
+    # a pixel stereo could not match is unknown (NaN), never a return beyond range (+Inf): the
+    # planner carves nothing through it, whatever the depth camera's no_return rule
+    assert np.isnan(out.depth).any() and not np.isinf(out.depth).any()
+    stereo = StereoParams(num_disparities=32, downscale=1)
+    assert (
+        FrameEstimator("stereo", stereo=stereo, no_return="all")
+        .process(left, None, K, np.eye(4), right=right, baseline=BASELINE)
+        .depth.tobytes()
+        == out.depth.tobytes()
+    )

@@ -42,38 +42,31 @@ def test_depth_frame_marks_wall_occupied_space_before_it_free_and_behind_it_unkn
     assert geo[at(grid, [0.85, 0.5, 0.5])] == 1.0
 
 
-def test_isolated_dropouts_carve_nothing_but_regions_without_return_do():
-    # a dropout (dark, specular, grazing surface, noise) is not empty space; open sky is
+def test_pixels_declared_without_a_return_carve_to_max_range_and_pixels_without_an_estimate_never():
+    """REP 117: +Inf (no return within range: open space, sky) carves free space out to
+    max_range; NaN (no estimate: a dropout, a failed stereo match) carves nothing, however large
+    the region, and the rays that did hit the wall still carve up to it."""
     depth, T = wall_frame()
-    depth[30:33, 50:53] = np.nan  # a small dropout on the wall
-    grid = make_grid(gamma=0.01)
-    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=5.0, stride=1)
-    behind = grid.spec.centers()[:, 0] > 0.65
-    assert not np.any(grid.occupancy()[behind] == 0)  # nothing behind the wall was carved
-    # half of the image without any return: that region carves out to max range
-    depth[:, :32] = np.nan
+    depth[:, :32] = np.inf  # the image's left half (world +y) saw nothing within range
     grid = make_grid(gamma=0.01)
     grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=5.0, stride=1)
     occ = grid.occupancy()
-    assert occ[at(grid, [0.9, 0.9, 0.5])] == 0  # world +y is the image's left half
+    assert occ[at(grid, [0.9, 0.9, 0.5])] == 0
     assert occ[at(grid, [0.9, 0.1, 0.5])] == -1  # behind the wall on the other side
-    # "none": no pixel without return carves
+    depth[:, :32] = np.nan  # the same half without an estimate
     grid = make_grid(gamma=0.01)
-    grid.integrate_depth(
-        depth, np.ones_like(depth), K, T, max_range=5.0, stride=1, no_return="none"
-    )
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=5.0, stride=1)
     occ = grid.occupancy()
-    assert occ[at(grid, [0.35, 0.8, 0.5])] == -1
+    assert occ[at(grid, [0.9, 0.9, 0.5])] == -1 and occ[at(grid, [0.35, 0.8, 0.5])] == -1
     assert occ[at(grid, [0.35, 0.3, 0.5])] == 0  # carved along the rays that hit the wall
-    with pytest.raises(InputError, match="no_return"):
-        grid.integrate_depth(depth, np.ones_like(depth), K, T, no_return="some")
+    assert not np.any(occ[grid.spec.centers()[:, 0] > 0.65] == 0)  # nothing behind the wall
 
 
-def test_pixels_without_return_carve_free_space_to_max_range_when_asked():
+def test_a_frame_without_any_return_within_range_carves_to_max_range_only():
     grid = make_grid(gamma=0.01)
     depth, T = wall_frame()
-    depth[:] = np.nan
-    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=0.6, stride=1, no_return="all")
+    depth[:] = np.inf
+    grid.integrate_depth(depth, np.ones_like(depth), K, T, max_range=0.6, stride=1)
     occ = grid.occupancy()
     assert occ[at(grid, [0.45, 0.5, 0.5])] == 0
     assert occ[at(grid, [0.9, 0.5, 0.5])] == -1  # beyond z = 0.6 m from the camera
@@ -250,12 +243,11 @@ def test_cloud_holds_occupied_and_uncertain_voxels_with_their_fields():
     assert not np.any(cloud["occupancy"] == 0)  # known free voxels carry nothing
 
 
-def _observation_by_arrays(grid, depth, conf, K, T, max_range, stride, no_return):
+def _observation_by_arrays(grid, depth, conf, K, T, max_range, stride):
     """What a frame tells the grid, computed the direct way: every pixel back-projected into
     arrays, a bincount over the voxels, the carving into a fresh grid."""
     from area3d_perception.backproject import backproject
     from area3d_perception.geometric import carve_depth_frame
-    from area3d_planner.observation import _no_return_carving
 
     n = grid.spec.num_voxels
     points, pixel = backproject(depth, K, T)
@@ -274,7 +266,7 @@ def _observation_by_arrays(grid, depth, conf, K, T, max_range, stride, no_return
         np.zeros(grid.spec.shape, np.uint8),
         stride,
         max_range,
-        carve_no_return=_no_return_carving(depth, no_return),
+        carve_no_return=np.isposinf(depth),
         count=False,
     ).reshape(-1)
     return np.flatnonzero(hit), frame_conf, np.flatnonzero((crossed > 0) & ~hit)
@@ -292,14 +284,13 @@ def test_a_frame_tallied_in_one_pass_tells_the_grid_what_the_direct_computation_
         T = look_at(eye, eye + rng.normal(size=3))
         depth = rng.uniform(0.02, 1.5, (48, 64)).astype(np.float32)
         depth[rng.random(depth.shape) < 0.1] = np.nan
-        depth[20:30, 10:40] = np.nan  # a region without return: carves to max range
+        depth[20:30, 10:40] = np.inf  # no return within range: carves to max range
+        depth[rng.random(depth.shape) < 0.05] = np.inf
         conf = rng.uniform(-0.2, 1.2, depth.shape).astype(np.float32)
         conf[rng.random(conf.shape) < 0.1] = np.nan
-        for stride, no_return in ((1, "regions"), (2, "all"), (3, "none")):
-            got = grid.observe_depth(depth, conf, K, T, 1.0, stride, no_return)
-            hit, frame_conf, free = _observation_by_arrays(
-                grid, depth, conf, K, T, 1.0, stride, no_return
-            )
+        for stride in (1, 2, 3):
+            got = grid.observe_depth(depth, conf, K, T, 1.0, stride)
+            hit, frame_conf, free = _observation_by_arrays(grid, depth, conf, K, T, 1.0, stride)
             assert hit.size > 0 and free.size > 0
             np.testing.assert_array_equal(got.hit, hit)
             np.testing.assert_array_equal(got.confidence, frame_conf.astype(np.float32))
@@ -321,10 +312,10 @@ def test_a_frame_that_fails_part_way_leaves_nothing_in_the_next_frames_tally(mon
 
     monkeypatch.setattr(observation, "carve_depth_frame", failing_carve)
     with pytest.raises(RuntimeError):
-        grid.observe_depth(depth, conf, K, T, 5.0, 1, "regions")
+        grid.observe_depth(depth, conf, K, T, 5.0, 1)
     monkeypatch.setattr(observation, "carve_depth_frame", real_carve)
-    got = grid.observe_depth(depth, conf, K, T, 5.0, 1, "regions")
-    hit, frame_conf, free = _observation_by_arrays(grid, depth, conf, K, T, 5.0, 1, "regions")
+    got = grid.observe_depth(depth, conf, K, T, 5.0, 1)
+    hit, frame_conf, free = _observation_by_arrays(grid, depth, conf, K, T, 5.0, 1)
     np.testing.assert_array_equal(got.hit, hit)
     np.testing.assert_array_equal(got.confidence, frame_conf.astype(np.float32))
     np.testing.assert_array_equal(got.free, free)
