@@ -114,7 +114,7 @@ def bench_robot(
 def bench_episode(
     seeds: int = typer.Option(3),
     policies: str = typer.Option(
-        "area3d,random,uniform,vlm_naive,volumetric_ig,no_vlm,no_ff,gamma0"
+        "area3d,paper,random,uniform,vlm_naive,volumetric_ig,no_vlm,no_ff,gamma0"
     ),
     scenes_: str = typer.Option(
         "", "--scenes", help="comma list of names or MJCF paths (default: every bundled scene)"

@@ -77,6 +77,17 @@ def _overrides(params: list[str]) -> dict[str, dict]:
     return parse_overrides(params)
 
 
+def _camera_overrides(camera: str, params: list[str]) -> dict[str, dict]:
+    """`--camera`'s parameters, then `-p`'s over them."""
+    from area3d_bringup.launch_description import merge
+    from area3d_bringup.presets import camera_preset
+
+    try:
+        return merge(camera_preset(camera), _overrides(params))
+    except ValueError as err:
+        _fail(str(err))
+
+
 def _episode_nodes(text: str) -> tuple[str, ...] | None:
     """`area3d run --nodes`: None (every node), () for `none` (the mission manager alone, driving
     a graph started elsewhere), else the names listed."""
@@ -101,7 +112,14 @@ def run(
     ),
     policy: str = typer.Option(
         "area3d",
-        help="area3d | random | uniform | vlm_naive | volumetric_ig | no_vlm | no_ff | gamma0",
+        help="area3d | paper | random | uniform | vlm_naive | volumetric_ig | no_vlm | no_ff | "
+        "gamma0",
+    ),
+    camera: str = typer.Option(
+        "ideal",
+        help="the camera class the simulated camera, perception and the planner describe: ideal "
+        "(no minimum range, 5 m) | kinect (structured light, 0.5-4.5 m) | d435 (active stereo, "
+        "0.28-3 m); -p parameters override it",
     ),
     budget: int = typer.Option(
         None,
@@ -158,7 +176,7 @@ def run(
         out_dir=out,
         record=record,
         params_file=params,
-        overrides=_overrides(param),
+        overrides=_camera_overrides(camera, param),
         domain_id=domain_id,
         namespace=namespace,
         nodes=_episode_nodes(nodes),

@@ -15,7 +15,7 @@ between the surface normal and the viewing ray (`area3d_msgs_py.depth_surface`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
@@ -103,6 +103,28 @@ class RgbdSensorParams:
         PAPER_MAX_RANGE, "returns beyond this range are no return (the paper's camera: 5)",
         "metres", (0.01, 1000.0),
     )  # fmt: skip
+    # A structured-light or active-stereo camera measures nothing nearer than its minimum range
+    # (the projector's pattern and the matcher's disparity range end there): REP 117's -Inf.
+    min_range: float = described(
+        0.0,
+        "nothing nearer than this is measured: such pixels are -Inf (REP 117: too near), no "
+        "estimate (0: an ideal camera's)",
+        "metres",
+        (0.0, 100.0),
+    )
+    # Depth from disparity: sigma_z = z^2 sigma_d / (f b), so the axial coefficients hold at the
+    # focal length they were fitted at (Nguyen et al.: a Kinect, 580 px) and scale by f_ref / f;
+    # lateral noise is in pixels of that camera and scales by f / f_ref (`at_focal`). 0 applies
+    # them as given at any focal length: the default camera's, with which every result in docs/
+    # was measured; the camera presets (`area3d run --camera`) set it.
+    reference_focal_px: float = described(
+        0.0,
+        "focal length the noise coefficients were fitted at: a camera of focal f gets the axial "
+        "noise times this / f and the lateral noise in pixels times f / this (0: as given at "
+        "any focal length)",
+        "pixels",
+        (0.0, 1e5),
+    )
 
     def __post_init__(self) -> None:
         positive = {
@@ -137,12 +159,33 @@ class RgbdSensorParams:
         ):
             if int(value) != value or value < low:
                 raise InputError(name, value, f"an integer >= {low}")
+        if not (0.0 <= self.min_range < self.max_range):
+            raise InputError("min_range", self.min_range, f"[0, max_range={self.max_range}) metres")
         if not (0.0 <= self.grazing_start_deg < self.grazing_full_deg <= 90.0):
             raise InputError(
                 "grazing_start_deg/grazing_full_deg",
                 (self.grazing_start_deg, self.grazing_full_deg),
                 "0 <= start < full <= 90 degrees",
             )
+
+    def at_focal(self, fx: float) -> RgbdSensorParams:
+        """The sensor's coefficients for a camera of focal length `fx` pixels: the axial noise
+        times reference_focal_px / fx, the lateral noise (pixels) times fx / reference_focal_px
+        (itself with reference_focal_px 0)."""
+        if self.reference_focal_px == 0 or fx == self.reference_focal_px:
+            return self
+        if not (np.isfinite(fx) and fx > 0):
+            raise InputError("fx", fx, "a focal length > 0 pixels")
+        s = self.reference_focal_px / float(fx)
+        return replace(
+            self,
+            sigma_a=self.sigma_a * s,
+            sigma_b=self.sigma_b * s,
+            sigma_angle=self.sigma_angle * s,
+            lateral_l0_px=self.lateral_l0_px / s,
+            lateral_l1_px=self.lateral_l1_px / s,
+            reference_focal_px=float(fx),
+        )
 
 
 # theta^2 / (pi/2 - theta)^2 diverges at 90 deg; such pixels are dropped as grazing anyway.

@@ -67,19 +67,14 @@ class FrameResult:
 def sanitize_depth(depth: np.ndarray, field_name: str = "depth") -> tuple[np.ndarray, list[str]]:
     """Depth with every unusable value set to NaN, and a note per kind of bad value found.
 
-    NaN (no return) and +Inf (no return within range, REP 117) are kept silently; -Inf (too
-    near, REP 117) and values <= 0 are not a depth and are reported with their count. Returns
-    (depth (H, W) float32, notes).
+    REP 117's values are kept silently: NaN (no return), +Inf (no return within range) and -Inf
+    (nearer than the camera measures); finite values <= 0 are not a depth and are reported with
+    their count. Returns (depth (H, W) float32, notes).
     """
     d = np.array(depth, dtype=np.float32, copy=True)
     notes = []
-    near = np.isneginf(d)
-    n_inf = int(near.sum())
-    if n_inf:
-        notes.append(f"{field_name}: {n_inf} values -inf (too near) set to missing (NaN)")
-        d[near] = np.nan
     with np.errstate(invalid="ignore"):
-        nonpos = d <= 0
+        nonpos = np.isfinite(d) & (d <= 0)
     n_nonpos = int(nonpos.sum())
     if n_nonpos:
         notes.append(f"{field_name}: {n_nonpos} values <= 0 set to missing (NaN)")
@@ -225,6 +220,8 @@ class FrameEstimator:
         if depth is not None:
             metric, notes = sanitize_depth(depth)
         if self.backend in FEEDFORWARD_BACKENDS:
+            if metric is not None:  # the scale comes from the measured depth only
+                metric[np.isinf(metric)] = np.nan
             if rgb is None:
                 raise InputError("color", None, f"an rgb image for the {self.backend} backend")
             return self._feedforward(
@@ -232,9 +229,11 @@ class FrameEstimator:
             )
         if metric is None:
             raise InputError("depth", None, f"a depth image for the {self.backend} backend")
-        with np.errstate(invalid="ignore"):
-            metric[np.isfinite(metric) & (metric > self.sensor.max_range)] = np.nan
-        declare_no_return(metric, self.no_return)
+        finite = np.isfinite(metric)
+        metric[finite & (metric > self.sensor.max_range)] = np.nan
+        metric[finite & (metric < self.sensor.min_range)] = -np.inf  # nearer than it measures
+        declare_no_return(metric, self.no_return)  # of the pixels without a return only
+        metric[np.isneginf(metric)] = np.nan  # too near: no estimate
         if self.backend == "uniform":
             confidence = np.isfinite(metric).astype(np.float32)
         else:

@@ -62,8 +62,8 @@ def rgbd_confidence(
     K: (3, 3) intrinsics.
     Returns conf (H, W) float32 in [0, 1], 0 where depth is missing.
     """
-    params = params or RgbdSensorParams()
     depth, K = check_depth_and_intrinsics(depth, K)
+    params = (params or RgbdSensorParams()).at_focal(K[0, 0])
     cos, edges = surface_terms(
         depth,
         K,

@@ -242,6 +242,14 @@ class PlannerConfig:
         5.0, "sensing range of the candidate views and of fusion (paper: 5)", "metres",
         (0.01, 1000.0),
     )  # fmt: skip
+    min_range: float = described(
+        0.0,
+        "the camera measures nothing nearer (a structured-light or active-stereo camera's "
+        "minimum range): no candidate view is placed nearer than this to geometry the map "
+        "holds, and nothing nearer counts as seen (0: only clearance and a 5 cm near plane)",
+        "metres",
+        (0.0, 100.0),
+    )
     width: int = described(
         640, "image width of the candidate views until a frame is fused (then the camera's)",
         "pixels", (8, 8192),
@@ -319,6 +327,8 @@ class PlannerConfig:
     )
 
     def validate(self) -> None:
+        if not (0.0 <= self.min_range < self.max_range):
+            raise InputError("min_range", self.min_range, f"[0, max_range={self.max_range}) metres")
         if self.mode not in MODES:
             raise InputError("mode", self.mode, f"one of {', '.join(MODES)}")
         if self.level not in LEVELS:
@@ -416,7 +426,7 @@ class PlannerConfig:
             grid=grid,
             workspace_lo=np.asarray(self.workspace_min, float),
             workspace_hi=np.asarray(self.workspace_max, float),
-            clearance=self.clearance,
+            clearance=max(self.clearance, self.min_range),
             visibility=VisibilityParams(
                 level=level,
                 shell_scales=tuple(float(v) for v in self.shell_scales),
@@ -428,6 +438,7 @@ class PlannerConfig:
                 width=self.width,
                 height=self.height,
                 max_range=self.max_range,
+                near=max(VisibilityParams.near, self.min_range),
                 face_res=self.face_res or LEVEL_DEFAULTS[level]["face_res"],
                 pixels_per_voxel=self.pixels_per_voxel or LEVEL_DEFAULTS[level]["pixels_per_voxel"],
                 unknown_occludes=self.unknown_occludes,

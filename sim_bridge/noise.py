@@ -44,13 +44,14 @@ def add_depth_noise(
     discontinuity take the depth of a neighbour displaced by N(0, sigma_L(theta)) pixels per axis),
     axial Gaussian noise N(0, sigma_z(z, theta)), flying-pixel dropout on discontinuities
     (probability `edge_dropout`), dropout at grazing incidence (probability ramping from 0 at
-    `grazing_start_deg` to 1 at `grazing_full_deg`), and the range cut at `max_range`.
+    `grazing_start_deg` to 1 at `grazing_full_deg`), and the range cut at `max_range` and
+    `min_range`. The coefficients are the sensor's at the camera's focal length (`at_focal`).
 
     depth: (H, W) float metres, NaN = no return. K: (3, 3). rng: numpy Generator (seeded by caller).
-    Returns (H, W) float32 metres, NaN = no return.
+    Returns (H, W) float32 metres, NaN = no return, -Inf = nearer than `min_range` (REP 117).
     """
-    params = params or RgbdSensorParams()
     depth, K = check_depth_and_intrinsics(depth, K)
+    params = (params or RgbdSensorParams()).at_focal(K[0, 0])
     h, w = depth.shape
     valid = valid_depth_mask(depth)
     clean = np.where(valid, depth, np.float32(np.nan))
@@ -102,4 +103,5 @@ def add_depth_noise(
     out.ravel()[drop] = np.nan
     with np.errstate(invalid="ignore"):
         out[~(out > 0) | (out > params.max_range)] = np.nan
+        out[out < params.min_range] = -np.inf  # REP 117: nearer than the camera measures
     return out

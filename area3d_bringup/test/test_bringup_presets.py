@@ -1,10 +1,17 @@
-"""Run presets: what `--policy paper` builds is the published method's field and masks."""
+"""Run presets: what `--policy paper` builds is the published method's field and masks; a
+camera class (`--camera`) is described alike by every node."""
 
 import numpy as np
 import pytest
 
 import area3d_planner.node as planner_node
-from area3d_bringup.presets import PAPER_PIXELS_PER_VOXEL, episode_specs
+from area3d_bringup.launch_description import merge
+from area3d_bringup.presets import (
+    CAMERA_PRESETS,
+    PAPER_PIXELS_PER_VOXEL,
+    camera_preset,
+    episode_specs,
+)
 from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.parameters import parameter_values
 
@@ -53,3 +60,40 @@ def test_the_paper_preset_counts_every_visible_voxel_whole_in_a_views_mask():
     ours = planner_config("area3d")
     area3d = ours.planning_context(ours.fused_grid()).visibility
     assert area3d.pixels_per_voxel > 1.0 and area3d.range_profile and area3d.repeat_gain < 1.0
+
+
+@pytest.mark.parametrize("camera", sorted(CAMERA_PRESETS))
+def test_a_camera_class_is_described_alike_by_the_camera_perception_and_the_planner(camera):
+    import area3d_perception.node as perception_node
+    import sim_bridge.node as sim_node
+
+    specs = episode_specs("single_object", "area3d", 0, 10, overrides=camera_preset(camera))
+    given = {spec.name: spec.parameters for spec in specs}
+    sim = parameter_values(sim_node.PARAMS, given["sim_bridge"])
+    perception = parameter_values(perception_node.PARAMS, given["perception"])
+    planner = planner_node.config_from_parameters(
+        parameter_values(planner_node.PARAMS, given["planner"])
+    )
+    assert sim["max_range"] == perception["sensor.max_range"] == planner.max_range
+    assert sim["sensor.min_range"] == perception["sensor.min_range"] == planner.min_range
+    for name in ("sigma_a", "sigma_b", "sigma_z0", "reference_focal_px"):
+        assert sim[f"sensor.{name}"] == perception[f"sensor.{name}"]
+    planner.validate()  # and each node builds its core from them
+    perception_node.estimator_from_parameters(perception)
+    with pytest.raises(ValueError, match="camera: got 'lidar'"):
+        camera_preset("lidar")
+
+
+def test_an_episode_with_an_active_stereo_camera_measures_nothing_nearer_than_its_minimum(
+    tmp_path,
+):
+    from area3d_bringup.inprocess import run_inprocess_episode
+    from area3d_eval.rundir import iter_frames, read_episode
+
+    small = {"width": 160, "height": 120}
+    overrides = merge(camera_preset("d435"), {"sim_bridge": small, "planner": small})
+    run = run_inprocess_episode("single_object", "area3d", 0, tmp_path, 8, overrides)
+    assert read_episode(run).kinds().count("planned") == 4  # every view planned
+    for frame in iter_frames(run):
+        finite = frame.depth[np.isfinite(frame.depth)]
+        assert finite.size and finite.min() >= 0.28 and finite.max() <= 3.0

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from area3d_msgs_py.errors import InputError
 from area3d_perception.estimator import (
     NO_RETURN_REGION_PX,
@@ -62,8 +63,7 @@ def test_depth_keeps_rep_117_no_return_and_bad_values_become_missing_with_a_note
     assert np.isposinf(out.depth[0, :3]).all()
     assert np.isnan(out.depth[1, :2]).all() and np.isnan(out.depth[2, :4]).all()
     assert np.all(out.confidence[:3, :4][~np.isfinite(out.depth[:3, :4])] == 0)
-    assert any("depth: 4 values -inf" in n for n in out.notes)
-    assert any("depth: 2 values <= 0" in n for n in out.notes)
+    assert out.notes == ["depth: 2 values <= 0 set to missing (NaN)"]  # REP 117's are not bad
     clean, notes = sanitize_depth(wall())
     assert notes == [] and np.array_equal(clean, wall())
 
@@ -154,3 +154,19 @@ def test_a_depth_cameras_regions_without_a_return_are_declared_no_return_and_its
     assert np.array_equal(declare_no_return(depth.copy(), "regions"), out.depth, equal_nan=True)
     with pytest.raises(InputError, match="^no_return: "):
         FrameEstimator("rgbd", no_return="sky")
+
+
+def test_a_surface_nearer_than_the_cameras_minimum_range_is_no_estimate_never_no_return():
+    """A wall too near fills the image (the camera says -Inf, REP 117, or a driver gives values
+    below its minimum range): no estimate, however large the region, so nothing is carved through
+    it; a region the camera declared empty beyond range (+Inf) stays so."""
+    sensor = RgbdSensorParams(min_range=0.5)
+    for too_near in (-np.inf, 0.3):
+        depth = np.full((H, W), too_near, np.float32)
+        depth[:, -8:] = np.inf
+        for rule in ("regions", "all"):
+            out = FrameEstimator("rgbd", sensor=sensor, no_return=rule).process(
+                RGB, depth, K, np.eye(4)
+            )
+            assert np.isnan(out.depth[:, :-8]).all() and np.isposinf(out.depth[:, -8:]).all()
+            assert not out.confidence.any() and out.notes == []

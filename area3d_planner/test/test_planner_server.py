@@ -458,3 +458,21 @@ def test_a_view_handed_out_again_says_so_and_whether_a_frame_from_there_was_fuse
     depth, conf, K_, _ = wall_frame()
     srv.add_frame(2, depth, conf, K_, view)  # now a frame from there was fused
     assert "a frame from there was fused (stamp 2)" in srv._repeats([view])
+
+
+def test_no_candidate_view_is_placed_nearer_to_geometry_than_the_cameras_minimum_range():
+    srv = NextBestViewServer(server_config(min_range=0.3, budget=20))
+    srv.add_frame(1, *wall_frame())  # a wall at x = 0.625
+    poses, reason = srv.plan(PlanRequest(None, 1, 3))
+    assert reason == "" and len(poses) == 3
+    occupied = srv.grid.spec.centers_of(np.flatnonzero(srv.grid.occupancy() == 1))
+    seeds = srv.context.seeds()
+    half_diagonal = np.sqrt(3) / 2 * srv.grid.spec.voxel_size
+    for at in [*seeds, *(T[:3, 3] for T in poses)]:
+        assert np.linalg.norm(occupied - at, axis=1).min() >= 0.3 - half_diagonal
+    assert srv.context.visibility.near == 0.3  # nothing nearer counts as seen
+    near = NextBestViewServer(server_config(budget=20))
+    near.add_frame(1, *wall_frame())
+    assert near.context.seeds().shape[0] > seeds.shape[0]  # the limit left seeds out
+    with pytest.raises(InputError, match="^min_range: "):
+        NextBestViewServer(server_config(min_range=6.0))

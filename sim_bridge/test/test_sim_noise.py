@@ -137,3 +137,33 @@ def test_a_seeded_noisy_frame_is_the_one_recorded_bit_for_bit():
     assert noisy.dtype == recorded.dtype == np.float32
     np.testing.assert_array_equal(noisy.view(np.uint32), recorded.view(np.uint32))
     assert np.isnan(noisy).sum() > np.isnan(depth).sum()  # edges and grazing pixels dropped out
+
+
+def test_a_camera_class_gets_its_noise_at_its_focal_length_and_nothing_nearer_than_its_minimum():
+    """Depth from disparity: the axial noise of coefficients fitted at a 580 px focal length is
+    twice as large at 290 px, and the lateral noise in pixels half; a surface nearer than the
+    minimum range is not measured (REP 117: -Inf), whatever the noise."""
+    params = RgbdSensorParams(reference_focal_px=580.0)
+    assert params.at_focal(580.0) is params
+    half = params.at_focal(290.0)
+    assert half.sigma_a == pytest.approx(2 * params.sigma_a)
+    assert half.sigma_b == pytest.approx(2 * params.sigma_b)
+    assert half.lateral_l0_px == pytest.approx(params.lateral_l0_px / 2)
+    assert RgbdSensorParams().at_focal(290.0) == RgbdSensorParams()  # 0: as given
+    h = w = 200
+    wall = np.full((h, w), 1.5, np.float32)
+    spread = {}
+    for fx in (580.0, 290.0):
+        k = np.array([[fx, 0, w / 2], [0, fx, h / 2], [0, 0, 1]])
+        noisy = add_depth_noise(wall, k, np.random.default_rng(3), params)
+        spread[fx] = float(np.std(noisy[10:-10, 10:-10] - 1.5))
+    assert spread[290.0] / spread[580.0] == pytest.approx(2.0, rel=0.05)
+    near = RgbdSensorParams(min_range=0.5, max_range=4.0)
+    k = np.array([[100.0, 0, w / 2], [0, 100.0, h / 2], [0, 0, 1]])
+    depth = wall.copy()
+    depth[:, : w // 2] = 0.3  # the left half nearer than the camera measures
+    noisy = add_depth_noise(depth, k, np.random.default_rng(3), near)
+    assert np.isneginf(noisy[:, : w // 2 - 5]).all()
+    assert np.isfinite(noisy[:, w // 2 + 5 :]).mean() > 0.95
+    with pytest.raises(InputError, match="^min_range: "):
+        RgbdSensorParams(min_range=5.0, max_range=4.0)
