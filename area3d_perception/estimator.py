@@ -90,7 +90,7 @@ def declare_no_return(depth: np.ndarray, rule: str) -> np.ndarray:
         return depth
     if rule == "regions":
         size = 2 * NO_RETURN_REGION_PX + 1
-        returns = (~missing).astype(np.uint8)
+        returns = np.isfinite(depth).astype(np.uint8)  # surfaces measured
         missing &= cv2.dilate(returns, np.ones((size, size), np.uint8)) == 0
     depth[missing] = np.inf
     return depth

@@ -10,31 +10,14 @@ from area3d_msgs_py import mapfile
 from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
 from area3d_planner import map_io
-from area3d_planner.config import PlannerConfig
 from area3d_planner.requests import PlanRequest
 from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
 from area3d_planner.server import NextBestViewServer
-
-K = np.array([[32.0, 0, 32], [0, 32.0, 24], [0, 0, 1]])
+from area3d_planner.test.conftest import WALL_K, server_config
 
 
 def config(**kw):
-    base = dict(
-        workspace_min=(0.0, 0.0, 0.0),
-        workspace_max=(1.0, 1.0, 1.0),
-        roi_min=(0.3, 0.0, 0.0),
-        roi_max=(1.0, 1.0, 1.0),
-        voxel_size=0.05,
-        level="room",
-        seed_spacing=0.2,
-        yaw_bins=6,
-        pitch_bins=2,
-        face_res=32,
-        budget=30,
-        mode="closed_loop",
-    )
-    base.update(kw)
-    return PlannerConfig(**base)
+    return server_config(**{"budget": 30, "mode": "closed_loop", **kw})
 
 
 def frame(i: int):
@@ -45,7 +28,7 @@ def frame(i: int):
     depth = np.tile(0.45 + 0.2 * cols * (1 + (i % 3)) / 3, (48, 1)).astype(np.float32)
     depth[:, :4] = np.nan  # no return at one edge
     conf = np.full_like(depth, 0.5 + 0.04 * (i % 5))
-    return (i + 1) * 10**8, depth, conf, K, T
+    return (i + 1) * 10**8, depth, conf, WALL_K, T
 
 
 def semantic(i: int):

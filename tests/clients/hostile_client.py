@@ -153,7 +153,7 @@ def cases(now, w, h):
         (GOAL, "NaN position", pose(now, p=(float("nan"), 0.0, 0.0)), "position"),
         (GOAL, "frame_id 'map' instead of 'world'", pose(now, frame_id="map"), "header.frame_id"),
         (P_DEPTH, "color image on a depth topic", image(now, rgb, "rgb8"), "encoding"),
-        (P_DEPTH, "+inf depth", image(now, with_value(depth, np.inf), "32FC1"), "depth"),
+        (P_DEPTH, "-inf depth", image(now, with_value(depth, -np.inf), "32FC1"), "depth"),
         (P_DEPTH, "negative depth", image(now, with_value(depth, -1.0), "32FC1"), "depth"),
         (P_DEPTH, "data shorter than height x step", short_data(image(now, depth, "32FC1")), "data"),
         (P_DEPTH, "stamp a year ahead", image(future, depth, "32FC1"), "header.stamp"),
