@@ -21,9 +21,10 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from area3d_msgs_py.carving import CARVE_STRIDE, carve_depth_frame
 from area3d_msgs_py.depth_sensor import RgbdSensorParams
-from area3d_perception.geometric import CARVE_STRIDE, carve_depth_frame, splat_depth_frame
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
+from area3d_perception.geometric import splat_depth_frame
 from area3d_perception.sensor_model import rgbd_confidence
 from sim_bridge.noise import add_depth_noise
 

@@ -19,8 +19,8 @@ from area3d_bench.closed_loop import (
 )
 from area3d_bench.frames import object_frames
 from area3d_bench.planner_service import TARGET_ROUND_TRIP_P95_S
+from area3d_msgs_py.grid import GridSpec
 from area3d_msgs_py.lifecycle import tune_process
-from area3d_perception.grid import GridSpec
 from area3d_planner.candidates import VisibilityParams
 from area3d_planner.fusion import FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy, plain_greedy

@@ -41,9 +41,9 @@ from area3d_eval.rundir import (
     reconstruction_input,
     write_json,
 )
+from area3d_msgs_py.backproject import depth_to_world
 from area3d_msgs_py.camera import PAPER_HFOV_DEG
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import depth_to_world
 
 CHECKPOINT_STEP = (
     4  # evaluate after every 4th view (4 = |O_0| at object level, the paper's setting)

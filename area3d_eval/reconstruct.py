@@ -23,9 +23,9 @@ from numba import njit
 
 from area3d_eval.mesh_order import crop_arrays
 from area3d_eval.open3d_loader import import_open3d
+from area3d_msgs_py.backproject import depth_to_world
 from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import depth_to_world
 
 BLOCK_RESOLUTION = 8  # voxels per block edge (Open3D's default)
 INITIAL_BLOCK_COUNT = 20_000  # hash map capacity to start with; it grows on demand

@@ -8,8 +8,8 @@ import numpy as np
 
 from area3d_eval.mesh_order import row_order, smallest_first
 from area3d_eval.open3d_loader import import_open3d
+from area3d_msgs_py.backproject import pixel_rays
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import pixel_rays
 
 UNCOLOURED_GREY = 0.5  # colour of meshes without vertex colours, in [0, 1]
 

@@ -22,8 +22,8 @@ from area3d_eval.rundir import (
     iter_frames,
     read_grid,
 )
+from area3d_msgs_py.backproject import depth_to_world
 from area3d_msgs_py.camera_pose import look_at
-from area3d_perception.backproject import depth_to_world
 from area3d_planner.hard_regions import grid_voxel_size, points_hard_regions
 
 if TYPE_CHECKING:  # the records are the report's; it imports this module

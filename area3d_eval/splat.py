@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from area3d_msgs_py.backproject import backproject
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import backproject
 
 INSTALL_HINT = 'pip install -e ".[ml]" gsplat lpips  (on a machine with an NVIDIA GPU and CUDA)'
 SH_C0 = 0.28209479177387814  # zeroth spherical-harmonic basis constant, 1 / (2 sqrt(pi))

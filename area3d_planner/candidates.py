@@ -18,7 +18,7 @@ from numba import njit
 
 from area3d_msgs_py.camera_pose import look_rotation
 from area3d_msgs_py.errors import InputError
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 
 LEVELS = ("object", "room")
 

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.grid import GridSpec
 from area3d_msgs_py.param_fields import described
-from area3d_perception.grid import GridSpec
 from area3d_planner.candidates import VisibilityParams
 from area3d_planner.context import PlanningContext
 from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, FusedGrid

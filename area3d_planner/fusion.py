@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from area3d_msgs_py.backproject import backproject
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import backproject
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 from area3d_planner.observation import (
     DIRECTION_BINS,
     DepthObservation,

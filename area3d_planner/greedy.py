@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 from area3d_planner.candidates import VisibilityParams, orientation_bins
 from area3d_planner.lazy import lazy_select
 from area3d_planner.masks import decay_view

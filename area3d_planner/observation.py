@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from area3d_msgs_py.backproject import pixel_to_world
+from area3d_msgs_py.carving import carve_depth_frame
 from area3d_msgs_py.errors import InputError
-from area3d_perception.backproject import pixel_to_world
-from area3d_perception.geometric import carve_depth_frame
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 
 
 def _direction_bins(count: int) -> np.ndarray:

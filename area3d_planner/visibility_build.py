@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 from area3d_planner import incremental
 from area3d_planner.candidates import VisibilityParams
 from area3d_planner.fusion import RANGE_BIN

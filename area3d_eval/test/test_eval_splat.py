@@ -13,9 +13,9 @@ from area3d_eval.splat import (
     rgb_to_sh0,
     train_gaussians,
 )
+from area3d_msgs_py.backproject import backproject
 from area3d_msgs_py.camera import intrinsics
 from area3d_msgs_py.camera_pose import look_at
-from area3d_perception.backproject import backproject
 
 
 def frame(seed: int = 0):

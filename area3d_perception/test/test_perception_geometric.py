@@ -3,16 +3,14 @@
 import numpy as np
 import pytest
 
+from area3d_msgs_py.carving import carve_depth_frame, carve_free_space, frame_rays
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.grid import GridSpec
 from area3d_perception.geometric import (
-    carve_depth_frame,
-    carve_free_space,
-    frame_rays,
     geometric_uncertainty,
     splat_confidence,
     splat_depth_frame,
 )
-from area3d_perception.grid import GridSpec
 
 SPEC = GridSpec(origin=(-0.3, 0.2, 1.0), voxel_size=0.1, shape=(10, 6, 5))
 

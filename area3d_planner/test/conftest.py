@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from area3d_msgs_py.camera_pose import look_at
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 from area3d_planner.config import PlannerConfig
 from area3d_planner.fusion import FusedGrid
 

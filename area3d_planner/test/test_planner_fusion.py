@@ -5,7 +5,7 @@ from hypothesis import strategies as st
 
 from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.errors import InputError
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 from area3d_planner.cloud import CLOUD_DTYPE, grid_to_cloud
 from area3d_planner.fusion import FusedGrid
 
@@ -246,8 +246,8 @@ def test_cloud_holds_occupied_and_uncertain_voxels_with_their_fields():
 def _observation_by_arrays(grid, depth, conf, K, T, max_range, stride):
     """What a frame tells the grid, computed the direct way: every pixel back-projected into
     arrays, a bincount over the voxels, the carving into a fresh grid."""
-    from area3d_perception.backproject import backproject
-    from area3d_perception.geometric import carve_depth_frame
+    from area3d_msgs_py.backproject import backproject
+    from area3d_msgs_py.carving import carve_depth_frame
 
     n = grid.spec.num_voxels
     points, pixel = backproject(depth, K, T)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from area3d_msgs_py.camera_pose import look_rotation
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 from area3d_planner.candidates import VisibilityParams, orientation_bins
 from area3d_planner.greedy import (
     GreedyParams,

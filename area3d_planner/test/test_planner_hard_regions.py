@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.grid import GridSpec
 from area3d_msgs_py.hard_region import HARD_REGION_DTYPE
-from area3d_perception.grid import GridSpec
 from area3d_planner.cloud import grid_to_cloud
 from area3d_planner.fusion import FusedGrid
 from area3d_planner.hard_regions import (

@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 from area3d_perception.sensor_model import rgbd_confidence
 from area3d_planner.candidates import (
     VisibilityParams,

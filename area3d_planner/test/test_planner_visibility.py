@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from area3d_msgs_py.camera_pose import look_at, look_rotation
-from area3d_perception.grid import GridSpec
+from area3d_msgs_py.grid import GridSpec
 from area3d_planner.candidates import (
     VisibilityParams,
     _clear_of_occupied,

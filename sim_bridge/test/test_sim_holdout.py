@@ -5,7 +5,7 @@ import shutil
 import numpy as np
 import pytest
 
-from area3d_perception.backproject import backproject
+from area3d_msgs_py.backproject import backproject
 from sim_bridge.holdout_scenes import write_holdout_scene
 from sim_bridge.render import RgbdRenderer
 from sim_bridge.scene_layout import scene_layout

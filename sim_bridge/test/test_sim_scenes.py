@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from area3d_eval.open3d_loader import import_open3d
-from area3d_perception.backproject import backproject
+from area3d_msgs_py.backproject import backproject
 from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import list_scenes, load_scene
 from sim_bridge.validity import check_pose
