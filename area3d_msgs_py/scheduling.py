@@ -266,7 +266,7 @@ class StateWaits:
 
     def __init__(self) -> None:
         self._changed = threading.Condition()
-        self.waiting = 0  # callers in `wait_for` now
+        self.waiting = 0  # callers in `wait_for(urgent=True)` now
         self.closed = False
 
     def changed(self) -> None:
@@ -274,17 +274,22 @@ class StateWaits:
             self._changed.notify_all()
 
     def wait_for(
-        self, predicate: Callable[[], bool], timeout_s: float | None, closed: bool = False
+        self,
+        predicate: Callable[[], bool],
+        timeout_s: float | None,
+        closed: bool = False,
+        urgent: bool = False,
     ) -> bool:
         """Block until `predicate()` holds, or `timeout_s` passes, or `close()`; the predicate's
-        last value, or `closed` once closed."""
+        last value, or `closed` once closed. `urgent`: the wait is for a background step, which
+        then runs at once (`BackgroundSteps`: not held back by its interval)."""
         with self._changed:
-            self.waiting += 1
+            self.waiting += urgent
             self._changed.notify_all()  # a background step may be holding back: one waits
             try:
                 held = self._changed.wait_for(lambda: self.closed or predicate(), timeout_s)
             finally:
-                self.waiting -= 1
+                self.waiting -= urgent
             if self.closed:
                 return closed or bool(predicate())
             return bool(held)
@@ -300,7 +305,8 @@ class BackgroundSteps(StateWaits):
     it changes.
 
     `due()` says what is to do: "now" (a step at once), "due" (a step once `interval_s` has
-    passed since the last one started, or at once while a caller waits in `wait_for`) or None
+    passed since the last one started, or at once while a caller waits in `wait_for(urgent=True)`)
+    or None
     (nothing: the thread sleeps until `changed()`). `step()` runs one; `after()` is called after
     each (what it raises is ignored: a listener must not stop the upkeep); `warm_up()` runs once
     first, on the thread. With `nice` > 0 the thread runs that much nicer than the process (Linux:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -141,7 +142,8 @@ class PlannerScheduler:
         target = self.core.masks_target(stamp_ns, version)
         if target is None:
             return True
-        return self.waits.wait_for(lambda: self.core.masks_cover(target), timeout_s, closed=True)
+        covered = partial(self.core.masks_cover, target)
+        return self.waits.wait_for(covered, timeout_s, closed=True, urgent=True)
 
     # ------------------------------------------------------------------ planning
     def plan(self, request: PlanRequest) -> tuple[list[np.ndarray], str]:

@@ -230,3 +230,33 @@ def test_a_failing_hand_on_ends_the_worker_quietly_only_when_it_is_stopping(monk
             fusion.stop(TIMEOUT_S)
         assert rec.failed == []
     assert raised == [RuntimeError]  # the first only
+
+
+def test_background_steps_are_held_back_by_their_interval_unless_a_caller_waits_for_one():
+    """A due step waits for its interval; a caller that waits for a step (urgent) gets it at once,
+    one that waits for something else does not start it; close() ends every wait."""
+    from area3d_msgs_py.scheduling import BackgroundSteps
+
+    state = {"due": None, "steps": 0}
+    stepped = threading.Event()
+
+    def step():
+        state["steps"] += 1
+        state["due"] = None
+        stepped.set()
+
+    steps = BackgroundSteps(lambda: state["due"], step, "test-steps", interval_s=3600.0)
+    try:
+        state["due"] = "now"  # at once, whatever the interval
+        steps.changed()
+        assert stepped.wait(TIMEOUT_S) and state["steps"] == 1
+        stepped.clear()
+        state["due"] = "due"  # the interval (an hour) has not passed since the last step
+        steps.changed()
+        assert not steps.wait_for(lambda: state["steps"] == 2, 0.3)  # not urgent: held back
+        assert steps.wait_for(lambda: state["steps"] == 2, TIMEOUT_S, urgent=True)
+        assert steps.alive and steps.tid is not None
+    finally:
+        steps.close(TIMEOUT_S)
+    assert steps.alive  # closed on purpose, not dead
+    assert steps.wait_for(lambda: False, TIMEOUT_S, closed=True)  # a closed wait ends at once
