@@ -4,7 +4,9 @@ A client may call as soon as `wait_for_service` says the server is there, while 
 not yet matched the client's reply reader: Fast DDS then waits 100 ms for that match and drops
 the reply if it has not come (seen on a busy 2-core machine, right after a node started). Only a
 new request gets an answer then, so `call` sends the request again every `resend_s` until one
-is answered: for services a repeat does not harm (a reset, a query, a plan for the same stamp).
+is answered: for services a repeat does not harm (a reset, a query), or whose requests carry an
+id the server answers a repeat by (the planner's select_views: `request_id`). A closed-loop plan
+request without one, repeated, is a new request: the planner takes it for views not captured.
 """
 
 from __future__ import annotations

@@ -419,7 +419,10 @@ class PlannerNode(Node):
                     "current.header.frame_id", asked.frame_id, f"{self.world_frame!r} (world_frame)"
                 )
             plan, _ = self._serve(
-                "select_views", PlanRequest(asked.current, asked.stamp_ns, asked.count, asked.mode)
+                "select_views",
+                PlanRequest(
+                    asked.current, asked.stamp_ns, asked.count, asked.mode, asked.request_id
+                ),
             )
         except InputError as exc:
             plan = Plan([], [], f"request rejected: {exc}")
@@ -439,11 +442,14 @@ class PlannerNode(Node):
 
     def _serve(self, service: str, request: PlanRequest) -> tuple[Plan, msgs.Path]:
         """Wait for the request's frame, plan, publish the views (the Path returned) and their
-        markers."""
+        markers. A request with the id of one answered gets that answer again at once."""
         log = self.get_logger()
         # the map of the whole request, even if a reset replaces it meanwhile
         scheduler = self.scheduler
         server = scheduler.core
+        if (plan := scheduler.answered(request.request_id)) is not None:
+            log.info(f"{service}: request {request.request_id} again: answered as before")
+            return plan, self._publish_views(plan.poses, server)
         sync_timeout_s = self.get_parameter("sync_timeout_s").value
         t0 = time.perf_counter()
         stale = ""
@@ -451,9 +457,7 @@ class PlannerNode(Node):
             stale = server.stale_note(request.stamp_ns, sync_timeout_s)
             log.warning(f"{service}: {stale}")
         t1 = time.perf_counter()
-        plan = scheduler.plan_views(request)
-        if not plan.reason and stale:
-            plan = plan._replace(note="; ".join(n for n in (stale, plan.note) if n))
+        plan = scheduler.plan_views(request, stale)
         # where the last request's time went, in the status (a mission manager's latency budget)
         server.last_request_s = {
             "wait_fused": round(t1 - t0, 4),

@@ -17,12 +17,14 @@ from area3d_planner.config import MODES
 class PlanRequest:
     """A next-best-view request: current camera pose, the stamp of the last captured frame
     (0 = do not wait), how many views (0 = all that the remaining budget allows in batch mode,
-    one in closed loop) and the mode ("" = the planner's `mode`)."""
+    one in closed loop), the mode ("" = the planner's `mode`) and the caller's id for the
+    request (0 = none: `scheduler.ANSWERS_KEPT`)."""
 
     start: np.ndarray | None
     stamp_ns: int = 0
     num_views: int = 0
     mode: str = ""
+    request_id: int = 0
 
 
 class Plan(NamedTuple):

@@ -14,6 +14,7 @@ on time comes first; with 0, a request waits on it.
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -27,6 +28,12 @@ from area3d_planner.requests import Plan, PlanRequest
 from area3d_planner.server import CACHE_WAIT_S, NextBestViewServer
 
 REBUILD_THREAD = "planner-cache-refresh"
+# Answers kept by request id: a request with the id of one of them gets that answer again instead
+# of a new plan. A ROS 2 client that has no reply within a few seconds may send its request again
+# (`area3d_msgs_py.services.call`: a reply Fast DDS dropped right after discovery never comes);
+# planned anew, a closed-loop request from the same frame means views that were not captured
+# (`NextBestViewServer._release_uncaptured`), and the answer changes.
+ANSWERS_KEPT = 64
 
 
 @dataclass
@@ -71,6 +78,7 @@ class PlannerScheduler:
         s = scheduling or SchedulerConfig()
         self.core = NextBestViewServer(config, background=s.eager_cache, mask_lag_s=s.mask_lag_s)
         self._plan_lock = threading.Lock()  # plans one at a time
+        self._answers: OrderedDict[int, Plan] = OrderedDict()  # by request id (`ANSWERS_KEPT`)
         if s.eager_cache:
             self.waits: StateWaits = BackgroundSteps(
                 self.core.rebuild_due,
@@ -151,16 +159,35 @@ class PlannerScheduler:
         plan = self.plan_views(request)
         return plan.poses, plan.reason
 
-    def plan_views(self, request: PlanRequest) -> Plan:
+    def answered(self, request_id: int) -> Plan | None:
+        """The answer given to the request `request_id` (`ANSWERS_KEPT`); None for 0 or an id
+        not answered (or forgotten)."""
+        with self._plan_lock:
+            return self._answers.get(request_id) if request_id else None
+
+    def plan_views(self, request: PlanRequest, note: str = "") -> Plan:
         """The request checked, its masks waited for (those of the previous request's frame when
         pipelined, else those of its own; `CACHE_WAIT_S` at most), then planned
-        (`NextBestViewServer.finish_plan`). Plans run one at a time."""
+        (`NextBestViewServer.finish_plan`), `note` added to a plan with views. Plans run one at
+        a time; a request with the id of one answered gets that answer again (`ANSWERS_KEPT`)."""
         with self._plan_lock:
-            ticket = self.core.begin_plan(request)
-            if isinstance(ticket, Plan):
-                return ticket
-            stamp = request.stamp_ns
-            base_ready = bool(ticket.base) and self.wait_cache(stamp, CACHE_WAIT_S, ticket.base)
-            # without the previous request's masks, the request waits for those of its own frame
-            ready = base_ready or self.wait_cache(stamp, CACHE_WAIT_S)
-            return self.core.finish_plan(ticket, base_ready, ready)
+            if request.request_id and request.request_id in self._answers:
+                return self._answers[request.request_id]
+            plan = self._plan(request)
+            if not plan.reason and note:
+                plan = plan._replace(note="; ".join(n for n in (note, plan.note) if n))
+            if request.request_id:
+                self._answers[request.request_id] = plan
+                while len(self._answers) > ANSWERS_KEPT:
+                    self._answers.popitem(last=False)
+            return plan
+
+    def _plan(self, request: PlanRequest) -> Plan:
+        ticket = self.core.begin_plan(request)
+        if isinstance(ticket, Plan):
+            return ticket
+        stamp = request.stamp_ns
+        base_ready = bool(ticket.base) and self.wait_cache(stamp, CACHE_WAIT_S, ticket.base)
+        # without the previous request's masks, the request waits for those of its own frame
+        ready = base_ready or self.wait_cache(stamp, CACHE_WAIT_S)
+        return self.core.finish_plan(ticket, base_ready, ready)

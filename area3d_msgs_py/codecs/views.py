@@ -24,13 +24,15 @@ UINT32_MAX = 2**32 - 1
 
 class ViewRequest(NamedTuple):
     """A NextBestView request: how many views, the mode ("" = the planner's), the camera's
-    current pose (4x4 in frame_id) and the stamp of the last frame it was captured with."""
+    current pose (4x4 in frame_id), the stamp of the last frame it was captured with, and the
+    caller's id for the request (0 = none; a resend carries the id of the request it repeats)."""
 
     count: int
     mode: str
     current: np.ndarray
     stamp_ns: int
     frame_id: str
+    request_id: int = 0
 
 
 class ViewAnswer(NamedTuple):
@@ -52,19 +54,32 @@ def _check_mode(mode: Any) -> str:
 
 
 def view_request_to_msg(
-    count: int, current: np.ndarray, stamp_ns: int, frame_id: str, mode: str = ""
+    count: int,
+    current: np.ndarray,
+    stamp_ns: int,
+    frame_id: str,
+    mode: str = "",
+    request_id: int = 0,
 ) -> Any:
     """area3d_interfaces/srv/NextBestView.Request. count: views wanted, 0 = what the budget
-    allows; current: 4x4 camera pose in frame_id, stamped with the last captured frame."""
+    allows; current: 4x4 camera pose in frame_id, stamped with the last captured frame;
+    request_id: the caller's id for it (0 = none), which a resend of it keeps."""
     if not isinstance(count, int | np.integer) or isinstance(count, bool):
         raise InputError("count", count, "an int of views >= 0 (0 = as many as the budget allows)")
     if not 0 <= count <= UINT32_MAX:
         raise InputError("count", count, "an int of views >= 0 (0 = as many as the budget allows)")
+    if (
+        not isinstance(request_id, int | np.integer)
+        or isinstance(request_id, bool)
+        or not 0 <= request_id < 2**64
+    ):
+        raise InputError("request_id", request_id, "an int in [0, 2^64) (0 = none)")
     pose = matrix_to_pose(current, "current")
     return msgs.NextBestView.Request(
         count=int(count),
         mode=_check_mode(mode),
         current=msgs.PoseStamped(header=header(stamp_ns, frame_id), pose=pose),
+        request_id=int(request_id),
     )
 
 
@@ -76,6 +91,7 @@ def msg_to_view_request(msg: Any) -> ViewRequest:
         current=pose_to_matrix(msg.current.pose, "current.pose"),
         stamp_ns=stamp_to_ns(msg.current.header.stamp),
         frame_id=msg.current.header.frame_id,
+        request_id=int(msg.request_id),
     )
 
 

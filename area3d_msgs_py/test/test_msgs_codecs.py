@@ -377,12 +377,14 @@ def test_a_bad_transform_in_a_tf_message_is_named_by_its_index():
     current=rigids,
     stamp=stamps,
     frame=frame_names,
+    request_id=st.integers(0, 2**64 - 1),
 )
-def test_next_best_view_request_round_trips(count, mode, current, stamp, frame):
-    msg = wire(codecs.view_request_to_msg(count, current, stamp, frame, mode))
+def test_next_best_view_request_round_trips(count, mode, current, stamp, frame, request_id):
+    msg = wire(codecs.view_request_to_msg(count, current, stamp, frame, mode, request_id))
     assert msgs.type_name_of(msg) == "area3d_interfaces/srv/NextBestView_Request"
     got = codecs.msg_to_view_request(msg)
     assert (got.count, got.mode, got.stamp_ns, got.frame_id) == (count, mode, stamp, frame)
+    assert got.request_id == request_id
     np.testing.assert_allclose(got.current, current, atol=1e-9)
 
 
@@ -419,6 +421,8 @@ def test_bad_next_best_view_fields_are_named():
     raises_field("mode", codecs.view_request_to_msg, 1, np.eye(4), 1, "w", "sideways")
     raises_field("count", codecs.view_request_to_msg, -1, np.eye(4), 1, "w")
     raises_field("count", codecs.view_request_to_msg, 2.5, np.eye(4), 1, "w")
+    for request_id in (-1, 2**64, True, 1.0):
+        raises_field("request_id", codecs.view_request_to_msg, 1, np.eye(4), 1, "w", "", request_id)
     request = codecs.view_request_to_msg(1, np.eye(4), 1, "w")
     request.current.pose.orientation.w = 3.0
     raises_field("current.pose.orientation", codecs.msg_to_view_request, request)

@@ -7,6 +7,7 @@ import threading
 import numpy as np
 import pytest
 
+from area3d_planner import scheduler as scheduler_module
 from area3d_planner.requests import PlanRequest
 from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
 from area3d_planner.server import NextBestViewServer
@@ -225,3 +226,27 @@ def test_the_background_rebuild_runs_at_the_niceness_asked_for():
         assert base == os.getpriority(os.PRIO_PROCESS, threading.get_native_id())  # only it
     finally:
         srv.close()
+
+
+def test_a_request_with_the_id_of_one_answered_gets_that_answer_and_is_not_counted_again(
+    monkeypatch,
+):
+    """A repeat of a request (its id) is answered as before; without an id, or with a new one,
+    the same closed-loop request from the same frame releases the view handed out and plans
+    another. Only the newest `ANSWERS_KEPT` answers are kept."""
+    monkeypatch.setattr(scheduler_module, "ANSWERS_KEPT", 2)
+    srv = PlannerScheduler(closed_loop_config(), SchedulerConfig(eager_cache=False))
+    for f in wall_frames():
+        srv.add_frame(*f)
+    start = wall_frames()[-1][4]
+    first = srv.plan_views(PlanRequest(start, 3, 1, request_id=11))
+    assert first.poses and first.reason == ""
+    again = srv.plan_views(PlanRequest(start, 3, 1, request_id=11))
+    assert again is first and srv.answered(11) is first
+    assert srv.core.committed == 1
+    other = srv.plan_views(PlanRequest(start, 3, 1, request_id=12))  # a new request, same frame
+    assert not np.array_equal(other.poses[0], first.poses[0])
+    assert srv.core.committed == 1  # the first view, not captured, was released
+    assert srv.answered(0) is None and srv.plan_views(PlanRequest(start, 3, 1)).poses
+    srv.plan_views(PlanRequest(start, 3, 1, request_id=13))
+    assert srv.answered(11) is None and srv.answered(12) is other  # the oldest forgotten
