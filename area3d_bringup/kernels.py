@@ -2,50 +2,111 @@
 
 `make install` runs this once (`python -m area3d_bringup.kernels`), so the first episode's node
 processes load the kernels instead of compiling them while the graph runs (on a 2-core machine
-the first compile takes about 40 s); the test suite runs it at its start (`conftest.py`), where
-with the cache warm it takes a few seconds. A tiny in-process episode with camera depth and one
-with stereo depth, and the evaluation of one, run every kernel family the nodes and the report
-use. A kernel whose source changed later is compiled again where it is first called.
+compiling them all takes about 40 s of one core); the test suite runs it at its start
+(`conftest.py`), where with the cache warm it takes a few seconds. Tiny in-process episodes and
+the evaluation of one run every kernel family the nodes and the report use. A kernel whose
+source changed later is compiled again where it is first called.
+
+The work is split in two parts (`PARTS`) of about the same compile time, run at once in two
+processes by `main` (numba compiles on one core; a cache file is written whole by one process,
+so two processes compiling the same small kernel leave a valid cache):
+- "masks": the planner's visibility masks of a box, built, then updated after the box changed
+  (the incremental update's kernel alone takes 15-20 s to compile);
+- "episodes": an episode with camera depth and the area3d policy, budget 5 (one planned view:
+  masks built, never updated), one with stereo depth and the uniform policy, and its
+  evaluation: the simulation, stereo matching, the sensor model, fusion, selection, metrics.
 """
 
 from __future__ import annotations
 
+import argparse
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 SMALL = {"width": 160, "height": 120}
+PARTS = ("masks", "episodes")
 
 
-def warm_kernels() -> float:
-    """Run every kernel family once; returns the seconds it took."""
-    from area3d_bringup.inprocess import run_inprocess_episode
-    from area3d_eval.evaluate import evaluate_run
-
+def warm_kernels(parts: tuple[str, ...] = PARTS) -> float:
+    """Run the kernel families of `parts` once, in this process; returns the seconds it took."""
     t0 = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="area3d-kernels-") as out:
-        for name, overrides in (
-            ("camera", {"sim_bridge": SMALL, "planner": SMALL}),
-            (
-                "stereo",
-                {
-                    "sim_bridge": {**SMALL, "stereo": True},
-                    "perception": {"backend": "stereo"},
-                    "planner": SMALL,
-                },
-            ),
-        ):
-            run = run_inprocess_episode(
-                "single_object", "area3d", 0, Path(out), budget=6, overrides=overrides,
-                run_name=name, depth_source="estimated",
-            )  # fmt: skip
-        evaluate_run(run, checkpoints=[6], eval_width=64, eval_height=48, write=False)
+    if "masks" in parts:
+        _masks()
+    if "episodes" in parts:
+        _episodes()
     return time.monotonic() - t0
 
 
-def main() -> None:
-    print(f"numba kernels compiled or loaded into their cache in {warm_kernels():.1f} s")
+def _masks() -> None:
+    """The planner's visibility masks of a box in its region, built, then updated after part of
+    the box turned free and a new part appeared (`incremental.py`), as the planner's context
+    builds them (no frame fused: fusion is the other part's)."""
+    import numpy as np
+
+    from area3d_planner.config import PlannerConfig
+    from area3d_planner.fusion import FREE, OCCUPIED, UNKNOWN
+
+    config = PlannerConfig(mode="closed_loop", width=SMALL["width"], height=SMALL["height"])
+    context = config.planning_context(config.fused_grid())
+    occupancy = np.full(context.grid.spec.shape, FREE, np.int8)
+    n = np.asarray(occupancy.shape)
+    lo, hi = n * 2 // 5, n * 3 // 5
+    box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(0, hi[2]))
+    occupancy[box] = OCCUPIED
+    occupancy[lo[0] + 1 : hi[0] - 1, lo[1] + 1 : hi[1] - 1, : hi[2] - 1] = UNKNOWN
+    context.install(*context.build(occupancy.ravel(), ("roi_not_free",)))
+    occupancy[lo[0] : hi[0] // 2 + 1, lo[1] : hi[1], : hi[2]] = FREE
+    occupancy[hi[0] : hi[0] + 2, lo[1] : hi[1], : hi[2] // 2] = OCCUPIED
+    _, caches = context.build(occupancy.ravel(), ("roi_not_free",))
+    if not caches["roi_not_free"].report.get("updated"):
+        raise RuntimeError("the masks were not updated: the update's kernel was not compiled")
+
+
+def _episodes() -> None:
+    from area3d_bringup.inprocess import run_inprocess_episode
+    from area3d_eval.evaluate import evaluate_run
+
+    with tempfile.TemporaryDirectory(prefix="area3d-kernels-") as out:
+        run_inprocess_episode(
+            "single_object", "area3d", 0, Path(out), budget=5, run_name="camera",
+            overrides={"sim_bridge": SMALL, "planner": SMALL}, depth_source="estimated",
+        )  # fmt: skip
+        stereo = {
+            "sim_bridge": {**SMALL, "stereo": True},
+            "perception": {"backend": "stereo"},
+            "planner": SMALL,
+        }
+        run = run_inprocess_episode(
+            "single_object", "uniform", 0, Path(out), budget=6, run_name="stereo",
+            overrides=stereo, depth_source="estimated",
+        )  # fmt: skip
+        evaluate_run(run, checkpoints=[6], eval_width=64, eval_height=48, write=False)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=PARTS, help="one part, in this process")
+    args = parser.parse_args(argv)
+    if args.part:
+        print(
+            f"numba kernels ({args.part}) compiled or loaded in {warm_kernels((args.part,)):.1f} s"
+        )
+        return 0
+    t0 = time.monotonic()
+    workers = [
+        subprocess.Popen([sys.executable, "-m", "area3d_bringup.kernels", "--part", part])
+        for part in PARTS
+    ]
+    failed = [part for part, w in zip(PARTS, workers, strict=True) if w.wait() != 0]
+    if failed:
+        print(f"compiling the numba kernels failed: part {', '.join(failed)}", file=sys.stderr)
+        return 1
+    print(f"numba kernels compiled or loaded into their cache in {time.monotonic() - t0:.1f} s")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
