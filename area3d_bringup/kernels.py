@@ -1,6 +1,7 @@
 """Compile the numba kernels into their on-disk cache, ahead of the nodes that use them.
 
-`make install` runs this once (`python -m area3d_bringup.kernels`), so the first episode's node
+`make install` runs it once (each part: `python -m area3d_bringup.kernels --part P`, the first
+while the ROS 2 interfaces build), so the first episode's node
 processes load the kernels instead of compiling them while the graph runs (on a 2-core machine
 compiling them all takes about 40 s of one core); the test suite runs it at its start
 (`conftest.py`), where with the cache warm it takes a few seconds. Tiny in-process episodes and
@@ -12,7 +13,8 @@ processes by `main` (numba compiles on one core; a cache file is written whole b
 so two processes compiling the same small kernel leave a valid cache):
 - "masks": the planner's visibility masks of a box, built, then updated after the box changed
   (the incremental update's kernel alone takes 15-20 s to compile);
-- "episodes": an episode with camera depth and the area3d policy, budget 5 (one planned view:
+- "episodes" (runs the nodes' code in one process: needs the ROS 2 interfaces built): an
+  episode with camera depth and the area3d policy, budget 5 (one planned view:
   masks built, never updated), one with stereo depth and the uniform policy, and its
   evaluation: the simulation, stereo matching, the sensor model, fusion, selection, metrics.
 """
