@@ -33,7 +33,8 @@ $(STAMP): pyproject.toml $(FOXGLOVE_CLIENT)/package-lock.json
 # The ROS 2 interfaces (tf2_msgs, area3d_interfaces) generated and built into the venv
 # (tools/build_interfaces.py), and the numba kernels compiled into their on-disk cache, so that no
 # node compiles one while the graph runs (area3d_bringup/kernels.py): the masks' kernels while the
-# interfaces build, the episodes' (which run the nodes' code, hence the interfaces) after. Again
+# interfaces build, the two episodes' (which run the nodes' code, hence the interfaces) after,
+# at once. Again
 # when an interface, the build script, the venv's packages or a source file change: the interface
 # build keeps a digest of its inputs and skips itself when nothing it depends on changed, and
 # kernels already cached load in seconds.
@@ -42,7 +43,8 @@ KERNEL_SOURCES := $(shell find area3d_* sim_bridge -name '*.py' -not -path '*/te
 
 $(BUILT): $(STAMP) $(INTERFACE_SOURCES) $(KERNEL_SOURCES)
 	@$(PY) -m area3d_bringup.kernels --part masks & masks=$$!; \
-	$(PY) tools/build_interfaces.py && $(PY) -m area3d_bringup.kernels --part episodes; built=$$?; \
+	$(PY) tools/build_interfaces.py && \
+	$(PY) -m area3d_bringup.kernels --part camera --part stereo; built=$$?; \
 	wait $$masks && test $$built -eq 0
 	touch $(BUILT)
 

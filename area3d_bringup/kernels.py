@@ -1,22 +1,25 @@
 """Compile the numba kernels into their on-disk cache, ahead of the nodes that use them.
 
-`make install` runs it once (each part: `python -m area3d_bringup.kernels --part P`, the first
-while the ROS 2 interfaces build), so the first episode's node
+`make install` runs it once (`python -m area3d_bringup.kernels --part P ...`: the masks while
+the ROS 2 interfaces build, the episodes after), so the first episode's node
 processes load the kernels instead of compiling them while the graph runs (on a 2-core machine
 compiling them all takes about 40 s of one core); the test suite runs it at its start
 (`conftest.py`), where with the cache warm it takes a few seconds. Tiny in-process episodes and
 the evaluation of one run every kernel family the nodes and the report use. A kernel whose
 source changed later is compiled again where it is first called.
 
-The work is split in two parts (`PARTS`) of about the same compile time, run at once in two
-processes by `main` (numba compiles on one core; a cache file is written whole by one process,
-so two processes compiling the same small kernel leave a valid cache):
+The work is split in three parts (`PARTS`) that compile different kernels, so that processes
+running them at once share the compiling (numba compiles on one core; a cache file is written
+whole by one process, so two processes compiling the same small kernel leave a valid cache):
 - "masks": the planner's visibility masks of a box, built, then updated after the box changed
-  (the incremental update's kernel alone takes 15-20 s to compile);
-- "episodes" (runs the nodes' code in one process: needs the ROS 2 interfaces built): an
-  episode with camera depth and the area3d policy, budget 5 (one planned view:
-  masks built, never updated), one with stereo depth and the uniform policy, and its
-  evaluation: the simulation, stereo matching, the sensor model, fusion, selection, metrics.
+  (the incremental update's kernel alone takes 15-20 s to compile); no ROS 2 interface needed,
+  so `make install` runs it while the interfaces build;
+- "camera": an episode with camera depth and the area3d policy, budget 5 (one planned view: the
+  masks built, never updated): the simulation, the sensor model, fusion, the selection;
+- "stereo": an episode with stereo depth and the uniform policy (no masks) and its evaluation:
+  the simulated pair, stereo matching, the metrics.
+The two episodes run the nodes' code in one process, which needs the interfaces. `main` runs the
+three at once.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import time
 from pathlib import Path
 
 SMALL = {"width": 160, "height": 120}
-PARTS = ("masks", "episodes")
+PARTS = ("masks", "camera", "stereo")
 
 
 def warm_kernels(parts: tuple[str, ...] = PARTS) -> float:
@@ -37,8 +40,9 @@ def warm_kernels(parts: tuple[str, ...] = PARTS) -> float:
     t0 = time.monotonic()
     if "masks" in parts:
         _masks()
-    if "episodes" in parts:
-        _episodes()
+    for part in ("camera", "stereo"):
+        if part in parts:
+            _episode(part)
     return time.monotonic() - t0
 
 
@@ -67,15 +71,17 @@ def _masks() -> None:
         raise RuntimeError("the masks were not updated: the update's kernel was not compiled")
 
 
-def _episodes() -> None:
+def _episode(part: str) -> None:
     from area3d_bringup.inprocess import run_inprocess_episode
     from area3d_eval.evaluate import evaluate_run
 
     with tempfile.TemporaryDirectory(prefix="area3d-kernels-") as out:
-        run_inprocess_episode(
-            "single_object", "area3d", 0, Path(out), budget=5, run_name="camera",
-            overrides={"sim_bridge": SMALL, "planner": SMALL}, depth_source="estimated",
-        )  # fmt: skip
+        if part == "camera":
+            run_inprocess_episode(
+                "single_object", "area3d", 0, Path(out), budget=5, run_name="camera",
+                overrides={"sim_bridge": SMALL, "planner": SMALL}, depth_source="estimated",
+            )  # fmt: skip
+            return
         stereo = {
             "sim_bridge": {**SMALL, "stereo": True},
             "perception": {"backend": "stereo"},
