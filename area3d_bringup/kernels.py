@@ -96,19 +96,20 @@ def _episode(part: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=PARTS, help="one part, in this process")
+    parser.add_argument(
+        "--part", choices=PARTS, action="append", help="this part (repeat: several; default: all)"
+    )
+    parser.add_argument("--here", action="store_true", help="in this process, one after another")
     args = parser.parse_args(argv)
-    if args.part:
-        print(
-            f"numba kernels ({args.part}) compiled or loaded in {warm_kernels((args.part,)):.1f} s"
-        )
+    parts = tuple(args.part or PARTS)
+    if args.here:
+        seconds = warm_kernels(parts)
+        print(f"numba kernels ({', '.join(parts)}) compiled or loaded in {seconds:.1f} s")
         return 0
     t0 = time.monotonic()
-    workers = [
-        subprocess.Popen([sys.executable, "-m", "area3d_bringup.kernels", "--part", part])
-        for part in PARTS
-    ]
-    failed = [part for part, w in zip(PARTS, workers, strict=True) if w.wait() != 0]
+    command = [sys.executable, "-m", "area3d_bringup.kernels", "--here", "--part"]
+    workers = [subprocess.Popen([*command, part]) for part in parts]
+    failed = [part for part, w in zip(parts, workers, strict=True) if w.wait() != 0]
     if failed:
         print(f"compiling the numba kernels failed: part {', '.join(failed)}", file=sys.stderr)
         return 1
