@@ -42,6 +42,7 @@ def test_next_best_view_has_exactly_the_documented_fields():
         "count": "uint32",
         "mode": "string",
         "current": "geometry_msgs/PoseStamped",
+        "request_id": "uint64",
     }
     assert NextBestView.Response.get_fields_and_field_types() == {
         "success": "boolean",
@@ -188,3 +189,48 @@ def test_the_build_runs_again_when_an_interface_changes_and_not_for_its_readme(
     assert changed != first
     (tmp_path / "build_interfaces.py").write_text("# script, changed\n")
     assert build.inputs_digest() != changed
+
+
+def test_a_build_kept_in_the_cache_is_copied_into_another_prefix_with_its_paths(
+    monkeypatch, tmp_path
+):
+    """The installed files of a build (its install manifests) are cached by digest, the building
+    prefix's path marked in text files; another prefix gets them with its own path, if they load
+    there. A binary that holds the prefix is never cached (its path cannot be rewritten)."""
+    script = load_build_script()
+    monkeypatch.setenv("AREA3D_CACHE_DIR", str(tmp_path / "cache"))
+    built, other = tmp_path / "venv-a", tmp_path / "somewhere" / "venv-b"
+    build_root = built / "build" / "interfaces"
+    files = {
+        "lib/libarea3d_interfaces__rosidl_typesupport_c.so": b"\x7fELF\0\1 no path",
+        "share/area3d_interfaces/local_setup.sh": f"PREFIX={built}/share\n".encode(),
+        "lib/python3.11/site-packages/tf2_msgs/__init__.py": b"",
+    }
+    for i, (name, data) in enumerate(files.items()):
+        (built / name).parent.mkdir(parents=True, exist_ok=True)
+        (built / name).write_bytes(data)
+        package = script.PACKAGES[i % 2].name
+        (build_root / package).mkdir(parents=True, exist_ok=True)
+        with (build_root / package / "install_manifest.txt").open("a") as manifest:
+            manifest.write(f"{built / name}\n")
+    script.keep_in_cache(built, build_root, "d1")
+    assert (tmp_path / "cache" / "interfaces" / "d1" / "manifest.txt").is_file()
+
+    loads = []
+    monkeypatch.setattr(script, "_load_error", lambda: loads.pop(0))
+    loads.append("")
+    assert script.restore_from_cache(other, "d1")
+    assert (other / "share/area3d_interfaces/local_setup.sh").read_text() == (
+        f"PREFIX={other}/share\n"
+    )
+    assert (other / next(iter(files))).read_bytes() == next(iter(files.values()))
+    assert (other / "lib/python3.11/site-packages/tf2_msgs/__init__.py").is_file()
+    loads.append("ImportError: libfoo.so: cannot open shared object file")
+    assert not script.restore_from_cache(other, "d1")  # copied, but does not load: built
+    assert not script.restore_from_cache(other, "never-built")
+
+    # a binary holding the prefix: not cached
+    (built / next(iter(files))).write_bytes(b"\x7fELF\0" + bytes(built))
+    script.keep_in_cache(built, build_root, "d2")
+    assert not (tmp_path / "cache" / "interfaces" / "d2").exists()
+    assert [p.name for p in (tmp_path / "cache" / "interfaces").iterdir()] == ["d1"]
