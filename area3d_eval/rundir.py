@@ -24,7 +24,8 @@ Layout (all paths relative to RUN_DIR):
 
 Every file is written to a temporary name in the same directory and renamed over its final name
 (`os.replace`, atomic on POSIX), so a run killed mid-write leaves the previous complete version of
-each file, never half of one; leftover `*.tmp*` files are ignored by the readers.
+each file, never half of one; leftover temporary files (hidden, `.NAME.*.tmp*`) are ignored by the
+readers.
 - `maps/`: what the graph held when the episode ended, saved over its services: the planner's
   map (`planner.a3map`) and the reconstruction's volume (`reconstruction.a3map`), loadable with
   `load_map` (docs/map_format.md), and the live mesh (`mesh.ply`, `export_mesh`).
@@ -36,7 +37,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.mapfile import replace_atomically
 
 EPISODE_FILE = "episode.json"
 # What the TSDF integrates: the camera's depth, or the depth perception estimated from the images
@@ -189,21 +190,13 @@ def check_output_dir(directory: Path, min_free_mb: float = MIN_FREE_MB) -> None:
 
 
 def write_atomic(path: Path, write: Callable[[Path], None], sync: bool = False) -> Path:
-    """Call `write(tmp)` on a temporary file next to `path`, then rename it over `path`: a reader
-    (or a run resumed after a crash) sees the old complete file or the new one, never a torn one.
-    `sync` flushes the data to the disk first, so it also survives a power cut."""
+    """Call `write(tmp)` on a temporary file next to `path`, then rename it over `path`
+    (`mapfile.replace_atomically`; the folder made first): a reader (or a run resumed after a
+    crash) sees the old complete file or the new one, never a torn one. `sync` flushes the data
+    to the disk first, so it also survives a power cut."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.stem}.tmp{path.suffix}")
-    try:
-        write(tmp)
-        if sync:
-            with tmp.open("rb") as stream:
-                os.fsync(stream.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    replace_atomically(path, write, suffix=f".tmp{path.suffix}", sync=sync)
     return path
 
 

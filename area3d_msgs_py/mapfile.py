@@ -91,18 +91,29 @@ def write_file(
         raise InputError(
             "path", str(target), f"a path in a directory this node may write ({folder})"
         )
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=folder)
+    replace_atomically(target, write, suffix)
+    return target, target.stat().st_size
+
+
+def replace_atomically(
+    target: Path, write: Callable[[Path], None], suffix: str = ".tmp", sync: bool = True
+) -> None:
+    """`write(tmp)` on a temporary file beside `target` (hidden, a name of its own, ending in
+    `suffix`: `np.savez` appends ".npz" to a name without it), flushed to the disk with `sync`,
+    then renamed over `target` (atomic on POSIX): a reader sees the old complete file or the new
+    one, never a torn one. A failure removes the temporary file and leaves `target` untouched."""
+    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=target.parent)
     os.close(fd)
     tmp = Path(name)
     try:
         write(tmp)
-        with tmp.open("rb") as written:
-            os.fsync(written.fileno())
+        if sync:
+            with tmp.open("rb") as written:
+                os.fsync(written.fileno())
         os.replace(tmp, target)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    return target, target.stat().st_size
 
 
 def write_map(
