@@ -174,8 +174,10 @@ class TsdfFusion:
                 depth, K, T_world_cam, self.roi_lo - p.roi_margin, self.roi_hi + p.roi_margin
             )
         weight = np.where(np.isfinite(confidence), np.clip(confidence, 0.0, 1.0), 0.0)
-        depth = np.where(np.isfinite(depth) & (depth > 0) & (weight > 0), depth, 0.0)
-        depth = depth.astype(np.float32)
+        # beyond depth_trunc nothing is integrated (`_integrate_weighted`); a frame with depth
+        # only there would make Open3D abort ("No block is touched"), so it integrates nothing
+        usable = np.isfinite(depth) & (depth > 0) & (depth <= p.depth_trunc) & (weight > 0)
+        depth = np.where(usable, depth, 0.0).astype(np.float32)
         self.num_frames += 1
         if not depth.any():
             return

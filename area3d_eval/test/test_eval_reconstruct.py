@@ -132,6 +132,27 @@ def test_pixels_with_no_confidence_add_nothing(sphere_frames):
         fusion.integrate(rgb, depth, K, T, np.ones((3, 3), np.float32))
 
 
+def test_a_frame_with_depth_only_beyond_the_truncation_integrates_nothing_and_keeps_the_volume(
+    sphere_frames,
+):
+    """Depth only beyond `depth_trunc` (a wall far behind the region): nothing is integrated,
+    where Open3D aborted the integration ("No block is touched"), and the frames after it are
+    integrated as if it had not come."""
+    _, frames = sphere_frames
+    rgb, depth, K, T = frames[0]
+    params = TsdfParams()
+    far = np.where(np.isfinite(depth), params.depth_trunc + 1.0, np.nan).astype(np.float32)
+    with_far, without = TsdfFusion(params), TsdfFusion(params)
+    with_far.integrate(rgb, far, K, T)
+    assert len(with_far.extract_mesh().triangles) == 0
+    for fusion in (with_far, without):
+        for frame in frames[:4]:
+            fusion.integrate(*frame)
+    a, b = with_far.state(), without.state()
+    for name in ("block_keys", "tsdf", "weight", "color"):
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
 def _triangle_set(vertices, triangles) -> set:
     """Each triangle as its corners' positions (rounded to 1e-6 m), starting at the smallest
     corner, keeping its orientation; degenerate ones left out."""
