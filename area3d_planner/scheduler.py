@@ -79,6 +79,7 @@ class PlannerScheduler:
         self.core = NextBestViewServer(config, background=s.eager_cache, mask_lag_s=s.mask_lag_s)
         self._plan_lock = threading.Lock()  # plans one at a time
         self._answers: OrderedDict[int, Plan] = OrderedDict()  # by request id (`ANSWERS_KEPT`)
+        self._answers_lock = threading.Lock()  # not the plan lock: a plan may wait minutes
         if s.eager_cache:
             self.waits: StateWaits = BackgroundSteps(
                 self.core.rebuild_due,
@@ -162,8 +163,10 @@ class PlannerScheduler:
     def answered(self, request_id: int) -> Plan | None:
         """The answer given to the request `request_id` (`ANSWERS_KEPT`); None for 0 or an id
         not answered (or forgotten)."""
-        with self._plan_lock:
-            return self._answers.get(request_id) if request_id else None
+        if not request_id:
+            return None
+        with self._answers_lock:
+            return self._answers.get(request_id)
 
     def plan_views(self, request: PlanRequest, note: str = "") -> Plan:
         """The request checked, its masks waited for (those of the previous request's frame when
@@ -171,15 +174,17 @@ class PlannerScheduler:
         (`NextBestViewServer.finish_plan`), `note` added to a plan with views. Plans run one at
         a time; a request with the id of one answered gets that answer again (`ANSWERS_KEPT`)."""
         with self._plan_lock:
-            if request.request_id and request.request_id in self._answers:
-                return self._answers[request.request_id]
+            answered = self.answered(request.request_id)
+            if answered is not None:
+                return answered
             plan = self._plan(request)
             if not plan.reason and note:
                 plan = plan._replace(note="; ".join(n for n in (note, plan.note) if n))
             if request.request_id:
-                self._answers[request.request_id] = plan
-                while len(self._answers) > ANSWERS_KEPT:
-                    self._answers.popitem(last=False)
+                with self._answers_lock:
+                    self._answers[request.request_id] = plan
+                    while len(self._answers) > ANSWERS_KEPT:
+                        self._answers.popitem(last=False)
             return plan
 
     def _plan(self, request: PlanRequest) -> Plan:
