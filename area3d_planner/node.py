@@ -418,12 +418,9 @@ class PlannerNode(Node):
                 raise InputError(
                     "current.header.frame_id", asked.frame_id, f"{self.world_frame!r} (world_frame)"
                 )
-            plan, _ = self._serve(
-                "select_views",
-                PlanRequest(
-                    asked.current, asked.stamp_ns, asked.count, asked.mode, asked.request_id
-                ),
-            )
+            a = asked
+            wanted = PlanRequest(a.current, a.stamp_ns, a.count, a.mode, a.request_id)
+            plan, _ = self._serve("select_views", wanted)
         except InputError as exc:
             plan = Plan([], [], f"request rejected: {exc}")
             self.get_logger().warning(f"{service}: {plan.reason}")
