@@ -33,20 +33,31 @@ from area3d_msgs_py.param_fields import described
 
 # OpenCV's StereoSGBM returns fixed-point disparities with 4 fractional bits.
 SGBM_DISPARITY_SCALE = 16.0
+SGBM_MODES = {
+    "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
+    "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    "hh": cv2.STEREO_SGBM_MODE_HH,
+}
 
 
 @dataclass(frozen=True)
 class StereoParams:
     """Tunables of the stereo backend (every one is a `stereo.*` node parameter)."""
 
-    # Disparities searched at the matching resolution: 64 at half of 640 px covers 128 full-size px,
-    # depths from fx B / 128 = 0.15 m at fx = 320 px (90 deg over 640 px), B = 6 cm; the object
-    # scenes' views see the table from 0.2 m.
+    # Disparities searched at the matching resolution: 96 at full size covers depths from
+    # fx B / 96 = 0.2 m at fx = 320 px (90 deg over 640 px), B = 6 cm; the planner's nearest views
+    # are about 0.3 m from surfaces. The left band of this width has no match.
     num_disparities: int = described(
-        64, "disparities searched at the matching resolution (a multiple of 16)", "pixels",
+        96, "disparities searched at the matching resolution (a multiple of 16)", "pixels",
         (16, 1024),
     )  # fmt: skip
     block_size: int = described(5, "SGBM block size, odd (OpenCV: 3-11)", "pixels", (1, 63))
+    # OpenCV's variants of semi-global matching (`StereoSGBM` modes SGBM, SGBM_3WAY, HH). On the
+    # simulator's pairs "3way" puts 1.5-2x as many pixels within 1 cm of the true depth as "sgbm",
+    # in less time (README: measured figures).
+    mode: str = described(
+        "3way", "OpenCV's semi-global matching variant", choices=tuple(SGBM_MODES)
+    )
     # Smoothness penalties P1 = 8 * bs^2, P2 = 32 * bs^2 per channel (OpenCV's sample values).
     p1_per_px: int = described(
         8, "SGBM smoothness penalty P1 = p1_per_px block_size^2 per channel", "", (0, 1024)
@@ -93,9 +104,10 @@ class StereoParams:
     )
     # Match at 1 / downscale of the resolution (2: four times fewer pixels, and the disparities
     # cover twice the range, for half the disparity precision); depth and confidence come back at
-    # full size. 2 is what keeps 640x480 within 60 ms on 2 cores (README: measured figures).
+    # full size. 1: the reconstruction's completion at 1 cm needs full-size disparities (README:
+    # measured figures); 2 quarters the time.
     downscale: int = described(
-        2, "match at 1 / downscale of the image size (1, 2 or 4)", "", (1, 4)
+        1, "match at 1 / downscale of the image size (1, 2 or 4)", "", (1, 4)
     )
     max_range: float = described(
         PAPER_MAX_RANGE,
@@ -111,6 +123,7 @@ class StereoParams:
              "a positive multiple of 16 (pixels)"),
             ("block_size", self.block_size >= 1 and self.block_size % 2 == 1,
              "an odd number of pixels >= 1"),
+            ("mode", self.mode in SGBM_MODES, f"one of {sorted(SGBM_MODES)}"),
             ("p1_per_px", 0 <= self.p1_per_px < self.p2_per_px, "0 <= p1_per_px < p2_per_px"),
             ("uniqueness_ratio", 0 <= self.uniqueness_ratio <= 100, "a percentage in [0, 100]"),
             ("speckle_window_size", self.speckle_window_size >= 0, "pixels >= 0"),
@@ -222,7 +235,7 @@ class StereoMatcher:
             uniquenessRatio=p.uniqueness_ratio,
             speckleWindowSize=p.speckle_window_size,
             speckleRange=p.speckle_range,
-            mode=cv2.STEREO_SGBM_MODE_SGBM,
+            mode=SGBM_MODES[p.mode],
         )
 
     def disparities(

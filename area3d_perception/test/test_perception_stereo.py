@@ -79,6 +79,26 @@ def test_textured_plane_is_confident_and_within_two_percent(matcher):
     assert np.median(rel) < 0.02
 
 
+@pytest.mark.parametrize("mode", ["sgbm", "3way", "hh"])
+def test_every_matching_mode_reaches_opencv_and_keeps_the_textured_plane_within_two_percent(mode):
+    left, right, _ = _pair([(1.0, -5, 5, _texture(0, True))])
+    m = StereoMatcher(StereoParams(num_disparities=32, downscale=1, mode=mode))
+    try:
+        expected = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+                    "hh": cv2.STEREO_SGBM_MODE_HH}[mode]  # fmt: skip
+        assert m._left.getMode() == expected and m._right.getMode() == expected
+        depth = _centre(m.match(left, right, FX, BASELINE).depth)
+    finally:
+        m.close()
+    assert np.isfinite(depth).mean() > 0.95
+    assert np.median(np.abs(depth[np.isfinite(depth)] - 1.0)) < 0.02
+
+
+def test_an_unknown_matching_mode_is_refused_naming_the_parameter():
+    with pytest.raises(InputError, match=r"^stereo\.mode: got 'bm'.*'3way'"):
+        StereoMatcher(StereoParams(mode="bm"))
+
+
 def test_half_resolution_matching_keeps_the_textured_plane_within_five_percent():
     left, right, _ = _pair([(1.0, -5, 5, _texture(0, True))])
     half = StereoMatcher(StereoParams(num_disparities=16, downscale=2))
