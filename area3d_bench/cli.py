@@ -122,7 +122,7 @@ def bench_episode(
     holdout: bool = typer.Option(
         True,
         help="also generate and run the hold-out scenes (tabletop, alcove room, shelf against a "
-        "wall, thin objects; seed 0 of each)",
+        "wall, thin objects, scanned objects on a counter; seed 0 of each)",
     ),
     budget: int = typer.Option(
         None, help="view budget T per episode, O_0 included (default: the paper's, 25 / 40)"

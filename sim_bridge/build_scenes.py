@@ -18,7 +18,9 @@ import numpy as np
 
 from sim_bridge import meshes
 from sim_bridge.build_rooms import ROOM_SCENES, SEED, build_room_scene
+from sim_bridge.holdout_parts import place_apart
 from sim_bridge.mjcf import Mjcf, blank_scene, vec
+from sim_bridge.scanned_objects import add_scanned, footprint, place_scanned
 from sim_bridge.scene import Scene
 from sim_bridge.scene_layout import ROI_RIM
 from sim_bridge.scenes import SCENES_DIR, scene_to_json
@@ -33,6 +35,17 @@ OBJECT_SCENES: dict[str, list[str]] = {
     "five_objects": ["mug", "bowl", "vase", "toy_chair", "l_shape"],
     "clutter7_a": ["mug", "blob", "tunnel_block", "torus_knot", "lamp", "wire_rack", "bowl"],
     "clutter7_b": ["vase", "toy_chair", "l_shape", "torus_knot", "blob", "mug", "tunnel_block"],
+}
+
+# Tabletops of scanned objects (sim_bridge/scanned/, `scanned_objects.py`).
+SCANNED_SCENES: dict[str, list[str]] = {
+    "scanned_objects": [
+        "003_cracker_box",
+        "004_sugar_box",
+        "005_tomato_soup_can",
+        "006_mustard_bottle",
+        "035_power_drill",
+    ],
 }
 
 PALETTE = [
@@ -163,8 +176,39 @@ def build_object_scene(name: str) -> Scene:
             f'<geom name="floor" type="plane" size="0 0 0.05" material="{floor}"/>',
         )
     )
+    return _object_scene_metadata(name, folder)
 
-    # Scene bounds from the settled geometry.
+
+def build_scanned_scene(name: str) -> Scene:
+    """A table with scanned objects (`SCANNED_SCENES[name]`) standing on it at seeded places and
+    headings, apart from each other (placed, not dropped: each stands on its flat base)."""
+    folder = SCENES_DIR / name
+    folder.mkdir(parents=True, exist_ok=True)
+    for old in folder.iterdir():
+        if old.suffix in (".obj", ".png", ".xml", ".json"):
+            old.unlink()
+    rng = np.random.default_rng(SEED + sum(map(ord, name)))
+    doc = Mjcf(name)
+    floor = doc.material(folder, "floor", "checker", (90, 90, 95), (150, 150, 155), repeat=(2, 2))
+    _table(doc, folder)
+    kinds = sorted(SCANNED_SCENES[name], key=lambda k: -footprint(k).radius)  # largest first
+    radii = np.array([footprint(k).radius for k in kinds])
+    half = np.array([0.32, 0.22])  # the middle of the table: close enough to hide each other
+    where = place_apart(rng, radii, -half, half, [])
+    for i, (kind, xy) in enumerate(zip(kinds, where, strict=True)):
+        add_scanned(doc, None, kind)
+        place_scanned(doc, f"obj{i}", kind, xy, TABLE_TOP_Z, rng.uniform(-np.pi, np.pi))
+    (folder / "scene.xml").write_text(
+        doc.xml(
+            _lights_object(),
+            f'<geom name="floor" type="plane" size="0 0 0.05" material="{floor}"/>',
+        )
+    )
+    return _object_scene_metadata(name, folder)
+
+
+def _object_scene_metadata(name: str, folder: Path) -> Scene:
+    """A tabletop scene's bounds and views from its written geometry; writes `scene.json`."""
     scene = blank_scene(name, "object", folder)
     mesh = scene.scene_mesh()
     top = TABLE_TOP_Z
@@ -216,16 +260,24 @@ def build_scene(name: str) -> Scene:
     """Regenerate one bundled scene's files (and its preview picture) and return it."""
     if name in OBJECT_SCENES:
         scene = build_object_scene(name)
+    elif name in SCANNED_SCENES:
+        scene = build_scanned_scene(name)
     elif name in ROOM_SCENES:
         scene = build_room_scene(name)
     else:
-        raise ValueError(f"name: got {name!r}, expected one of {[*OBJECT_SCENES, *ROOM_SCENES]}")
+        raise ValueError(
+            f"name: got {name!r}, expected one of {[*OBJECT_SCENES, *SCANNED_SCENES, *ROOM_SCENES]}"
+        )
     write_preview(scene)
     return scene
 
 
 def main(argv: list[str] | None = None) -> None:
-    names = (sys.argv[1:] if argv is None else argv) or [*OBJECT_SCENES, *ROOM_SCENES]
+    names = (sys.argv[1:] if argv is None else argv) or [
+        *OBJECT_SCENES,
+        *SCANNED_SCENES,
+        *ROOM_SCENES,
+    ]
     for name in names:
         scene = build_scene(name)
         print(

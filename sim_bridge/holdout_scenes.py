@@ -25,6 +25,7 @@ from sim_bridge.holdout_parts import (
     scene_folder,
     seeded_rng,
 )
+from sim_bridge.holdout_scanned import write_scanned_counter
 from sim_bridge.holdout_shelf import write_shelf_wall
 from sim_bridge.holdout_thin import write_thin_objects
 from sim_bridge.mjcf import Mjcf, mesh_asset, mesh_body, room_shell, table4
@@ -165,12 +166,13 @@ HOLDOUT_WRITERS: dict[str, Callable[[Path, int], Path]] = {
     "alcove_room": write_alcove_room,
     "shelf_wall": write_shelf_wall,
     "thin_objects": write_thin_objects,
+    "scanned_counter": write_scanned_counter,
 }
 
 
 def write_holdout_scene(kind: str, folder: Path, seed: int = 0) -> Path:
     """Write the hold-out scene `kind` (a key of HOLDOUT_WRITERS: "tabletop", "alcove_room",
-    "shelf_wall", "thin_objects") with `seed` into `folder` (one scene per folder: the scenes share
+    "shelf_wall", "thin_objects", "scanned_counter") with `seed` into `folder` (one scene per folder: the scenes share
     asset names) and return its MJCF path."""
     if kind not in HOLDOUT_WRITERS:
         raise ValueError(f"kind: got {kind!r}, expected one of {list(HOLDOUT_WRITERS)}")

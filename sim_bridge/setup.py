@@ -8,7 +8,7 @@ if __name__ == "__main__":
         version="0.1.0",
         packages=["sim_bridge"],
         package_dir={"sim_bridge": "."},
-        package_data={"sim_bridge": ["scenes/*/*"]},
+        package_data={"sim_bridge": ["scenes/*/*", "scanned/*"]},
         data_files=[
             ("share/ament_index/resource_index/packages", ["resource/sim_bridge"]),
             ("share/sim_bridge", ["package.xml"]),

@@ -14,8 +14,9 @@ from sim_bridge.validity import check_pose
 
 NEW_KINDS = [(kind, seed) for kind in ("shelf_wall", "thin_objects") for seed in (0, 1, 2)]
 HOLDOUT = [("tabletop", 0), ("tabletop", 3), ("alcove_room", 0), ("alcove_room", 1), *NEW_KINDS]
+HOLDOUT += [("scanned_counter", 0), ("scanned_counter", 1)]
 LEVEL = {"tabletop": "object", "alcove_room": "room", "shelf_wall": "object"}
-LEVEL["thin_objects"] = "object"
+LEVEL |= {"thin_objects": "object", "scanned_counter": "object"}
 
 
 @pytest.fixture(scope="module")
@@ -112,6 +113,7 @@ def test_alcove_room_roi_is_the_interior_and_the_camera_stays_inside(holdout, se
         ("shelf_wall", 0),
         ("shelf_wall", 1),
         ("thin_objects", 2),
+        ("scanned_counter", 1),
     ],
 )
 def test_initial_views_see_the_roi(holdout, kind, seed):

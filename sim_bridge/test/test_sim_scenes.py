@@ -10,7 +10,7 @@ from sim_bridge.render import RgbdRenderer
 from sim_bridge.scenes import list_scenes, load_scene
 from sim_bridge.validity import check_pose
 
-OBJECT_SCENES = ["single_object", "five_objects", "clutter7_a", "clutter7_b"]
+OBJECT_SCENES = ["single_object", "five_objects", "clutter7_a", "clutter7_b", "scanned_objects"]
 ROOM_SCENES = ["living_room", "office"]
 
 
