@@ -16,6 +16,9 @@ Invalid means: SGBM found no unique minimum (`uniquenessRatio`), the speckle fil
 region, the pixel is in the left band where the full disparity range leaves the right image, or the
 depth is beyond `max_range`.
 
+Blank regions whose surroundings agree on a plane take that plane, at a low confidence of their own
+(`blank_fill.py`, `blank_fill*` parameters).
+
 Arrays in, arrays out; no ROS here.
 """
 
@@ -30,6 +33,7 @@ import numpy as np
 from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
+from area3d_perception.blank_fill import fill_blank_planes
 
 # OpenCV's StereoSGBM returns fixed-point disparities with 4 fractional bits.
 SGBM_DISPARITY_SCALE = 16.0
@@ -115,6 +119,23 @@ class StereoParams:
         "metres",
         (0.01, 1000.0),
     )
+    # Blank surfaces (`blank_fill.py`): a plane through the reliable matches around each blank
+    # region. Our choices: blank = texture factor below 0.3 across and along the rows (a noise-free
+    # blank patch gives 0, one grey level of camera noise 0.16); regions of at least 300 px (0.1 %
+    # of 640 x 480); confidence 0.2, so that a matched view of the surface outweighs the plane.
+    blank_fill: bool = described(
+        True, "fill blank regions with the plane their matched surroundings agree on"
+    )
+    blank_texture: float = described(
+        0.3, "texture factor below which a pixel is blank", "fraction", (0.0, 1.0)
+    )
+    blank_min_area_px: int = described(
+        300, "smallest blank region filled (full-size pixels)", "pixels", (1, 10_000_000)
+    )
+    blank_fill_confidence: float = described(
+        0.2, "confidence of a filled pixel (times the share of its ring on the plane)", "fraction",
+        (0.0, 1.0),
+    )  # fmt: skip
 
     def validate(self) -> None:
         """Raise InputError naming the first parameter outside its domain."""
@@ -136,6 +157,9 @@ class StereoParams:
             ("precision_rel_ref", self.precision_rel_ref > 0, "a relative error > 0"),
             ("downscale", self.downscale in (1, 2, 4), "1, 2 or 4"),
             ("max_range", self.max_range > 0, "metres > 0"),
+            ("blank_texture", 0 <= self.blank_texture <= 1, "a texture factor in [0, 1]"),
+            ("blank_min_area_px", self.blank_min_area_px >= 1, "pixels >= 1"),
+            ("blank_fill_confidence", 0 <= self.blank_fill_confidence <= 1, "a value in [0, 1]"),
         )  # fmt: skip
         for name, ok, expected in checks:
             if not ok:
@@ -265,6 +289,21 @@ class StereoMatcher:
         p = self.params
         left_grey, right_grey = _grey(left), _grey(right)
         disp_left, diff = self._matched(left_grey, right_grey)
+        texture = texture_factor(left_grey, p.texture_window_px, p.texture_ref)
+        support = np.zeros_like(texture)
+        if p.blank_fill:
+            vertical = texture_factor(left_grey.T, p.texture_window_px, p.texture_ref).T
+            disp_left, support = fill_blank_planes(
+                disp_left,
+                diff,
+                texture,
+                vertical,
+                left_grey,
+                right_grey,
+                p.blank_texture,
+                p.blank_min_area_px,
+            )
+        filled = support > 0
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.float32(fx * baseline) / disp_left
             depth[~(depth <= p.max_range)] = np.nan  # also drops d = 0 (inf) and NaN
@@ -273,9 +312,9 @@ class StereoMatcher:
             sigma_px = p.disparity_sigma_px * p.downscale  # in full-size pixels
             relative_sigma = np.float32(sigma_px / p.precision_rel_ref) / disp_left
             precision = 1.0 / (1.0 + relative_sigma**2)
-        confidence = (
-            consistency * precision * texture_factor(left_grey, p.texture_window_px, p.texture_ref)
-        )
+        confidence = consistency * precision * texture
+        # a filled pixel's matcher evidence is void: its confidence is the fill's own
+        confidence[filled] = (np.float32(p.blank_fill_confidence) * support * precision)[filled]
         confidence[~np.isfinite(depth)] = 0.0
         return StereoResult(depth.astype(np.float32), confidence.astype(np.float32), disp_left)
 

@@ -1,0 +1,162 @@
+"""Disparity for blank surfaces: a plane through the reliable matches around each blank region.
+
+Semi-global matching has nothing to match on a surface of one colour (a painted panel, a screen, a
+lamp shade): its smoothness term spreads whatever disparity reaches the region, and the result is
+streaks of wrong depth or none. Around such a region, though, its edges and the textured things
+beside it are matched well. Where those reliable matches all around the region lie on one plane
+in disparity space (a plane in the scene is a plane there: d = a u + b v + c), the region is taken
+to be that plane, as in the refinement steps of stereo pipelines for untextured areas and invalid
+disparities (Hirschmueller 2008, PAMI: segment-wise planes and interpolation; ELAS's support
+points).
+
+For each connected blank region (the texture factors of horizontal and of vertical gradients both
+below `blank_texture`, at least `blank_min_area_px` pixels): the reliable pixels on a ring around it (valid, left-right
+difference <= RELIABLE_LR_PX, textured) vote by RANSAC for a plane; the plane is kept only when
+most of them agree (INLIER_SHARE within PLANE_TOL_PX) and the agreeing ones lie on all four sides
+of the region (no extrapolation past a side nothing was matched on), and the band around the
+region, its own edge, must look the same in the right image through the plane (a photometric check:
+a blank board before a textured wall has the wall's matches all around it, and the wall's plane
+would shift the board's edge onto the wall). The region's pixels then take the plane's disparity
+(the matcher's values there had nothing to go on). A region whose border straddles two surfaces
+(a blank panel against the sky, two walls at a corner) finds no plane that most of its ring agrees
+on and stays as it was.
+
+The filled pixels are an inference, not a measurement: the backend gives them the confidence
+`blank_fill_confidence` (times the share of the ring that agreed), low enough that every matched
+view of the surface outweighs them in the TSDF, and the planner still sees them as uncertain.
+
+Arrays in, arrays out; no ROS here.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+# A ring pixel is reliable when its left-right difference is at most this (pixels) and its texture
+# factor at least RELIABLE_TEXTURE (our choices: half the check's own one-pixel limit; texture
+# where SGBM's errors are those of a textured surface, README of the backend).
+RELIABLE_LR_PX = 0.5
+RELIABLE_TEXTURE = 0.5
+RING_PX = 4  # width of the ring around a region, pixels
+PLANE_TOL_PX = 0.5  # a ring pixel agrees with a plane within this disparity, pixels
+INLIER_SHARE = 0.7  # least share of the ring that must agree
+SIDE_SHARE = 0.1  # least share of the agreeing pixels on each side of the region's centre
+MIN_RING = 30  # fewest reliable ring pixels to fit from
+HYPOTHESES = 128  # RANSAC planes tried per region
+SCORE_ROWS = 2000  # ring pixels a hypothesis is scored on, at most
+# The photometric check of a plane: the band of EDGE_PX around the region (the texture window's
+# half: the surface's own edge) seen through the plane; a pixel mismatches beyond PHOTO_LEVELS
+# grey levels (our choice: several times a camera's noise), and at most PHOTO_SHARE of them may
+# (on the hold-out scenes' blank panels the planes kept showed 0-0.8 %, the wall's plane around a
+# blank board 20 %).
+EDGE_PX = 3
+PHOTO_LEVELS = 12.0
+PHOTO_SHARE = 0.05
+
+
+def _ransac_plane(
+    A: np.ndarray, d: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(coefficients (3,), inlier mask (N,)) of the plane d = A @ coef most of the rows agree on,
+    refitted by least squares on its inliers; None without a well-posed triple."""
+    picks = rng.integers(0, len(d), (HYPOTHESES, 3))  # a repeated row makes M singular
+    M, y = A[picks], d[picks]  # (K, 3, 3), (K, 3)
+    ok = np.abs(np.linalg.det(M)) > 1e-6
+    if not ok.any():
+        return None
+    coefs = np.linalg.solve(M[ok], y[ok][..., None])[..., 0]  # (K', 3)
+    # scored on at most SCORE_ROWS of the rows (an even subset): the share agreeing is the same
+    step = max(1, len(d) // SCORE_ROWS)
+    agree = np.abs(coefs @ A[::step].T - d[None, ::step]) < PLANE_TOL_PX  # (K', N')
+    best = coefs[np.argmax(agree.sum(axis=1))]
+    inliers = np.abs(A @ best - d) < PLANE_TOL_PX
+    coef, *_ = np.linalg.lstsq(A[inliers], d[inliers], rcond=None)
+    return coef, np.abs(A @ coef - d) < PLANE_TOL_PX
+
+
+def _photo_mismatch(
+    left: np.ndarray, right: np.ndarray, pu: np.ndarray, pv: np.ndarray, plane: np.ndarray
+) -> float:
+    """Share of the pixels (pu, pv) of the left grey image whose colour differs by more than
+    PHOTO_LEVELS from the right image at u - plane (linear interpolation; outside it: a mismatch)."""
+    ur = pu.astype(np.float32) - plane
+    u0 = np.floor(ur).astype(np.int64)
+    inside = (u0 >= 0) & (u0 + 1 < right.shape[1])
+    u0c = np.clip(u0, 0, right.shape[1] - 2)
+    t = ur - u0c
+    sample = (1 - t) * right[pv, u0c] + t * right[pv, u0c + 1]
+    mismatch = ~inside | (np.abs(sample - left[pv, pu]) > PHOTO_LEVELS)
+    return float(mismatch.mean())
+
+
+def fill_blank_planes(
+    disparity: np.ndarray,
+    lr_diff: np.ndarray,
+    texture: np.ndarray,
+    texture_vertical: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    blank_texture: float,
+    min_area_px: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(disparity with blank regions filled (H, W) float32 px, NaN = invalid; support (H, W)
+    float32 in [0, 1]: the share of its ring that agreed with the plane a filled pixel took, 0
+    where nothing was filled).
+
+    disparity: (H, W) float32 px, NaN = invalid; lr_diff: (H, W) left-right difference, px;
+    texture: (H, W) texture factor in [0, 1) (`stereo.texture_factor`, of horizontal gradients:
+    what the matcher has to go on); texture_vertical: the same of vertical gradients. Blank means
+    both below `blank_texture`: a grey panel's top edge against a dark sky, or horizontal stripes,
+    have vertical texture, so neither joins two surfaces into one region nor passes for blank.
+    left, right: (H, W) uint8 grey rectified pair, to check a plane against the images: the
+    region and its edge (EDGE_PX around it) must look the same in the right image at u - d.
+    Seeded: the same input gives the same output.
+    """
+    h, w = disparity.shape
+    rng = np.random.default_rng(0)
+    blank = ((texture < blank_texture) & (texture_vertical < blank_texture)).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(blank, connectivity=4)
+    with np.errstate(invalid="ignore"):
+        reliable = (lr_diff <= RELIABLE_LR_PX) & (texture >= RELIABLE_TEXTURE)
+    reliable &= np.isfinite(disparity)
+    out = disparity.copy()
+    support = np.zeros((h, w), np.float32)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * RING_PX + 1, 2 * RING_PX + 1))
+    edge_kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * EDGE_PX + 1, 2 * EDGE_PX + 1))
+    left_f, right_f = left.astype(np.float32), right.astype(np.float32)
+    for k in np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= min_area_px):
+        if k == 0:
+            continue  # the textured background of the labelling
+        x, y, bw, bh = stats[k, :4]
+        x0, y0 = max(x - RING_PX, 0), max(y - RING_PX, 0)
+        x1, y1 = min(x + bw + RING_PX, w), min(y + bh + RING_PX, h)
+        region = (labels[y0:y1, x0:x1] == k).astype(np.uint8)
+        ring = (cv2.dilate(region, kernel) > 0) & (region == 0) & reliable[y0:y1, x0:x1]
+        rv, ru = np.nonzero(ring)
+        if len(ru) < MIN_RING:
+            continue
+        A = np.stack([ru + x0, rv + y0, np.ones_like(ru)], axis=1).astype(np.float64)
+        fit = _ransac_plane(A, disparity[y0:y1, x0:x1][rv, ru].astype(np.float64), rng)
+        if fit is None or fit[1].mean() < INLIER_SHARE:
+            continue
+        coef, inliers = fit
+        pv, pu = np.nonzero(region)
+        cu, cv = pu.mean(), pv.mean()
+        iu, iv = ru[inliers], rv[inliers]
+        sides = ((iu < cu).mean(), (iu > cu).mean(), (iv < cv).mean(), (iv > cv).mean())
+        if min(sides) < SIDE_SHARE:
+            continue
+        # The region's edge must look the same through the plane in both images: a blank board
+        # before a textured wall has the wall's matches all around it, and the wall's plane would
+        # move the board's edge onto the wall in the right image.
+        ev, eu = np.nonzero((cv2.dilate(region, edge_kernel) > 0) & (region == 0))
+        edge_plane = (coef[0] * (eu + x0) + coef[1] * (ev + y0) + coef[2]).astype(np.float32)
+        if _photo_mismatch(left_f, right_f, eu + x0, ev + y0, edge_plane) > PHOTO_SHARE:
+            continue
+        plane = (coef[0] * (pu + x0) + coef[1] * (pv + y0) + coef[2]).astype(np.float32)
+        ahead = plane > 0  # a plane through zero disparity is at infinity beyond that line
+        pu, pv = pu[ahead] + x0, pv[ahead] + y0
+        out[pv, pu] = plane[ahead]
+        support[pv, pu] = np.float32(inliers.mean())
+    return out, support

@@ -1,0 +1,132 @@
+"""Blank surfaces: a plane through the reliable matches around a blank region, and only where the
+whole ring around it agrees on one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from area3d_msgs_py.errors import InputError
+from area3d_perception.blank_fill import fill_blank_planes
+from area3d_perception.stereo import StereoMatcher, StereoParams
+
+from .test_perception_stereo import BASELINE, FX, H, W, _pair, _texture
+
+SHAPE = (120, 160)
+
+
+def _maps(plane=(0.02, -0.01, 20.0), hole=(40, 80, 50, 110)):
+    """Disparity of a plane over the image, textured but for a blank rectangle `hole` (v0, v1,
+    u0, u1) whose matches are garbage or missing; the left-right check passed everywhere."""
+    v, u = np.mgrid[: SHAPE[0], : SHAPE[1]].astype(np.float64)
+    truth = (plane[0] * u + plane[1] * v + plane[2]).astype(np.float32)
+    disparity = truth.copy()
+    texture = np.full(SHAPE, 0.9, np.float32)
+    v0, v1, u0, u1 = hole
+    texture[v0:v1, u0:u1] = 0.0
+    rng = np.random.default_rng(3)
+    disparity[v0:v1, u0:u1] = rng.uniform(5, 40, (v1 - v0, u1 - u0)).astype(np.float32)
+    disparity[v0 : v0 + 10, u0:u1] = np.nan  # and no match on part of it
+    return truth, disparity, np.zeros(SHAPE, np.float32), texture
+
+
+def _images():
+    """A blank (flat grey) pair: any plane looks right in it; the plane checks are the ring's."""
+    grey = np.full(SHAPE, 128, np.uint8)
+    return grey, grey
+
+
+def test_a_blank_hole_in_a_plane_takes_the_plane():
+    truth, disparity, diff, texture = _maps()
+    out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    hole, filled = texture < 0.1, support > 0
+    assert np.array_equal(filled, hole)  # every pixel of the hole, nothing else
+    assert np.abs(out[hole] - truth[hole]).max() < 1e-3
+    assert np.all(support[hole] > 0.99)
+    assert np.array_equal(out[~hole], disparity[~hole])  # the matched pixels stay as they were
+    again, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    assert np.array_equal(out, again, equal_nan=True)  # seeded
+
+
+def test_a_ring_on_two_surfaces_fills_nothing():
+    truth, disparity, diff, texture = _maps()
+    disparity[:, 80:] += 3.0  # a step through the middle of the hole: two surfaces around it
+    disparity[texture < 0.1] = np.nan
+    out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    assert not support.any()
+    assert np.array_equal(out, disparity, equal_nan=True)
+
+
+def test_small_striped_or_untrusted_regions_are_left_alone():
+    truth, disparity, diff, texture = _maps()
+    disparity[texture < 0.1] = np.nan
+    # smaller than the least area
+    out, support = fill_blank_planes(
+        disparity, diff, texture, texture, *_images(), 0.1, 40 * 60 + 1
+    )
+    assert not support.any()
+    # horizontal stripes: nothing to match along a row, but vertical texture: not blank
+    vertical = np.full(SHAPE, 0.9, np.float32)
+    out, support = fill_blank_planes(disparity, diff, texture, vertical, *_images(), 0.1, 300)
+    assert not support.any()
+    # a ring whose matches failed the left-right check gives nothing to fit
+    out, support = fill_blank_planes(
+        disparity, np.full(SHAPE, 2.0), texture, texture, *_images(), 0.1, 300
+    )
+    assert not support.any()
+
+
+def _match(left, right, fill):
+    m = StereoMatcher(StereoParams(num_disparities=32, blank_fill=fill))
+    try:
+        return m.match(left, right, FX, BASELINE)
+    finally:
+        m.close()
+
+
+def _inside(truth, z, margin_px):
+    """(H, W) bool: the pixels of the surface at depth `z`, `margin_px` in from its side edges."""
+    mask = np.zeros((H, W), bool)
+    mask[20:-20] = np.isclose(truth[20:-20], z, atol=1e-3)
+    cols = np.flatnonzero(mask.any(axis=0))
+    mask[:, : cols[0] + margin_px] = False
+    mask[:, cols[-1] - margin_px + 1 :] = False
+    return mask
+
+
+def test_a_blank_panel_in_a_textured_frame_gets_its_depth_at_low_confidence():
+    # a board at 1 m before a textured wall at 1.6 m: a 5 cm textured frame, a flat grey middle
+    # (0.1 mm in front of the frame, so the renderer draws it)
+    wall, frame, blank = _texture(5, True), _texture(6, True), _texture(0, False)
+    surfaces = [(1.6, -5, 5, wall), (1.0, -0.3, 0.3, frame), (0.9999, -0.25, 0.25, blank)]
+    left, right, truth = _pair(surfaces)
+    panel = _inside(truth, 0.9999, 10)
+    plain, filled = _match(left, right, False), _match(left, right, True)
+    within = {f: np.mean(np.abs(o.depth[panel] - 1.0) < 0.02) for f, o in ((0, plain), (1, filled))}
+    assert within[0] < 0.5  # the matcher alone: streaks of wrong depth or none
+    assert within[1] > 0.95
+    assert 0 < np.median(filled.confidence[panel]) <= 0.2  # an inference, below a matched view
+    # the textured wall is the matcher's own, untouched
+    wall_px = np.zeros((H, W), bool)
+    wall_px[20:-20, 60 : W // 2 - 200] = True
+    assert np.array_equal(plain.depth[wall_px], filled.depth[wall_px], equal_nan=True)
+
+
+def test_a_blank_board_with_only_the_wall_around_it_is_not_moved_onto_the_wall():
+    # the board's edges carry no texture of its own: every reliable match around it is the
+    # wall's, and the wall's plane would carve free space through the board; the check of the
+    # board's edge through that plane in the right image refuses it
+    wall, blank = _texture(5, True), _texture(0, False)
+    left, right, truth = _pair([(1.6, -5, 5, wall), (1.0, -0.3, 0.3, blank)])
+    board = _inside(truth, 1.0, 10)
+    plain, filled = _match(left, right, False), _match(left, right, True)
+    assert np.array_equal(plain.depth[board], filled.depth[board], equal_nan=True)
+
+
+def test_bad_fill_parameters_are_refused_naming_them():
+    with pytest.raises(InputError, match=r"^stereo\.blank_texture: got 1\.5"):
+        StereoMatcher(StereoParams(blank_texture=1.5))
+    with pytest.raises(InputError, match=r"^stereo\.blank_min_area_px: got 0"):
+        StereoMatcher(StereoParams(blank_min_area_px=0))
+    with pytest.raises(InputError, match=r"^stereo\.blank_fill_confidence: got -0\.1"):
+        StereoMatcher(StereoParams(blank_fill_confidence=-0.1))
