@@ -19,7 +19,7 @@ import numpy as np
 from sim_bridge import meshes
 from sim_bridge.build_rooms import ROOM_SCENES, SEED, build_room_scene
 from sim_bridge.holdout_parts import place_apart
-from sim_bridge.mjcf import Mjcf, blank_scene, vec
+from sim_bridge.mjcf import Mjcf, blank_scene, floor_plane, vec
 from sim_bridge.scanned_objects import add_scanned, footprint, place_scanned
 from sim_bridge.scene import Scene
 from sim_bridge.scene_layout import ROI_RIM
@@ -153,12 +153,18 @@ def _lights_object() -> list[str]:
     ]
 
 
-def build_object_scene(name: str) -> Scene:
+def _fresh_folder(name: str) -> Path:
+    """The bundled scene's folder, emptied of the files a build writes."""
     folder = SCENES_DIR / name
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.iterdir():
         if old.suffix in (".obj", ".png", ".xml", ".json"):
             old.unlink()
+    return folder
+
+
+def build_object_scene(name: str) -> Scene:
+    folder = _fresh_folder(name)
     _FOLDER[name] = folder
     rng = np.random.default_rng(SEED + sum(map(ord, name)))
     doc = Mjcf(name)
@@ -170,23 +176,14 @@ def build_object_scene(name: str) -> Scene:
         doc.bodies.append(
             f'<body name="{body}" pos="{vec(pos)}" quat="{vec(quat)}"><geom type="mesh" mesh="{mesh_name}" material="{mat}"/></body>'
         )
-    (folder / "scene.xml").write_text(
-        doc.xml(
-            _lights_object(),
-            f'<geom name="floor" type="plane" size="0 0 0.05" material="{floor}"/>',
-        )
-    )
+    doc.write(folder / "scene.xml", _lights_object(), floor_plane(floor))
     return _object_scene_metadata(name, folder)
 
 
 def build_scanned_scene(name: str) -> Scene:
     """A table with scanned objects (`SCANNED_SCENES[name]`) standing on it at seeded places and
     headings, apart from each other (placed, not dropped: each stands on its flat base)."""
-    folder = SCENES_DIR / name
-    folder.mkdir(parents=True, exist_ok=True)
-    for old in folder.iterdir():
-        if old.suffix in (".obj", ".png", ".xml", ".json"):
-            old.unlink()
+    folder = _fresh_folder(name)
     rng = np.random.default_rng(SEED + sum(map(ord, name)))
     doc = Mjcf(name)
     floor = doc.material(folder, "floor", "checker", (90, 90, 95), (150, 150, 155), repeat=(2, 2))
@@ -198,12 +195,7 @@ def build_scanned_scene(name: str) -> Scene:
     for i, (kind, xy) in enumerate(zip(kinds, where, strict=True)):
         add_scanned(doc, None, kind)
         place_scanned(doc, f"obj{i}", kind, xy, TABLE_TOP_Z, rng.uniform(-np.pi, np.pi))
-    (folder / "scene.xml").write_text(
-        doc.xml(
-            _lights_object(),
-            f'<geom name="floor" type="plane" size="0 0 0.05" material="{floor}"/>',
-        )
-    )
+    doc.write(folder / "scene.xml", _lights_object(), floor_plane(floor))
     return _object_scene_metadata(name, folder)
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_bridge.holdout_parts import lights, place_apart, scene_folder, seeded_rng, turn_all
-from sim_bridge.mjcf import Mjcf
+from sim_bridge.mjcf import Mjcf, floor_plane
 from sim_bridge.scanned_objects import SCANNED_OBJECTS, add_scanned, footprint, place_scanned
 
 # A kitchen counter (metres): a cabinet with a worktop at kitchen height against a 2.4 m wall.
@@ -69,11 +69,4 @@ def write_scanned_counter(folder: Path, seed: int = 0) -> Path:
             add_scanned(doc, folder, kind)
             place_scanned(doc, f"scan{i}_{kind}", kind, xy, h, rng.uniform(-np.pi, np.pi))
     turn_all(doc, float(rng.integers(4)) * np.pi / 2)  # walls stay axis-aligned boxes
-    path = folder / f"{name}.xml"
-    path.write_text(
-        doc.xml(
-            lights(rng, specular=0.3),
-            f'<geom name="floor" type="plane" size="0 0 0.05" material="{floor}"/>',
-        )
-    )
-    return path
+    return doc.write(folder / f"{name}.xml", lights(rng, specular=0.3), floor_plane(floor))

@@ -28,7 +28,7 @@ from sim_bridge.holdout_parts import (
 from sim_bridge.holdout_scanned import write_scanned_counter
 from sim_bridge.holdout_shelf import write_shelf_wall
 from sim_bridge.holdout_thin import write_thin_objects
-from sim_bridge.mjcf import Mjcf, mesh_asset, mesh_body, room_shell, table4
+from sim_bridge.mjcf import Mjcf, floor_plane, mesh_asset, mesh_body, room_shell, table4
 
 # Tabletop: a 1.2 x 0.8 m table (the bundled tabletops use 0.9 x 0.6 m) at a standard height.
 TABLE_TOP_SIZE = (1.2, 0.8)
@@ -96,13 +96,7 @@ def write_tabletop(folder: Path, seed: int = 0) -> Path:
     mesh_body(doc, "mug", mug, [*where[1], top], rng.uniform(-np.pi, np.pi), mats[3])
     bottle = mesh_asset(doc, folder, "bottle", bottle_mesh(), [1, 1, 1])
     mesh_body(doc, "bottle", bottle, [*where[2], top], 0.0, mats[1])
-    path = folder / f"{name}.xml"
-    path.write_text(
-        doc.xml(
-            lights(rng), f'<geom name="floor" type="plane" size="0 0 0.05" material="{floor}"/>'
-        )
-    )
-    return path
+    return doc.write(folder / f"{name}.xml", lights(rng), floor_plane(floor))
 
 
 def write_alcove_room(folder: Path, seed: int = 0) -> Path:

@@ -18,7 +18,7 @@ from sim_bridge.holdout_parts import (
     seeded_rng,
     turn_all,
 )
-from sim_bridge.mjcf import Mjcf, mesh_asset, mesh_body
+from sim_bridge.mjcf import Mjcf, floor_plane, mesh_asset, mesh_body
 
 # Shelf against a wall: a bookcase of common sizes (metres) standing on the floor against a 2.4 m
 # wall; for even seeds a second wall makes a corner, with a kitchen-height cabinet in it.
@@ -225,10 +225,4 @@ def write_shelf_wall(folder: Path, seed: int = 0) -> Path:
         by = -0.02 - size[1] / 2 - rng.uniform(0.0, 0.2)
         doc.box("floor_box", [bx, by, size[2] / 2], size, mats[2])
     turn_all(doc, float(rng.integers(4)) * np.pi / 2)
-    path = folder / f"{name}.xml"
-    path.write_text(
-        doc.xml(
-            lights(rng), f'<geom name="floor" type="plane" size="0 0 0.05" material="{floor}"/>'
-        )
-    )
-    return path
+    return doc.write(folder / f"{name}.xml", lights(rng), floor_plane(floor))

@@ -17,7 +17,7 @@ from sim_bridge.holdout_parts import (
     seeded_rng,
     vec3,
 )
-from sim_bridge.mjcf import Mjcf, mesh_asset, mesh_body
+from sim_bridge.mjcf import Mjcf, floor_plane, mesh_asset, mesh_body
 
 # Thin and textureless objects on a floor: a stool with thin splayed legs, a floor lamp (a thin
 # pole, a plain lamp shade), a wire rack, a glossy bowl, and one large plain surface (a cabinet, a
@@ -142,11 +142,4 @@ def write_thin_objects(folder: Path, seed: int = 0) -> Path:
             )
         bowl_at = [x + rng.uniform(-0.1, 0.1) * bx, y, bz]
     mesh_body(doc, "bowl", bowl, bowl_at, 0.0, glossy)
-    path = folder / f"{name}.xml"
-    path.write_text(
-        doc.xml(
-            lights(rng, specular=0.6),
-            f'<geom name="floor" type="plane" size="0 0 0.05" material="{floor}"/>',
-        )
-    )
-    return path
+    return doc.write(folder / f"{name}.xml", lights(rng, specular=0.6), floor_plane(floor))

@@ -50,6 +50,11 @@ class Mjcf:
             f'<geom name="{name}" type="cylinder" pos="{vec(centre)}" size="{radius:.4f} {height / 2:.4f}" material="{material}"/>'
         )
 
+    def write(self, path: Path, lights: list[str], extra_world: str = "") -> Path:
+        """Write the document (`xml`) to `path` and return the path."""
+        path.write_text(self.xml(lights, extra_world))
+        return path
+
     def xml(self, lights: list[str], extra_world: str = "") -> str:
         return f"""<mujoco model="{self.name}">
   <compiler angle="radian" inertiafromgeom="false"/>
@@ -69,6 +74,11 @@ class Mjcf:
   </worldbody>
 </mujoco>
 """
+
+
+def floor_plane(material: str) -> str:
+    """The infinite floor plane at z = 0 with `material`, as a world-body child."""
+    return f'<geom name="floor" type="plane" size="0 0 0.05" material="{material}"/>'
 
 
 def vec(x) -> str:
