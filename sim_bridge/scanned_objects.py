@@ -9,6 +9,7 @@ the object on a surface with its footprint centred where it is asked to be.
 
 from __future__ import annotations
 
+import functools
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,8 +63,9 @@ def _check(name: str) -> None:
         raise ValueError(f"scanned object: got {name!r}, expected one of {list(SCANNED_OBJECTS)}")
 
 
+@functools.cache
 def footprint(name: str) -> Footprint:
-    """The extent of the scan `name` (one of SCANNED_OBJECTS) in its file frame."""
+    """The extent of the scan `name` (one of SCANNED_OBJECTS) in its file frame (read once)."""
     _check(name)
     vertices, _ = read_msh(SCANNED_DIR / f"{name}.msh")
     lo, hi = vertices.min(axis=0).astype(float), vertices.max(axis=0).astype(float)
