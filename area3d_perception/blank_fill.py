@@ -109,14 +109,14 @@ def fill_blank_planes(
     what the matcher has to go on); texture_vertical: the same of vertical gradients. Blank means
     both below `blank_texture`: a grey panel's top edge against a dark sky, or horizontal stripes,
     have vertical texture, so neither joins two surfaces into one region nor passes for blank.
-    left, right: (H, W) uint8 grey rectified pair, to check a plane against the images: the
-    region and its edge (EDGE_PX around it) must look the same in the right image at u - d.
+    left, right: (H, W) uint8 grey rectified pair, to check a plane against the images: the band
+    of EDGE_PX around the region (its own edge) must look the same in the right image at u - d.
     Seeded: the same input gives the same output.
     """
     h, w = disparity.shape
     rng = np.random.default_rng(0)
     blank = ((texture < blank_texture) & (texture_vertical < blank_texture)).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(blank, connectivity=4)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(blank, connectivity=4)
     with np.errstate(invalid="ignore"):
         reliable = (lr_diff <= RELIABLE_LR_PX) & (texture >= RELIABLE_TEXTURE)
     reliable &= np.isfinite(disparity)
