@@ -124,6 +124,11 @@ def bench_episode(
         help="also generate and run the hold-out scenes (tabletop, alcove room, shelf against a "
         "wall, thin objects, scanned objects on a counter; seed 0 of each)",
     ),
+    holdout_kinds: str = typer.Option(
+        "",
+        help="comma list of the hold-out kinds to generate, e.g. tabletop,scanned_counter "
+        "(default: every kind)",
+    ),
     budget: int = typer.Option(
         None, help="view budget T per episode, O_0 included (default: the paper's, 25 / 40)"
     ),
@@ -173,6 +178,7 @@ def bench_episode(
             console=console,
             in_process=in_process,
             holdout=holdout,
+            holdout_kinds=[k.strip() for k in holdout_kinds.split(",") if k.strip()] or None,
             overrides=parse_overrides(param),
             depth_source=depth_source,
             workers=counts or None,

@@ -257,6 +257,7 @@ def run_episode_bench(
     console: Console,
     in_process: bool = False,
     holdout: bool = False,
+    holdout_kinds: Sequence[str] | None = None,
     overrides: dict[str, dict] | None = None,
     depth_source: str = "sensor",
     workers: Sequence[int] | None = None,
@@ -265,6 +266,7 @@ def run_episode_bench(
     """Run the benchmark and print its table. workers: run it on a local cluster of that many
     worker processes, once per count given (the wall times are printed beside each other);
     cluster: a Dask scheduler's address to run it on instead. Neither: in this process.
+    holdout_kinds: the hold-out kinds `holdout` generates (default: every kind).
     Returns {"rows", "failures", "report", "runs": [{"workers", "engine", "wall_s", "cpu_s", "load",
     "lost_attempts", "out_dir", "episodes": {run name: its views and metrics}, "ran_on": {run
     name: host:pid}}]}."""
@@ -274,6 +276,12 @@ def run_episode_bench(
     from sim_bridge.scenes import list_scenes
 
     scenes = list(scenes) or list_scenes()
+    kinds = list(holdout_kinds) if holdout_kinds else list(HOLDOUT_WRITERS)
+    unknown = [kind for kind in kinds if kind not in HOLDOUT_WRITERS]
+    if unknown:
+        raise ValueError(
+            f"holdout_kinds: got {unknown}, expected kinds among {list(HOLDOUT_WRITERS)}"
+        )
     counts: list[int | None] = list(workers) if workers else [None]
     if cluster is not None and len(counts) > 1:
         raise ValueError(
@@ -283,7 +291,7 @@ def run_episode_bench(
     root = out / time.strftime("%Y%m%d-%H%M%S")
     holdouts: dict[str, HoldoutScene] = {}
     if holdout:  # scenes nobody tuned on, generated now, with no metadata but their MJCF
-        for kind in HOLDOUT_WRITERS:
+        for kind in kinds:
             folder = root / "holdout" / f"{kind}_s{HOLDOUT_SEED}"
             path, spec = write_holdout(kind, HOLDOUT_SEED, folder)
             scenes.append(str(path))

@@ -18,10 +18,13 @@ from area3d_bench.episode_task import (
     EpisodeResult,
     EpisodeTask,
     HoldoutScene,
+    _ensure_holdout,
+    holdout_digest,
     materialize,
     run_episode_task,
     write_holdout,
 )
+from sim_bridge.holdout_scenes import HOLDOUT_WRITERS
 
 SMALL = {"seeds": 1, "policies": ["area3d", "uniform"], "scenes": ["single_object"], "budget": 6}
 NAMES = {"single_object_area3d_s0", "single_object_uniform_s0"}
@@ -161,6 +164,16 @@ def test_a_hold_out_scene_is_written_on_the_worker_as_the_client_wrote_it(tmp_pa
     assert refused.error is not None and "digest" in refused.error and "tabletop" in refused.error
 
 
+@pytest.mark.parametrize("kind", list(HOLDOUT_WRITERS))
+def test_every_hold_out_kind_a_worker_writes_has_the_clients_files(tmp_path, kind):
+    here, spec = write_holdout(kind, 0, tmp_path / "client" / f"{kind}_s0")
+    elsewhere = tmp_path / "worker" / f"{kind}_s0" / here.name
+    task = EpisodeTask(str(elsewhere), "uniform", 0, 5, str(tmp_path / "runs"), "x", holdout=spec)
+    assert _ensure_holdout(task) == elsewhere.resolve()
+    assert holdout_digest(elsewhere.parent) == spec.digest
+    assert not list((tmp_path / "worker").glob(".staging-*"))  # the staging folder is gone
+
+
 def test_a_result_from_another_machine_names_the_scene_as_this_machine_does(tmp_path):
     here = tmp_path / "holdout" / "tabletop_s0" / "tabletop_s0.xml"
     task = EpisodeTask(str(here), "area3d", 0, 5, str(tmp_path), "tabletop_area3d_s0")
@@ -188,6 +201,7 @@ def test_a_result_from_another_machine_names_the_scene_as_this_machine_does(tmp_
         (["--workers", "two"], "workers: got 'two', expected an int >= 1"),
         (["--workers", "0"], "workers: got '0', expected an int >= 1"),
         (["--workers", "2", "--cluster", "tcp://127.0.0.1:8786"], "expected one of them"),
+        (["--holdout-kinds", "tabletop,kitchen"], "holdout_kinds: got ['kitchen'], expected"),
     ],
 )
 def test_the_bench_command_refuses_bad_worker_options_before_running_anything(
