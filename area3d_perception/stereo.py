@@ -302,6 +302,7 @@ class StereoMatcher:
                 right_grey,
                 p.blank_texture,
                 p.blank_min_area_px,
+                p.downscale,
             )
         filled = support > 0
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -76,8 +76,8 @@ def test_small_striped_or_untrusted_regions_are_left_alone():
     assert not support.any()
 
 
-def _match(left, right, fill):
-    m = StereoMatcher(StereoParams(num_disparities=32, blank_fill=fill))
+def _match(left, right, fill, downscale=1):
+    m = StereoMatcher(StereoParams(num_disparities=32, blank_fill=fill, downscale=downscale))
     try:
         return m.match(left, right, FX, BASELINE)
     finally:
@@ -110,6 +110,20 @@ def test_a_blank_panel_in_a_textured_frame_gets_its_depth_at_low_confidence():
     wall_px = np.zeros((H, W), bool)
     wall_px[20:-20, 60 : W // 2 - 200] = True
     assert np.array_equal(plain.depth[wall_px], filled.depth[wall_px], equal_nan=True)
+
+
+def test_matched_at_half_size_the_planes_tolerance_is_that_of_the_matching_pixels():
+    # the ring's disparities carry the noise of half-size matching, doubled in full-size pixels:
+    # with the full-size tolerance too few ring pixels agree and half the panel stays wrong
+    wall, frame, blank = _texture(5, True), _texture(6, True), _texture(0, False)
+    surfaces = [(1.6, -5, 5, wall), (1.0, -0.3, 0.3, frame), (0.9999, -0.25, 0.25, blank)]
+    left, right, truth = _pair(surfaces)
+    panel = _inside(truth, 0.9999, 10)
+    plain, filled = _match(left, right, False, 2), _match(left, right, True, 2)
+    within = [np.mean(np.abs(o.depth[panel] - 1.0) < 0.02) for o in (plain, filled)]
+    assert within[0] < 0.3
+    assert within[1] > 0.55  # 0.49 with the tolerance in full-size pixels
+    assert np.isfinite(filled.depth[panel]).mean() > 0.99
 
 
 def test_a_blank_board_with_only_the_wall_around_it_is_not_moved_onto_the_wall():
