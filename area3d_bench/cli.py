@@ -27,6 +27,7 @@ BENCHES = {
     "tf": "area3d_bench.tf",
     "render": "area3d_bench.render",
     "stereo": "area3d_bench.stereo",
+    "stereo-confidence": "area3d_bench.stereo_confidence",
     "perception": "area3d_bench.perception",
     "semantics": "area3d_bench.semantics",
     "planner": "area3d_bench.planner",

@@ -44,6 +44,23 @@ SGBM_MODES = {
 }
 
 
+CONFIDENCE_MODELS = ("matcher", "calibrated")
+CALIBRATION_WINDOW_PX = 5
+# Weights of the calibrated confidence, fitted (logistic regression, `area3d bench
+# stereo-confidence`) to the simulator's 640 x 480, 90 degree, 6 cm pairs of the four bundled
+# object scenes at downscale 1; another camera needs its own.
+CALIBRATION = (2.162, -1.501, 9.097, -13.618)
+
+
+def _four_finite(value) -> str | None:
+    """None if `value` is four finite numbers, else what was expected."""
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return "four finite numbers"
+    return None if v.shape == (4,) and np.all(np.isfinite(v)) else "four finite numbers"
+
+
 @dataclass(frozen=True)
 class StereoParams:
     """Tunables of the stereo backend (every one is a `stereo.*` node parameter)."""
@@ -136,6 +153,18 @@ class StereoParams:
         0.2, "confidence of a filled pixel (times the share of its ring on the plane)", "fraction",
         (0.0, 1.0),
     )  # fmt: skip
+    # "matcher": the product of the matcher's factors above (consistency x precision x texture).
+    # "calibrated": the chance that the depth is within 1 cm + 1 % of the truth, a logistic model of
+    # the disparity, its spread and the share of valid pixels around it (`calibrated_confidence`),
+    # with `calibration` fitted to rendered pairs of the camera (`area3d bench stereo-confidence`).
+    confidence_model: str = described(
+        "matcher", "what a pixel's confidence says", choices=CONFIDENCE_MODELS
+    )
+    calibration: tuple = described(
+        CALIBRATION,
+        "calibrated model: weights of ln disparity, ln(1 + disparity spread), valid share, bias",
+        check=_four_finite,
+    )
 
     def validate(self) -> None:
         """Raise InputError naming the first parameter outside its domain."""
@@ -160,6 +189,9 @@ class StereoParams:
             ("blank_texture", 0 <= self.blank_texture <= 1, "a texture factor in [0, 1]"),
             ("blank_min_area_px", self.blank_min_area_px >= 1, "pixels >= 1"),
             ("blank_fill_confidence", 0 <= self.blank_fill_confidence <= 1, "a value in [0, 1]"),
+            ("confidence_model", self.confidence_model in CONFIDENCE_MODELS,
+             f"one of {', '.join(CONFIDENCE_MODELS)}"),
+            ("calibration", _four_finite(self.calibration) is None, "four finite numbers"),
         )  # fmt: skip
         for name, ok, expected in checks:
             if not ok:
@@ -217,6 +249,47 @@ def texture_factor(grey: np.ndarray, window_px: int, texture_ref: float) -> np.n
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0  # Sobel's gain is 8: back to levels/px
     energy = cv2.boxFilter(gx * gx, -1, (window_px, window_px))
     return (energy / (energy + np.float32(texture_ref) ** 2)).astype(np.float32)
+
+
+def disparity_neighbourhood(disparity: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """(spread, valid share), both (H, W) float32: the standard deviation of the valid disparities
+    in a window around each pixel (px) and the share of the window's pixels that are valid."""
+    valid = np.isfinite(disparity).astype(np.float32)
+    d = np.where(valid > 0, disparity, 0.0).astype(np.float32)
+    size = (window_px, window_px)
+    count = cv2.boxFilter(valid, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    total = cv2.boxFilter(d, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    squares = cv2.boxFilter(d * d, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    n = np.maximum(count, 1.0)
+    mean = total / n
+    spread = np.sqrt(np.maximum(squares / n - mean * mean, 0.0))
+    return spread.astype(np.float32), (count / np.float32(window_px * window_px)).astype(np.float32)
+
+
+def calibration_features(disparity: np.ndarray, downscale: int = 1) -> np.ndarray:
+    """(H, W, 3) float32 features of the calibrated confidence: ln d, ln(1 + s) and v, d the
+    disparity and s its spread in pixels of the matching size (d at least 0.5), v the share of
+    valid pixels in the CALIBRATION_WINDOW_PX window around the pixel."""
+    spread, share = disparity_neighbourhood(disparity, CALIBRATION_WINDOW_PX)
+    scale = np.float32(downscale)
+    with np.errstate(invalid="ignore"):
+        d = np.maximum(np.nan_to_num(disparity, nan=0.0) / scale, np.float32(0.5))
+    return np.stack([np.log(d), np.log1p(spread / scale), share], axis=-1).astype(np.float32)
+
+
+def calibrated_confidence(
+    disparity: np.ndarray, calibration: tuple, downscale: int = 1
+) -> np.ndarray:
+    """(H, W) float32 chance that each valid pixel's depth is within 1 cm + 1 % of the truth:
+    sigmoid(w . features + b) (`calibration_features`: the disparity carries the range, relative
+    depth error ~ disparity error / d; its spread and the share of valid pixels around it the
+    local consistency of the match: an isolated match in a field of failures is rarely right);
+    0 where the disparity is invalid."""
+    w = np.asarray(calibration[:3], np.float32)
+    z = calibration_features(disparity, downscale) @ w + np.float32(calibration[3])
+    p = (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
+    p[~np.isfinite(disparity)] = 0.0
+    return p
 
 
 def lr_difference(disp_left: np.ndarray, disp_right: np.ndarray) -> np.ndarray:
@@ -313,9 +386,15 @@ class StereoMatcher:
             sigma_px = p.disparity_sigma_px * p.downscale  # in full-size pixels
             relative_sigma = np.float32(sigma_px / p.precision_rel_ref) / disp_left
             precision = 1.0 / (1.0 + relative_sigma**2)
-        confidence = consistency * precision * texture
-        # a filled pixel's matcher evidence is void: its confidence is the fill's own
-        confidence[filled] = (np.float32(p.blank_fill_confidence) * support * precision)[filled]
+        if p.confidence_model == "calibrated":
+            confidence = calibrated_confidence(disp_left, p.calibration, p.downscale)
+            # fitted on the pixels that pass the left-right check (or are filled): a pixel that
+            # fails it is no estimate, as with the matcher's confidence
+            confidence[~((diff <= p.lr_max_diff_px) | filled)] = 0.0
+        else:
+            confidence = consistency * precision * texture
+            # a filled pixel's matcher evidence is void: its confidence is the fill's own
+            confidence[filled] = (np.float32(p.blank_fill_confidence) * support * precision)[filled]
         confidence[~np.isfinite(depth)] = 0.0
         return StereoResult(depth.astype(np.float32), confidence.astype(np.float32), disp_left)
 

@@ -21,7 +21,8 @@ BENCH_ENTRY_POINT = importlib.metadata.EntryPoint(
     name="bench", value="area3d_bench.cli:app", group=cli.COMMAND_GROUP
 )
 BENCHES = (
-    "transport", "tf", "render", "stereo", "perception", "semantics", "planner", "reconstruction",
+    "transport", "tf", "render", "stereo", "stereo-confidence", "perception", "semantics", "planner",
+    "reconstruction",
     "eval", "foxglove", "soak", "robot", "episode",
 )  # fmt: skip
 BOX = str.maketrans("", "", "│╭╮╰╯─")  # rich's panel borders

@@ -8,7 +8,13 @@ import pytest
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.estimator import FrameEstimator
-from area3d_perception.stereo import StereoMatcher, StereoParams, lr_difference
+from area3d_perception.stereo import (
+    CALIBRATION,
+    StereoMatcher,
+    StereoParams,
+    calibrated_confidence,
+    lr_difference,
+)
 
 W, H = 640, 480
 FX = (W / 2) / np.tan(np.deg2rad(90.0) / 2)  # 90 degree FOV, as the simulated camera
@@ -178,6 +184,47 @@ def test_bad_pairs_are_refused_naming_the_field(matcher, left, right, baseline, 
 def test_bad_parameters_are_refused():
     with pytest.raises(InputError, match="stereo.num_disparities"):
         StereoMatcher(StereoParams(num_disparities=40))
+    with pytest.raises(InputError, match=r"^stereo\.confidence_model: got 'learned'"):
+        StereoMatcher(StereoParams(confidence_model="learned"))
+    for bad in ((1.0, 2.0, 3.0), (1.0, 2.0, float("nan"), 4.0), "abcd"):
+        with pytest.raises(InputError, match=r"^stereo\.calibration: got .*four finite numbers"):
+            StereoMatcher(StereoParams(calibration=bad))
+
+
+def test_calibrated_confidence_rises_with_disparity_and_falls_with_spread_and_isolation():
+    field = np.full((40, 40), 20.0, np.float32)
+    near = calibrated_confidence(field, CALIBRATION)[20, 20]
+    far = calibrated_confidence(field / 4, CALIBRATION)[20, 20]  # 4x the range
+    assert 0.0 < far < near < 1.0
+    noisy = field + np.random.default_rng(0).normal(0.0, 3.0, field.shape).astype(np.float32)
+    assert calibrated_confidence(noisy, CALIBRATION)[20, 20] < near
+    alone = np.full_like(field, np.nan)
+    alone[20, 20] = 20.0  # the same match with no valid neighbour
+    lone = calibrated_confidence(alone, CALIBRATION)
+    assert lone[20, 20] < 0.5 * near
+    assert (lone[np.isnan(alone)] == 0).all()  # no disparity, no confidence
+    # at downscale 2 the same full-size disparity is half as many pixels of the matching size
+    assert calibrated_confidence(field, CALIBRATION, downscale=2)[20, 20] < near
+
+
+def test_calibrated_textured_planes_rank_by_range_and_fail_the_left_right_check_at_zero(
+    monkeypatch,
+):
+    m = StereoMatcher(StereoParams(num_disparities=32, downscale=1, confidence_model="calibrated"))
+    try:
+        near = m.match(*_pair([(1.0, -5, 5, _texture(0, True))])[:2], FX, BASELINE)
+        far = m.match(*_pair([(2.5, -5, 5, _texture(0, True))])[:2], FX, BASELINE)
+        assert np.median(_centre(near.confidence)) > 0.8  # 19 px of disparity, a dense field
+        assert np.median(_centre(far.confidence)) < np.median(_centre(near.confidence))
+        left, right, _ = _pair([(1.0, -5, 5, _texture(0, True))])
+        d_left = np.full((H, W), 19.2, np.float32)
+        d_right = d_left.copy()
+        d_right[:, 300:320] = 22.0  # left pixels 319-338 fail the check
+        monkeypatch.setattr(m, "disparities", lambda _l, _r: (d_left, d_right))
+        conf = m.match(left, right, FX, BASELINE).confidence
+        assert (conf[:, 320:338] == 0).all() and np.median(conf[:, 200:280]) > 0.8
+    finally:
+        m.close()
 
 
 def test_estimator_stereo_backend_needs_the_right_image_and_ignores_sensor_depth():
