@@ -26,6 +26,7 @@ from area3d_perception.stereo import (
     StereoMatcher,
     StereoParams,
     calibration_features,
+    confidence_of_features,
 )
 from sim_bridge.camera import STEREO_BASELINE, SimCamera
 from sim_bridge.scenes import load_scene
@@ -98,12 +99,6 @@ def auc(score: np.ndarray, right: np.ndarray) -> float:
     return float((ranks[right].sum() - n_right * (n_right + 1) / 2) / (n_right * n_wrong))
 
 
-def _calibrated(samples: dict, calibration: tuple) -> np.ndarray:
-    # the per-pixel model of `calibrated_confidence`, on features already gathered
-    w = np.asarray(calibration[:3], np.float64)
-    return 1.0 / (1.0 + np.exp(-(samples["features"] @ w + calibration[3])))
-
-
 def run_bench(scenes: list[str] | None = None) -> dict:
     """Fit on `scenes` (FIT_SCENES), print the weights and the per-scene table; returns
     {"calibration": fitted, "scenes": {name: figures}}."""
@@ -126,8 +121,8 @@ def run_bench(scenes: list[str] | None = None) -> dict:
         table.add_column(f"right at {lo:g}-{hi:g} (share)", justify="right")
     figures = {}
     for name, s in samples.items():
-        p = _calibrated(s, fitted)
-        in_use = _calibrated(s, CALIBRATION)
+        p = confidence_of_features(s["features"], fitted)
+        in_use = confidence_of_features(s["features"], CALIBRATION)
         bins = []
         for lo, hi in BINS:
             inside = (p >= lo) & ((p < hi) | (hi >= 1.0))

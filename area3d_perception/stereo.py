@@ -48,8 +48,8 @@ CONFIDENCE_MODELS = ("matcher", "calibrated")
 CALIBRATION_WINDOW_PX = 5
 # Weights of the calibrated confidence, fitted (logistic regression) to the simulator's 640 x 480,
 # 90 degree, 6 cm pairs of episodes on the four bundled object scenes at downscale 1; `area3d bench
-# stereo-confidence` refits them from the scenes' own views (README: the same AUC to three
-# decimals). Another camera needs its own.
+# stereo-confidence` refits them from the scenes' own views (README: an AUC within 0.001 of
+# these). Another camera needs its own.
 CALIBRATION = (2.162, -1.501, 9.097, -13.618)
 
 
@@ -286,11 +286,18 @@ def calibrated_confidence(
     depth error ~ disparity error / d; its spread and the share of valid pixels around it the
     local consistency of the match: an isolated match in a field of failures is rarely right);
     0 where the disparity is invalid."""
-    w = np.asarray(calibration[:3], np.float32)
-    z = calibration_features(disparity, downscale) @ w + np.float32(calibration[3])
-    p = (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
+    p = confidence_of_features(calibration_features(disparity, downscale), calibration)
     p[~np.isfinite(disparity)] = 0.0
     return p
+
+
+def confidence_of_features(features: np.ndarray, calibration: tuple) -> np.ndarray:
+    """(...) float32 sigmoid(w . features + b) of (..., 3) `calibration_features` and the model's
+    `calibration` (w_1, w_2, w_3, b)."""
+    w = np.asarray(calibration[:3], np.float32)
+    z = np.asarray(features, np.float32) @ w + np.float32(calibration[3])
+    with np.errstate(over="ignore"):  # exp overflows to inf for z << 0: the chance is 0
+        return (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
 
 
 def lr_difference(disp_left: np.ndarray, disp_right: np.ndarray) -> np.ndarray:
