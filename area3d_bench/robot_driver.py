@@ -243,9 +243,12 @@ class Driver(Node):
         self.frames_published = 0
         self.parts_lost = 0
         self.frames_late = 0  # frame slots the renderer was too slow for (a camera's drops)
-        # of those, the ones in stalls of at most SHORT_STALL_S (a stream's drops; a longer stall
-        # reads as the camera pausing to whoever counts gaps in its stamps)
+        # of those, the ones inside a gap of at most SHORT_STALL_S between two colour images that
+        # went out (a stream's drops; a longer gap, two stalls with the image between them lost
+        # too, reads as the camera pausing to whoever counts gaps in the colour stamps)
         self.frames_late_short = 0
+        self._late_pending = 0  # late slots since the last colour image that went out
+        self._last_color_ns: int | None = None
         T_link = np.eye(4)
         pitch = np.radians(LINK_PITCH_DEG)
         T_link[:3, :3] = [
@@ -361,8 +364,7 @@ class Driver(Node):
         if k <= last:
             return
         self.frames_late += k - last - 1
-        if (k - last) * period <= SHORT_STALL_S:
-            self.frames_late_short += k - last - 1
+        self._late_pending += k - last - 1
         self.slot = (t0_ns, t0_mono, k)
         ns = self.publish_frame(
             t0_ns + int(round(k * period * 1e9)), self.body_at(t0_mono + k * period)
@@ -390,8 +392,18 @@ class Driver(Node):
                 self.parts_lost += 1
                 continue
             self.pubs[topic].publish(msg)
+            if topic == COLOR:
+                self._count_late(ns)
         self.frames_published += 1
         return ns
+
+    def _count_late(self, color_ns: int) -> None:
+        """A colour image went out at `color_ns`: the late slots since the previous one count as
+        short when the gap between the two is at most SHORT_STALL_S."""
+        last, self._last_color_ns = self._last_color_ns, color_ns
+        if last is not None and color_ns - last <= SHORT_STALL_S * 1e9:
+            self.frames_late_short += self._late_pending
+        self._late_pending = 0
 
     def read(self):
         """Every topic has had its readers for a second (a best-effort frame published before

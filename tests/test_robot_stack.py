@@ -147,10 +147,14 @@ def test_a_streaming_driver_on_a_tf_chain_is_planned_for_in_views_not_frames(tmp
         assert lost > 0
         # a lost colour or depth costs its frame only: frames still pair, fewer of them
         assert perception["frames_paired"] > 0 and perception["pairing_rate"] < 0.9, perception
-        # whole frames lost (colour and depth both) are counted from the gaps in the stream,
-        # with the slots the driver's renderer was too late for in short stalls (a stall over
-        # 1 s, a loaded machine's, reads as the camera pausing: not counted)
-        assert perception["frames_missed"] >= result.driver["frames_late_short"], perception
+        # whole frames lost (colour and depth both) are counted from the gaps in the colour
+        # stream, with the slots the driver's renderer was too late for inside gaps of at most
+        # 0.5 s between the colour images it sent (a gap over 1 s, a loaded machine's stalls
+        # with the images between them lost, reads as the camera pausing: not counted)
+        assert perception["frames_missed"] >= result.driver["frames_late_short"], (
+            perception,
+            result.driver,
+        )
         assert received < sent, (perception, result.driver)
         assert perception["warnings"] and "pairing rate" in perception["warnings"][0]
 
