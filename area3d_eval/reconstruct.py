@@ -179,7 +179,9 @@ class TsdfFusion:
         usable = np.isfinite(depth) & (depth > 0) & (depth <= p.depth_trunc) & (weight > 0)
         depth = np.where(usable, depth, 0.0).astype(np.float32)
         self.num_frames += 1
-        if not depth.any():
+        # Open3D allocates blocks for depths below depth_trunc only (ours integrates up to it): a
+        # frame whose depth is all at depth_trunc (a 16-bit driver's 5000 mm) touches none
+        if not np.any(depth < p.depth_trunc, where=usable):
             return
         # Open3D puts pixel centres at integer coordinates: its principal point is ours - 0.5 px.
         K_o3d = K.copy()

@@ -142,9 +142,12 @@ def test_a_frame_with_depth_only_beyond_the_truncation_integrates_nothing_and_ke
     rgb, depth, K, T = frames[0]
     params = TsdfParams()
     far = np.where(np.isfinite(depth), params.depth_trunc + 1.0, np.nan).astype(np.float32)
+    # depth exactly at depth_trunc (a 16-bit driver's 5000 mm): Open3D touches no block there
+    at_trunc = np.where(np.isfinite(depth), params.depth_trunc, np.nan).astype(np.float32)
     with_far, without = TsdfFusion(params), TsdfFusion(params)
     with_far.integrate(rgb, far, K, T)
-    assert len(with_far.extract_mesh().triangles) == 0
+    with_far.integrate(rgb, at_trunc, K, T)
+    assert len(with_far.extract_mesh().triangles) == 0 and with_far.num_frames == 2
     for fusion in (with_far, without):
         for frame in frames[:4]:
             fusion.integrate(*frame)
