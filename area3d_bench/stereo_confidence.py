@@ -39,7 +39,7 @@ FIT_SAMPLES = 300_000  # pixels the regression is fitted on, drawn evenly over t
 
 def scene_samples(name: str, params: StereoParams | None = None) -> dict:
     """Every estimated pixel of the scene's initial and held-out views: {"features" (N, 3),
-    "right" (N,) bool, "matcher" (N,) the matcher's confidence, "disparity_scale"}."""
+    "right" (N,) bool, "matcher" (N,) the matcher's confidence}."""
     params = params or StereoParams()
     scene = load_scene(name)
     camera = SimCamera(scene, stereo_baseline=STEREO_BASELINE, image_noise=IMAGE_NOISE)

@@ -53,13 +53,16 @@ CALIBRATION_WINDOW_PX = 5
 CALIBRATION = (2.162, -1.501, 9.097, -13.618)
 
 
+FOUR_FINITE = "four finite numbers"
+
+
 def _four_finite(value) -> str | None:
     """None if `value` is four finite numbers, else what was expected."""
     try:
         v = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
-        return "four finite numbers"
-    return None if v.shape == (4,) and np.all(np.isfinite(v)) else "four finite numbers"
+        return FOUR_FINITE
+    return None if v.shape == (4,) and np.all(np.isfinite(v)) else FOUR_FINITE
 
 
 @dataclass(frozen=True)
@@ -192,7 +195,7 @@ class StereoParams:
             ("blank_fill_confidence", 0 <= self.blank_fill_confidence <= 1, "a value in [0, 1]"),
             ("confidence_model", self.confidence_model in CONFIDENCE_MODELS,
              f"one of {', '.join(CONFIDENCE_MODELS)}"),
-            ("calibration", _four_finite(self.calibration) is None, "four finite numbers"),
+            ("calibration", _four_finite(self.calibration) is None, FOUR_FINITE),
         )  # fmt: skip
         for name, ok, expected in checks:
             if not ok:
