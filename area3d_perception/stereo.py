@@ -392,22 +392,37 @@ class StereoMatcher:
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.float32(fx * baseline) / disp_left
             depth[~(depth <= p.max_range)] = np.nan  # also drops d = 0 (inf) and NaN
+        if p.confidence_model == "calibrated":
+            confidence = calibrated_confidence(disp_left, p.calibration, p.downscale)
+            # fitted on the pixels that pass the left-right check (or are filled): a pixel that
+            # fails it is no estimate, as with the matcher's confidence
+            with np.errstate(invalid="ignore"):
+                confidence[~((diff <= p.lr_max_diff_px) | filled)] = 0.0
+        else:
+            confidence = self._matcher_confidence(disp_left, diff, texture, filled, support)
+        confidence[~np.isfinite(depth)] = 0.0
+        return StereoResult(depth.astype(np.float32), confidence.astype(np.float32), disp_left)
+
+    def _matcher_confidence(
+        self,
+        disp_left: np.ndarray,
+        diff: np.ndarray,
+        texture: np.ndarray,
+        filled: np.ndarray,
+        support: np.ndarray,
+    ) -> np.ndarray:
+        """consistency x precision x texture per pixel; a filled pixel's matcher evidence is void:
+        its confidence is the fill's own (blank_fill_confidence x support x precision)."""
+        p = self.params
+        with np.errstate(divide="ignore", invalid="ignore"):
             consistency = np.exp(-((diff / np.float32(p.lr_sigma_px)) ** 2))
             consistency[~(diff <= p.lr_max_diff_px)] = 0.0
             sigma_px = p.disparity_sigma_px * p.downscale  # in full-size pixels
             relative_sigma = np.float32(sigma_px / p.precision_rel_ref) / disp_left
             precision = 1.0 / (1.0 + relative_sigma**2)
-        if p.confidence_model == "calibrated":
-            confidence = calibrated_confidence(disp_left, p.calibration, p.downscale)
-            # fitted on the pixels that pass the left-right check (or are filled): a pixel that
-            # fails it is no estimate, as with the matcher's confidence
-            confidence[~((diff <= p.lr_max_diff_px) | filled)] = 0.0
-        else:
-            confidence = consistency * precision * texture
-            # a filled pixel's matcher evidence is void: its confidence is the fill's own
-            confidence[filled] = (np.float32(p.blank_fill_confidence) * support * precision)[filled]
-        confidence[~np.isfinite(depth)] = 0.0
-        return StereoResult(depth.astype(np.float32), confidence.astype(np.float32), disp_left)
+        confidence = consistency * precision * texture
+        confidence[filled] = (np.float32(p.blank_fill_confidence) * support * precision)[filled]
+        return confidence
 
     def _matched(
         self, left_grey: np.ndarray, right_grey: np.ndarray
