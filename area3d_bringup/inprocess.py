@@ -167,7 +167,11 @@ class _Episode:
         self.add_time("fusion", time.perf_counter() - t)
         estimates = {}
         if self.depth_source == "estimated":
-            estimates = {"estimated_depth": result.depth, "confidence": result.confidence}
+            estimates = {
+                "estimated_depth": result.depth,
+                "confidence": result.confidence,
+                "weight": result.weight,
+            }
         write_frame(
             self.run_dir,
             len(self.views),

@@ -54,6 +54,7 @@ GRAPH_OUTPUTS: dict[Topic, int] = {
     topics.CAMERA_STATUS: qos.FRAME_DEPTH,
     topics.PERCEPTION_DEPTH: qos.FRAME_DEPTH,
     topics.PERCEPTION_CONFIDENCE: qos.FRAME_DEPTH,
+    topics.PERCEPTION_WEIGHT: qos.FRAME_DEPTH,
     topics.SEMANTIC_REGIONS: qos.FRAME_DEPTH,
     topics.SEMANTIC_WEIGHT: qos.FRAME_DEPTH,
     topics.SEMANTIC_UNCERTAINTY: qos.FRAME_DEPTH,
@@ -66,9 +67,16 @@ GRAPH_OUTPUTS: dict[Topic, int] = {
 #: capture or replay (a running graph's transient-local history of an earlier episode, the empty
 #: grid of a reset) are neither recorded nor counted
 FRAME_OUTPUTS = (
-    topics.PERCEPTION_DEPTH, topics.PERCEPTION_CONFIDENCE, topics.SEMANTIC_WEIGHT,
+    topics.PERCEPTION_DEPTH, topics.PERCEPTION_CONFIDENCE, topics.PERCEPTION_WEIGHT,
+    topics.SEMANTIC_WEIGHT,
     topics.SEMANTIC_UNCERTAINTY, topics.UNCERTAINTY_GRID,
 )  # fmt: skip
+#: perception's outputs a run directory keeps per frame (`area3d_eval.rundir.attach_estimates`)
+ESTIMATE_KEYS = {
+    topics.PERCEPTION_DEPTH: "depth",
+    topics.PERCEPTION_CONFIDENCE: "confidence",
+    topics.PERCEPTION_WEIGHT: "weight",
+}
 # After the camera was restarted, a goal whose frame has not arrived whole is sent again this often
 # (the camera answers a repeated stamp with the same frame; the graph fuses each stamp once).
 CAPTURE_RESEND_S = 5.0
@@ -86,7 +94,7 @@ class MissionManager(GraphSync, Node):
         **kwargs: Any,
     ):
         super().__init__(NAME, **kwargs)
-        # {stamp: {"depth" | "confidence": image}} of perception's outputs, when the run keeps them
+        # {stamp: {"depth" | "confidence" | "weight": image}} of perception's outputs, when the run keeps them
         self.estimates: dict[int, dict[str, np.ndarray]] | None = {} if keep_estimates else None
         self.recorder = recorder
         self.launcher = launcher  # the graph's processes: who died, who was restarted when
@@ -167,9 +175,9 @@ class MissionManager(GraphSync, Node):
 
     def _on_output(self, topic: Topic) -> Callable[[Any, bytes], None]:
         def handle(msg: Any, cdr: bytes) -> None:
-            if topic in (topics.PERCEPTION_DEPTH, topics.PERCEPTION_CONFIDENCE):
+            if topic in ESTIMATE_KEYS:
                 stamp = codecs.stamp_to_ns(msg.header.stamp)
-                key = "depth" if topic == topics.PERCEPTION_DEPTH else "confidence"
+                key = ESTIMATE_KEYS[topic]
                 if key == "depth":
                     self.perceived[stamp] = self.perceived.get(stamp, 0) + 1
                 if self.estimates is not None:

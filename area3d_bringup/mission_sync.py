@@ -150,7 +150,7 @@ class GraphSync:
 
     # -- waits and replays (main thread) ---------------------------------------------------------
     def estimates_received(self) -> dict[int, dict[str, np.ndarray]]:
-        """{stamp: {"depth", "confidence"}} of what perception has published so far."""
+        """{stamp: {"depth", "confidence", "weight"}} of what perception has published so far."""
         with self._lock:
             return dict(self.estimates or {})
 

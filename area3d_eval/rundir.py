@@ -11,9 +11,10 @@ Layout (all paths relative to RUN_DIR):
   `stopped_early`)}
 - `frames/NNNN.npz`: rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = no return,
   K (3, 3), T_world_cam (4, 4) optical frame, stamp_ns (int64); NNNN = the view's index. Optional:
-  estimated_depth (H, W) float32 metres (NaN = no estimate, +Inf = no return within range) and
-  confidence (H, W) float32 in [0, 1], what perception made of the frame (the depth and the weights the TSDF uses with depth_source
-  "estimated").
+  estimated_depth (H, W) float32 metres (NaN = no estimate, +Inf = no return within range),
+  confidence (H, W) float32 in [0, 1] (what the planner read) and weight (H, W) float32 in
+  [0, 1]: what perception made of the frame (the depth and the weights the TSDF uses with
+  depth_source "estimated"; runs without `weight` use the confidence).
 - `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays
   x, y, z, uncertainty, geometric, semantic, occupancy, hard (one entry per voxel; older runs
   have no `hard`).
@@ -75,7 +76,8 @@ MIN_FREE_MB = 1024.0
 class Frame:
     """One captured view. rgb (H, W, 3) uint8; depth (H, W) float32 metres, NaN = no return;
     K (3, 3); T_world_cam (4, 4) optical frame in `world`; stamp_ns capture time;
-    estimated_depth / confidence: perception's output for the view (None when not recorded)."""
+    estimated_depth / confidence / weight: perception's output for the view (None when not
+    recorded)."""
 
     rgb: np.ndarray
     depth: np.ndarray
@@ -85,6 +87,7 @@ class Frame:
     index: int = 0
     estimated_depth: np.ndarray | None = None
     confidence: np.ndarray | None = None
+    weight: np.ndarray | None = None
 
     def __iter__(self):
         """Unpacks as (rgb, depth, K, T_world_cam), the tuple `tsdf_reconstruct` takes."""
@@ -222,7 +225,8 @@ def reconstruction_input(frame: Frame, depth_source: str) -> tuple[np.ndarray, n
     """(depth, confidence), both (H, W) float32, that the TSDF integrates for `frame` under
     `depth_source`: the camera's depth weighted by the camera's sensor model
     (`area3d_perception.sensor_model.rgbd_confidence`, whatever the planner was told), or
-    perception's estimate weighted by perception's confidence (both kept in the frame)."""
+    perception's estimate weighted by perception's fusion weight (both kept in the frame; the
+    confidence in runs that kept no weight)."""
     if check_depth_source(depth_source) == "sensor":
         from area3d_perception.sensor_model import rgbd_confidence
 
@@ -235,7 +239,8 @@ def reconstruction_input(frame: Frame, depth_source: str) -> tuple[np.ndarray, n
                 "perception's depth and confidence in every frame (run the episode with "
                 "depth_source estimated)",
             )
-    return frame.estimated_depth, frame.confidence
+    weight = frame.weight if frame.weight is not None else frame.confidence
+    return frame.estimated_depth, weight
 
 
 def frame_path(run_dir: Path, index: int) -> Path:
@@ -252,6 +257,7 @@ def write_frame(
     stamp_ns: int = 0,
     estimated_depth: np.ndarray | None = None,
     confidence: np.ndarray | None = None,
+    weight: np.ndarray | None = None,
 ) -> Path:
     """Write RUN_DIR/frames/NNNN.npz in the layout above (uncompressed: it is read back often).
 
@@ -263,7 +269,8 @@ def write_frame(
     if depth.shape != rgb.shape[:2]:
         raise InputError("depth", f"shape {depth.shape}", f"(H, W) = {rgb.shape[:2]} like rgb")
     estimates = {}
-    for name, image in (("estimated_depth", estimated_depth), ("confidence", confidence)):
+    named = (("estimated_depth", estimated_depth), ("confidence", confidence), ("weight", weight))
+    for name, image in named:
         if image is not None:
             if np.shape(image) != rgb.shape[:2]:
                 raise InputError(name, f"shape {np.shape(image)}", f"(H, W) = {rgb.shape[:2]}")
@@ -286,7 +293,7 @@ def attach_estimates(
     log: Callable[[str], None],
 ) -> None:
     """Rewrite each frame file with perception's output for it: `estimates` is
-    {stamp_ns: {"depth": (H, W), "confidence": (H, W)}}. A frame with no depth there keeps what
+    {stamp_ns: {"depth": (H, W), "confidence": (H, W), "weight": (H, W)}}. A frame with no depth there keeps what
     it has (an estimate saved before a resume) or is logged: the TSDF will refuse it."""
     for index, frame in enumerate(frames):
         got = estimates.get(frame.stamp_ns, {})
@@ -302,6 +309,7 @@ def attach_estimates(
             stamp_ns=frame.stamp_ns,
             estimated_depth=got["depth"],
             confidence=got.get("confidence"),
+            weight=got.get("weight"),
         )
 
 
@@ -316,6 +324,7 @@ def read_frame(path: Path) -> Frame:
             index=int(Path(path).stem),
             estimated_depth=data["estimated_depth"] if "estimated_depth" in data else None,
             confidence=data["confidence"] if "confidence" in data else None,
+            weight=data["weight"] if "weight" in data else None,
         )
 
 

@@ -196,10 +196,21 @@ PERCEPTION_CONFIDENCE = Topic(
     "area3d/perception/confidence",
     msgs.Image,
     PERCEPTION,
-    (PLANNER, SEMANTICS, RECONSTRUCTION),
+    (PLANNER, SEMANTICS),
     TRANSIENT_LOCAL,
     qos.FRAME_DEPTH,
     description="32FC1 per-pixel confidence in [0, 1]",
+)
+# What the reconstruction integrates each depth pixel with: the confidence, except where the
+# backend has a weight of its own (stereo with the calibrated confidence: the matcher's factors).
+PERCEPTION_WEIGHT = Topic(
+    "area3d/perception/weight",
+    msgs.Image,
+    PERCEPTION,
+    (RECONSTRUCTION,),
+    TRANSIENT_LOCAL,
+    qos.FRAME_DEPTH,
+    description="32FC1 per-pixel fusion weight in [0, 1]",
 )
 # The colour of each frame perception answered (its keyframes): what the reconstruction colours
 # the surface with, at the rate of perception's outputs rather than the camera's stream.
@@ -385,7 +396,7 @@ FOXGLOVE_STATUS = _status(FOXGLOVE_BRIDGE)
 #: every topic of the graph, camera first
 TOPICS: tuple[Topic, ...] = (
     GOAL, COLOR, DEPTH, CAMERA_INFO, POSE, RIGHT_IMAGE, RIGHT_CAMERA_INFO, CAMERA_STATUS, TF,
-    TF_STATIC, ODOMETRY, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_COLOR, PERCEPTION_STATUS, SEMANTIC_REGIONS,
+    TF_STATIC, ODOMETRY, PERCEPTION_DEPTH, PERCEPTION_CONFIDENCE, PERCEPTION_WEIGHT, PERCEPTION_COLOR, PERCEPTION_STATUS, SEMANTIC_REGIONS,
     SEMANTIC_WEIGHT, SEMANTIC_UNCERTAINTY, SEMANTIC_REQUEST, SEMANTICS_STATUS, UNCERTAINTY_GRID,
     NEXT_VIEWS, VIEW_MARKERS, HARD_REGIONS, HARD_REGION_MARKERS, PLANNER_STATUS,
     RECONSTRUCTION_MESH, RECONSTRUCTION_STATUS, DIAGNOSTICS, FOXGLOVE_STATUS,

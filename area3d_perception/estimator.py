@@ -57,11 +57,15 @@ MIN_ALIGNMENT_PIXELS = 100
 @dataclass
 class FrameResult:
     """depth: (H, W) float32 metres, NaN = no estimate, +Inf = no return within range (REP 117);
-    confidence: (H, W) float32 in [0, 1], 0 where depth is not finite; notes: human-readable warnings about this frame (bad input, fallbacks)."""
+    confidence: (H, W) float32 in [0, 1], 0 where depth is not finite (what the planner and the
+    semantics read); notes: human-readable warnings about this frame (bad input, fallbacks);
+    weight: (H, W) float32 in [0, 1], what a reconstruction integrates the depth with (`process`
+    sets it to the confidence unless the backend has a weight of its own: stereo)."""
 
     depth: np.ndarray
     confidence: np.ndarray
     notes: list[str] = field(default_factory=list)
+    weight: np.ndarray | None = None
 
 
 def sanitize_depth(depth: np.ndarray, field_name: str = "depth") -> tuple[np.ndarray, list[str]]:
@@ -198,8 +202,11 @@ class FrameEstimator:
         image of the rectified pair and baseline: metres, both for the stereo backend only.
         """
         result = self._estimate(rgb, depth, K, T_world_cam, right, baseline)
-        if self.uniform_confidence:
+        if self.uniform_confidence:  # the reconstruction's weight too (the ablation as measured)
             result.confidence = np.isfinite(result.depth).astype(np.float32)
+            result.weight = None
+        if result.weight is None:
+            result.weight = result.confidence
         return result
 
     def _estimate(
@@ -214,7 +221,7 @@ class FrameEstimator:
         check_frame(rgb, depth, None)
         if self.matcher is not None:
             stereo = self.matcher.match(rgb, right, float(K[0, 0]), baseline)
-            return FrameResult(stereo.depth, stereo.confidence, [])
+            return FrameResult(stereo.depth, stereo.confidence, [], stereo.weight)
         notes: list[str] = []
         metric = None
         if depth is not None:

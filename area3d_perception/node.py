@@ -6,8 +6,9 @@ stamp (`StampSync`, within `sync_slop_s`), takes each frame's camera pose from i
 (the pose topic, paired by stamp; or TF or odometry, interpolated:
 `area3d_msgs_py/pose_inputs.py`), keeps the keyframes of a streaming camera (`KeyframeSelector`:
 moved, turned or time passed; the others are counted as skipped), runs `FrameEstimator` on them on
-a thread of its own (`FrameWorker`, a bounded backlog) and publishes depth and confidence with the
-source frame's stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
+a thread of its own (`FrameWorker`, a bounded backlog) and publishes depth, confidence (for the
+planner and semantics), fusion weight (for the reconstruction) and colour with the source frame's
+stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__ns` moves them all.
 """
 
 from __future__ import annotations
@@ -168,6 +169,7 @@ class PerceptionNode(Node):
         )
         self.pub_depth = self._publisher(topics.PERCEPTION_DEPTH)
         self.pub_conf = self._publisher(topics.PERCEPTION_CONFIDENCE)
+        self.pub_weight = self._publisher(topics.PERCEPTION_WEIGHT)
         self.pub_color = self._publisher(topics.PERCEPTION_COLOR)
         self.poses = None
         if not pose_topic:
@@ -376,6 +378,7 @@ class PerceptionNode(Node):
                 return False
             self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
             self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
+            self.pub_weight.publish(codecs.image_to_msg(result.weight, "32FC1", stamp, frame_id))
             self.pub_color.publish(codecs.image_to_msg(rgb, "rgb8", stamp, frame_id))
         self.frames_published += 1
         # how old the frame was when its outputs went out, by this node's clock (the camera's

@@ -162,7 +162,7 @@ class StereoParams:
     # the disparity, its spread and the share of valid pixels around it (`calibrated_confidence`),
     # with `calibration` fitted to rendered pairs of the camera (`area3d bench stereo-confidence`).
     confidence_model: str = described(
-        "matcher", "what a pixel's confidence says", choices=CONFIDENCE_MODELS
+        "calibrated", "what a pixel's confidence says", choices=CONFIDENCE_MODELS
     )
     calibration: tuple = described(
         CALIBRATION,
@@ -205,11 +205,15 @@ class StereoParams:
 @dataclass
 class StereoResult:
     """depth (H, W) float32 metres, NaN = no valid match; confidence (H, W) float32 in [0, 1], 0
-    where depth is NaN; disparity (H, W) float32 full-resolution px of the left image, NaN = invalid."""
+    where depth is NaN (`confidence_model`); disparity (H, W) float32 full-resolution px of the
+    left image, NaN = invalid; weight (H, W) float32 in [0, 1], what a reconstruction integrates
+    the depth with: the matcher's confidence whatever `confidence_model` (the TSDF's least weight
+    is set for it; the calibrated model's weights let false matches into the surface)."""
 
     depth: np.ndarray
     confidence: np.ndarray
     disparity: np.ndarray
+    weight: np.ndarray
 
 
 def check_stereo_pair(
@@ -392,16 +396,19 @@ class StereoMatcher:
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.float32(fx * baseline) / disp_left
             depth[~(depth <= p.max_range)] = np.nan  # also drops d = 0 (inf) and NaN
+        weight = self._matcher_confidence(disp_left, diff, texture, filled, support)
+        weight[~np.isfinite(depth)] = 0.0
+        weight = weight.astype(np.float32)
+        confidence = weight.copy()
         if p.confidence_model == "calibrated":
             confidence = calibrated_confidence(disp_left, p.calibration, p.downscale)
             # fitted on the pixels that pass the left-right check (or are filled): a pixel that
             # fails it is no estimate, as with the matcher's confidence
             with np.errstate(invalid="ignore"):
                 confidence[~((diff <= p.lr_max_diff_px) | filled)] = 0.0
-        else:
-            confidence = self._matcher_confidence(disp_left, diff, texture, filled, support)
-        confidence[~np.isfinite(depth)] = 0.0
-        return StereoResult(depth.astype(np.float32), confidence.astype(np.float32), disp_left)
+            confidence[~np.isfinite(depth)] = 0.0
+            confidence = confidence.astype(np.float32)
+        return StereoResult(depth.astype(np.float32), confidence, disp_left, weight)
 
     def _matcher_confidence(
         self,

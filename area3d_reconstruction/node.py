@@ -1,8 +1,8 @@
 """The reconstruction node: the frames the planner fuses, integrated into a TSDF volume, and its
 coloured mesh, live.
 
-Subscribes area3d/perception/depth and area3d/perception/confidence (camera or estimated depth:
-each pixel weighs by its confidence) and area3d/perception/color (the colour of the frames
+Subscribes area3d/perception/depth and area3d/perception/weight (camera or estimated depth:
+each pixel weighs by perception's fusion weight) and area3d/perception/color (the colour of the frames
 perception answered), area3d/camera/camera_info
 and the camera pose of its `pose_source` (as the planner: the pose topic paired by stamp, or TF
 or odometry at the frame's stamp), with the planner's keyframe rule. Integrates each frame once,
@@ -154,7 +154,7 @@ class ReconstructionNode(Node):
             self,
             {
                 "depth": (topics.PERCEPTION_DEPTH, partial(decode_frame_part, "depth")),
-                "confidence": (topics.PERCEPTION_CONFIDENCE, partial(decode_frame_part, "confidence")),
+                "weight": (topics.PERCEPTION_WEIGHT, partial(decode_frame_part, "weight")),
                 "color": (topics.PERCEPTION_COLOR, partial(decode_frame_part, "color")),
             },
             p, self.rejections, self._submit, self.status.changed,
@@ -222,7 +222,7 @@ class ReconstructionNode(Node):
         with self._lock:
             if stamp in self._integrated:
                 return False
-            self.volume.integrate(rgb, depth, K, frame["pose"], frame["confidence"])
+            self.volume.integrate(rgb, depth, K, frame["pose"], frame["weight"])
             self._integrated.add(stamp)
             self.stamps.append(stamp)
         return True

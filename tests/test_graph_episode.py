@@ -171,6 +171,7 @@ def test_the_episode_bag_holds_the_camera_stream_and_every_output_of_the_graph(e
         "/tf",
         "/area3d/perception/depth",
         "/area3d/perception/confidence",
+        "/area3d/perception/weight",
     ):
         assert counts[topic] == views, topic
     assert counts["/tf_static"] >= 1

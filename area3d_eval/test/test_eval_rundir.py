@@ -82,3 +82,12 @@ def test_perception_estimates_round_trip_and_feed_the_tsdf_only_when_asked(tmp_p
         reconstruction_input(with_estimate, "lidar")
     with pytest.raises(InputError, match="estimated_depth"):
         write_frame(tmp_path, 2, rgb, depth, np.eye(3), np.eye(4), 3, estimate[:5])
+    # a fusion weight of its own, when perception gave one, is what the TSDF integrates with
+    weight = np.full((6, 8), 0.75, np.float32)
+    write_frame(tmp_path, 2, rgb, depth, np.eye(3), np.eye(4), 3, estimate, confidence, weight)
+    weighted = list(iter_frames(tmp_path))[2]
+    np.testing.assert_array_equal(weighted.confidence, confidence)
+    np.testing.assert_array_equal(reconstruction_input(weighted, "estimated")[1], weight)
+    assert with_estimate.weight is None  # a run that kept none: its confidence, as before
+    with pytest.raises(InputError, match="weight"):
+        write_frame(tmp_path, 3, rgb, depth, np.eye(3), np.eye(4), 4, estimate, None, weight[:5])

@@ -77,7 +77,10 @@ def test_small_striped_or_untrusted_regions_are_left_alone():
 
 
 def _match(left, right, fill, downscale=1):
-    m = StereoMatcher(StereoParams(num_disparities=32, blank_fill=fill, downscale=downscale))
+    params = StereoParams(
+        num_disparities=32, blank_fill=fill, downscale=downscale, confidence_model="matcher"
+    )
+    m = StereoMatcher(params)
     try:
         return m.match(left, right, FX, BASELINE)
     finally:

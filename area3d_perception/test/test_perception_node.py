@@ -15,6 +15,7 @@ from area3d_msgs_py.topics import (
     DEPTH,
     PERCEPTION_CONFIDENCE,
     PERCEPTION_DEPTH,
+    PERCEPTION_WEIGHT,
     POSE,
     RIGHT_CAMERA_INFO,
     RIGHT_IMAGE,
@@ -22,6 +23,7 @@ from area3d_msgs_py.topics import (
 from area3d_perception.estimator import FrameEstimator
 from area3d_perception.feedforward import FeedForwardOutput
 from area3d_perception.node import MAX_FRAMES_WITHOUT_INFO, PerceptionNode
+from area3d_perception.stereo import StereoMatcher, StereoParams
 
 COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, POSE_TOPIC = (
     COLOR.name,
@@ -31,6 +33,7 @@ COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, POSE_TOPIC = (
 )
 RIGHT_TOPIC, RIGHT_INFO_TOPIC = RIGHT_IMAGE.name, RIGHT_CAMERA_INFO.name
 OUT_DEPTH_TOPIC, OUT_CONFIDENCE_TOPIC = PERCEPTION_DEPTH.name, PERCEPTION_CONFIDENCE.name
+OUT_WEIGHT_TOPIC = PERCEPTION_WEIGHT.name
 
 H, W = 48, 64
 K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])
@@ -106,9 +109,10 @@ class FakeNode:
         self.node.worker = InlineWorker(self.node.worker)
         self.log = Log()
         self.node.get_logger = lambda: self.log
-        self.pubs = {OUT_DEPTH_TOPIC: Pub(), OUT_CONFIDENCE_TOPIC: Pub()}
+        self.pubs = {OUT_DEPTH_TOPIC: Pub(), OUT_CONFIDENCE_TOPIC: Pub(), OUT_WEIGHT_TOPIC: Pub()}
         self.node.pub_depth = self.pubs[OUT_DEPTH_TOPIC]
         self.node.pub_conf = self.pubs[OUT_CONFIDENCE_TOPIC]
+        self.node.pub_weight = self.pubs[OUT_WEIGHT_TOPIC]
         self.subs = {
             COLOR_TOPIC: guarded(self.node, self.node.on_color, COLOR_TOPIC),
             DEPTH_TOPIC: guarded(self.node, self.node.on_depth, DEPTH_TOPIC),
@@ -327,8 +331,22 @@ def test_stereo_backend_matches_the_right_image_paired_by_stamp():
     (depth_msg,) = node.pubs[OUT_DEPTH_TOPIC].sent
     assert codecs.stamp_to_ns(depth_msg.header.stamp) == 2 * S
     depth = codecs.msg_to_image(depth_msg)[4:-4, 24:-4]  # the sensor's 5 m is not used
-    conf = codecs.msg_to_image(node.pubs[OUT_CONFIDENCE_TOPIC].sent[0])[4:-4, 24:-4]
-    assert np.nanmedian(np.abs(depth - 0.8)) < 0.01 and np.median(conf) > 0.5
+    assert np.nanmedian(np.abs(depth - 0.8)) < 0.01
+    # the planner's confidence is the calibrated model's, the reconstruction's weight the
+    # matcher's, each exactly what the matcher gives for this pair
+    conf, weight = (
+        codecs.msg_to_image(node.pubs[topic].sent[0])
+        for topic in (OUT_CONFIDENCE_TOPIC, OUT_WEIGHT_TOPIC)
+    )
+    params = {k.removeprefix("stereo."): v for k, v in STEREO.items() if k.startswith("stereo.")}
+    for model, published in (("calibrated", conf), ("matcher", weight)):
+        m = StereoMatcher(StereoParams(**params, confidence_model=model))
+        try:
+            expected = m.match(left, right, float(K[0, 0]), BASELINE).confidence
+        finally:
+            m.close()
+        np.testing.assert_array_equal(published, expected)
+    assert np.median(weight[4:-4, 24:-4]) > 0.5 and np.median(conf[4:-4, 24:-4]) > 0.1
 
 
 def test_stereo_frames_wait_for_the_right_camera_info():

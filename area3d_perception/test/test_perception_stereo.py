@@ -10,6 +10,7 @@ from area3d_msgs_py.errors import InputError
 from area3d_perception.estimator import FrameEstimator
 from area3d_perception.stereo import (
     CALIBRATION,
+    CONFIDENCE_MODELS,
     StereoMatcher,
     StereoParams,
     calibrated_confidence,
@@ -63,7 +64,7 @@ def _pair(surfaces: list[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def matcher():
-    m = StereoMatcher(StereoParams(num_disparities=32, downscale=1))
+    m = StereoMatcher(StereoParams(num_disparities=32, downscale=1, confidence_model="matcher"))
     yield m
     m.close()
 
@@ -225,6 +226,31 @@ def test_calibrated_textured_planes_rank_by_range_and_fail_the_left_right_check_
         assert (conf[:, 320:338] == 0).all() and np.median(conf[:, 200:280]) > 0.8
     finally:
         m.close()
+
+
+def test_the_fusion_weight_is_the_matchers_confidence_whatever_the_model_the_planner_reads():
+    left, right, _ = _pair([(1.0, -5, 5, _texture(0, True)), (2.5, -12, 12, _texture(1, True))])
+    outs = {}
+    for model in CONFIDENCE_MODELS:
+        est = FrameEstimator(
+            "stereo", stereo=StereoParams(num_disparities=32, downscale=1, confidence_model=model)
+        )
+        outs[model] = est.process(left, None, K, np.eye(4), right=right, baseline=BASELINE)
+    matcher, calibrated = outs["matcher"], outs["calibrated"]
+    np.testing.assert_array_equal(matcher.weight, matcher.confidence)
+    np.testing.assert_array_equal(calibrated.depth, matcher.depth)
+    np.testing.assert_array_equal(calibrated.weight, matcher.confidence)  # bit for bit
+    estimated = np.isfinite(matcher.depth)
+    assert not np.allclose(calibrated.confidence[estimated], calibrated.weight[estimated])
+    # the w/o feed-forward ablation weighs every valid pixel 1, in the reconstruction too
+    est = FrameEstimator(
+        "stereo",
+        stereo=StereoParams(num_disparities=32, downscale=1, confidence_model="calibrated"),
+        uniform_confidence=True,
+    )
+    uniform = est.process(left, None, K, np.eye(4), right=right, baseline=BASELINE)
+    np.testing.assert_array_equal(uniform.weight, estimated.astype(np.float32))
+    np.testing.assert_array_equal(uniform.confidence, uniform.weight)
 
 
 def test_estimator_stereo_backend_needs_the_right_image_and_ignores_sensor_depth():

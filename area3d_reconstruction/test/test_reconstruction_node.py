@@ -89,7 +89,7 @@ class Rig:
             for key, topic in (
                 ("color", topics.PERCEPTION_COLOR),
                 ("depth", topics.PERCEPTION_DEPTH),
-                ("confidence", topics.PERCEPTION_CONFIDENCE),
+                ("weight", topics.PERCEPTION_WEIGHT),
                 ("pose", topics.POSE),
                 ("info", topics.CAMERA_INFO),
             )
@@ -125,7 +125,7 @@ class Rig:
         )
         self.pubs["color"].publish(codecs.image_to_msg(rgb, "rgb8", stamp, OPTICAL))
         self.pubs["depth"].publish(codecs.image_to_msg(depth, "32FC1", stamp, OPTICAL))
-        self.pubs["confidence"].publish(codecs.image_to_msg(confidence, "32FC1", stamp, OPTICAL))
+        self.pubs["weight"].publish(codecs.image_to_msg(confidence, "32FC1", stamp, OPTICAL))
 
     def integrated(self, count: int) -> bool:
         return self.wait(lambda: self.status and self.status[-1]["frames_integrated"] == count)
