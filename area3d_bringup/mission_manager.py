@@ -68,8 +68,7 @@ GRAPH_OUTPUTS: dict[Topic, int] = {
 #: grid of a reset) are neither recorded nor counted
 FRAME_OUTPUTS = (
     topics.PERCEPTION_DEPTH, topics.PERCEPTION_CONFIDENCE, topics.PERCEPTION_WEIGHT,
-    topics.SEMANTIC_WEIGHT,
-    topics.SEMANTIC_UNCERTAINTY, topics.UNCERTAINTY_GRID,
+    topics.SEMANTIC_WEIGHT, topics.SEMANTIC_UNCERTAINTY, topics.UNCERTAINTY_GRID,
 )  # fmt: skip
 #: perception's outputs a run directory keeps per frame (`area3d_eval.rundir.attach_estimates`)
 ESTIMATE_KEYS = {
@@ -94,7 +93,8 @@ class MissionManager(GraphSync, Node):
         **kwargs: Any,
     ):
         super().__init__(NAME, **kwargs)
-        # {stamp: {"depth" | "confidence" | "weight": image}} of perception's outputs, when the run keeps them
+        # {stamp: {"depth" | "confidence" | "weight": image}} of perception's outputs, when the
+        # run keeps them
         self.estimates: dict[int, dict[str, np.ndarray]] | None = {} if keep_estimates else None
         self.recorder = recorder
         self.launcher = launcher  # the graph's processes: who died, who was restarted when

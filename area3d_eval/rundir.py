@@ -14,7 +14,8 @@ Layout (all paths relative to RUN_DIR):
   estimated_depth (H, W) float32 metres (NaN = no estimate, +Inf = no return within range),
   confidence (H, W) float32 in [0, 1] (what the planner read) and weight (H, W) float32 in
   [0, 1]: what perception made of the frame (the depth and the weights the TSDF uses with
-  depth_source "estimated"; runs without `weight` use the confidence).
+  depth_source "estimated"; a frame without `weight`, one equal to its confidence or from an
+  older run, uses the confidence).
 - `grid_initial.npz`, `grid_final.npz` (optional): the planner's uncertainty grid as 1-D arrays
   x, y, z, uncertainty, geometric, semantic, occupancy, hard (one entry per voxel; older runs
   have no `hard`).
@@ -268,6 +269,8 @@ def write_frame(
         raise InputError("rgb", f"{rgb.dtype} {rgb.shape}", "(H, W, 3) uint8")
     if depth.shape != rgb.shape[:2]:
         raise InputError("depth", f"shape {depth.shape}", f"(H, W) = {rgb.shape[:2]} like rgb")
+    if weight is not None and confidence is not None and np.array_equal(weight, confidence):
+        weight = None  # read back as the confidence: the same image is not written twice
     estimates = {}
     named = (("estimated_depth", estimated_depth), ("confidence", confidence), ("weight", weight))
     for name, image in named:
@@ -293,8 +296,9 @@ def attach_estimates(
     log: Callable[[str], None],
 ) -> None:
     """Rewrite each frame file with perception's output for it: `estimates` is
-    {stamp_ns: {"depth": (H, W), "confidence": (H, W), "weight": (H, W)}}. A frame with no depth there keeps what
-    it has (an estimate saved before a resume) or is logged: the TSDF will refuse it."""
+    {stamp_ns: {"depth": (H, W), "confidence": (H, W), "weight": (H, W)}}. A frame with no depth
+    there keeps what it has (an estimate saved before a resume) or is logged: the TSDF will
+    refuse it."""
     for index, frame in enumerate(frames):
         got = estimates.get(frame.stamp_ns, {})
         if frame.estimated_depth is not None and "depth" not in got:

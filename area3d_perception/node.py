@@ -377,8 +377,15 @@ class PerceptionNode(Node):
             if not running:
                 return False
             self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
-            self.pub_conf.publish(codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id))
-            self.pub_weight.publish(codecs.image_to_msg(result.weight, "32FC1", stamp, frame_id))
+            confidence = codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id)
+            self.pub_conf.publish(confidence)
+            # the same image (every backend but stereo) is encoded once
+            weight = (
+                confidence
+                if result.weight is result.confidence
+                else codecs.image_to_msg(result.weight, "32FC1", stamp, frame_id)
+            )
+            self.pub_weight.publish(weight)
             self.pub_color.publish(codecs.image_to_msg(rgb, "rgb8", stamp, frame_id))
         self.frames_published += 1
         # how old the frame was when its outputs went out, by this node's clock (the camera's

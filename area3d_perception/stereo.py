@@ -399,15 +399,15 @@ class StereoMatcher:
         weight = self._matcher_confidence(disp_left, diff, texture, filled, support)
         weight[~np.isfinite(depth)] = 0.0
         weight = weight.astype(np.float32)
-        confidence = weight.copy()
         if p.confidence_model == "calibrated":
-            confidence = calibrated_confidence(disp_left, p.calibration, p.downscale)
+            confidence = calibrated_confidence(disp_left, p.calibration, p.downscale)  # float32
             # fitted on the pixels that pass the left-right check (or are filled): a pixel that
             # fails it is no estimate, as with the matcher's confidence
             with np.errstate(invalid="ignore"):
                 confidence[~((diff <= p.lr_max_diff_px) | filled)] = 0.0
             confidence[~np.isfinite(depth)] = 0.0
-            confidence = confidence.astype(np.float32)
+        else:
+            confidence = weight.copy()
         return StereoResult(depth.astype(np.float32), confidence, disp_left, weight)
 
     def _matcher_confidence(

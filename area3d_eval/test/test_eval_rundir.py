@@ -89,5 +89,10 @@ def test_perception_estimates_round_trip_and_feed_the_tsdf_only_when_asked(tmp_p
     np.testing.assert_array_equal(weighted.confidence, confidence)
     np.testing.assert_array_equal(reconstruction_input(weighted, "estimated")[1], weight)
     assert with_estimate.weight is None  # a run that kept none: its confidence, as before
+    # a weight equal to the confidence is stored once and read back as the confidence
+    write_frame(tmp_path, 3, rgb, depth, np.eye(3), np.eye(4), 4, estimate, confidence, confidence)
+    same = list(iter_frames(tmp_path))[3]
+    assert same.weight is None
+    np.testing.assert_array_equal(reconstruction_input(same, "estimated")[1], confidence)
     with pytest.raises(InputError, match="weight"):
-        write_frame(tmp_path, 3, rgb, depth, np.eye(3), np.eye(4), 4, estimate, None, weight[:5])
+        write_frame(tmp_path, 4, rgb, depth, np.eye(3), np.eye(4), 5, estimate, None, weight[:5])
