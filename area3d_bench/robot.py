@@ -278,8 +278,16 @@ def run_mission(options: MissionOptions, workdir: Path) -> MissionResult:
         spent, _ = mission.ask(T, stamp)
         mission.wait(lambda: mission.grids, "the uncertainty grid")
         time.sleep(1.0)  # the statuses after the last request
+        # the driver streams on: each node's status is read after the planner's, so a count
+        # upstream is never older than what the planner fused from it
+        heard = {node: len(mission.status[node]) for node in mission.status}
         planner_status = mission.last_status("planner")
+        mission.wait(
+            lambda: all(len(mission.status[n]) > heard[n] for n in heard if n != "planner"),
+            "every node's status after the planner's",
+        )
         statuses = {node: mission.last_status(node) for node in mission.status}
+        statuses["planner"] = planner_status
         grid = mission.grids[-1]
         retriggers = mission.retriggers
         rss = {name: (rss_first.get(name), _rss(p.pid)) for name, p in launcher.processes.items()}

@@ -376,6 +376,8 @@ class PerceptionNode(Node):
         with self.gate as running:
             if not running:
                 return False
+            # counted before it goes out: a status never shows fewer than a reader has received
+            self.frames_published += 1
             self.pub_depth.publish(codecs.image_to_msg(result.depth, "32FC1", stamp, frame_id))
             confidence = codecs.image_to_msg(result.confidence, "32FC1", stamp, frame_id)
             self.pub_conf.publish(confidence)
@@ -387,7 +389,6 @@ class PerceptionNode(Node):
             )
             self.pub_weight.publish(weight)
             self.pub_color.publish(codecs.image_to_msg(rgb, "rgb8", stamp, frame_id))
-        self.frames_published += 1
         # how old the frame was when its outputs went out, by this node's clock (the camera's
         # stamp is its capture time; recorded or simulated stamps make this meaningless)
         self.last_frame_age_s = (self._now_ns() - stamp) / 1e9
