@@ -121,16 +121,30 @@ def image_metrics(
     images: Sequence[np.ndarray],
     masks: Sequence[np.ndarray],
 ) -> dict[str, float]:
-    """Mean PSNR / SSIM (all pixels and ROI pixels) of the mesh rendered at `poses` vs `images`."""
-    scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "psnr_roi": [], "ssim_roi": []}
+    """Mean PSNR / SSIM (all pixels and ROI pixels) of the mesh rendered at `poses` vs `images`,
+    and what splits a region PSNR into coverage and appearance: `roi_unreconstructed`, the share
+    of ROI pixels where the reconstruction has no surface (black against a lit surface: these
+    dominate a low PSNR), and `psnr_roi_reconstructed`, the PSNR over the ROI pixels it has."""
+    scores: dict[str, list[float]] = {
+        "psnr": [],
+        "ssim": [],
+        "psnr_roi": [],
+        "ssim_roi": [],
+        "psnr_roi_reconstructed": [],
+    }
+    missing, roi_pixels = 0, 0
     for T, ref, mask in zip(poses, images, masks, strict=True):
         h, w = ref.shape[:2]
-        rgb, _ = mesh_renderer.render(K, T, w, h)
+        rgb, depth = mesh_renderer.render(K, T, w, h)
         scores["psnr"].append(psnr(rgb, ref))
         s = ssim_map(rgb, ref)
         scores["ssim"].append(mean_ssim(s))
         scores["psnr_roi"].append(psnr(rgb, ref, mask))
         scores["ssim_roi"].append(mean_ssim(s, mask))
+        surface = np.isfinite(depth)
+        scores["psnr_roi_reconstructed"].append(psnr(rgb, ref, mask & surface))
+        missing += int(np.count_nonzero(mask & ~surface))
+        roi_pixels += int(np.count_nonzero(mask))
     out = {}
     for key, values in scores.items():
         arr = np.asarray(values, dtype=np.float64)
@@ -138,6 +152,7 @@ def image_metrics(
         arr = np.minimum(arr, 100.0) if key.startswith("psnr") else arr
         arr = arr[np.isfinite(arr)]
         out[key] = float(arr.mean()) if arr.size else float("nan")
+    out["roi_unreconstructed"] = missing / roi_pixels if roi_pixels else float("nan")
     return out
 
 

@@ -26,6 +26,8 @@ METRIC_LABELS = {
     "ssim_roi": "SSIM on the region (higher is better)",
     "psnr": "PSNR, whole image [dB] (secondary)",
     "ssim": "SSIM, whole image (secondary)",
+    "roi_unreconstructed": "share of region pixels left empty (lower is better)",
+    "psnr_roi_reconstructed": "PSNR on the reconstructed region pixels [dB]",
     "accuracy": "accuracy [m] (lower is better)",
     "completeness": "completeness [m] (lower is better)",
 }

@@ -33,6 +33,8 @@ TABLE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
 WHOLE_IMAGE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
     ("psnr", "PSNR whole image [dB]", True, 1.0, "{:.2f}"),
     ("ssim", "SSIM whole image", True, 1.0, "{:.3f}"),
+    ("roi_unreconstructed", "Region not reconstructed [%]", False, 100.0, "{:.1f}"),
+    ("psnr_roi_reconstructed", "PSNR region, reconstructed pixels [dB]", True, 1.0, "{:.2f}"),
 )
 
 HOW_TO_READ = """\
@@ -45,7 +47,9 @@ average nearest-surface distances (reconstruction to ground truth and back; lowe
 rendered at held-out views with the simulator's images, only over the pixels where the ground truth
 sees the region to reconstruct (a pixel the reconstruction leaves empty counts as black there). The
 whole-image PSNR / SSIM in the second table also count the black background outside the region,
-which every reconstruction matches for free: they are shown for reference only. Cells show the mean over runs (seeds) and, when there are several, ± one standard deviation;
+which every reconstruction matches for free: they are shown for reference only. Beside them, what
+splits the region PSNR: the share of region pixels the reconstruction leaves empty (coverage) and the
+PSNR over the pixels it has (appearance: colour, and geometry off its place). Cells show the mean over runs (seeds) and, when there are several, ± one standard deviation;
 the best value of each column is bold. The curves show how each metric grows with the number of
 views: a policy whose curve rises earlier reaches the same quality with fewer views. The view plots
 show where each run put its camera (grey = initial views, colour = order of the planned views); the
@@ -257,7 +261,12 @@ def _markdown(
         lines += ["No evaluated runs.", ""]
         return "\n".join(lines)
     lines += _markdown_table(scenes, policies, *headline, TABLE_METRICS)
-    lines += ["", "Whole-image PSNR / SSIM (secondary: they also score the black background):", ""]
+    lines += [
+        "",
+        "Whole-image PSNR / SSIM (secondary: they also score the black background) and the region"
+        " PSNR split into coverage and appearance:",
+        "",
+    ]
     lines += _markdown_table(scenes, policies, *whole, WHOLE_IMAGE_METRICS)
     lines += [
         "",
@@ -355,7 +364,8 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
         return "".join(parts)
     parts += _html_table(scenes, policies, *headline, TABLE_METRICS)
     parts.append(
-        "<p>Whole-image PSNR / SSIM (secondary: they also score the black background):</p>"
+        "<p>Whole-image PSNR / SSIM (secondary: they also score the black background) and the"
+        " region PSNR split into coverage and appearance:</p>"
     )
     parts += _html_table(scenes, policies, *whole, WHOLE_IMAGE_METRICS)
     parts.append("<h2>Metrics against the number of views</h2>")

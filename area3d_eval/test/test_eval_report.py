@@ -290,3 +290,24 @@ def test_the_hard_region_sentence_names_the_voxel_size_of_a_grid_saved_in_float3
     grid["uncertainty"] = np.ones(len(xyz), np.float32)
     text = hard_region_text(grid)
     assert f"(2 hard voxels of {voxel * 100:g} cm; the largest, 2 voxels" in text, text
+
+
+def test_region_psnr_splits_into_empty_pixels_and_the_reconstructed_ones(scene):
+    # a reconstruction without the half of the surface at x > 0: the held-out views that saw it
+    # show black there (no surface); the pixels it keeps are the ground truth's own colours
+    K, images, masks = reference_images(scene, SyntheticRenderer, 64, 48, 90.0)
+    full = scene.ground_truth_mesh()
+    centres = full.triangles_center
+    half = full.copy()
+    half.update_faces(centres[:, 0] <= 0.0)
+    whole = image_metrics(MeshRenderer(full), K, scene.eval_views, images, masks)
+    cut = image_metrics(MeshRenderer(half), K, scene.eval_views, images, masks)
+    assert whole["roi_unreconstructed"] == 0.0 and whole["psnr_roi_reconstructed"] == 100.0
+    # every ROI pixel whose ray met a removed face and nothing behind it is empty now
+    empty = sum(
+        int(np.count_nonzero(m & ~np.isfinite(MeshRenderer(half).render(K, T, 64, 48)[1])))
+        for T, m in zip(scene.eval_views, masks, strict=True)
+    ) / sum(int(m.sum()) for m in masks)
+    assert 0.05 < cut["roi_unreconstructed"] == pytest.approx(empty)
+    # the empty pixels, black against a lit surface, are what lowers the region PSNR
+    assert cut["psnr_roi"] < cut["psnr_roi_reconstructed"]
