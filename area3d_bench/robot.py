@@ -210,7 +210,12 @@ def run_mission(options: MissionOptions, workdir: Path) -> MissionResult:
     specs = build_graph(
         load_parameters(ROBOT_PARAMS),
         {
-            "perception": dict(pose),
+            # a streaming driver's rate, as its user sets it: frames missing from the stream
+            # count against it (a triggered camera has none)
+            "perception": {
+                **pose,
+                **({"camera_rate_hz": options.stream_hz} if options.stream_hz > 0 else {}),
+            },
             "planner": planner,
             "semantics": {"num_initial_views": len(scene.initial_views)},
             "reconstruction": {

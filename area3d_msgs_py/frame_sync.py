@@ -91,6 +91,9 @@ class StampSync:
     keys: the stream names that make a complete frame, e.g. ("color", "depth", "pose").
     max_pending: the cap on waiting parts per stream; `pending_caps` overrides it per stream (a
     pose is 128 bytes and may wait in thousands for images that trail it).
+    count_gaps: count the reference stream's frames that never arrived (`frames_missed`), against
+    `period_ns`, its nominal period (a driver's rate), or with 0 against the period learnt from
+    the gaps (`_period`: right while most frames arrive, and only for a stream of at least 5 Hz).
     """
 
     def __init__(
@@ -101,6 +104,7 @@ class StampSync:
         pending_caps: dict[str, int] | None = None,
         slop_ns: int = 0,
         count_gaps: bool = False,
+        period_ns: int = 0,
     ) -> None:
         if len(keys) == 0 or len(set(keys)) != len(keys):
             raise InputError("keys", list(keys), "one or more distinct stream names")
@@ -108,6 +112,8 @@ class StampSync:
             raise InputError("max_age_ns", max_age_ns, "a duration >= 0 nanoseconds")
         if slop_ns < 0:
             raise InputError("slop_ns", slop_ns, "a duration >= 0 nanoseconds")
+        if period_ns < 0:
+            raise InputError("period_ns", period_ns, "a duration >= 0 nanoseconds (0: learnt)")
         if max_pending < 1:
             raise InputError("max_pending", max_pending, "an integer >= 1")
         self.keys = tuple(keys)
@@ -125,6 +131,7 @@ class StampSync:
         # the reference stream's last RATE_WINDOW frames: True paired, False dropped or missed
         self._outcomes: deque[bool] = deque(maxlen=RATE_WINDOW)
         self.count_gaps = count_gaps
+        self.period_ns = int(period_ns)  # the reference stream's nominal period; 0: learnt
         self.frames_missed = 0  # reference frames that never arrived (estimated from the gaps)
         self._gaps: deque[int] = deque(maxlen=GAP_WINDOW)
         self._last_reference: int | None = None
@@ -165,9 +172,9 @@ class StampSync:
             self._last_reference = last if last is not None else stamp_ns
             return
         gap = stamp_ns - last
-        if len(self._gaps) >= MIN_GAPS and gap <= MAX_GAP_NS:
-            period = _period(self._gaps)
-            if 0 < period <= MAX_PERIOD_NS:
+        if gap <= MAX_GAP_NS and (self.period_ns or len(self._gaps) >= MIN_GAPS):
+            period = self.period_ns or _period(self._gaps)
+            if self.period_ns or 0 < period <= MAX_PERIOD_NS:
                 missed = int(round(gap / period)) - 1
                 if missed > 0:
                     self.frames_missed += missed

@@ -141,6 +141,15 @@ SYNC_SLOP_PARAM = Param(
     "part of a frame alike; a driver that stamps colour and depth apart: 0.01-0.02), seconds",
     range=(0.0, 1.0),
 )
+CAMERA_RATE_PARAM = Param(
+    "camera_rate_hz",
+    0.0,
+    "the rate the camera's driver streams at: frames missing from the stream (`frames_missed`) "
+    "are counted against its period; 0 = the period learnt from the gaps between the stamps "
+    "that arrive (right while most frames arrive; a stream that loses most of them reads as a "
+    "slower one), Hz",
+    range=(0.0, 1000.0),
+)
 MIN_PAIRING_RATE_PARAM = Param(
     "min_pairing_rate",
     0.8,

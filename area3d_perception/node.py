@@ -36,6 +36,7 @@ from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
+    CAMERA_RATE_PARAM,
     MAX_STAMP_AHEAD_PARAM,
     MIN_PAIRING_RATE_PARAM,
     SYNC_SLOP_PARAM,
@@ -101,6 +102,7 @@ PARAMS = (
         range=(0.0, 3600.0),
     ),
     SYNC_SLOP_PARAM,
+    CAMERA_RATE_PARAM,
     MIN_PAIRING_RATE_PARAM,
     *params_of(KeyframeConfig),
     WORLD_FRAME_PARAM,
@@ -136,6 +138,7 @@ class PerceptionNode(Node):
             max_age_ns=int(p["sync_max_age_s"] * 1e9),
             slop_ns=int(round(p["sync_slop_s"] * 1e9)),
             count_gaps=True,  # a streaming camera's frames lost whole count against the rate
+            period_ns=int(round(1e9 / p["camera_rate_hz"])) if p["camera_rate_hz"] > 0 else 0,
         )
         self.min_pairing_rate = p["min_pairing_rate"]
         self.keyframes = KeyframeSelector(

@@ -225,3 +225,24 @@ def test_frames_that_never_arrive_are_counted_from_the_gaps_of_a_streaming_camer
         triggered.add_part("color", stamp, i)
         triggered.add_part("depth", stamp, i)
     assert triggered.frames_missed == 0
+
+
+def test_a_driver_rate_counts_the_frames_of_a_stream_that_loses_most_of_them():
+    """30 Hz, one slot in three sent (a driver late for two): gaps of three periods only, which
+    the learnt period reads as a 10 Hz stream losing nothing; given the driver's rate every
+    missing slot counts, from the first gap on; a pause over 1 s still is a pause."""
+    period = 33_333_333
+    kept = [i for i in range(300) if i % 3 == 0] + list(range(400, 430))
+    learnt = StampSync(("color", "depth"), count_gaps=True)
+    nominal = StampSync(("color", "depth"), count_gaps=True, period_ns=period)
+    for sync in (learnt, nominal):
+        for i in kept:
+            stamp = i * period + (i % 4) * 1_000_000  # a millisecond or so of jitter
+            sync.add_part("color", stamp, i)
+            sync.add_part("depth", stamp, i)
+    assert learnt.frames_missed == 0
+    # two per gap up to frame 297; the gap from 297 to 400 (3.4 s) is the camera pausing
+    assert nominal.frames_missed == 2 * 99
+    assert nominal.pairing_rate() < 0.6 and learnt.pairing_rate() == 1.0
+    with pytest.raises(InputError, match="^period_ns: "):
+        StampSync(("color",), count_gaps=True, period_ns=-1)
