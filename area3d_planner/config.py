@@ -14,7 +14,7 @@ from area3d_msgs_py.grid import GridSpec
 from area3d_msgs_py.param_fields import described
 from area3d_planner.candidates import VisibilityParams
 from area3d_planner.context import PlanningContext
-from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, FusedGrid
+from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, OCCUPANCY_RULES, FusedGrid
 from area3d_planner.greedy import DECAY_REGIONS, GreedyParams
 from area3d_planner.policies import POLICIES, make_policy
 
@@ -140,6 +140,13 @@ class PlannerConfig:
         "how observations lower a voxel's geometric uncertainty: each by its confidence "
         "(product) or 1 - their mean confidence (mean)",
         choices=GEOMETRIC_RULES,
+    )
+    occupancy_rule: str = described(
+        "hits",
+        "what a hit adds to a voxel's occupancy: one observation (hits, as OctoMap) or one "
+        "weighted by the frame's confidence in it (confidence: a low-confidence match in empty "
+        "air is undone by the next ray through it)",
+        choices=OCCUPANCY_RULES,
     )
     max_confidence: float = described(
         0.9,
@@ -416,6 +423,7 @@ class PlannerConfig:
             self.retry_gain,
             self.hard_min_directions,
             self.hard_max_confidence,
+            self.occupancy_rule,
         )
 
     def planning_context(self, grid: FusedGrid) -> PlanningContext:

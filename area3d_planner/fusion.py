@@ -30,6 +30,10 @@ LOG_ODDS_MAX = float(np.log(0.97 / 0.03))
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 1
 GEOMETRIC_RULES = ("product", "mean")
+# What a hit adds to a voxel's occupancy log-odds: one observation of LOG_ODDS_HIT ("hits", as
+# OctoMap), or that times the frame's confidence in the voxel ("confidence": a stereo match at
+# 0.04 in the empty air is undone by the next ray through it, one at 0.9 takes three).
+OCCUPANCY_RULES = ("hits", "confidence")
 # What a view is worth: the uncertainty an observation is predicted to remove ("removable": what
 # the voxel holds times how much of it a new direction can still resolve), or the uncertainty the
 # voxel holds ("held", the paper's mask-weighted utility).
@@ -74,7 +78,12 @@ class FusedGrid:
         retry_gain: float = 0.5,  # our choice: each failed direction halves the hope in the next
         hard_min_directions: int = 3,  # our choice: "several distinct directions"
         hard_max_confidence: float = 0.3,  # our choice: the rgbd model's edge confidence is 0.2
+        occupancy_rule: str = "hits",
     ) -> None:
+        if occupancy_rule not in OCCUPANCY_RULES:
+            raise InputError(
+                "occupancy_rule", occupancy_rule, f"one of {', '.join(OCCUPANCY_RULES)}"
+            )
         if geometric_rule not in GEOMETRIC_RULES:
             raise InputError(
                 "geometric_rule", geometric_rule, f"one of {', '.join(GEOMETRIC_RULES)}"
@@ -118,6 +127,7 @@ class FusedGrid:
         self.retry_gain = float(retry_gain)
         self.hard_min_directions = int(hard_min_directions)
         self.hard_max_confidence = float(hard_max_confidence)
+        self.occupancy_rule = occupancy_rule
         n = spec.num_voxels
         self.conf_sum = np.zeros(n, np.float32)
         self.hit_count = np.zeros(n, np.float32)
@@ -237,16 +247,27 @@ class FusedGrid:
         self.semantic_frames -= 1
 
     # ------------------------------------------------------------------ fields
+    def _hit_evidence(self) -> np.ndarray:
+        """(N,) float32 the hits as the occupancy counts them (`occupancy_rule`): their number,
+        or the sum of their confidences."""
+        return self.conf_sum if self.occupancy_rule == "confidence" else self.hit_count
+
     def log_odds(self) -> np.ndarray:
         """(N,) float32 clamped occupancy log-odds (0 for never observed voxels)."""
-        lo = self.hit_count * np.float32(LOG_ODDS_HIT) + self.free_count * np.float32(LOG_ODDS_MISS)
+        lo = self._hit_evidence() * np.float32(LOG_ODDS_HIT) + self.free_count * np.float32(
+            LOG_ODDS_MISS
+        )
         return np.clip(lo, LOG_ODDS_MIN, LOG_ODDS_MAX).astype(np.float32)
 
     def occupancy(self) -> np.ndarray:
         """(N,) int8: -1 unknown (never observed), 0 free, 1 occupied (log-odds > 0), in one
         compiled pass (`_occupancy`; each request reads it, a room's grid has ~10^6 voxels)."""
         return _occupancy(
-            self.hit_count, self.free_count, np.float32(LOG_ODDS_HIT), np.float32(LOG_ODDS_MISS)
+            self.hit_count,
+            self._hit_evidence(),
+            self.free_count,
+            np.float32(LOG_ODDS_HIT),
+            np.float32(LOG_ODDS_MISS),
         )
 
     def occupancy_probability(self) -> np.ndarray:
@@ -425,15 +446,15 @@ def _fused_field(
 
 
 @njit(cache=True, nogil=True)
-def _occupancy(hit_count, free_count, hit, miss):  # pragma: no cover - compiled
+def _occupancy(hit_count, hit_evidence, free_count, hit, miss):  # pragma: no cover - compiled
     """`FusedGrid.occupancy` of the counts (float32): observed where hits + misses > 0, occupied
-    where the log-odds hits * hit + misses * miss (float32, as `log_odds` computes them before
-    clamping, which keeps the sign) is > 0."""
+    where the log-odds evidence * hit + misses * miss (float32, as `log_odds` computes them
+    before clamping, which keeps the sign) is > 0."""
     out = np.empty(hit_count.shape[0], np.int8)
     for i in range(hit_count.shape[0]):
         h, f = hit_count[i], free_count[i]
         if h + f > 0:
-            out[i] = OCCUPIED if h * hit + f * miss > 0 else FREE
+            out[i] = OCCUPIED if hit_evidence[i] * hit + f * miss > 0 else FREE
         else:
             out[i] = UNKNOWN
     return out

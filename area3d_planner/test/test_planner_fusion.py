@@ -403,3 +403,28 @@ def test_the_fused_field_and_achievability_equal_their_whole_array_definitions_b
     np.testing.assert_array_equal(grid.achievability().view(np.uint32), want_a.view(np.uint32))
     occ = grid.occupancy()
     assert {-1, 0, 1} <= set(np.unique(occ[grid.roi_mask]).tolist())  # every kind of voxel
+
+
+@pytest.mark.parametrize("confidence, undone", [(0.04, True), (0.9, False)])
+def test_a_match_in_empty_air_is_undone_by_the_next_ray_when_occupancy_weighs_confidence(
+    confidence, undone
+):
+    """A frame matches a false surface at x = 0.625 (stereo in the sky); the next frame, from the
+    same place, sees the true wall at 0.875 through it: its ray crosses the false voxel once. By
+    hits (OctoMap) one miss never undoes a hit; weighted by confidence a hit at 0.04 is undone,
+    one at 0.9 stands (it takes three misses), and the wall is occupied either way."""
+    false_wall, true_wall = wall_frame()[0], np.full((48, 64), 0.775, np.float32)
+    T = wall_frame()[1]
+    grids = {}
+    for rule in ("hits", "confidence"):
+        grid = make_grid(gamma=0.01, occupancy_rule=rule)
+        grid.integrate_depth(false_wall, np.full_like(false_wall, confidence), K, T, stride=1)
+        grid.integrate_depth(true_wall, np.full_like(true_wall, 0.9), K, T, stride=1)
+        grids[rule] = grid.occupancy()
+    air = at(make_grid(gamma=0.01), [0.62, 0.5, 0.5])
+    wall = at(make_grid(gamma=0.01), [0.87, 0.5, 0.5])
+    assert grids["hits"][air] == 1
+    assert grids["confidence"][air] == (0 if undone else 1)
+    assert grids["hits"][wall] == grids["confidence"][wall] == 1
+    with pytest.raises(InputError, match="^occupancy_rule: "):
+        make_grid(gamma=0.01, occupancy_rule="votes")
