@@ -128,6 +128,20 @@ def _nms_suppress(
     excluded[s, b] = True
 
 
+def near_taken(pose: np.ndarray, poses: list[np.ndarray], params: GreedyParams) -> bool:
+    """Whether the (4, 4) `pose` lies within nms_radius and nms_angle_deg of a view already
+    captured (`poses`): the test `taken_views` applies to candidates, applied to a pose as it
+    will be sent (a committed view turned to its uncertainty, `aim_at_uncertainty`, can face
+    where a taken view faced although its orientation bin did not)."""
+    if not poses:
+        return False
+    T = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    pose = np.asarray(pose, np.float64)
+    near = np.linalg.norm(T[:, :3, 3] - pose[:3, 3], axis=1) <= params.nms_radius
+    cos_angle = np.clip(T[near, :3, 2] @ pose[:3, 2], -1.0, 1.0)
+    return bool(np.any(np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9))
+
+
 def taken_views(
     cache: VisibilityCache,
     poses: list[np.ndarray],

@@ -8,6 +8,8 @@ confidence upstream (perception).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from area3d_msgs_py.camera_pose import look_at
@@ -17,6 +19,7 @@ from area3d_planner.fusion import FREE
 from area3d_planner.greedy import (
     Selection,
     lazy_greedy,
+    near_taken,
     taken_views,
 )
 from area3d_planner.visibility import (
@@ -56,9 +59,14 @@ class GreedyFieldPolicy(Policy):
         raise NotImplementedError
 
     def selection(
-        self, context: PlanningContext, budget: int, U: np.ndarray | None = None
+        self,
+        context: PlanningContext,
+        budget: int,
+        U: np.ndarray | None = None,
+        also_excluded: Sequence[int] = (),
     ) -> Selection:
-        """Lazy greedy on the policy's field `U` (default: `context.policy_field`)."""
+        """Lazy greedy on the policy's field `U` (default: `context.policy_field`), without the
+        candidates near views already taken and the views `also_excluded`."""
         U = context.policy_field(self) if U is None else U
         if not np.all(np.isfinite(U)):
             raise InputError("uncertainty field", "NaN or inf voxels", "finite uncertainties")
@@ -70,6 +78,7 @@ class GreedyFieldPolicy(Policy):
             taken[:] = False
         if context.blocked_seeds is not None:
             taken[context.blocked_seeds] = True
+        taken.reshape(-1)[list(also_excluded)] = True
         return lazy_greedy(
             cache, U, budget, context.greedy, context.start_position, gain, excluded=taken
         )
@@ -78,13 +87,34 @@ class GreedyFieldPolicy(Policy):
         cache = context.cache(self.relevant)
         U = context.policy_field(self)  # one decayed copy per request (10^6 voxels in a room)
         selection = self.selection(context, budget, U)
-        views = selection.views
         if context.aim_views:
-            poses = [aim_at_uncertainty(cache, v, U) for v in views]
+            # a view turned to its uncertainty may face where a taken view faced (its bin did
+            # not): it is left out and the selection run again, at most AIM_RETRIES times
+            repeats: list[int] = []
+            for _ in range(AIM_RETRIES):
+                poses = [aim_at_uncertainty(cache, v, U) for v in selection.views]
+                again = [
+                    v
+                    for v, T in zip(selection.views, poses, strict=True)
+                    if near_taken(T, context.camera_poses, context.greedy)
+                ]
+                if not again:
+                    break
+                repeats += again
+                retry = self.selection(context, budget, U, repeats)
+                if len(retry.views) < len(selection.views):
+                    break  # nothing else left to look at: the repeat stands
+                selection = retry
+            poses = [aim_at_uncertainty(cache, v, U) for v in selection.views]
         else:
-            poses = [cache.view_pose(v) for v in views]
+            poses = [cache.view_pose(v) for v in selection.views]
+        views = selection.views
         context.commit(cache, views, poses)
         return SelectedViews(poses, [float(u) for u in selection.utilities])
+
+
+# selections run again when an aimed view repeats a taken one (each run leaves those views out)
+AIM_RETRIES = 4
 
 
 def aim_at_uncertainty(cache: VisibilityCache, view: int, U: np.ndarray) -> np.ndarray:

@@ -476,3 +476,52 @@ def test_no_candidate_view_is_placed_nearer_to_geometry_than_the_cameras_minimum
     assert near.context.seeds().shape[0] > seeds.shape[0]  # the limit left seeds out
     with pytest.raises(InputError, match="^min_range: "):
         NextBestViewServer(server_config(min_range=6.0))
+
+
+def test_a_view_turned_to_its_uncertainty_never_repeats_a_view_already_taken():
+    """One uncertain voxel the best view sees far off its orientation bin: turned to it, that
+    view faces where a taken view faced, although its bin lies beyond the NMS angle of it (so
+    the candidates' NMS keeps it). The planner leaves it out and sends another view."""
+    from area3d_planner.greedy import near_taken, taken_views
+    from area3d_planner.policies import GreedyFieldPolicy, aim_at_uncertainty
+
+    srv = NextBestViewServer(server_config(budget=6, mode="closed_loop"))
+    srv.add_frame(1, *wall_frame())
+    context = srv.context
+    cache = context.cache(GreedyFieldPolicy.relevant)
+
+    class OneVoxel(GreedyFieldPolicy):
+        name = "one_voxel"
+
+        def __init__(self, voxel):
+            self.voxel = voxel
+
+        def field(self, context):
+            U = np.zeros(context.grid.spec.num_voxels)
+            U[self.voxel] = 1.0
+            return U
+
+    found = None
+    for voxel in np.unique(np.concatenate([cache.mask(v)[0] for v in range(cache.num_views)])):
+        policy = OneVoxel(int(voxel))
+        context.camera_poses = context.camera_poses[:1]  # the frame's own pose only
+        context._fields.clear()
+        U = context.policy_field(policy)
+        first = policy.selection(context, 1, U).views
+        if not first:
+            continue
+        aimed = aim_at_uncertainty(cache, first[0], U)
+        bin_off = np.degrees(
+            np.arccos(np.clip(aimed[:3, 2] @ cache.view_pose(first[0])[:3, 2], -1, 1))
+        )
+        if bin_off > context.greedy.nms_angle_deg + 1.0:
+            found = (policy, aimed, first[0])
+            break
+    assert found is not None, "no view whose aim leaves its bin beyond the NMS angle"
+    policy, aimed, view = found
+    context.camera_poses = context.camera_poses + [aimed]  # the camera went there
+    # the candidates' NMS alone keeps the view: it would be sent again
+    assert not taken_views(cache, context.camera_poses, context.greedy).reshape(-1)[view]
+    chosen = policy.select_views(context, 1).poses
+    assert len(chosen) == 1
+    assert not near_taken(chosen[0], context.camera_poses, context.greedy)
