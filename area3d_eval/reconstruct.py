@@ -188,14 +188,22 @@ class TsdfFusion:
         K_o3d[:2, 2] -= 0.5
         extrinsic = np.linalg.inv(T_world_cam)
         depth_img = o3d.t.geometry.Image(core.Tensor(np.ascontiguousarray(depth)))
-        blocks = self._grid.compute_unique_block_coordinates(
-            depth_img,
-            core.Tensor(K_o3d, core.float64),
-            core.Tensor(extrinsic, core.float64),
-            1.0,
-            float(p.depth_trunc),
-            trunc_voxel_multiplier=float(p.sdf_trunc / p.voxel_length),
-        )
+        try:
+            blocks = self._grid.compute_unique_block_coordinates(
+                depth_img,
+                core.Tensor(K_o3d, core.float64),
+                core.Tensor(extrinsic, core.float64),
+                1.0,
+                float(p.depth_trunc),
+                trunc_voxel_multiplier=float(p.sdf_trunc / p.voxel_length),
+            )
+        except RuntimeError as err:
+            # Open3D looks for blocks at a subset of the pixels only: a frame with a few usable
+            # pixels between them (a view that sees the region's edge) touches none, and Open3D
+            # aborts; such a frame has nothing to add
+            if "No block is touched" in str(err):
+                return
+            raise
         hashmap = self._grid.hashmap()
         hashmap.activate(blocks)  # may grow the map: read the attributes afterwards
         buffer_ids, _ = hashmap.find(blocks)

@@ -135,19 +135,25 @@ def test_pixels_with_no_confidence_add_nothing(sphere_frames):
 def test_a_frame_with_depth_only_beyond_the_truncation_integrates_nothing_and_keeps_the_volume(
     sphere_frames,
 ):
-    """Depth only beyond `depth_trunc` (a wall far behind the region): nothing is integrated,
-    where Open3D aborted the integration ("No block is touched"), and the frames after it are
-    integrated as if it had not come."""
+    """Depth only beyond `depth_trunc` (a wall far behind the region), or a single usable pixel:
+    nothing is integrated, where Open3D aborted the integration ("No block is touched"), and the
+    frames after it are integrated as if it had not come."""
     _, frames = sphere_frames
     rgb, depth, K, T = frames[0]
     params = TsdfParams()
     far = np.where(np.isfinite(depth), params.depth_trunc + 1.0, np.nan).astype(np.float32)
     # depth exactly at depth_trunc (a 16-bit driver's 5000 mm): Open3D touches no block there
     at_trunc = np.where(np.isfinite(depth), params.depth_trunc, np.nan).astype(np.float32)
+    # one usable pixel off the pixels Open3D looks for blocks at (a view of the region's edge):
+    # Open3D touches no block and aborts
+    row, col = np.argwhere(np.isfinite(depth))[0]
+    lone = np.full_like(depth, np.nan)
+    lone[row | 1, col | 1] = depth[row, col]
     with_far, without = TsdfFusion(params), TsdfFusion(params)
     with_far.integrate(rgb, far, K, T)
     with_far.integrate(rgb, at_trunc, K, T)
-    assert len(with_far.extract_mesh().triangles) == 0 and with_far.num_frames == 2
+    with_far.integrate(rgb, lone, K, T)
+    assert len(with_far.extract_mesh().triangles) == 0 and with_far.num_frames == 3
     for fusion in (with_far, without):
         for frame in frames[:4]:
             fusion.integrate(*frame)
