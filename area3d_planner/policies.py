@@ -49,6 +49,10 @@ class Policy:
         raise NotImplementedError
 
 
+# selections run again when an aimed view repeats a taken one (each run leaves those views out)
+AIM_RETRIES = 4
+
+
 class GreedyFieldPolicy(Policy):
     """Lazy greedy (Algorithm 1) on a utility field provided by `field(context)`."""
 
@@ -88,11 +92,11 @@ class GreedyFieldPolicy(Policy):
         U = context.policy_field(self)  # one decayed copy per request (10^6 voxels in a room)
         selection = self.selection(context, budget, U)
         if context.aim_views:
+            poses = [aim_at_uncertainty(cache, v, U) for v in selection.views]
             # a view turned to its uncertainty may face where a taken view faced (its bin did
             # not): it is left out and the selection run again, at most AIM_RETRIES times
             repeats: list[int] = []
             for _ in range(AIM_RETRIES):
-                poses = [aim_at_uncertainty(cache, v, U) for v in selection.views]
                 again = [
                     v
                     for v, T in zip(selection.views, poses, strict=True)
@@ -105,16 +109,12 @@ class GreedyFieldPolicy(Policy):
                 if len(retry.views) < len(selection.views):
                     break  # nothing else left to look at: the repeat stands
                 selection = retry
-            poses = [aim_at_uncertainty(cache, v, U) for v in selection.views]
+                poses = [aim_at_uncertainty(cache, v, U) for v in selection.views]
         else:
             poses = [cache.view_pose(v) for v in selection.views]
         views = selection.views
         context.commit(cache, views, poses)
         return SelectedViews(poses, [float(u) for u in selection.utilities])
-
-
-# selections run again when an aimed view repeats a taken one (each run leaves those views out)
-AIM_RETRIES = 4
 
 
 def aim_at_uncertainty(cache: VisibilityCache, view: int, U: np.ndarray) -> np.ndarray:
