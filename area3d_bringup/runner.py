@@ -38,6 +38,7 @@ from area3d_bringup.mission_sync import READS, REPLAY_RESEND_S, NodeRespawned
 from area3d_bringup.recorder import BagRecorder
 from area3d_eval import rundir
 from area3d_msgs_py import codecs, middleware, msgs, topics
+from area3d_msgs_py.spinning import Spinner
 
 __all__ = ["EpisodeConfig", "EpisodeError", "run_episode"]
 
@@ -110,8 +111,7 @@ class _Episode(EpisodeRecord):
         )
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(self.manager)
-        spinner = threading.Thread(target=_spin, args=(executor,), name=NAME, daemon=True)
-        spinner.start()
+        spinner = Spinner(executor, name=NAME)
         self.log(
             f"graph on ROS_DOMAIN_ID={self.domain_id}"
             f"{' (picked: free)' if lease.picked else ''}, namespace {config.namespace or '/'}, "
@@ -134,8 +134,7 @@ class _Episode(EpisodeRecord):
             ) from err
         finally:
             self.launcher.stop()
-            executor.shutdown()
-            spinner.join(timeout=2.0)
+            spinner.stop(timeout_s=2.0)
             self.manager.destroy_node()
             context.try_shutdown()
             try:
@@ -406,13 +405,6 @@ class _Episode(EpisodeRecord):
                 return
             self.log("no semantic maps of the initial views yet; replaying them")
             manager.replay_all(self.frames[: self.n_init], config.fuse_timeout_s, self.log)
-
-
-def _spin(executor: SingleThreadedExecutor) -> None:
-    try:
-        executor.spin()
-    except Exception:  # the context was shut down under it: the episode is over
-        pass
 
 
 def _grid(cdr: bytes) -> np.ndarray:

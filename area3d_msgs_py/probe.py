@@ -11,7 +11,6 @@ thread while an executor spins it in the background (tests, benchmarks, scripts)
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -21,6 +20,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.qos import QoSProfile
 
 from area3d_msgs_py import qos, services
+from area3d_msgs_py.spinning import Spinner
 
 
 class Probe:
@@ -32,14 +32,7 @@ class Probe:
         self.node = rclpy.create_node(name, context=self.context, namespace=namespace)
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, name=f"{name}-spin", daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except Exception:  # context shut down under it
-            pass
+        self._spinner = Spinner(self.executor, name=f"{name}-spin")
 
     def listen(
         self, msg_type: type, topic: str, profile: QoSProfile | None = None, raw: bool = False
@@ -78,8 +71,7 @@ class Probe:
             self.node.destroy_client(client)
 
     def close(self) -> None:
-        self.executor.shutdown()
-        self._thread.join(timeout=2.0)
+        self._spinner.stop(timeout_s=2.0)
         self.node.destroy_node()
         self.context.try_shutdown()
 

@@ -4,8 +4,6 @@ matches, and DDS says so with an incompatible-QoS event, while a reliable one do
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import rclpy
 from rclpy.event_handler import PublisherEventCallbacks
@@ -14,6 +12,7 @@ from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs, qos, topics
 from area3d_msgs_py.probe import Probe
+from area3d_msgs_py.spinning import Spinner
 from area3d_perception.node import PerceptionNode
 
 WAIT_S = 120.0
@@ -51,8 +50,7 @@ def test_camera_inputs_match_the_publishers_their_camera_qos_allows():
     executor = SingleThreadedExecutor(context=context)
     for node in nodes.values():
         executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spinner = Spinner(executor)
     probe = Probe("driver")
     try:
         incompatible: dict[tuple, list] = {}
@@ -95,8 +93,7 @@ def test_camera_inputs_match_the_publishers_their_camera_qos_allows():
         assert nodes["reliable"].frames_published == 0
     finally:
         probe.close()
-        executor.shutdown()
+        spinner.stop(10)
         for node in nodes.values():
             node.destroy_node()
         context.try_shutdown()
-        spinner.join(10)

@@ -3,7 +3,6 @@ reader of another program (a Foxglove client through the bridge) does not stand 
 
 from __future__ import annotations
 
-import threading
 import time
 
 import rclpy
@@ -11,6 +10,7 @@ from rclpy.executors import MultiThreadedExecutor
 
 from area3d_bringup.mission_manager import MissionManager
 from area3d_msgs_py import middleware, topics
+from area3d_msgs_py.spinning import Spinner
 
 TIMEOUT_S = 120.0
 
@@ -27,8 +27,7 @@ def test_a_reader_that_is_not_the_camera_does_not_make_the_goal_topic_ready(monk
     executor = MultiThreadedExecutor(context=context)
     for node in (manager, viewer):
         executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spinner = Spinner(executor)
     goal = topics.GOAL
     try:
         # the viewer reads the goals first: the writer has one matched reader, not the camera's
@@ -49,7 +48,6 @@ def test_a_reader_that_is_not_the_camera_does_not_make_the_goal_topic_ready(monk
         assert "goal" not in short
         assert {"color", "depth", "info", "pose"} <= set(short)
     finally:
-        executor.shutdown()
-        spinner.join(10)
+        spinner.stop(10)
         context.try_shutdown()
         lease.release()

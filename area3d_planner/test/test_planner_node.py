@@ -17,6 +17,7 @@ from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs, qos, services, topics
 from area3d_msgs_py.diagnostics import DIAGNOSTICS_TOPIC, ERROR, OK
+from area3d_msgs_py.spinning import Spinner
 from area3d_planner.node import PlannerNode
 from area3d_planner.test.conftest import WALL_DIRECTIONS, WALL_K, banded_wall_view
 
@@ -77,8 +78,7 @@ class Rig:
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
         self.executor.add_node(self.planner)
         self.executor.add_node(self.peer)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
         assert self.wait(lambda: all(p.get_subscription_count() >= 1 for p in self.pubs.values()))
 
     @staticmethod
@@ -114,8 +114,7 @@ class Rig:
 
     def close(self):
         self.planner.stop()
-        self.executor.shutdown()
-        self.thread.join(TIMEOUT_S)  # the spin returns once shut down; a loaded machine is slow
+        self.spinner.stop(TIMEOUT_S)  # a loaded machine is slow
         self.peer.destroy_node()
         self.planner.destroy_node()
         self.context.try_shutdown()

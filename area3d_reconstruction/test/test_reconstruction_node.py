@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import threading
 import time
 
 import numpy as np
@@ -21,6 +20,7 @@ from area3d_eval.reconstruct import TsdfFusion, TsdfParams
 from area3d_eval.render import canonical_mesh
 from area3d_msgs_py import codecs, msgs, services, topics
 from area3d_msgs_py.camera_pose import look_at
+from area3d_msgs_py.spinning import Spinner
 from area3d_reconstruction.node import ReconstructionNode
 
 TIMEOUT_S = 120.0  # generous: a loaded machine is slow (every wait ends once its condition holds)
@@ -106,8 +106,7 @@ class Rig:
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.peer)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
         assert self.wait(lambda: all(p.get_subscription_count() >= 1 for p in self.pubs.values()))
         assert all(c.wait_for_service(timeout_sec=TIMEOUT_S) for c in self.clients.values())
 
@@ -138,8 +137,7 @@ class Rig:
 
     def close(self):
         self.node.stop()
-        self.executor.shutdown()
-        self.thread.join(TIMEOUT_S)
+        self.spinner.stop(TIMEOUT_S)
         self.peer.destroy_node()
         self.node.destroy_node()
         self.context.try_shutdown()

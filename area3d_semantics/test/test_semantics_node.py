@@ -17,6 +17,7 @@ from rclpy.parameter import Parameter
 
 from area3d_msgs_py import codecs, msgs, qos, services, topics
 from area3d_msgs_py.diagnostics import DIAGNOSTICS_TOPIC, ERROR, OK
+from area3d_msgs_py.spinning import Spinner
 from area3d_semantics.backends import HeuristicBackend
 from area3d_semantics.node import SemanticsNode
 from area3d_semantics.weights import semantic_uncertainty, sigma_from_confidence
@@ -67,8 +68,7 @@ class Rig:
         self.executor = MultiThreadedExecutor(context=self.context)
         self.executor.add_node(self.semantics)
         self.executor.add_node(self.peer)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
         # discovery: every publisher matched before anything is sent
         assert self.spin(
             lambda: all(
@@ -103,8 +103,7 @@ class Rig:
             )
 
     def close(self):
-        self.executor.shutdown()
-        self.thread.join(TIMEOUT_S)  # the spin returns once shut down; a loaded machine is slow
+        self.spinner.stop(TIMEOUT_S)  # a loaded machine is slow
         self.peer.destroy_node()
         self.semantics.destroy_node()
         self.context.try_shutdown()

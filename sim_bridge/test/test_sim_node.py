@@ -5,7 +5,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import numpy as np
 import pytest
 
 from area3d_msgs_py.depth_sensor import RgbdSensorParams, axial_sigma
+from area3d_msgs_py.spinning import Spinner
 from sim_bridge.camera import SimCamera, link_from_optical, right_from_left
 from sim_bridge.node import READER_TOPICS
 from sim_bridge.render import RgbdRenderer
@@ -318,8 +318,7 @@ def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
     executor = MultiThreadedExecutor(context=context)
     for n in (node, feeder):
         executor.add_node(n)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spinner = Spinner(executor)
 
     def wait_for(condition) -> bool:
         deadline = time.monotonic() + TIMEOUT_S
@@ -359,6 +358,5 @@ def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
         assert done["captures"] == 1 and done["readers_missing"] == {}
         assert done["goals_refused"] == {"total": 1, "by_reason": {"bad_goal": 1}}
     finally:
-        executor.shutdown()
+        spinner.stop(10)
         context.try_shutdown()
-        spinner.join(10)
