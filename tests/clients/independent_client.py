@@ -105,12 +105,21 @@ class Client:
         self.nbv = self.node.create_client(GetPlan, "/area3d/planner/next_best_view")
         self.executor = MultiThreadedExecutor()
         self.executor.add_node(self.node)
-        self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self.stopping = threading.Event()
+        self.spinner = threading.Thread(target=self._spin, daemon=True)
         self.spinner.start()
 
+    def _spin(self):
+        # one wait at a time, the stop flag read between them: rclpy's Executor.shutdown
+        # destroys the guard condition a spin in progress on another thread still waits on
+        while not self.stopping.is_set() and rclpy.ok():
+            self.executor.spin_once()
+
     def close(self, *nodes):
-        self.executor.shutdown()
+        self.stopping.set()
+        self.executor.wake()
         self.spinner.join(timeout=10)
+        self.executor.shutdown()
         for node in (self.node, *nodes):
             node.destroy_node()
 
