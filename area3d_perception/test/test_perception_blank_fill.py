@@ -57,6 +57,35 @@ def test_a_ring_on_two_surfaces_fills_nothing():
     assert np.array_equal(out, disparity, equal_nan=True)
 
 
+def test_a_refused_region_keeps_the_matchers_values_or_none_of_them():
+    """The garbage a matcher spread into a blank region stays (drop_refused False) or is no
+    estimate (True); the textured pixels around it are the matcher's either way."""
+    truth, disparity, diff, texture = _maps()
+    disparity[:, 80:] += 3.0  # two surfaces around the hole: no plane is kept
+    hole = texture < 0.1
+    assert np.isfinite(disparity[hole]).mean() > 0.7  # the matcher's garbage, mostly
+    kept, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    assert not support.any() and np.array_equal(kept, disparity, equal_nan=True)
+    dropped, support = fill_blank_planes(
+        disparity, diff, texture, texture, *_images(), 0.1, 300, drop_refused=True
+    )
+    assert not support.any()
+    assert np.isnan(dropped[hole]).all()
+    assert np.array_equal(dropped[~hole], disparity[~hole], equal_nan=True)
+    # a region too small to be looked at is not dropped: it was never refused
+    small, _ = fill_blank_planes(
+        disparity, diff, texture, texture, *_images(), 0.1, int(hole.sum()) + 1, drop_refused=True
+    )
+    assert np.array_equal(small, disparity, equal_nan=True)
+    # a region that takes its plane is filled as before
+    truth, disparity, diff, texture = _maps()
+    out, support = fill_blank_planes(
+        disparity, diff, texture, texture, *_images(), 0.1, 300, drop_refused=True
+    )
+    assert np.array_equal(support > 0, texture < 0.1)
+    assert np.abs(out[texture < 0.1] - truth[texture < 0.1]).max() < 1e-3
+
+
 def test_small_striped_or_untrusted_regions_are_left_alone():
     truth, disparity, diff, texture = _maps()
     disparity[texture < 0.1] = np.nan
@@ -76,9 +105,13 @@ def test_small_striped_or_untrusted_regions_are_left_alone():
     assert not support.any()
 
 
-def _match(left, right, fill, downscale=1):
+def _match(left, right, fill, downscale=1, drop_refused=False):
     params = StereoParams(
-        num_disparities=32, blank_fill=fill, downscale=downscale, confidence_model="matcher"
+        num_disparities=32,
+        blank_fill=fill,
+        downscale=downscale,
+        confidence_model="matcher",
+        blank_drop_refused=drop_refused,
     )
     m = StereoMatcher(params)
     try:
@@ -132,12 +165,23 @@ def test_matched_at_half_size_the_planes_tolerance_is_that_of_the_matching_pixel
 def test_a_blank_board_with_only_the_wall_around_it_is_not_moved_onto_the_wall():
     # the board's edges carry no texture of its own: every reliable match around it is the
     # wall's, and the wall's plane would carve free space through the board; the check of the
-    # board's edge through that plane in the right image refuses it
+    # board's edge through that plane in the right image refuses it. With blank_drop_refused the
+    # board has no estimate: what the matcher spread over it is mostly wrong, and carves through it
     wall, blank = _texture(5, True), _texture(0, False)
     left, right, truth = _pair([(1.6, -5, 5, wall), (1.0, -0.3, 0.3, blank)])
     board = _inside(truth, 1.0, 10)
-    plain, filled = _match(left, right, False), _match(left, right, True)
-    assert np.array_equal(plain.depth[board], filled.depth[board], equal_nan=True)
+    plain = _match(left, right, False)
+    kept = _match(left, right, True)  # the default
+    assert np.array_equal(plain.depth[board], kept.depth[board], equal_nan=True)
+    assert np.isfinite(plain.depth[board]).mean() > 0.5  # the matcher's values ...
+    assert np.mean(np.abs(plain.depth[board] - 1.0) < 0.02) < 0.5  # ... mostly wrong
+    dropped = _match(left, right, True, drop_refused=True)
+    assert np.isfinite(dropped.depth[board]).mean() < 0.01  # pixels by its edge are not blank
+    none = np.isnan(dropped.depth) & board
+    assert (dropped.confidence[none] == 0).all() and (dropped.weight[none] == 0).all()
+    wall_px = np.zeros((H, W), bool)
+    wall_px[20:-20, 60 : W // 2 - 200] = True  # the wall is the matcher's own, untouched
+    assert np.array_equal(plain.depth[wall_px], dropped.depth[wall_px], equal_nan=True)
 
 
 def test_bad_fill_parameters_are_refused_naming_them():

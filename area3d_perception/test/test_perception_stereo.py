@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -152,16 +154,34 @@ def test_left_right_difference_of_consistent_disparities_is_zero():
     assert diff[0, 5] == 3.0 and diff[0, 6] == 0.0
 
 
-def test_pixels_whose_right_match_points_elsewhere_get_no_confidence(matcher, monkeypatch):
+def test_pixels_whose_right_match_points_elsewhere_get_no_depth_and_no_confidence(
+    matcher, monkeypatch
+):
+    """A match the left-right check refuses has no confidence and no weight, and with
+    lr_drop_refused no depth (the planner would take it for a surface and carve along its ray)."""
     left, right, _ = _pair([(1.0, -5, 5, _texture(0, True))])
     d_left = np.full((H, W), 19.2, np.float32)
     d_right = d_left.copy()
     d_right[:, 300:320] = 22.0  # right pixels 300-319 disagree: left pixels 319-338 fail the check
     d_right[:, 400:420] = 19.6  # 0.4 px off: consistent, a little less confident
+    d_right[:, 500:520] = np.nan  # no right match to check against: left pixels 519-538
     monkeypatch.setattr(matcher, "disparities", lambda _l, _r: (d_left, d_right))
-    conf = matcher.match(left, right, FX, BASELINE).confidence
+    out = matcher.match(left, right, FX, BASELINE)
+    conf = out.confidence
     texture = conf[:, 200:280]
-    assert (conf[:, 320:338] == 0).all()
+    dropping = StereoMatcher(dataclasses.replace(matcher.params, lr_drop_refused=True))
+    try:
+        monkeypatch.setattr(dropping, "disparities", lambda _l, _r: (d_left, d_right))
+        dropped = dropping.match(left, right, FX, BASELINE)
+    finally:
+        dropping.close()
+    for refused in (slice(320, 338), slice(520, 538)):
+        assert (conf[:, refused] == 0).all() and (out.weight[:, refused] == 0).all()
+        assert np.isfinite(out.depth[:, refused]).all()  # the default keeps the depth
+        assert np.isnan(dropped.depth[:, refused]).all()
+        assert (dropped.confidence[:, refused] == 0).all()
+    np.testing.assert_array_equal(dropped.depth[:, 200:280], out.depth[:, 200:280])
+    np.testing.assert_array_equal(dropped.confidence, out.confidence)
     assert np.median(texture) > 0.5
     assert 0.2 * np.median(texture) < np.median(conf[:, 420:438]) < 0.9 * np.median(texture)
 
