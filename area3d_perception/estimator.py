@@ -203,7 +203,10 @@ class FrameEstimator:
         """
         result = self._estimate(rgb, depth, K, T_world_cam, right, baseline)
         if self.uniform_confidence:  # the reconstruction's weight too (the ablation as measured)
-            result.confidence = np.isfinite(result.depth).astype(np.float32)
+            # every estimate the backend keeps weighs 1; one it refuses (confidence 0: a match
+            # that failed the left-right check) stays refused
+            kept = np.isfinite(result.depth) & (result.confidence > 0)
+            result.confidence = kept.astype(np.float32)
             result.weight = None
         if result.weight is None:
             result.weight = result.confidence

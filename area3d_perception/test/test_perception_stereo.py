@@ -262,14 +262,17 @@ def test_the_fusion_weight_is_the_matchers_confidence_whatever_the_model_the_pla
     np.testing.assert_array_equal(calibrated.weight, matcher.confidence)  # bit for bit
     estimated = np.isfinite(matcher.depth)
     assert not np.allclose(calibrated.confidence[estimated], calibrated.weight[estimated])
-    # the w/o feed-forward ablation weighs every valid pixel 1, in the reconstruction too
+    # perception's w/o feed-forward ablation weighs every pixel the backend keeps 1, in the
+    # reconstruction too; a match the left-right check refused (a depth at confidence 0) stays 0
     est = FrameEstimator(
         "stereo",
         stereo=StereoParams(num_disparities=32, downscale=1, confidence_model="calibrated"),
         uniform_confidence=True,
     )
     uniform = est.process(left, None, K, np.eye(4), right=right, baseline=BASELINE)
-    np.testing.assert_array_equal(uniform.weight, estimated.astype(np.float32))
+    refused = estimated & (calibrated.confidence == 0)
+    assert refused.any()  # the occluded band beside the near board
+    np.testing.assert_array_equal(uniform.weight, (estimated & ~refused).astype(np.float32))
     np.testing.assert_array_equal(uniform.confidence, uniform.weight)
 
 
