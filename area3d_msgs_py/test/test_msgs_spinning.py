@@ -65,3 +65,25 @@ def test_a_spinner_ends_when_its_context_is_shut_down_under_it(thread_errors):
     assert not spinner.alive
     assert spinner.stop(TIMEOUT_S)
     assert thread_errors == []
+
+
+def test_an_idle_spinner_stops_without_waiting_out_its_timeout(thread_errors):
+    """Nothing wakes an executor whose node has no timer and gets no message; stop must end the
+    wait itself (a plain wake of the executor only makes rclpy wait again, and the stop would
+    have taken its whole timeout)."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("idle", context=context)
+        executor = MultiThreadedExecutor(context=context)
+        executor.add_node(node)
+        spinner = Spinner(executor)
+        time.sleep(0.2)  # into its wait
+        started = time.monotonic()
+        assert spinner.stop(TIMEOUT_S)
+        assert time.monotonic() - started < TIMEOUT_S / 2  # not the timeout (loose: a busy machine)
+        assert not spinner.alive
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
+    assert thread_errors == []
