@@ -21,6 +21,7 @@ from nav_msgs.msg import Path
 from nav_msgs.srv import GetPlan
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import String
 
@@ -105,19 +106,16 @@ class Client:
         self.nbv = self.node.create_client(GetPlan, "/area3d/planner/next_best_view")
         self.executor = MultiThreadedExecutor()
         self.executor.add_node(self.node)
-        self.stopping = threading.Event()
-        self.spinner = threading.Thread(target=self._spin, daemon=True)
+        # spun until a future of its own completes, which ends the wait: rclpy's
+        # Executor.shutdown destroys the guard condition a spin on another thread still waits on
+        self.stopping = Future()
+        self.spinner = threading.Thread(
+            target=self.executor.spin_until_future_complete, args=(self.stopping,), daemon=True
+        )
         self.spinner.start()
 
-    def _spin(self):
-        # one wait at a time, the stop flag read between them: rclpy's Executor.shutdown
-        # destroys the guard condition a spin in progress on another thread still waits on
-        while not self.stopping.is_set() and rclpy.ok():
-            self.executor.spin_once()
-
     def close(self, *nodes):
-        self.stopping.set()
-        self.executor.wake()
+        self.stopping.set_result(True)
         self.spinner.join(timeout=10)
         self.executor.shutdown()
         for node in (self.node, *nodes):
