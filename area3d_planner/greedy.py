@@ -114,6 +114,12 @@ def decay_committed(
     U[ids] *= 1.0 - eta
 
 
+def _facing_alike(cos_angle: np.ndarray, params: GreedyParams) -> np.ndarray:
+    """Where two viewing directions, given by the cosine of the angle between them, lie within
+    nms_angle_deg of each other (the NMS test of orientation)."""
+    return np.degrees(np.arccos(np.clip(cos_angle, -1.0, 1.0))) <= params.nms_angle_deg + 1e-9
+
+
 def _nms_suppress(
     cache: VisibilityCache, excluded: np.ndarray, view: int, params: GreedyParams
 ) -> None:
@@ -122,9 +128,7 @@ def _nms_suppress(
     near_seeds = np.flatnonzero(
         np.linalg.norm(cache.seeds - cache.seeds[s], axis=1) <= params.nms_radius
     )
-    cos_angle = np.clip(cache.forward[near_seeds] @ cache.forward[s, b], -1.0, 1.0)
-    near = np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9
-    excluded[near_seeds] |= near
+    excluded[near_seeds] |= _facing_alike(cache.forward[near_seeds] @ cache.forward[s, b], params)
     excluded[s, b] = True
 
 
@@ -138,8 +142,7 @@ def near_taken(pose: np.ndarray, poses: list[np.ndarray], params: GreedyParams) 
     T = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     pose = np.asarray(pose, np.float64)
     near = np.linalg.norm(T[:, :3, 3] - pose[:3, 3], axis=1) <= params.nms_radius
-    cos_angle = np.clip(T[near, :3, 2] @ pose[:3, 2], -1.0, 1.0)
-    return bool(np.any(np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9))
+    return bool(np.any(_facing_alike(T[near, :3, 2] @ pose[:3, 2], params)))
 
 
 def taken_views(
@@ -179,11 +182,8 @@ def taken_views(
         )
         seed_idx, pose_idx = pairs
     if seed_idx.size:
-        cos_angle = np.clip(
-            np.einsum("pbk,pk->pb", cache.forward[seed_idx], forwards[pose_idx]), -1, 1
-        )
-        close = np.degrees(np.arccos(cos_angle)) <= params.nms_angle_deg + 1e-9
-        np.logical_or.at(excluded, seed_idx, close)
+        cos_angle = np.einsum("pbk,pk->pb", cache.forward[seed_idx], forwards[pose_idx])
+        np.logical_or.at(excluded, seed_idx, _facing_alike(cos_angle, params))
     return excluded
 
 
