@@ -141,8 +141,10 @@ def fill_blank_planes(
         x0, y0 = max(x - RING_PX, 0), max(y - RING_PX, 0)
         x1, y1 = min(x + bw + RING_PX, w), min(y + bh + RING_PX, h)
         region = (labels[y0:y1, x0:x1] == k).astype(np.uint8)
+        pv, pu = np.nonzero(region)
         plane = _region_plane(
             region,
+            (pu.mean(), pv.mean()),
             x0,
             y0,
             disparity,
@@ -154,7 +156,6 @@ def fill_blank_planes(
             edge_kernel,
             downscale,
         )
-        pv, pu = np.nonzero(region)
         if plane is None:
             if drop_refused:  # the matcher had nothing to go on there: no estimate
                 out[pv + y0, pu + x0] = np.nan
@@ -172,6 +173,7 @@ def fill_blank_planes(
 
 def _region_plane(
     region: np.ndarray,
+    centre: tuple[float, float],
     x0: int,
     y0: int,
     disparity: np.ndarray,
@@ -184,9 +186,10 @@ def _region_plane(
     downscale: int,
 ) -> tuple[np.ndarray, float] | None:
     """(plane coefficients (3,) in full-size pixels, share of the ring on it) for one blank
-    `region` (a uint8 mask of the window whose corner is (x0, y0)), or None when refused: too few
-    reliable ring pixels, no plane most of them agree on, agreement not on all four sides, or the
-    region's edge looks different through the plane in the right image."""
+    `region` (a uint8 mask of the window whose corner is (x0, y0); `centre` (u, v) the mean of its
+    pixels in the window), or None when refused: too few reliable ring pixels, no plane most of
+    them agree on, agreement not on all four sides, or the region's edge looks different through
+    the plane in the right image."""
     h, w = region.shape
     ring = (cv2.dilate(region, kernel) > 0) & (region == 0) & reliable[y0 : y0 + h, x0 : x0 + w]
     rv, ru = np.nonzero(ring)
@@ -198,8 +201,7 @@ def _region_plane(
     if fit is None or fit[1].mean() < INLIER_SHARE:
         return None
     coef, inliers = fit
-    pv, pu = np.nonzero(region)
-    cu, cv = pu.mean(), pv.mean()
+    cu, cv = centre
     iu, iv = ru[inliers], rv[inliers]
     sides = ((iu < cu).mean(), (iu > cu).mean(), (iv < cv).mean(), (iv > cv).mean())
     if min(sides) < SIDE_SHARE:
