@@ -111,6 +111,25 @@ def bench_robot(
         _fail(str(err))
 
 
+@app.command("views-depth")
+def bench_views_depth(
+    root: Path = typer.Argument(
+        ..., help="folder of run directories recorded with --depth-source estimated"
+    ),
+    workers: int = typer.Option(1, help="evaluate the runs in this many processes"),
+) -> None:
+    """Benchmark: estimated-depth runs rebuilt from the camera's depth at the same views: what
+    the views cost and what the depth cost (see area3d_bench.views_depth)."""
+    from area3d_bench.views_depth import run_bench
+
+    if workers < 1:
+        _fail(f"workers: got {workers!r}, expected an int >= 1")
+    try:
+        run_bench(root, workers)
+    except ValueError as err:
+        _fail(str(err))
+
+
 @app.command("episode")
 def bench_episode(
     seeds: int = typer.Option(3),

@@ -1,0 +1,215 @@
+"""`area3d bench views-depth RUN_ROOT`: what an estimated-depth episode lost to its views and what
+to its depth.
+
+An episode run with `--depth-source estimated` keeps, in every frame, the camera's depth beside
+perception's. Its views are rebuilt here from the camera's depth (`evaluate_run` with
+`depth_source="sensor"`, nothing written), so for each policy and scene the table shows, as means
+over the seeds found: completion and region PSNR as the episode ran; the same with the camera's
+depth at the same views; and the share of the region's pixels in its planned views whose estimated
+depth is within 1 cm + 1 % of the camera's. Two policies that differ as run but not with the
+camera's depth chose equally good views; the depth measured at them made the difference.
+
+RUN_ROOT is any folder of run directories, e.g. an `area3d bench episode --depth-source
+estimated` output. The figures are also written to RUN_ROOT/views_depth.json.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from area3d_eval.rundir import (
+    EPISODE_FILE,
+    METRICS_FILE,
+    frame_files,
+    read_episode,
+    read_frame,
+    scene_name,
+    write_json,
+)
+
+RIGHT_ABS_M = 0.01  # a depth is right within 1 cm + 1 % (the stereo benchmarks' measure)
+RIGHT_REL = 0.01
+OUT_FILE = "views_depth.json"
+
+
+def find_runs(root: Path) -> list[Path]:
+    """Run directories under `root` (itself included) recorded with estimated depth and frames,
+    sorted."""
+    root = Path(root)
+    found = []
+    for episode in sorted(root.rglob(EPISODE_FILE)):
+        run = episode.parent
+        if frame_files(run) and read_episode(run).depth_source == "estimated":
+            found.append(run)
+    return found
+
+
+def right_share(
+    estimated: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    roi_min: np.ndarray,
+    roi_max: np.ndarray,
+) -> tuple[int, int]:
+    """(right, counted): of the pixels whose camera depth lands in the region of interest
+    (counted), those whose estimated depth is within RIGHT_ABS_M + RIGHT_REL of it (right; no
+    estimate is not right)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    with np.errstate(invalid="ignore"):
+        x = (u - K[0, 2]) / K[0, 0] * depth
+        y = (v - K[1, 2]) / K[1, 1] * depth
+        world = np.stack([x, y, depth], -1) @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+        inside = np.isfinite(depth) & np.all((world >= roi_min) & (world <= roi_max), axis=-1)
+        error = np.abs(estimated[inside] - depth[inside])
+        right = error <= RIGHT_ABS_M + RIGHT_REL * depth[inside]  # NaN compares False
+    return int(right.sum()), int(inside.sum())
+
+
+def _as_run(run_dir: Path, scene, evaluation: dict) -> dict:
+    metrics = run_dir / METRICS_FILE
+    if metrics.is_file():
+        final = json.loads(metrics.read_text()).get("final")
+        if final:
+            return final
+    from area3d_eval.evaluate import evaluate_run
+
+    return evaluate_run(run_dir, scene, write=False, **evaluation)["final"]
+
+
+def run_figures(run_dir: Path, **evaluation) -> dict:
+    """One run's figures: scene, policy, seed; completion and region PSNR as run and with the
+    camera's depth at its views; the planned views' right share (None without planned views).
+    `evaluation`: keyword arguments of `evaluate_run` (its image size, surface points) for both
+    evaluations; the run's own metrics.json is read as it is when it exists."""
+    from area3d_eval.evaluate import evaluate_run
+    from sim_bridge.scenes import load_scene
+
+    run_dir = Path(run_dir)
+    episode = read_episode(run_dir)
+    scene = load_scene(episode.scene)
+    run = _as_run(run_dir, scene, evaluation)
+    camera = evaluate_run(run_dir, scene, write=False, depth_source="sensor", **evaluation)
+    camera = camera["final"]
+    right = counted = 0
+    for path in frame_files(run_dir)[episode.num_initial :]:
+        frame = read_frame(path)
+        if frame.estimated_depth is None:
+            continue
+        r, n = right_share(
+            frame.estimated_depth,
+            frame.depth,
+            frame.K,
+            frame.T_world_cam,
+            np.asarray(scene.roi_min, float),
+            np.asarray(scene.roi_max, float),
+        )
+        right, counted = right + r, counted + n
+    return {
+        "run": run_dir.name,
+        "scene": scene_name(episode.scene),
+        "policy": episode.policy,
+        "seed": episode.seed,
+        "completion": run["completion"],
+        "psnr": run.get("psnr_roi"),
+        "camera_completion": camera["completion"],
+        "camera_psnr": camera.get("psnr_roi"),
+        "planned_right": right / counted if counted else None,
+    }
+
+
+FIELDS = ("completion", "camera_completion", "psnr", "camera_psnr", "planned_right")
+
+
+def summarise(rows: Iterable[dict]) -> dict[tuple[str, str], dict]:
+    """{(scene, policy): {field: mean over its seeds (None where no seed has it), "seeds": n}}."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["scene"], row["policy"]), []).append(row)
+    out = {}
+    for key, group in groups.items():
+        cell: dict = {"seeds": len(group)}
+        for field in FIELDS:
+            values = [r[field] for r in group if r[field] is not None]
+            cell[field] = float(np.mean(values)) if values else None
+        out[key] = cell
+    return out
+
+
+def _fmt(value, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def policy_means(summary: dict[tuple[str, str], dict]) -> dict[str, dict]:
+    """{policy: {field: mean over its scenes (None unless every scene has it), "scenes": n}}."""
+    out = {}
+    for policy in sorted({p for _, p in summary}):
+        cells = [c for (_, p), c in summary.items() if p == policy]
+        mean: dict = {"scenes": len(cells)}
+        for field in FIELDS:
+            values = [c[field] for c in cells]
+            mean[field] = None if None in values else float(np.mean(values))
+        out[policy] = mean
+    return out
+
+
+COLUMNS = (
+    ("completion", "completion as run", 3),
+    ("camera_completion", "completion, camera depth", 3),
+    ("psnr", "PSNR as run", 2),
+    ("camera_psnr", "PSNR, camera depth", 2),
+    ("planned_right", "planned views right", 3),
+)
+
+
+def print_table(summary: dict[tuple[str, str], dict], console: Console | None = None) -> None:
+    """Per scene and policy, then each policy's mean over the scenes."""
+    table = Table(title="the same views with the camera's depth (means over seeds)")
+    table.add_column("scene", no_wrap=True)
+    table.add_column("policy", no_wrap=True)
+    table.add_column("seeds")
+    for _, name, _ in COLUMNS:
+        table.add_column(name)
+    for (scene, policy), c in sorted(summary.items()):
+        cells = [_fmt(c[field], digits) for field, _, digits in COLUMNS]
+        table.add_row(scene, policy, str(c["seeds"]), *cells)
+    for policy, c in policy_means(summary).items():
+        cells = [_fmt(c[field], digits) for field, _, digits in COLUMNS]
+        table.add_row(f"mean of {c['scenes']}", policy, "", *cells)
+    (console or Console(width=160)).print(table)
+
+
+def run_bench(root: Path, workers: int = 1) -> dict:
+    """Figures of every estimated-depth run under `root`, printed and written to
+    root/views_depth.json; returns {"runs": [...], "summary": [...]}."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"run root: got {str(root)!r}, expected an existing folder")
+    runs = find_runs(root)
+    if not runs:
+        raise ValueError(
+            f"run root: got {str(root)!r}, expected run directories recorded with "
+            "--depth-source estimated (episode.json and frames/)"
+        )
+    if workers > 1:
+        with ProcessPoolExecutor(workers) as pool:
+            rows = list(pool.map(run_figures, runs))
+    else:
+        rows = [run_figures(run) for run in runs]
+    summary = summarise(rows)
+    print_table(summary)
+    result = {
+        "runs": rows,
+        "summary": [{"scene": s, "policy": p, **c} for (s, p), c in sorted(summary.items())],
+        "policy_means": policy_means(summary),
+    }
+    write_json(root / OUT_FILE, result)
+    return result
