@@ -41,7 +41,7 @@ from area3d_eval.rundir import (
     reconstruction_input,
     write_json,
 )
-from area3d_msgs_py.backproject import depth_to_world
+from area3d_msgs_py.backproject import roi_pixels
 from area3d_msgs_py.camera import PAPER_HFOV_DEG
 from area3d_msgs_py.errors import InputError
 
@@ -96,17 +96,13 @@ def reference_images(
 ) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
     """(K, ROI-masked GT rgb per eval view, ROI pixel mask per eval view) rendered by the simulator."""
     renderer = renderer_factory(scene, width, height, hfov_deg)
-    lo, hi = (
-        np.asarray(scene.roi_min, dtype=np.float64),
-        np.asarray(scene.roi_max, dtype=np.float64),
-    )
+    lo, hi = scene.roi_min, scene.roi_max
     images, masks = [], []
     try:
         K = np.asarray(renderer.K, dtype=np.float64)
         for T in np.asarray(scene.eval_views, dtype=np.float64):
             rgb, depth = renderer.render(T)
-            world = depth_to_world(depth, K, T)
-            inside = np.isfinite(depth) & np.all((world >= lo) & (world <= hi), axis=-1)
+            inside = roi_pixels(depth, K, T, lo, hi)
             images.append(np.where(inside[..., None], rgb, 0).astype(np.uint8))
             masks.append(inside)
     finally:

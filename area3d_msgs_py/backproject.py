@@ -89,3 +89,19 @@ def depth_to_world(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) ->
     T = np.asarray(T_world_cam, dtype=np.float64)
     cam = pixel_rays(K, *depth.shape) * depth[..., None]
     return cam @ T[:3, :3].T + T[:3, 3]
+
+
+def roi_pixels(
+    depth: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    roi_min: np.ndarray,
+    roi_max: np.ndarray,
+) -> np.ndarray:
+    """(H, W) bool: the pixels with a finite, positive depth whose world point lies in the box
+    [roi_min, roi_max] (world metres, both ends included)."""
+    lo, hi = np.asarray(roi_min, np.float64), np.asarray(roi_max, np.float64)
+    with np.errstate(invalid="ignore"):  # NaN and inf depths give NaN points: outside
+        world = depth_to_world(depth, K, T_world_cam)
+        inside = np.all((world >= lo) & (world <= hi), axis=-1)
+        return np.isfinite(depth) & (np.asarray(depth) > 0) & inside
