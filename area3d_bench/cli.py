@@ -119,7 +119,8 @@ def bench_views_depth(
     workers: int = typer.Option(1, help="evaluate the runs in this many processes"),
 ) -> None:
     """Benchmark: estimated-depth runs rebuilt from the camera's depth at the same views: what
-    the views cost and what the depth cost (see area3d_bench.views_depth)."""
+    the views cost and what the depth cost; also written to ROOT/views_depth.json (see
+    area3d_bench.views_depth)."""
     from area3d_bench.views_depth import run_bench
 
     if workers < 1:

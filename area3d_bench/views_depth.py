@@ -33,6 +33,7 @@ from area3d_eval.rundir import (
     scene_name,
     write_json,
 )
+from area3d_msgs_py.backproject import roi_pixels
 
 RIGHT_ABS_M = 0.01  # a depth is right within 1 cm + 1 % (the stereo benchmarks' measure)
 RIGHT_REL = 0.01
@@ -62,27 +63,28 @@ def right_share(
     """(right, counted): of the pixels whose camera depth lands in the region of interest
     (counted), those whose estimated depth is within RIGHT_ABS_M + RIGHT_REL of it (right; no
     estimate is not right)."""
-    h, w = depth.shape
-    v, u = np.mgrid[0:h, 0:w]
+    inside = roi_pixels(depth, K, T_world_cam, roi_min, roi_max)
     with np.errstate(invalid="ignore"):
-        x = (u - K[0, 2]) / K[0, 0] * depth
-        y = (v - K[1, 2]) / K[1, 1] * depth
-        world = np.stack([x, y, depth], -1) @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-        inside = np.isfinite(depth) & np.all((world >= roi_min) & (world <= roi_max), axis=-1)
         error = np.abs(estimated[inside] - depth[inside])
         right = error <= RIGHT_ABS_M + RIGHT_REL * depth[inside]  # NaN compares False
     return int(right.sum()), int(inside.sum())
 
 
-def _as_run(run_dir: Path, scene, evaluation: dict) -> dict:
+def _as_run(run_dir: Path, scene, evaluation: dict, checkpoints: list[int]) -> dict:
+    """The run's final figures with its estimated depth: its metrics.json when that was evaluated
+    from the estimated depth with evaluate_run's defaults (no `evaluation` given), else
+    evaluated now with `evaluation`."""
     metrics = run_dir / METRICS_FILE
-    if metrics.is_file():
-        final = json.loads(metrics.read_text()).get("final")
-        if final:
-            return final
+    if metrics.is_file() and not evaluation:
+        data = json.loads(metrics.read_text())
+        if data.get("final") and data.get("depth_source") == "estimated":
+            return data["final"]
     from area3d_eval.evaluate import evaluate_run
 
-    return evaluate_run(run_dir, scene, write=False, **evaluation)["final"]
+    result = evaluate_run(
+        run_dir, scene, checkpoints, write=False, depth_source="estimated", **evaluation
+    )
+    return result["final"]
 
 
 def run_figures(run_dir: Path, **evaluation) -> dict:
@@ -96,9 +98,11 @@ def run_figures(run_dir: Path, **evaluation) -> dict:
     run_dir = Path(run_dir)
     episode = read_episode(run_dir)
     scene = load_scene(episode.scene)
-    run = _as_run(run_dir, scene, evaluation)
-    camera = evaluate_run(run_dir, scene, write=False, depth_source="sensor", **evaluation)
-    camera = camera["final"]
+    checkpoints = [len(frame_files(run_dir))]  # the final figures only
+    run = _as_run(run_dir, scene, evaluation, checkpoints)
+    camera = evaluate_run(
+        run_dir, scene, checkpoints, write=False, depth_source="sensor", **evaluation
+    )["final"]
     right = counted = 0
     for path in frame_files(run_dir)[episode.num_initial :]:
         frame = read_frame(path)
@@ -172,7 +176,12 @@ COLUMNS = (
 
 def print_table(summary: dict[tuple[str, str], dict], console: Console | None = None) -> None:
     """Per scene and policy, then each policy's mean over the scenes."""
-    table = Table(title="the same views with the camera's depth (means over seeds)")
+    table = Table(
+        title="the same views with the camera's depth (means over seeds)",
+        caption="planned views right: share of the region's pixels in the planned views whose "
+        "estimated depth is within 1 cm + 1 % of the camera's (no estimate counts as not right; "
+        "over the seeds that have planned views)",
+    )
     table.add_column("scene", no_wrap=True)
     table.add_column("policy", no_wrap=True)
     table.add_column("seeds")
@@ -183,13 +192,23 @@ def print_table(summary: dict[tuple[str, str], dict], console: Console | None = 
         table.add_row(scene, policy, str(c["seeds"]), *cells)
     for policy, c in policy_means(summary).items():
         cells = [_fmt(c[field], digits) for field, _, digits in COLUMNS]
-        table.add_row(f"mean of {c['scenes']}", policy, "", *cells)
+        table.add_row(f"mean ({c['scenes']} scenes)", policy, "", *cells)
     (console or Console(width=160)).print(table)
 
 
-def run_bench(root: Path, workers: int = 1) -> dict:
+def _figures_or_error(run: Path, evaluation: dict) -> dict:
+    """`run_figures`, or {"run", "error"} naming what went wrong: one bad run (a frame cut
+    short, a scene file moved) does not cost the others' figures."""
+    try:
+        return run_figures(run, **evaluation)
+    except Exception as err:  # reported in the table's place, with the run named
+        return {"run": str(run), "error": f"{type(err).__name__}: {err}"}
+
+
+def run_bench(root: Path, workers: int = 1, **evaluation) -> dict:
     """Figures of every estimated-depth run under `root`, printed and written to
-    root/views_depth.json; returns {"runs": [...], "summary": [...]}."""
+    root/views_depth.json; returns {"runs": [...], "summary": [...], "policy_means": {...},
+    "errors": [...]}. `evaluation`: keyword arguments of `evaluate_run` (see `run_figures`)."""
     root = Path(root)
     if not root.is_dir():
         raise ValueError(f"run root: got {str(root)!r}, expected an existing folder")
@@ -201,15 +220,22 @@ def run_bench(root: Path, workers: int = 1) -> dict:
         )
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
-            rows = list(pool.map(run_figures, runs))
+            rows = list(pool.map(_figures_or_error, runs, [evaluation] * len(runs)))
     else:
-        rows = [run_figures(run) for run in runs]
+        rows = [_figures_or_error(run, evaluation) for run in runs]
+    errors = [row for row in rows if "error" in row]
+    rows = [row for row in rows if "error" not in row]
     summary = summarise(rows)
-    print_table(summary)
+    console = Console(width=160)
+    if summary:
+        print_table(summary, console)
+    for row in errors:
+        console.print(f"not evaluated: {row['run']}: {row['error']}", soft_wrap=True)
     result = {
         "runs": rows,
         "summary": [{"scene": s, "policy": p, **c} for (s, p), c in sorted(summary.items())],
         "policy_means": policy_means(summary),
+        "errors": errors,
     }
     write_json(root / OUT_FILE, result)
     return result
