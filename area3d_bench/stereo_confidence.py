@@ -21,6 +21,7 @@ from rich.table import Table
 from scipy.optimize import minimize
 from scipy.stats import rankdata
 
+from area3d_eval.depth_metrics import depth_right
 from area3d_perception.stereo import (
     CALIBRATION,
     StereoMatcher,
@@ -53,8 +54,7 @@ def scene_samples(name: str, params: StereoParams | None = None) -> dict:
             out = matcher.match(cap.rgb, cap.rgb_right, camera.K[0, 0], STEREO_BASELINE)
             estimated = out.confidence > 0
             truth = cap.depth[estimated]
-            with np.errstate(invalid="ignore"):
-                ok = np.abs(out.depth[estimated] - truth) <= 0.01 + 0.01 * truth
+            ok = depth_right(out.depth[estimated], truth)
             features.append(calibration_features(out.disparity, params.downscale)[estimated])
             right.append(ok)
             confidence.append(out.confidence[estimated])

@@ -24,19 +24,17 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from area3d_eval.depth_metrics import depth_right
 from area3d_eval.rundir import (
     EPISODE_FILE,
     METRICS_FILE,
     frame_files,
     read_episode,
     read_frame,
-    scene_name,
     write_json,
 )
 from area3d_msgs_py.backproject import roi_pixels
 
-RIGHT_ABS_M = 0.01  # a depth is right within 1 cm + 1 % (the stereo benchmarks' measure)
-RIGHT_REL = 0.01
 OUT_FILE = "views_depth.json"
 
 
@@ -61,12 +59,10 @@ def right_share(
     roi_max: np.ndarray,
 ) -> tuple[int, int]:
     """(right, counted): of the pixels whose camera depth lands in the region of interest
-    (counted), those whose estimated depth is within RIGHT_ABS_M + RIGHT_REL of it (right; no
-    estimate is not right)."""
+    (counted), those whose estimated depth is right (`depth_right`: within 1 cm + 1 % of the
+    camera's; no estimate is not right)."""
     inside = roi_pixels(depth, K, T_world_cam, roi_min, roi_max)
-    with np.errstate(invalid="ignore"):
-        error = np.abs(estimated[inside] - depth[inside])
-        right = error <= RIGHT_ABS_M + RIGHT_REL * depth[inside]  # NaN compares False
+    right = depth_right(estimated[inside], depth[inside])
     return int(right.sum()), int(inside.sum())
 
 
@@ -98,13 +94,14 @@ def run_figures(run_dir: Path, **evaluation) -> dict:
     run_dir = Path(run_dir)
     episode = read_episode(run_dir)
     scene = load_scene(episode.scene)
-    checkpoints = [len(frame_files(run_dir))]  # the final figures only
+    files = frame_files(run_dir)
+    checkpoints = [len(files)]  # the final figures only
     run = _as_run(run_dir, scene, evaluation, checkpoints)
     camera = evaluate_run(
         run_dir, scene, checkpoints, write=False, depth_source="sensor", **evaluation
     )["final"]
     right = counted = 0
-    for path in frame_files(run_dir)[episode.num_initial :]:
+    for path in files[episode.num_initial :]:
         frame = read_frame(path)
         if frame.estimated_depth is None:
             continue
@@ -113,13 +110,13 @@ def run_figures(run_dir: Path, **evaluation) -> dict:
             frame.depth,
             frame.K,
             frame.T_world_cam,
-            np.asarray(scene.roi_min, float),
-            np.asarray(scene.roi_max, float),
+            scene.roi_min,
+            scene.roi_max,
         )
         right, counted = right + r, counted + n
     return {
         "run": run_dir.name,
-        "scene": scene_name(episode.scene),
+        "scene": episode.scene_name,
         "policy": episode.policy,
         "seed": episode.seed,
         "completion": run["completion"],

@@ -22,6 +22,17 @@ from area3d_msgs_py.errors import InputError
 # Fractions removed, 0 to 0.98 in steps of 0.02 (50 points, as is common for AUSE).
 SPARSIFICATION_STEPS = 50
 OFF_THRESHOLD = 0.05  # a pixel is "off" beyond 5 % relative error
+# a depth is right within 1 cm + 1 % of the true depth (the stereo backend's calibration target)
+RIGHT_ABS_M = 0.01
+RIGHT_REL = 0.01
+
+
+def depth_right(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """bool array: the estimate within RIGHT_ABS_M + RIGHT_REL x the true depth of it (metres;
+    a NaN on either side is not right)."""
+    truth = np.asarray(truth)
+    with np.errstate(invalid="ignore"):
+        return np.abs(np.asarray(estimate) - truth) <= RIGHT_ABS_M + RIGHT_REL * truth
 
 
 @dataclass

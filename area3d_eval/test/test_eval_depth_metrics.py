@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from area3d_eval.depth_metrics import ause, depth_errors, sparsification_curve
+from area3d_eval.depth_metrics import ause, depth_errors, depth_right, sparsification_curve
 from area3d_msgs_py.errors import InputError
 
 
@@ -32,3 +32,9 @@ def test_random_and_inverted_confidence_rank_worse_than_a_good_one():
     errors = rng.random(5000)
     noisy_good = -errors + rng.normal(0, 0.1, errors.size)
     assert ause(errors, noisy_good) < ause(errors, rng.random(errors.size)) < ause(errors, errors)
+
+
+def test_a_depth_is_right_within_a_centimetre_and_a_percent_of_the_truth():
+    truth = np.array([3.0, 3.0, 3.0, 1.0, np.nan], np.float32)
+    estimate = np.array([3.0398, 2.9602, 3.0402, np.nan, 1.0], np.float32)
+    assert depth_right(estimate, truth).tolist() == [True, True, False, False, False]
