@@ -184,6 +184,8 @@ class FusedGrid:
         carves free space out to max_range; a NaN pixel carves nothing: a dropout of a depth
         camera, a failed stereo match or a feed-forward model's gap says nothing of the space
         behind it (which of a depth camera's missing pixels are +Inf: perception's `no_return`).
+        Nor does a finite depth at confidence 0 (a stereo match the left-right check refused):
+        it counts as a hit at confidence 0 and carves nothing.
         """
         return self._observer.observe(depth, conf, K, T_world_cam, max_range, stride)
 

@@ -59,6 +59,20 @@ def _declared_no_return(depth: np.ndarray) -> bool | np.ndarray:
     return declared if declared.any() else False
 
 
+def _carving_depth(depth: np.ndarray, conf: np.ndarray) -> np.ndarray:
+    """The depth a frame carves free space along: a pixel with a depth at confidence 0 (a
+    guess its backend gives no weight, e.g. a stereo match the left-right check refused) marks
+    the voxel it lands in, at the uncertainty's maximum, but is no evidence of the space in front
+    of it: it carves nothing (NaN here). +Inf (no return within range) keeps carving."""
+    with np.errstate(invalid="ignore"):
+        guess = (conf <= 0) & np.isfinite(depth)
+    if not guess.any():
+        return depth
+    out = depth.copy()
+    out[guess] = np.nan
+    return out
+
+
 def direction_bits(centres: np.ndarray, camera: np.ndarray) -> np.ndarray:
     """(K,) uint32: one bit per voxel, the `DIRECTION_BINS` bin of the direction from each voxel
     centre (K, 3) to the camera centre (3,) (or to its own point of (K, 3))."""
@@ -149,10 +163,11 @@ class FrameObserver:
                 frame_conf = scratch.conf_sum[hit] / scratch.pixels[hit]
                 # Free space: the perception package's carving (the one DDA for camera rays),
                 # counted once per voxel per frame here; pixels with no return carve out to
-                # max_range. A voxel hit in this frame is not free in it.
+                # max_range, guesses at confidence 0 carve nothing. A voxel hit in this frame is
+                # not free in it.
                 carve_depth_frame(
                     self.spec,
-                    depth,
+                    _carving_depth(depth, conf),
                     K,
                     T,
                     scratch.crossed,

@@ -62,6 +62,27 @@ def test_pixels_declared_without_a_return_carve_to_max_range_and_pixels_without_
     assert not np.any(occ[grid.spec.centers()[:, 0] > 0.65] == 0)  # nothing behind the wall
 
 
+def test_a_depth_at_confidence_zero_marks_its_voxel_but_carves_nothing_in_front_of_it():
+    """A stereo match the left-right check refused keeps its depth at confidence 0: the voxel it
+    lands in is a hit as uncertain as one can be, but the space in front of it is not known
+    free; +Inf at confidence 0 (no return within range) still carves."""
+    depth, T = wall_frame()
+    conf = np.full_like(depth, 0.75)
+    conf[:, :32] = 0.0  # the image's left half (world +y): refused matches on the wall
+    grid = make_grid(gamma=0.01)
+    grid.integrate_depth(depth, conf, K, T, max_range=5.0, stride=1)
+    occ = grid.occupancy()
+    assert occ[at(grid, [0.62, 0.8, 0.5])] == 1  # the guessed wall is still a hit ...
+    assert grid.geometric()[at(grid, [0.62, 0.8, 0.5])] == 1.0  # ... at confidence 0
+    assert occ[at(grid, [0.5, 0.8, 0.5])] == -1  # nothing in front of it carved
+    assert occ[at(grid, [0.5, 0.2, 0.5])] == 0  # the confident half carves as before
+    assert occ[at(grid, [0.62, 0.2, 0.5])] == 1
+    depth[:, :32] = np.inf  # the same half declared without a return, at confidence 0
+    grid = make_grid(gamma=0.01)
+    grid.integrate_depth(depth, conf, K, T, max_range=5.0, stride=1)
+    assert grid.occupancy()[at(grid, [0.9, 0.9, 0.5])] == 0
+
+
 def test_a_frame_without_any_return_within_range_carves_to_max_range_only():
     grid = make_grid(gamma=0.01)
     depth, T = wall_frame()
@@ -245,7 +266,8 @@ def test_cloud_holds_occupied_and_uncertain_voxels_with_their_fields():
 
 def _observation_by_arrays(grid, depth, conf, K, T, max_range, stride):
     """What a frame tells the grid, computed the direct way: every pixel back-projected into
-    arrays, a bincount over the voxels, the carving into a fresh grid."""
+    arrays, a bincount over the voxels, the carving into a fresh grid along every pixel but
+    those whose finite depth has no confidence."""
     from area3d_msgs_py.backproject import backproject
     from area3d_msgs_py.carving import carve_depth_frame
 
@@ -258,9 +280,11 @@ def _observation_by_arrays(grid, depth, conf, K, T, max_range, stride):
     count = np.bincount(vox, minlength=n)
     hit = count > 0
     frame_conf = np.bincount(vox, weights=c, minlength=n)[hit] / count[hit]
+    # a finite depth at confidence 0 or below (clipped to 0) is a guess: no free space along it
+    carved = np.where(np.isfinite(depth) & (np.nan_to_num(conf, nan=1.0) <= 0), np.nan, depth)
     crossed = carve_depth_frame(
         grid.spec,
-        depth,
+        carved,
         K,
         T,
         np.zeros(grid.spec.shape, np.uint8),
