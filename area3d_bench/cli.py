@@ -131,6 +131,26 @@ def bench_views_depth(
         _fail(str(err))
 
 
+@app.command("map-truth")
+def bench_map_truth(
+    root: Path = typer.Argument(
+        ..., help="folder of run directories recorded with --depth-source estimated"
+    ),
+    workers: int = typer.Option(1, help="replay the runs in this many processes"),
+) -> None:
+    """Benchmark: each estimated-depth run's frames fused again into a planner of its parameters;
+    the share of the region's ground-truth surface its map holds free, unknown, occupied; also
+    written to ROOT/map_truth.json (see area3d_bench.map_truth)."""
+    from area3d_bench.map_truth import run_bench
+
+    if workers < 1:
+        _fail(f"workers: got {workers!r}, expected an int >= 1")
+    try:
+        run_bench(root, workers)
+    except ValueError as err:
+        _fail(str(err))
+
+
 @app.command("episode")
 def bench_episode(
     seeds: int = typer.Option(3),

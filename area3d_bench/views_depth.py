@@ -130,15 +130,16 @@ def run_figures(run_dir: Path, **evaluation) -> dict:
 FIELDS = ("completion", "camera_completion", "psnr", "camera_psnr", "planned_right")
 
 
-def summarise(rows: Iterable[dict]) -> dict[tuple[str, str], dict]:
-    """{(scene, policy): {field: mean over its seeds (None where no seed has it), "seeds": n}}."""
+def summarise(rows: Iterable[dict], fields: Iterable[str] = FIELDS) -> dict[tuple[str, str], dict]:
+    """{(scene, policy): {field: mean over its seeds (None where no seed has it), "seeds": n}}
+    for each of `fields`."""
     groups: dict[tuple[str, str], list[dict]] = {}
     for row in rows:
         groups.setdefault((row["scene"], row["policy"]), []).append(row)
     out = {}
     for key, group in groups.items():
         cell: dict = {"seeds": len(group)}
-        for field in FIELDS:
+        for field in fields:
             values = [r[field] for r in group if r[field] is not None]
             cell[field] = float(np.mean(values)) if values else None
         out[key] = cell
@@ -149,13 +150,16 @@ def _fmt(value, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def policy_means(summary: dict[tuple[str, str], dict]) -> dict[str, dict]:
-    """{policy: {field: mean over its scenes (None unless every scene has it), "scenes": n}}."""
+def policy_means(
+    summary: dict[tuple[str, str], dict], fields: Iterable[str] = FIELDS
+) -> dict[str, dict]:
+    """{policy: {field: mean over its scenes (None unless every scene has it), "scenes": n}} for
+    each of `fields`."""
     out = {}
     for policy in sorted({p for _, p in summary}):
         cells = [c for (_, p), c in summary.items() if p == policy]
         mean: dict = {"scenes": len(cells)}
-        for field in FIELDS:
+        for field in fields:
             values = [c[field] for c in cells]
             mean[field] = None if None in values else float(np.mean(values))
         out[policy] = mean

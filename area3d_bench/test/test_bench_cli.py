@@ -22,7 +22,7 @@ BENCH_ENTRY_POINT = importlib.metadata.EntryPoint(
 )
 BENCHES = (
     "transport", "tf", "render", "stereo", "stereo-confidence", "perception", "semantics", "planner",
-    "reconstruction", "eval", "foxglove", "soak", "robot", "views-depth", "episode",
+    "reconstruction", "eval", "foxglove", "soak", "robot", "views-depth", "map-truth", "episode",
 )  # fmt: skip
 BOX = str.maketrans("", "", "│╭╮╰╯─")  # rich's panel borders
 
