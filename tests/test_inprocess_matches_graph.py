@@ -20,8 +20,11 @@ from area3d_eval.rundir import iter_frames, read_episode, reconstruction_input
 # a tenth of a degree, as the two renderings of a pose that went through a quaternion differ in a
 # few edge pixels, and so does the camera's noise there (the calibrated stereo confidence follows
 # the disparities' local spread, so such pixels move it: 0.13 degree seen on a planned view).
+# A stereo match the left-right check refuses (confidence 0) carves nothing, so such an edge
+# pixel that passes the check in one rendering and not in the other also moves what the map
+# holds free behind it, and the aim: 0.47 degree seen on the last view of the stereo episode.
 POSITION_TOLERANCE = 1e-4  # metres
-ROTATION_TOLERANCE = 5e-3  # rotation matrix entries (about 0.3 degree)
+ROTATION_TOLERANCE = 1.5e-2  # rotation matrix entries (about 0.9 degree)
 # the planner waits for each request's frame as long as it takes (on a busy machine a frame may
 # take more than the default 5 s, and a plan without it would choose other views)
 SMALL_CAMERA = {
