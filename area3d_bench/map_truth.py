@@ -12,7 +12,6 @@ scenes per policy. Also written to RUN_ROOT/map_truth.json.
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import fields
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from area3d_bench.views_depth import find_runs, policy_means, summarise
+from area3d_bench.views_depth import figures_of_runs, policy_means, summarise
 from area3d_eval.rundir import frame_files, read_episode, read_frame, write_json
 
 OUT_FILE = "map_truth.json"
@@ -122,21 +121,7 @@ def run_bench(root: Path, workers: int = 1, num_surface_points: int | None = Non
     """Figures of every estimated-depth run under `root`, printed and written to
     root/map_truth.json; returns {"runs", "summary", "policy_means", "errors"}."""
     root = Path(root)
-    if not root.is_dir():
-        raise ValueError(f"run root: got {str(root)!r}, expected an existing folder")
-    runs = find_runs(root)
-    if not runs:
-        raise ValueError(
-            f"run root: got {str(root)!r}, expected run directories recorded with "
-            "--depth-source estimated (episode.json and frames/)"
-        )
-    if workers > 1:
-        with ProcessPoolExecutor(workers) as pool:
-            rows = list(pool.map(_figures_or_error, runs, [num_surface_points] * len(runs)))
-    else:
-        rows = [_figures_or_error(run, num_surface_points) for run in runs]
-    errors = [row for row in rows if "error" in row]
-    rows = [row for row in rows if "error" not in row]
+    rows, errors = figures_of_runs(root, _figures_or_error, num_surface_points, workers)
     summary = summarise(rows, FIELDS)
     console = Console(width=120)
     if summary:

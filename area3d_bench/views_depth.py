@@ -206,10 +206,10 @@ def _figures_or_error(run: Path, evaluation: dict) -> dict:
         return {"run": str(run), "error": f"{type(err).__name__}: {err}"}
 
 
-def run_bench(root: Path, workers: int = 1, **evaluation) -> dict:
-    """Figures of every estimated-depth run under `root`, printed and written to
-    root/views_depth.json; returns {"runs": [...], "summary": [...], "policy_means": {...},
-    "errors": [...]}. `evaluation`: keyword arguments of `evaluate_run` (see `run_figures`)."""
+def figures_of_runs(root: Path, figures_or_error, argument, workers: int) -> tuple[list, list]:
+    """(rows, errors): `figures_or_error(run, argument)` of every estimated-depth run under
+    `root` (`find_runs`), in `workers` processes when more than 1; rows holding "error" apart.
+    A missing folder or one without such runs is refused, naming it."""
     root = Path(root)
     if not root.is_dir():
         raise ValueError(f"run root: got {str(root)!r}, expected an existing folder")
@@ -221,11 +221,18 @@ def run_bench(root: Path, workers: int = 1, **evaluation) -> dict:
         )
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
-            rows = list(pool.map(_figures_or_error, runs, [evaluation] * len(runs)))
+            rows = list(pool.map(figures_or_error, runs, [argument] * len(runs)))
     else:
-        rows = [_figures_or_error(run, evaluation) for run in runs]
-    errors = [row for row in rows if "error" in row]
-    rows = [row for row in rows if "error" not in row]
+        rows = [figures_or_error(run, argument) for run in runs]
+    return [r for r in rows if "error" not in r], [r for r in rows if "error" in r]
+
+
+def run_bench(root: Path, workers: int = 1, **evaluation) -> dict:
+    """Figures of every estimated-depth run under `root`, printed and written to
+    root/views_depth.json; returns {"runs": [...], "summary": [...], "policy_means": {...},
+    "errors": [...]}. `evaluation`: keyword arguments of `evaluate_run` (see `run_figures`)."""
+    root = Path(root)
+    rows, errors = figures_of_runs(root, _figures_or_error, evaluation, workers)
     summary = summarise(rows)
     console = Console(width=160)
     if summary:
