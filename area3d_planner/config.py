@@ -148,6 +148,13 @@ class PlannerConfig:
         "air is undone by the next ray through it)",
         choices=OCCUPANCY_RULES,
     )
+    carve_min_confidence: float = described(
+        0.0,
+        "a depth below this confidence marks its voxel but carves no free space in front of it "
+        "(a depth at confidence 0 never carves)",
+        "",
+        (0.0, 1.0),
+    )
     max_confidence: float = described(
         0.9,
         "most confidence one observation counts with (0.9: it lowers a voxel's uncertainty at "
@@ -424,6 +431,7 @@ class PlannerConfig:
             self.hard_min_directions,
             self.hard_max_confidence,
             self.occupancy_rule,
+            self.carve_min_confidence,
         )
 
     def planning_context(self, grid: FusedGrid) -> PlanningContext:

@@ -62,6 +62,7 @@ class FusedGrid:
     direction is expected to resolve is multiplied by this. hard_min_directions /
     hard_max_confidence: a region voxel observed from at least that many directions whose best
     confidence stayed below that is a hard voxel (`hard`): no view is expected to resolve it.
+    carve_min_confidence: a depth below this confidence is a hit that carves no free space.
     """
 
     def __init__(
@@ -79,6 +80,7 @@ class FusedGrid:
         hard_min_directions: int = 3,  # our choice: "several distinct directions"
         hard_max_confidence: float = 0.3,  # our choice: the rgbd model's edge confidence is 0.2
         occupancy_rule: str = "hits",
+        carve_min_confidence: float = 0.0,
     ) -> None:
         if occupancy_rule not in OCCUPANCY_RULES:
             raise InputError(
@@ -100,6 +102,8 @@ class FusedGrid:
                 hard_min_directions,
                 f"an integer in [1, {len(DIRECTION_BINS)}] directions",
             )
+        if not (0.0 <= carve_min_confidence <= 1.0):
+            raise InputError("carve_min_confidence", carve_min_confidence, "a value in [0, 1]")
         if not (0.0 <= hard_max_confidence <= 1.0):
             raise InputError("hard_max_confidence", hard_max_confidence, "a value in [0, 1]")
         roi_lo = np.asarray(roi_lo, dtype=np.float64)
@@ -128,6 +132,7 @@ class FusedGrid:
         self.hard_min_directions = int(hard_min_directions)
         self.hard_max_confidence = float(hard_max_confidence)
         self.occupancy_rule = occupancy_rule
+        self.carve_min_confidence = float(carve_min_confidence)
         n = spec.num_voxels
         self.conf_sum = np.zeros(n, np.float32)
         self.hit_count = np.zeros(n, np.float32)
@@ -148,7 +153,11 @@ class FusedGrid:
         self.semantic_frames = 0
         # what a frame tells the grid, from its layout alone (scratch tallies allocated once)
         self._observer = FrameObserver(
-            self.spec, self.roi_ids, self.roi_centres, self.max_confidence
+            self.spec,
+            self.roi_ids,
+            self.roi_centres,
+            self.max_confidence,
+            self.carve_min_confidence,
         )
 
     # ------------------------------------------------------------------ integration
@@ -184,8 +193,8 @@ class FusedGrid:
         carves free space out to max_range; a NaN pixel carves nothing: a dropout of a depth
         camera, a failed stereo match or a feed-forward model's gap says nothing of the space
         behind it (which of a depth camera's missing pixels are +Inf: perception's `no_return`).
-        Nor does a finite depth at confidence 0 (a stereo match the left-right check refused):
-        it counts as a hit at confidence 0 and carves nothing.
+        Nor does a finite depth at confidence 0 (a stereo match the left-right check refused),
+        or below `carve_min_confidence`: it counts as a hit at its confidence and carves nothing.
         """
         return self._observer.observe(depth, conf, K, T_world_cam, max_range, stride)
 

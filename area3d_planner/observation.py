@@ -59,13 +59,14 @@ def _declared_no_return(depth: np.ndarray) -> bool | np.ndarray:
     return declared if declared.any() else False
 
 
-def _carving_depth(depth: np.ndarray, conf: np.ndarray) -> np.ndarray:
+def _carving_depth(depth: np.ndarray, conf: np.ndarray, min_confidence: float = 0.0) -> np.ndarray:
     """The depth a frame carves free space along: a pixel with a depth at confidence 0 (a
-    guess its backend gives no weight, e.g. a stereo match the left-right check refused) marks
-    the voxel it lands in, at the uncertainty's maximum, but is no evidence of the space in front
-    of it: it carves nothing (NaN here). +Inf (no return within range) keeps carving."""
+    guess its backend gives no weight, e.g. a stereo match the left-right check refused), or
+    below `min_confidence`, marks the voxel it lands in, at its confidence, but is no evidence of
+    the space in front of it: it carves nothing (NaN here). +Inf (no return within range) keeps
+    carving."""
     with np.errstate(invalid="ignore"):
-        guess = (conf <= 0) & np.isfinite(depth)
+        guess = ((conf <= 0) | (conf < min_confidence)) & np.isfinite(depth)
     if not guess.any():
         return depth
     out = depth.copy()
@@ -104,10 +105,16 @@ class FrameObserver:
     time: its per-voxel tallies (`_FrameScratch`) are allocated once and cleared after each."""
 
     def __init__(
-        self, spec: GridSpec, roi_ids: np.ndarray, roi_centres: np.ndarray, max_confidence: float
+        self,
+        spec: GridSpec,
+        roi_ids: np.ndarray,
+        roi_centres: np.ndarray,
+        max_confidence: float,
+        carve_min_confidence: float = 0.0,
     ) -> None:
         self.spec, self.roi_ids, self.roi_centres = spec, roi_ids, roi_centres
         self.max_confidence = float(max_confidence)
+        self.carve_min_confidence = float(carve_min_confidence)
         self._scratch: _FrameScratch | None = None
         self._lock = threading.Lock()
 
@@ -163,11 +170,11 @@ class FrameObserver:
                 frame_conf = scratch.conf_sum[hit] / scratch.pixels[hit]
                 # Free space: the perception package's carving (the one DDA for camera rays),
                 # counted once per voxel per frame here; pixels with no return carve out to
-                # max_range, guesses at confidence 0 carve nothing. A voxel hit in this frame is
-                # not free in it.
+                # max_range, guesses at confidence 0 (or below carve_min_confidence) carve
+                # nothing. A voxel hit in this frame is not free in it.
                 carve_depth_frame(
                     self.spec,
-                    _carving_depth(depth, conf),
+                    _carving_depth(depth, conf, self.carve_min_confidence),
                     K,
                     T,
                     scratch.crossed,

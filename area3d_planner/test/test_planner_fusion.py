@@ -83,6 +83,26 @@ def test_a_depth_at_confidence_zero_marks_its_voxel_but_carves_nothing_in_front_
     assert grid.occupancy()[at(grid, [0.9, 0.9, 0.5])] == 0
 
 
+def test_a_depth_below_carve_min_confidence_is_a_hit_at_its_confidence_that_carves_nothing():
+    """`carve_min_confidence`: a depth less trusted than this is a hit at its own confidence but
+    no evidence of free space in front of it; at or above it, it carves; +Inf always carves."""
+    depth, T = wall_frame()
+    conf = np.full_like(depth, 0.75)
+    conf[:, :32] = 0.5  # the image's left half (world +y)
+    depth[:4, :32] = np.inf  # a band declared without a return, at the low confidence
+    for threshold, carved in ((0.6, False), (0.5, True), (0.0, True)):
+        grid = make_grid(gamma=0.01, carve_min_confidence=threshold)
+        grid.integrate_depth(depth, conf, K, T, max_range=5.0, stride=1)
+        occ = grid.occupancy()
+        assert occ[at(grid, [0.62, 0.8, 0.5])] == 1
+        assert grid.geometric()[at(grid, [0.62, 0.8, 0.5])] == pytest.approx(0.5)
+        assert occ[at(grid, [0.5, 0.8, 0.5])] == (0 if carved else -1), threshold
+        assert occ[at(grid, [0.5, 0.2, 0.5])] == 0  # the more confident half carves
+        assert occ[at(grid, [0.7, 0.8, 0.92])] == 0  # +Inf carves out to max_range
+    with pytest.raises(InputError, match="carve_min_confidence"):
+        make_grid(gamma=0.01, carve_min_confidence=1.5)
+
+
 def test_a_frame_without_any_return_within_range_carves_to_max_range_only():
     grid = make_grid(gamma=0.01)
     depth, T = wall_frame()
