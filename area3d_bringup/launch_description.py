@@ -20,13 +20,6 @@ __all__ = [
 # Node sections of a parameter file apply to the node in any namespace.
 ANY_NAMESPACE = "/**/"
 
-# The planner's `carve_min_confidence` when perception runs the stereo backend with its
-# calibrated confidence (the chance that a depth lies within 1 cm + 1 % of the truth): a match
-# more likely wrong than right marks its voxel but carves no free space in front of it
-# (docs/results.md, "Carving only along matches more likely right than wrong"). Other backends'
-# confidences say how noisy a depth is, not whether it is the surface's: they keep the planner's 0.
-STEREO_CARVE_MIN_CONFIDENCE = 0.5
-
 
 @dataclass
 class NodeSpec:
@@ -131,14 +124,8 @@ def build_graph(
     if scene and names & {"planner", "semantics", "reconstruction"}:
         merged = merge(scene_parameters(scene), merged)
     # The stereo backend matches the camera's right image: a simulated camera renders one then.
-    perception = merged.get("perception", {})
-    if perception.get("backend") == "stereo":
-        if "sim_bridge" in merged:
-            merged["sim_bridge"].setdefault("stereo", True)
-        if perception.get("stereo.confidence_model", "calibrated") == "calibrated":
-            merged.setdefault("planner", {}).setdefault(
-                "carve_min_confidence", STEREO_CARVE_MIN_CONFIDENCE
-            )
+    if merged.get("perception", {}).get("backend") == "stereo" and "sim_bridge" in merged:
+        merged["sim_bridge"].setdefault("stereo", True)
     shared = merged.get("**", {})
     return [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
 

@@ -263,21 +263,6 @@ def test_the_stereo_backend_turns_the_simulated_stereo_pair_on_unless_told_other
     assert sim(off).parameters["stereo"] is False
 
 
-def test_the_stereo_backends_calibrated_confidence_sets_the_planners_carving_threshold():
-    from area3d_bringup.launch_description import STEREO_CARVE_MIN_CONFIDENCE
-
-    def planner(overrides):
-        return next(s for s in build_graph(overrides=overrides) if s.name == "planner").parameters
-
-    assert "carve_min_confidence" not in planner({})  # rgbd: the planner's own 0
-    stereo = {"perception": {"backend": "stereo"}}
-    assert planner(stereo)["carve_min_confidence"] == STEREO_CARVE_MIN_CONFIDENCE
-    given = {**stereo, "planner": {"carve_min_confidence": 0.7}}
-    assert planner(given)["carve_min_confidence"] == 0.7
-    matcher = {"perception": {"backend": "stereo", "stereo.confidence_model": "matcher"}}
-    assert "carve_min_confidence" not in planner(matcher)
-
-
 def test_perceptions_estimates_are_attached_to_the_frames_they_belong_to(tmp_path):
     import numpy as np
 
