@@ -152,7 +152,7 @@ class PlannerConfig:
         0.0,
         "a depth below this confidence marks its voxel but carves no free space in front of it "
         "(a depth at confidence 0 never carves)",
-        "",
+        "confidence in [0, 1]",
         (0.0, 1.0),
     )
     max_confidence: float = described(
