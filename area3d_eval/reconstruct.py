@@ -23,7 +23,7 @@ from numba import njit
 
 from area3d_eval.mesh_order import crop_arrays
 from area3d_eval.open3d_loader import import_open3d
-from area3d_msgs_py.backproject import depth_to_world
+from area3d_msgs_py.backproject import roi_pixels
 from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
 
@@ -76,15 +76,6 @@ def subsample(
     K2[0, 2] = (K[0, 2] + stride / 2 - o - 0.5) / stride
     K2[1, 2] = (K[1, 2] + stride / 2 - o - 0.5) / stride
     return rgb[o::stride, o::stride], depth[o::stride, o::stride], K2
-
-
-def mask_outside_box(
-    depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, lo: np.ndarray, hi: np.ndarray
-) -> np.ndarray:
-    """Depth with NaN wherever the back-projected point falls outside the box [lo, hi] (world)."""
-    world = depth_to_world(depth, K, T_world_cam)
-    inside = np.all((world >= lo) & (world <= hi), axis=-1)
-    return np.where(inside, depth, np.nan).astype(np.float32)
 
 
 class TsdfFusion:
@@ -170,9 +161,8 @@ class TsdfFusion:
         _, confidence, _ = subsample(rgb, confidence, K, stride)
         rgb, depth, K = subsample(rgb, depth, K, stride)
         if self.roi_lo is not None:
-            depth = mask_outside_box(
-                depth, K, T_world_cam, self.roi_lo - p.roi_margin, self.roi_hi + p.roi_margin
-            )
+            lo, hi = self.roi_lo - p.roi_margin, self.roi_hi + p.roi_margin
+            depth = np.where(roi_pixels(depth, K, T_world_cam, lo, hi), depth, np.nan)
         weight = np.where(np.isfinite(confidence), np.clip(confidence, 0.0, 1.0), 0.0)
         # beyond depth_trunc nothing is integrated (`_integrate_weighted`); a frame with depth
         # only there would make Open3D abort ("No block is touched"), so it integrates nothing
