@@ -66,7 +66,9 @@ def _carving_depth(depth: np.ndarray, conf: np.ndarray, min_confidence: float = 
     the space in front of it: it carves nothing (NaN here). +Inf (no return within range) keeps
     carving."""
     with np.errstate(invalid="ignore"):
-        guess = ((conf <= 0) | (conf < min_confidence)) & np.isfinite(depth)
+        # one comparison: above 0, conf < min_confidence holds wherever conf <= 0 does
+        below = conf < min_confidence if min_confidence > 0 else conf <= 0
+        guess = below & np.isfinite(depth)
     if not guess.any():
         return depth
     out = depth.copy()
