@@ -114,10 +114,24 @@ def decay_committed(
     U[ids] *= 1.0 - eta
 
 
-def _facing_alike(cos_angle: np.ndarray, params: GreedyParams) -> np.ndarray:
+def _within_angle(cos_angle: np.ndarray, angle_deg: float) -> np.ndarray:
     """Where two viewing directions, given by the cosine of the angle between them, lie within
-    nms_angle_deg of each other (the NMS test of orientation)."""
-    return np.degrees(np.arccos(np.clip(cos_angle, -1.0, 1.0))) <= params.nms_angle_deg + 1e-9
+    `angle_deg` of each other."""
+    return np.degrees(np.arccos(np.clip(cos_angle, -1.0, 1.0))) <= angle_deg + 1e-9
+
+
+def _facing_alike(cos_angle: np.ndarray, params: GreedyParams) -> np.ndarray:
+    """The NMS test of orientation: within nms_angle_deg."""
+    return _within_angle(cos_angle, params.nms_angle_deg)
+
+
+def poses_alike(poses, pose: np.ndarray, radius: float, angle_deg: float) -> np.ndarray:
+    """For each (4, 4) camera pose of `poses`: whether it lies within `radius` metres of `pose`
+    and looks within `angle_deg` of it (optical z axes)."""
+    T = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    pose = np.asarray(pose, np.float64)
+    near = np.linalg.norm(T[:, :3, 3] - pose[:3, 3], axis=1) <= radius
+    return near & _within_angle(T[:, :3, 2] @ pose[:3, 2], angle_deg)
 
 
 def _nms_suppress(
@@ -139,10 +153,7 @@ def near_taken(pose: np.ndarray, poses: list[np.ndarray], params: GreedyParams) 
     where a taken view faced although its orientation bin did not)."""
     if not poses:
         return False
-    T = np.asarray(poses, np.float64).reshape(-1, 4, 4)
-    pose = np.asarray(pose, np.float64)
-    near = np.linalg.norm(T[:, :3, 3] - pose[:3, 3], axis=1) <= params.nms_radius
-    return bool(np.any(_facing_alike(T[near, :3, 2] @ pose[:3, 2], params)))
+    return bool(np.any(poses_alike(poses, pose, params.nms_radius, params.nms_angle_deg)))
 
 
 def taken_views(

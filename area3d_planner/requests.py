@@ -11,6 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from area3d_planner.config import MODES
+from area3d_planner.greedy import poses_alike
 
 
 @dataclass
@@ -39,15 +40,6 @@ class Plan(NamedTuple):
     note: str = ""
 
 
-def alike(T: np.ndarray, U: np.ndarray, radius: float, angle_deg: float) -> bool:
-    """Two camera poses within `radius` metres of each other looking within `angle_deg`."""
-    T, U = np.asarray(T, float), np.asarray(U, float)
-    if np.linalg.norm(T[:3, 3] - U[:3, 3]) > radius:
-        return False
-    cos = float(np.clip(T[:3, 2] @ U[:3, 2], -1.0, 1.0))
-    return np.degrees(np.arccos(cos)) <= angle_deg
-
-
 @dataclass
 class PlanTicket:
     """A request checked and counted (`begin_plan`), before its masks are waited for: what it
@@ -71,9 +63,9 @@ def repeats_note(poses: list, answered: list, fused: list, radius: float, angle_
     notes = []
     for i, T in enumerate(poses):
         for j, (U, stamp) in enumerate(answered):
-            if not alike(T, U, radius, angle_deg):
+            if not poses_alike([U], T, radius, angle_deg)[0]:
                 continue
-            since = [s for s, F in fused if s > stamp and alike(F, U, radius, angle_deg)]
+            since = [s for s, F in fused if s > stamp and poses_alike([F], U, radius, angle_deg)[0]]
             seen = (
                 f"a frame from there was fused (stamp {since[-1]}) and it still sees the most "
                 "uncertainty"
