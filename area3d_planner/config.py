@@ -65,6 +65,11 @@ def _positive(value: tuple) -> str | None:
     return None if len(value) > 0 and min(value) > 0 else "one or more numbers > 0"
 
 
+def _elevations(value: tuple) -> str | None:
+    ok = len(value) > 0 and all(-90.0 < float(v) < 90.0 for v in value)
+    return None if ok else "one or more angles in (-90, 90) degrees"
+
+
 @dataclass
 class PlannerConfig:
     """All planner parameters; defaults are the paper's where it fixes them.
@@ -205,6 +210,13 @@ class PlannerConfig:
         "object level: radii of the candidate shells, times the working distance of the initial "
         "views (no farther: depth from a camera is less precise, and colour coarser, with range)",
         check=_positive,
+    )
+    shell_elevations_deg: tuple = described(
+        (0.0, 12.0, 25.0, 38.0, 52.0, 66.0, 80.0),
+        "object level: elevations of the rings of each shell above the region centre's height "
+        "(a robot that cannot reach low or high leaves those out)",
+        "degrees",
+        check=_elevations,
     )
     fan_deg: float = described(
         20.0,
@@ -446,6 +458,7 @@ class PlannerConfig:
             visibility=VisibilityParams(
                 level=level,
                 shell_scales=tuple(float(v) for v in self.shell_scales),
+                shell_elevations_deg=tuple(float(v) for v in self.shell_elevations_deg),
                 fan_deg=self.fan_deg,
                 seed_spacing=self.seed_spacing,
                 yaw_bins=self.yaw_bins,

@@ -8,6 +8,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from area3d_msgs_py.camera_pose import look_at, look_rotation
+from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.grid import GridSpec
 from area3d_planner.candidates import (
     VisibilityParams,
@@ -18,6 +19,7 @@ from area3d_planner.candidates import (
     shell_rotations,
     valid_seeds,
 )
+from area3d_planner.config import PlannerConfig
 from area3d_planner.fusion import RANGE_BIN, FusedGrid
 from area3d_planner.greedy import GreedyParams, lazy_greedy
 from area3d_planner.visibility import ViewEvidence, VisibilityCache
@@ -451,3 +453,17 @@ def test_free_side_normals_point_to_the_carved_side_and_grazing_views_count_less
     oblique_flat = VisibilityCache.build(spec, occ, np.array([[0.0, -0.6, 0.0]]), R_oblique, flat)
     assert oblique.weights.sum() < oblique_flat.weights.sum()
     assert face_on.weights.size > 0
+
+
+def test_the_configured_ring_elevations_are_the_only_ones_the_candidate_shells_hold():
+    # a robot that cannot bring its camera down to the table leaves the low rings out
+    config = PlannerConfig(level="object", shell_elevations_deg=(25.0, 52.0))
+    params = config.planning_context(config.fused_grid()).visibility
+    assert params.shell_elevations_deg == (25.0, 52.0)
+    centre = np.array([0.0, 0.0, 0.8])
+    points = shell_positions(centre, 0.5, params)
+    r = np.linalg.norm(points - centre, axis=1)
+    elevation = np.degrees(np.arcsin((points[:, 2] - centre[2]) / r))
+    assert set(np.round(elevation, 6)) == {25.0, 52.0}
+    with pytest.raises(InputError, match="shell_elevations_deg"):
+        dataclasses.replace(params, shell_elevations_deg=(0.0, 95.0)).validate()
