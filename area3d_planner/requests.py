@@ -61,19 +61,23 @@ def repeats_note(poses: list, answered: list, fused: list, radius: float, angle_
     from there was fused since (`fused`: (stamp, pose) of each fused frame). "" when none
     repeats."""
     notes = []
+    answered_poses = [U for U, _ in answered]
+    fused_poses = [F for _, F in fused]
     for i, T in enumerate(poses):
-        for j, (U, stamp) in enumerate(answered):
-            if not poses_alike([U], T, radius, angle_deg)[0]:
-                continue
-            since = [s for s, F in fused if s > stamp and poses_alike([F], U, radius, angle_deg)[0]]
-            seen = (
-                f"a frame from there was fused (stamp {since[-1]}) and it still sees the most "
-                "uncertainty"
-                if since
-                else "no frame from there has been fused since"
-            )
-            notes.append(f"view {i} was handed out before (view {j} of this map): {seen}")
-            break
+        repeated = np.flatnonzero(poses_alike(answered_poses, T, radius, angle_deg))
+        if repeated.size == 0:
+            continue
+        j = int(repeated[0])  # the first view handed out from there
+        U, stamp = answered[j]
+        from_there = poses_alike(fused_poses, U, radius, angle_deg)
+        since = [s for (s, _), near in zip(fused, from_there, strict=True) if near and s > stamp]
+        seen = (
+            f"a frame from there was fused (stamp {since[-1]}) and it still sees the most "
+            "uncertainty"
+            if since
+            else "no frame from there has been fused since"
+        )
+        notes.append(f"view {i} was handed out before (view {j} of this map): {seen}")
     return "; ".join(notes)
 
 
