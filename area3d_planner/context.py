@@ -209,10 +209,9 @@ class PlanningContext:
         if p.level == "object":
             centre = self.region_centre()
             radius = self.working_distance() or self.default_distance()
-            if p.near > VisibilityParams.near:  # a camera's minimum range (`min_range`)
-                # the inner shell far enough that the whole region lies beyond it
-                half = 0.5 * float(np.linalg.norm(self.grid.roi_hi - self.grid.roi_lo))
-                radius = max(radius, (p.near + half) / min(p.shell_scales))
+            # A camera's minimum range (`min_range`) leaves the shells where they are: the
+            # clearance (at least that range) keeps positions away from what the map holds
+            # and, inside the region, from what it does not know yet.
             points = shell_positions(centre, radius, p)
             points = points[self.valid_positions(points, occupancy)]
             return points, shell_rotations(points, centre, p.fan_deg)
