@@ -111,6 +111,27 @@ def planner_region(scene) -> dict:
     }
 
 
+def stereo_min_range(camera: Mapping, perception: Mapping) -> float:
+    """The nearest depth the stereo backend can measure on the simulated pair, metres: f B / (the
+    disparities it searches, in full-size pixels). A surface nearer than that has a disparity
+    beyond the search and is matched to a wrong, farther one (or to nothing). camera: sim_bridge's
+    parameters, perception: perception's (their defaults where a value is not given)."""
+    import math
+
+    from area3d_perception.stereo import StereoParams
+    from sim_bridge.camera import STEREO_BASELINE
+
+    width = float(camera.get("width", 640))
+    hfov_deg = float(camera.get("hfov_deg", 90.0))
+    fx = width / 2.0 / math.tan(math.radians(hfov_deg) / 2.0)
+    baseline = float(camera.get("stereo_baseline", STEREO_BASELINE))
+    defaults = StereoParams()
+    searched = int(perception.get("stereo.num_disparities", defaults.num_disparities)) * int(
+        perception.get("stereo.downscale", defaults.downscale)
+    )
+    return fx * baseline / searched
+
+
 def build_graph(
     params: dict[str, dict] | None = None,
     overrides: dict[str, dict] | None = None,
@@ -126,6 +147,10 @@ def build_graph(
     # The stereo backend matches the camera's right image: a simulated camera renders one then.
     if merged.get("perception", {}).get("backend") == "stereo" and "sim_bridge" in merged:
         merged["sim_bridge"].setdefault("stereo", True)
+        if "planner" in names:
+            planner = merged.setdefault("planner", {})
+            near = stereo_min_range(merged["sim_bridge"], merged["perception"])
+            planner["min_range"] = max(float(planner.get("min_range", 0.0)), near)
     shared = merged.get("**", {})
     return [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
 

@@ -263,6 +263,26 @@ def test_the_stereo_backend_turns_the_simulated_stereo_pair_on_unless_told_other
     assert sim(off).parameters["stereo"] is False
 
 
+def test_the_stereo_backend_tells_the_planner_the_nearest_depth_its_disparity_search_reaches():
+    def planner(overrides):
+        return next(s for s in build_graph(overrides=overrides) if s.name == "planner")
+
+    stereo = {"perception": {"backend": "stereo"}}
+    assert "min_range" not in planner({}).parameters  # a depth camera: the yaml's (none)
+    # 640 px over 90 degrees: f = 320 px; 6 cm baseline; 96 disparities: 320 * 0.06 / 96 = 0.2 m
+    assert planner(stereo).parameters["min_range"] == pytest.approx(0.2)
+    # half the image width halves f; matching at half size searches twice the disparities
+    narrow = {**stereo, "sim_bridge": {"width": 320}}
+    assert planner(narrow).parameters["min_range"] == pytest.approx(0.1)
+    coarse = {"perception": {"backend": "stereo", "stereo.downscale": 2}}
+    assert planner(coarse).parameters["min_range"] == pytest.approx(0.1)
+    wider = {"perception": {"backend": "stereo"}, "sim_bridge": {"stereo_baseline": 0.12}}
+    assert planner(wider).parameters["min_range"] == pytest.approx(0.4)
+    # a camera class that measures nothing nearer than 0.28 m keeps its own, larger limit
+    d435 = {**stereo, "planner": {"min_range": 0.28}}
+    assert planner(d435).parameters["min_range"] == pytest.approx(0.28)
+
+
 def test_perceptions_estimates_are_attached_to_the_frames_they_belong_to(tmp_path):
     import numpy as np
 
