@@ -467,3 +467,43 @@ def test_the_configured_ring_elevations_are_the_only_ones_the_candidate_shells_h
     assert set(np.round(elevation, 6)) == {25.0, 52.0}
     with pytest.raises(InputError, match="shell_elevations_deg"):
         dataclasses.replace(params, shell_elevations_deg=(0.0, 95.0)).validate()
+
+
+def _object_shells(min_range: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(candidate positions, region centre, occupied voxel centres) at object level, before any
+    frame, for a camera with `min_range`: a 20 cm cube of geometry fills the region, the space
+    around it known free."""
+    config = PlannerConfig(
+        level="object",
+        workspace_min=(-2.0, -2.0, 0.0),
+        workspace_max=(2.0, 2.0, 2.0),
+        roi_min=(-0.1, -0.1, 0.7),
+        roi_max=(0.1, 0.1, 0.9),
+        voxel_size=0.02,
+        min_range=min_range,
+    )
+    context = config.planning_context(config.fused_grid())
+    spec = context.grid.spec
+    centres = spec.centers()
+    inside = np.all((centres > context.grid.roi_lo) & (centres < context.grid.roi_hi), axis=1)
+    occupancy = np.where(inside, 1, 0).astype(np.int8)
+    points, _ = context.candidate_views(occupancy)
+    return points, context.region_centre(), centres[inside]
+
+
+def test_a_minimum_range_leaves_the_shells_in_place_and_moves_them_out_only_when_none_is_usable():
+    reference, centre, occupied = _object_shells(0.0)
+    radius = np.linalg.norm(reference - centre, axis=1).max()  # the outer shell, before any frame
+    half_diagonal = np.sqrt(3) / 2 * 0.02
+    # 0.2 m: the shells stay where they are; positions nearer than that to geometry are left out
+    near, _, _ = _object_shells(0.2)
+    assert 0 < near.shape[0] < reference.shape[0]
+    assert cdist(near, reference).min(axis=1).max() < 1e-9  # every one of them a reference one
+    assert cdist(near, occupied).min() >= 0.2 - half_diagonal
+    # 1 m: nothing on those shells is usable; they move out until the whole region lies beyond it
+    far, _, _ = _object_shells(1.0)
+    assert far.shape[0] > 0
+    moved = np.linalg.norm(far - centre, axis=1)
+    assert moved.min() > radius
+    assert moved.min() >= 1.0 + np.sqrt(3) * 0.1 - 1e-9  # the region's half diagonal beyond it
+    assert cdist(far, occupied).min() >= 1.0 - half_diagonal
