@@ -49,12 +49,35 @@ def test_a_blank_hole_in_a_plane_takes_the_plane():
 
 
 def test_a_ring_on_two_surfaces_fills_nothing():
+    # a step through the middle: a plane tilted across it agrees with 63 % of the ring
     truth, disparity, diff, texture = _maps()
     disparity[:, 80:] += 3.0  # a step through the middle of the hole: two surfaces around it
     disparity[texture < 0.1] = np.nan
     out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
     assert not support.any()
     assert np.array_equal(out, disparity, equal_nan=True)
+
+
+def test_a_blank_panel_before_a_farther_surface_takes_its_plane_from_its_own_edge():
+    """A blank panel seen against something farther: the ring around its blank middle holds the
+    panel's own textured edge (3 px on three sides, 2 px on the fourth here) and, beyond it, the
+    farther surface. Under 70 % of the ring lies on the panel (a 4 px ring over a 3 px edge gives
+    at most about 74 %), yet more than a plane tilted across two surfaces reaches (63 %, the test
+    below): the panel's plane is kept."""
+    truth, disparity, diff, texture = _maps()
+    v0, v1, u0, u1 = 40, 80, 50, 110
+    panel = np.zeros(SHAPE, bool)
+    panel[v0 - 3 : v1 + 3, u0 - 2 : u1 + 3] = True
+    disparity[~panel] = truth[~panel] - 6.0  # the farther surface around the panel
+    hole = texture < 0.1
+    ring = np.zeros(SHAPE, bool)
+    ring[v0 - 4 : v1 + 4, u0 - 4 : u1 + 4] = True
+    ring &= ~hole
+    assert 0.65 < panel[ring].mean() < 0.7  # the share of the ring on the panel
+    out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    assert np.array_equal(support > 0, hole)
+    assert np.abs(out[hole] - truth[hole]).max() < 1e-3  # the panel's plane, not the far one
+    assert np.all((support[hole] > 0.65) & (support[hole] < 0.7))
 
 
 def test_a_refused_region_keeps_the_matchers_values_or_none_of_them():
