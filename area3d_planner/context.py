@@ -179,9 +179,12 @@ class PlanningContext:
     def region_centre(self) -> np.ndarray:
         return 0.5 * (self.grid.roi_lo + self.grid.roi_hi)
 
+    def region_half_diagonal(self) -> float:
+        return 0.5 * float(np.linalg.norm(self.grid.roi_hi - self.grid.roi_lo))
+
     def default_distance(self) -> float:
         """Shell radius before any frame is captured: the region's half diagonal plus 0.3 m."""
-        return 0.5 * float(np.linalg.norm(self.grid.roi_hi - self.grid.roi_lo)) + 0.3
+        return self.region_half_diagonal() + 0.3
 
     def valid_positions(self, points: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
         """(P,) bool: camera centres `points` (P, 3) the map allows (`valid_seeds`); at object
@@ -212,7 +215,7 @@ class PlanningContext:
             points = shell_positions(centre, radius, p)
             usable = self.valid_positions(points, occupancy)
             if not usable.any() and p.near > VisibilityParams.near:
-                points, usable = self._shells_beyond_min_range(occupancy, radius)
+                points, usable = self._shells_beyond_min_range(occupancy, centre, radius)
             points = points[usable]
             return points, shell_rotations(points, centre, p.fan_deg)
         points = lattice_positions(self.workspace_lo, self.workspace_hi, p.seed_spacing)
@@ -221,11 +224,11 @@ class PlanningContext:
         return points, np.broadcast_to(rotations, (points.shape[0], *rotations.shape)).copy()
 
     def _shells_beyond_min_range(
-        self, occupancy: np.ndarray, radius: float
+        self, occupancy: np.ndarray, centre: np.ndarray, radius: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """(positions (S, 3), usable (S,) bool) of the candidate shells moved out until the whole
         region lies beyond a camera's minimum range (`min_range`): the inner shell that range
-        beyond the region's half diagonal.
+        beyond the region's half diagonal, around the region's `centre`.
 
         Only when the minimum range leaves no usable position at the working distance `radius`
         (the clearance, at least that range, keeps positions away from what the map holds and,
@@ -235,9 +238,8 @@ class PlanningContext:
         radius with a usable position left a Kinect-class camera (0.5 m) views that saw almost
         none of the region."""
         p = self.visibility
-        half = 0.5 * float(np.linalg.norm(self.grid.roi_hi - self.grid.roi_lo))
-        radius = max(radius, (p.near + half) / min(p.shell_scales))
-        points = shell_positions(self.region_centre(), radius, p)
+        radius = max(radius, (p.near + self.region_half_diagonal()) / min(p.shell_scales))
+        points = shell_positions(centre, radius, p)
         return points, self.valid_positions(points, occupancy)
 
     def build(self, occupancy: np.ndarray, kinds: tuple = ()) -> tuple[tuple, dict]:
