@@ -16,23 +16,7 @@ from area3d_msgs_py.depth_surface import (
     surface_terms,
 )
 from area3d_msgs_py.errors import InputError
-
-H, W = 120, 160
-# 90 degree horizontal field of view, the paper's camera.
-K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])
-
-
-def plane_depth(distance: float, tilt_deg: float = 0.0, h: int = H, w: int = W) -> np.ndarray:
-    """Depth of a plane through (0, 0, distance) whose normal is tilted by `tilt_deg` about x."""
-    a = np.deg2rad(tilt_deg)
-    n = np.array([0.0, np.sin(a), -np.cos(a)])
-    u = (np.arange(w) + 0.5 - w / 2) / (w / 2)
-    v = (np.arange(h) + 0.5 - h / 2) / (w / 2)
-    uu, vv = np.meshgrid(u, v)
-    rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1)
-    t = (n @ np.array([0, 0, distance])) / (rays @ n)
-    t[t <= 0] = np.nan
-    return t.astype(np.float32)
+from tests.depth_planes import H, K, W, plane_depth
 
 
 def test_incidence_cosine_of_a_fronto_parallel_plane_is_the_ray_angle():

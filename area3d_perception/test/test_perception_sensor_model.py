@@ -13,32 +13,7 @@ from area3d_msgs_py.depth_surface import surface_terms
 from area3d_msgs_py.errors import InputError
 from area3d_perception.sensor_model import rgbd_confidence
 from sim_bridge.noise import add_depth_noise
-
-H, W = 120, 160
-# 90 degree horizontal field of view, the paper's camera.
-K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])
-
-
-def plane_depth(distance: float, tilt_deg: float = 0.0, h: int = H, w: int = W) -> np.ndarray:
-    """Depth of a plane through (0, 0, distance) whose normal is tilted by `tilt_deg` about x."""
-    a = np.deg2rad(tilt_deg)
-    n = np.array([0.0, np.sin(a), -np.cos(a)])
-    u = (np.arange(w) + 0.5 - w / 2) / (w / 2)
-    v = (np.arange(h) + 0.5 - h / 2) / (w / 2)
-    uu, vv = np.meshgrid(u, v)
-    rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1)
-    t = (n @ np.array([0, 0, distance])) / (rays @ n)
-    t[t <= 0] = np.nan
-    return t.astype(np.float32)
-
-
-def nguyen_sigma(z: float) -> float:
-    """Axial noise at normal incidence as published (Nguyen et al. 2012)."""
-    return 0.0012 + 0.0019 * (z - 0.4) ** 2
-
-
-def centre(a: np.ndarray, r: int = 5) -> np.ndarray:
-    return a[H // 2 - r : H // 2 + r, W // 2 - r : W // 2 + r]
+from tests.depth_planes import H, K, W, centre, nguyen_sigma, plane_depth
 
 
 def test_confidence_falls_with_range_as_the_published_noise_curve():
