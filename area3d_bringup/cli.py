@@ -194,9 +194,6 @@ def run(
         TextColumn("{task.completed}/{task.total}"),
         TimeElapsedColumn(),
     )
-    discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
-    graph_domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or "free"
-    console.print(f"graph on ROS_DOMAIN_ID={graph_domain}, discovery {discovery} (rclpy, Fast DDS)")
     if foxglove is not None:
         from area3d_bringup.foxglove_bridge import url
 
@@ -278,7 +275,10 @@ def launch(
     from area3d_msgs_py import middleware
 
     env = middleware.graph_env(domain_id, discovery_range="LOCALHOST" if localhost else None)
-    specs = build_graph(load_parameters(params), _overrides(param))
+    try:
+        specs = build_graph(load_parameters(params), _overrides(param))
+    except (ValueError, FileNotFoundError) as err:
+        _fail(str(err))
     names = [n for n in nodes.split(",") if n]
     unknown = sorted(set(names) - {spec.name for spec in specs})
     if unknown:

@@ -50,7 +50,11 @@ class EpisodeRecord:
         self.stopped_early = ""  # why this run of the episode ended before the budget, if it did
         if resume is not None:
             self._resume(Path(resume))
+            self.specs = self._specs()
         else:
+            # the parameters are checked before the run directory is made: a run refused for a
+            # parameter leaves nothing behind
+            self.specs = self._specs()
             name = (
                 config.run_name
                 or f"{self.scene.name}_{config.policy}_s{config.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
@@ -59,16 +63,6 @@ class EpisodeRecord:
             self.run_dir = Path(config.out_dir) / name
             self.run_dir.mkdir(parents=True, exist_ok=False)
         self.n_init = len(self.scene.initial_views)
-        rundir.check_depth_source(config.depth_source)
-        self.specs = episode_specs(
-            config.scene,
-            config.policy,
-            config.seed,
-            self.budget,
-            config.mode,
-            merge({"sim_bridge": {"readers.all": [NAME]}}, config.overrides),
-            config.params_file,
-        )
         semantics = next(spec for spec in self.specs if spec.name == topics.SEMANTICS).parameters
         self.with_semantics = semantics.get("backend", "heuristic") != "none"
         # a graph started elsewhere may run without it (found out at its reset)
@@ -77,6 +71,20 @@ class EpisodeRecord:
         self.launcher: Launcher | None = None
         self.manager: MissionManager | None = None
         self.task = None  # the progress bar's task
+
+    def _specs(self) -> list:
+        """The graph's node specs for this episode (ValueError naming a refused parameter)."""
+        config = self.config
+        rundir.check_depth_source(config.depth_source)
+        return episode_specs(
+            config.scene,
+            config.policy,
+            config.seed,
+            self.budget,
+            config.mode,
+            merge({"sim_bridge": {"readers.all": [NAME]}}, config.overrides),
+            config.params_file,
+        )
 
     def _resume(self, run_dir: Path) -> None:
         """Take the saved episode of `run_dir` up where it stopped."""

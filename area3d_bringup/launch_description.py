@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import copy
+import difflib
+import importlib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
@@ -11,10 +13,12 @@ from pathlib import Path
 import yaml
 
 from area3d_bringup.graph import GRAPH_NODES
+from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.parameters import BUILTIN_PARAMETERS, parameter_values
 
 __all__ = [
-    "GRAPH_NODES", "NodeSpec", "build_graph", "load_parameters", "merge", "parse_override",
-    "parse_overrides", "scene_parameters",
+    "GRAPH_NODES", "NodeSpec", "build_graph", "check_parameters", "load_parameters", "merge",
+    "parse_override", "parse_overrides", "scene_parameters",
 ]  # fmt: skip
 
 # Node sections of a parameter file apply to the node in any namespace.
@@ -42,7 +46,10 @@ def load_parameters(path: Path | None = None) -> dict[str, dict]:
         raise FileNotFoundError(
             f"params file: got {str(path)!r}, expected an existing ROS 2 parameter YAML file"
         )
-    data = yaml.safe_load(path.read_text()) or {}
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        raise ValueError(f"params file {path}: not valid YAML: {_yaml_problem(err)}") from None
     if not isinstance(data, dict):
         raise ValueError(
             f"params file {path}: expected a mapping of node names, got {type(data).__name__}"
@@ -52,6 +59,13 @@ def load_parameters(path: Path | None = None) -> dict[str, dict]:
         params = (section or {}).get("ros__parameters", {}) if isinstance(section, dict) else {}
         out[str(node_name).removeprefix(ANY_NAMESPACE).lstrip("/")] = dict(params or {})
     return out
+
+
+def _yaml_problem(err: yaml.YAMLError) -> str:
+    """What a YAML parser refused, on one line: the problem and where (line, column)."""
+    mark = getattr(err, "problem_mark", None)
+    problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+    return f"{problem} at line {mark.line + 1}, column {mark.column + 1}" if mark else problem
 
 
 def scene_parameters(scene_name: str) -> dict[str, dict]:
@@ -86,7 +100,13 @@ def parse_override(text: str) -> tuple[str, str, object]:
     node, dot, name = key.partition(".")
     if not sep or not dot or not node or not name:
         raise ValueError(f"--param: got {text!r}, expected NODE.NAME=VALUE, e.g. planner.eta=0.3")
-    return node, name, yaml.safe_load(raw) if raw else ""
+    try:
+        value = yaml.safe_load(raw) if raw else ""
+    except yaml.YAMLError as err:
+        raise ValueError(
+            f"--param {key}: got {raw!r}, expected a YAML value ({_yaml_problem(err)})"
+        ) from None
+    return node, name, value
 
 
 def parse_overrides(texts: Iterable[str]) -> dict[str, dict]:
@@ -139,7 +159,9 @@ def build_graph(
 ) -> list[NodeSpec]:
     """The node specs for one launch: what the camera's scene tells the planner <- bundled
     defaults (or `params`) <- `overrides`."""
-    merged = merge(copy.deepcopy(load_parameters() if params is None else params), overrides)
+    params = load_parameters() if params is None else params
+    check_parameters(params, overrides)
+    merged = merge(copy.deepcopy(params), overrides)
     names = {name for name, _ in nodes}
     scene = merged.get("sim_bridge", {}).get("scene")
     if scene and names & {"planner", "semantics", "reconstruction"}:
@@ -152,7 +174,45 @@ def build_graph(
             near = stereo_min_range(merged["sim_bridge"], merged["perception"])
             planner["min_range"] = max(float(planner.get("min_range", 0.0)), near)
     shared = merged.get("**", {})
-    return [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
+    specs = [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
+    for spec in specs:  # a value the node would refuse is refused before anything starts
+        try:
+            parameter_values(_declared(spec.name), spec.parameters)
+        except InputError as err:
+            raise ValueError(f"{spec.name}.{err}") from None
+    return specs
+
+
+def check_parameters(
+    params: Mapping[str, Mapping], overrides: Mapping[str, Mapping] | None
+) -> None:
+    """Refuse, before a node starts, the names a node would only warn about in its log: an
+    override (`-p NODE.NAME=VALUE`) for a node the graph does not have, and a name that a graph
+    node does not declare, in an override or in the node's section of the parameter file (the
+    file may hold sections of other nodes of a robot's stack: those are theirs). Raises
+    ValueError naming the node, the parameter and, where one is close, the declared name meant."""
+    graph = [name for name, _ in GRAPH_NODES]
+    for node in overrides or {}:
+        if node not in graph and node != "**":
+            raise ValueError(f"--param {node}.*: got node {node!r}, expected one of {graph}")
+    for source, layer in (("params file", params), ("--param", overrides or {})):
+        for node, values in layer.items():
+            if node not in graph:
+                continue
+            declared = {p.name for p in _declared(node)} | BUILTIN_PARAMETERS
+            for name in values:
+                if name not in declared:
+                    close = difflib.get_close_matches(name, declared, 1)
+                    hint = f" (did you mean {close[0]!r}?)" if close else ""
+                    raise ValueError(
+                        f"{source}: {node}.{name}: got a parameter {node} does not declare"
+                        f"{hint}; its README lists them, and `ros2 param list /{node}`"
+                    )
+
+
+def _declared(node: str) -> tuple:
+    """The `Param`s node `node` declares (its module's PARAMS)."""
+    return importlib.import_module(dict(GRAPH_NODES)[node]).PARAMS
 
 
 class _NoAliases(yaml.SafeDumper):

@@ -98,3 +98,36 @@ def test_an_error_message_with_brackets_is_printed_whole(tmp_path):
     assert "[cluster]" in result.output and "expected a directory containing episode.json" in (
         " ".join(result.output.split())
     )
+
+
+def _refused_run(tmp_path, *args: str):
+    out = tmp_path / "runs"
+    result = _invoke(["run", "--out", str(out), *args])
+    assert result.exit_code == 2, result.output
+    assert not out.exists() or not any(out.iterdir())  # refused before a run directory was made
+    return " ".join(result.output.split())
+
+
+def test_a_parameter_no_node_declares_is_refused_by_name_before_anything_starts(tmp_path):
+    text = _refused_run(tmp_path, "-p", "foo.eta=1")
+    assert "--param foo.*: got node 'foo', expected one of" in text and "'planner'" in text
+    text = _refused_run(tmp_path, "-p", "planner.etaa=0.5")
+    assert "planner.etaa" in text and "does not declare (did you mean 'eta'?)" in text
+    text = _refused_run(tmp_path, "-p", "planner.eta=abc")
+    assert "planner.eta: got 'abc', expected a float" in text
+    text = _refused_run(tmp_path, "-p", "planner.eta=[1,")
+    assert "--param planner.eta: got '[1,', expected a YAML value" in text and "column 4" in text
+
+
+def test_a_parameter_file_with_a_typo_or_broken_yaml_is_refused_by_name(tmp_path):
+    typo = tmp_path / "typo.yaml"
+    typo.write_text(
+        "planner:\n  ros__parameters:\n    gama: 0.01\n"
+        "mission_planner:\n  ros__parameters:\n    anything: 1\n"  # another node's: not ours
+    )
+    text = _refused_run(tmp_path, "--params", str(typo))
+    assert "params file: planner.gama" in text and "(did you mean 'gamma'?)" in text
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("planner:\n  ros__parameters:\n    eta: [1,\n")
+    text = _refused_run(tmp_path, "--params", str(broken))
+    assert f"params file {broken}: not valid YAML" in text and "line 4, column 1" in text
