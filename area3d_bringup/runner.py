@@ -112,11 +112,14 @@ class _Episode(EpisodeRecord):
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(self.manager)
         spinner = Spinner(executor, name=NAME)
-        self.log(
+        where = (
             f"graph on ROS_DOMAIN_ID={self.domain_id}"
             f"{' (picked: free)' if lease.picked else ''}, namespace {config.namespace or '/'}, "
             f"transport {env[middleware.TRANSPORT_ENV]}, discovery {discovery}"
         )
+        self.log(where)
+        if progress is not None:  # where a user's `ros2` tools find the graph, on the console
+            progress.console.print(where)
         try:
             self._start_graph(t0, progress)
             self._episode(progress)
