@@ -29,8 +29,11 @@ TABLE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
     ("psnr_roi", "PSNR region [dB]", True, 1.0, "{:.2f}"),
     ("ssim_roi", "SSIM region", True, 1.0, "{:.3f}"),
 )
-# Secondary, in a table of their own: PSNR / SSIM over whole held-out images.
+# Secondary, in a table of their own: the two halves of the Chamfer distance, PSNR / SSIM over
+# whole held-out images and the region PSNR split into coverage and appearance.
 WHOLE_IMAGE_METRICS: tuple[tuple[str, str, bool, float, str], ...] = (
+    ("accuracy", "Accuracy [mm]", False, 1000.0, "{:.2f}"),
+    ("completeness", "Completeness [mm]", False, 1000.0, "{:.2f}"),
     ("psnr", "PSNR whole image [dB]", True, 1.0, "{:.2f}"),
     ("ssim", "SSIM whole image", True, 1.0, "{:.3f}"),
     ("roi_unreconstructed", "Region not reconstructed [%]", False, 100.0, "{:.1f}"),
@@ -42,7 +45,8 @@ Each run is one episode: a policy chose camera views of a scene under a view bud
 the scene's initial views. The captured RGB-D frames are fused into a TSDF mesh and compared with the
 scene's ground-truth surface. *Completion ratio* is the share of ground-truth surface points within
 tau of the reconstruction (tau = 1 cm for objects, 5 cm for rooms); *Chamfer* is the mean of the two
-average nearest-surface distances (reconstruction to ground truth and back; lower is better);
+average nearest-surface distances (lower is better), shown apart in the second table: *accuracy*
+from the reconstruction to the ground truth, *completeness* from the ground truth to it;
 *F-score* combines precision and recall at tau. *PSNR region* and *SSIM region* compare the mesh
 rendered at held-out views with the simulator's images, only over the pixels where the ground truth
 sees the region to reconstruct (a pixel the reconstruction leaves empty counts as black there). The
@@ -263,8 +267,9 @@ def _markdown(
     lines += _markdown_table(scenes, policies, *headline, TABLE_METRICS)
     lines += [
         "",
-        "Whole-image PSNR / SSIM (secondary: they also score the black background) and the region"
-        " PSNR split into coverage and appearance:",
+        "Accuracy and completeness (the Chamfer distance's halves), whole-image PSNR / SSIM"
+        " (secondary: they also score the black background) and the region PSNR split into"
+        " coverage and appearance:",
         "",
     ]
     lines += _markdown_table(scenes, policies, *whole, WHOLE_IMAGE_METRICS)
@@ -364,8 +369,9 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
         return "".join(parts)
     parts += _html_table(scenes, policies, *headline, TABLE_METRICS)
     parts.append(
-        "<p>Whole-image PSNR / SSIM (secondary: they also score the black background) and the"
-        " region PSNR split into coverage and appearance:</p>"
+        "<p>Accuracy and completeness (the Chamfer distance's halves), whole-image PSNR / SSIM"
+        " (secondary: they also score the black background) and the region PSNR split into"
+        " coverage and appearance:</p>"
     )
     parts += _html_table(scenes, policies, *whole, WHOLE_IMAGE_METRICS)
     parts.append("<h2>Metrics against the number of views</h2>")

@@ -129,6 +129,12 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     # headline table: PSNR / SSIM on the region; the whole-image ones in a second table
     assert "PSNR region [dB]" in headline[0] and "whole image" not in headline[0]
     assert "PSNR whole image [dB]" in second[0] and "Comp. ratio" not in second[0]
+    # the Chamfer distance's two halves, in mm, beside the whole-image figures
+    assert "Accuracy [mm]" in second[0] and "Completeness [mm]" in second[0]
+    columns = [c.strip() for c in second[0].strip().strip("|").split("|")]
+    accuracy = columns.index("synthetic_object: Accuracy [mm] ↓")
+    cells = [c.strip() for c in next(r for r in second if r.startswith("| uniform |")).split("|")]
+    assert 0 < float(cells[1 + accuracy].split("±")[0].strip("* ")) < 50
     for table in (headline, second):
         assert sum(r.startswith("| uniform |") for r in table) == 1
         assert sum(r.startswith("| area3d |") for r in table) == 1
