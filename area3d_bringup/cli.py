@@ -317,7 +317,9 @@ def launch(
 )
 def node(
     ctx: typer.Context,
-    name: str = typer.Argument(..., help="sim_bridge | perception | semantics | planner"),
+    name: str = typer.Argument(
+        ..., help="sim_bridge | perception | semantics | planner | reconstruction"
+    ),
 ) -> None:
     """Run a single node in the foreground; further arguments go to it, as with `ros2 run`
     (e.g. `area3d node planner --ros-args -p eta:=0.5 -r __ns:=/robot1`)."""

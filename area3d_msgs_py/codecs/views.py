@@ -61,13 +61,14 @@ def view_request_to_msg(
     mode: str = "",
     request_id: int = 0,
 ) -> Any:
-    """area3d_interfaces/srv/NextBestView.Request. count: views wanted, 0 = what the budget
-    allows; current: 4x4 camera pose in frame_id, stamped with the last captured frame;
+    """area3d_interfaces/srv/NextBestView.Request. count: views wanted, 0 = one in closed loop,
+    the rest of the budget in batch; current: 4x4 camera pose in frame_id, stamped with the last captured frame;
     request_id: the caller's id for it (0 = none), which a resend of it keeps."""
+    expected = "an int of views >= 0 (0 = one in closed_loop, the rest of the budget in batch)"
     if not isinstance(count, int | np.integer) or isinstance(count, bool):
-        raise InputError("count", count, "an int of views >= 0 (0 = as many as the budget allows)")
+        raise InputError("count", count, expected)
     if not 0 <= count <= UINT32_MAX:
-        raise InputError("count", count, "an int of views >= 0 (0 = as many as the budget allows)")
+        raise InputError("count", count, expected)
     if (
         not isinstance(request_id, int | np.integer)
         or isinstance(request_id, bool)
