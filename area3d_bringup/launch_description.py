@@ -205,8 +205,8 @@ def check_parameters(
                     close = difflib.get_close_matches(name, declared, 1)
                     hint = f" (did you mean {close[0]!r}?)" if close else ""
                     raise ValueError(
-                        f"{source}: {node}.{name}: got a parameter {node} does not declare"
-                        f"{hint}; its README lists them, and `ros2 param list /{node}`"
+                        f"{source} {node}.{name}: got a name that {node} does not declare{hint}; "
+                        f"its package README and `ros2 param list /{node}` list its parameters"
                     )
 
 
