@@ -18,6 +18,14 @@ from area3d_msgs_py.carving import carve_depth_frame
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.grid import GridSpec
 
+# A voxel whose pixel has no return is hidden when the nearest returns on both sides of that pixel,
+# along its row or its column and within this many pixels, put a surface more than a voxel in front
+# of it (`_hidden`): the camera's dropouts on a surface seen at a grazing angle are single pixels
+# and short runs. On the default episode (single_object, seed 0) 1,200 unknown voxels under the
+# table top counted as looked at without a return and were reported hard; within 3 px 118 stayed,
+# within 6 px none.
+OCCLUDER_WINDOW_PX = 6
+
 
 def _direction_bins(count: int) -> np.ndarray:
     """(count, 3) unit vectors spread evenly over the sphere (Fibonacci lattice)."""
@@ -198,6 +206,7 @@ class FrameObserver:
                     np.ascontiguousarray(np.linalg.inv(T)),
                     self.roi_centres,
                     float(max_range),
+                    float(self.spec.voxel_size),
                     scratch.pixels,
                     scratch.crossed.reshape(-1),
                     self.roi_ids,
@@ -248,13 +257,45 @@ class _FrameScratch:
         self.crossed.fill(0)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _hidden(depth, iu, iv, limit):  # pragma: no cover - compiled
+    """Whether the pixel (iu, iv), which has no return, lies between returns of a surface nearer
+    than `limit`: along its row or its column, the nearest finite depths on both sides within
+    OCCLUDER_WINDOW_PX, interpolated linearly to the pixel, give a depth below `limit`."""
+    for axis in range(2):
+        before, before_step = _nearest_return(depth, iu, iv, axis, -1)
+        after, after_step = _nearest_return(depth, iu, iv, axis, 1)
+        if before_step > 0 and after_step > 0:
+            between = (before * after_step + after * before_step) / (before_step + after_step)
+            if between < limit:
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nearest_return(depth, iu, iv, axis, sign):  # pragma: no cover - compiled
+    """(depth, steps) of the nearest finite depth from (iu, iv) along its row (axis 0) or column
+    (axis 1) in direction `sign`, within OCCLUDER_WINDOW_PX; steps 0 where there is none."""
+    h, w = depth.shape
+    for step in range(1, OCCLUDER_WINDOW_PX + 1):
+        u = iu + sign * step if axis == 0 else iu
+        v = iv + sign * step if axis == 1 else iv
+        if u < 0 or u >= w or v < 0 or v >= h:
+            break
+        if np.isfinite(depth[v, u]):
+            return np.float64(depth[v, u]), step
+    return 0.0, 0
+
+
 @njit(cache=True, nogil=True)
 def _unresolved_in_view(
-    depth, fx, fy, cx, cy, T_cam_world, centres, max_range, pixels, crossed, ids
+    depth, fx, fy, cx, cy, T_cam_world, centres, max_range, voxel_size, pixels, crossed, ids
 ):  # pragma: no cover - compiled
     """Positions (into `centres` (K, 3), flat voxel `ids` (K,)) of the voxels in front of the
     camera, within max_range, inside the image, whose centre's pixel has no finite depth and
-    which the frame neither hit (`pixels` of the voxel 0) nor carved (`crossed` 0)."""
+    which the frame neither hit (`pixels` of the voxel 0) nor carved (`crossed` 0), and which no
+    surface hides (`_hidden`): a dropout among returns from a surface in front of the voxel (a
+    table top seen at a grazing angle) is not a look at what lies behind that surface."""
     h, w = depth.shape
     out = np.empty(centres.shape[0], np.int64)
     count = 0
@@ -270,12 +311,16 @@ def _unresolved_in_view(
         v = np.floor(fy * (yc + T_cam_world[1, 3]) / zc + cy)
         if not (0 <= u < w and 0 <= v < h):
             continue
-        if np.isfinite(depth[int(v), int(u)]):
+        iu, iv = int(u), int(v)
+        if np.isfinite(depth[iv, iu]):
             continue
         voxel = ids[k]
-        if pixels[voxel] == 0 and crossed[voxel] == 0:
-            out[count] = k
-            count += 1
+        if pixels[voxel] != 0 or crossed[voxel] != 0:
+            continue
+        if _hidden(depth, iu, iv, zc - voxel_size):
+            continue
+        out[count] = k
+        count += 1
     return out[:count]
 
 

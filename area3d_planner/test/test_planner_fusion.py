@@ -207,6 +207,31 @@ def test_voxels_in_view_without_any_return_lose_attraction_after_several_directi
         make_grid(gamma=0.0, gain_rule="hope")
 
 
+def test_a_voxel_behind_a_surface_whose_pixel_dropped_out_was_not_looked_at():
+    # a depth camera's dropouts on a surface seen at an angle: single pixels without a return
+    # among pixels that hit it. The voxels behind the wall at those pixels are hidden by it, not
+    # looked at: they keep their full share and are never reported hard
+    grid = make_grid(gamma=0.0)
+    behind = [at(grid, [x, y, 0.5]) for x in (0.72, 0.77, 0.82) for y in (0.42, 0.5, 0.58)]
+    glossy = at(grid, [0.62, 0.5, 0.5])
+    for angle in (0.0, 50.0, -50.0):
+        depth, T = _view_of_wall_from(angle)
+        depth[::2, ::2] = np.nan  # one pixel in four drops out
+        depth[1::2, 1::2] = np.nan
+        grid.integrate_depth(depth, np.ones_like(depth), K, T, stride=1)
+    assert np.all(grid.occupancy()[behind] == -1)  # neither hit nor carved: unknown
+    assert np.all(grid.direction_count()[behind] == 0)
+    assert np.all(grid.achievability()[behind] == 1.0) and not grid.hard()[behind].any()
+    assert grid.occupancy()[glossy] == 1  # the wall itself: hit where its pixels returned
+    # a hole of no return over the wall's middle is still looked at: its voxels lose attraction
+    hole = make_grid(gamma=0.0)
+    for angle in (0.0, 50.0, -50.0):
+        depth, T = _view_of_wall_from(angle)
+        depth[16:32, 24:40] = np.nan
+        hole.integrate_depth(depth, np.ones_like(depth), K, T, stride=1)
+    assert hole.direction_count()[glossy] == 3 and hole.hard()[glossy]
+
+
 def test_gamma_zero_ablation_leaves_unobserved_uncertainty_only():
     grid = make_grid(gamma=0.0)
     depth, T = wall_frame()
