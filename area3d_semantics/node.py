@@ -300,6 +300,12 @@ class SemanticsNode(Node):
             self.analysis_error = analysis.error if analysis.fallback_used else None
         self._publish(analysis, views, epoch)
 
+    def destroy_node(self) -> None:
+        """A query still running on the VLM worker when the node is destroyed publishes nothing
+        (its publishers are gone: rclpy raised InvalidHandle on that thread)."""
+        self.gate.close()
+        super().destroy_node()
+
     def _publish(self, analysis: Analysis, views: list, epoch: int) -> None:
         with self.gate as running:
             if running:  # a query that ends after the node stopped publishes nothing

@@ -405,3 +405,18 @@ def test_a_reset_drops_the_views_and_a_running_analysis_and_the_next_views_are_t
         assert [img["stamp_ns"] for img in payload["images"]] == [d[0] for d in data[2:]]
     finally:
         rig.close()
+
+
+def test_a_query_that_ends_after_the_node_was_destroyed_publishes_nothing_and_raises_nothing():
+    rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
+    try:
+        held = _held_requery(rig, frames(2))  # a re-query runs in the VLM worker
+        worker = rig.semantics.worker
+        rig.semantics.destroy_node()  # its publishers are gone ...
+        held.release.set()  # ... when the query ends
+        assert worker.join(TIMEOUT_S)
+        # it ended as an analysis, not as an exception from a destroyed publisher
+        assert worker.failures == 0 and worker.healthy and worker.runs == 2
+        assert len(rig.regions) == 1 and rig.semantics.analyses == 1
+    finally:
+        rig.close()
