@@ -62,8 +62,8 @@ def view_request_to_msg(
     request_id: int = 0,
 ) -> Any:
     """area3d_interfaces/srv/NextBestView.Request. count: views wanted, 0 = one in closed loop,
-    the rest of the budget in batch; current: 4x4 camera pose in frame_id, stamped with the last captured frame;
-    request_id: the caller's id for it (0 = none), which a resend of it keeps."""
+    the rest of the budget in batch; current: 4x4 camera pose in frame_id, stamped with the last
+    captured frame; request_id: the caller's id for it (0 = none), which a resend of it keeps."""
     expected = "an int of views >= 0 (0 = one in closed_loop, the rest of the budget in batch)"
     if not isinstance(count, int | np.integer) or isinstance(count, bool):
         raise InputError("count", count, expected)
