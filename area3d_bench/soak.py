@@ -4,8 +4,8 @@ processes) for 10 minutes or 6000 frames, while a mission manager (a process of 
 the planner has fused a frame (before, the answer would be an empty plan), until it has had an
 answer at least.
 
-Figures: frames the camera sent, published by perception and fused by the planner (none may be
-lost); each node's resident memory at the start and the end of the stream (it must stay flat);
+Figures: frames the camera sent, published by perception and fused by the planner, and those
+each node dropped and counted (none may be lost uncounted, and at the target rate none dropped); each node's resident memory at the start and the end of the stream (it must stay flat);
 the next-best-view round trips during fusion (planning and fusion must not block each other),
 beside the closed-loop target. The frames are the scene's views rendered once and sent again
 with new stamps, so rendering does not compete with the nodes for the CPU.
@@ -166,16 +166,19 @@ def run_bench(
             launcher.wait_for(lambda: run.latencies or run.empty_plans, FIRST_ANSWER_WAIT_S)
             _stop_manager(manager)
             reader.join(timeout=120)
+            # caught up: every frame sent is accounted for by perception (published, or
+            # dropped and counted) and every one it published by the planner (fused, or
+            # dropped and counted); a frame neither node counts is lost on the way
             run.caught_up = launcher.wait_for(
-                lambda: _last(planner_status).get("last_fused_stamp_ns") == run.sent[-1], 180
+                lambda: (
+                    _perception_accounted(_last(perception_status)) == len(run.sent)
+                    and _planner_accounted(_last(planner_status))
+                    == _last(perception_status).get("frames_published")
+                ),
+                180,
             )
             run.drain_s = time.perf_counter() - run.stream_t0 - run.stream_s
             run.rss_end = {name: rss_mb(pid) for name, pid in pids.items()}
-            # perception's status comes once a second and later on a busy machine: wait for
-            # the one that counts the last frame as long as the planner's catching up may take
-            launcher.wait_for(
-                lambda: _last(perception_status).get("frames_published") == len(run.sent), 120
-            )
         finally:
             if manager is not None:
                 _stop_manager(manager)
@@ -191,6 +194,33 @@ def run_bench(
 
 def _last(statuses: list) -> dict:
     return json.loads(statuses[-1].data) if statuses else {}
+
+
+# the frames each node drops and counts (each said in its log): its status's names; the pose
+# source's drops (with TF or odometry) are counted by cause
+PERCEPTION_DROPS = (
+    "frames_dropped_backlog",
+    "frames_dropped_without_camera_info",
+    "frames_dropped_backend_failure",
+    "frames_dropped_no_pose",
+)
+PLANNER_DROPS = ("frames_dropped_backlog", "frames_dropped_no_pose")
+
+
+def _dropped(status: dict, names: tuple[str, ...]) -> int:
+    """The frames one status line counts as dropped under `names` (a count or {cause: count})."""
+    counts = [status.get(name) or 0 for name in names]
+    return sum(sum(c.values()) if isinstance(c, dict) else c for c in counts)
+
+
+def _perception_accounted(status: dict) -> int:
+    """Frames perception published or dropped and counted, from one of its status lines."""
+    return status.get("frames_published", 0) + _dropped(status, PERCEPTION_DROPS)
+
+
+def _planner_accounted(status: dict) -> int:
+    """Frames the planner fused or dropped and counted, from one of its status lines."""
+    return status.get("frames_fused", 0) + _dropped(status, PLANNER_DROPS)
 
 
 def _read_manager(manager: subprocess.Popen, run: _Run) -> threading.Thread:
@@ -333,6 +363,12 @@ def _status_figures(
         # one frame's fusion in the planner, p50 / p95 / max
         "fusion_s": _p50_p95_max(fusion_s),
         "perception_rejected": _last(perception_status).get("rejected"),
+        "perception_frames_dropped": {
+            k: _dropped(_last(perception_status), (k,)) for k in PERCEPTION_DROPS
+        },
+        "planner_frames_dropped_no_pose": _dropped(
+            _last(planner_status), ("frames_dropped_no_pose",)
+        ),
         "planner_parts_dropped": _last(planner_status).get("parts_dropped_unpaired"),
         "planner_frames_dropped_backlog": _last(planner_status).get("frames_dropped_backlog"),
         "drop_lines": [line for line in lines if " dropped: " in line][:5],
@@ -397,6 +433,8 @@ def _print_table(f: dict) -> None:
     table.add_row(
         "published by perception", str(f["frames_published_by_perception"]), "= frames sent"
     )
+    for name, count in f["perception_frames_dropped"].items():
+        table.add_row(f"perception: {name.replace('_', ' ')}", str(count), "0")
     table.add_row("fused by the planner", str(f["frames_fused"]), "= frames sent")
     table.add_row("planner: parts dropped unpaired", str(f["planner_parts_dropped"]), "0")
     table.add_row(
