@@ -3,6 +3,7 @@ export_mesh), the same from every node that serves one."""
 
 from __future__ import annotations
 
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -25,4 +26,18 @@ def refused(response: Any, service: str, exc: Exception, logger: Any) -> Any:
     response.size_bytes = 0
     response.message = f"{type(exc).__name__}: {exc}" if isinstance(exc, OSError) else str(exc)
     logger.warning(f"{service}: {response.message}")
+    return response
+
+
+def failed(response: Any, service: str, exc: Exception, logger: Any) -> Any:
+    """A load that passed the file's checks and still failed (a file the checks do not cover, or
+    a bug): said in the answer, the traceback in the log; the node keeps its map and runs on."""
+    response.success = False
+    response.path = ""
+    response.size_bytes = 0
+    response.message = (
+        f"could not be done: {type(exc).__name__}: {exc} (the running map is as it was; "
+        "the traceback is in the node's log)"
+    )
+    logger.error(f"{service}: {response.message}\n{''.join(traceback.format_exception(exc))}")
     return response

@@ -65,6 +65,54 @@ class MapFile:
             raise InputError(f"{self.path}: array {name!r}", value.shape, f"shape {shape}")
         return value
 
+    def require(self, fields: dict[str, str]) -> None:
+        """Refuse a header whose entries in `fields` (name -> one of `HEADER_KINDS`) are missing
+        or of another kind, the file and the entry named: what a reader turns into its map must
+        be there and of the kind it expects, or the file is refused before anything changes."""
+        for name, kind in fields.items():
+            check, expected = HEADER_KINDS[kind]
+            if name not in self.header:
+                raise InputError(f"{self.path}: {name}", "missing", f"{expected} in the header")
+            if not check(self.header[name]):
+                raise InputError(f"{self.path}: {name}", self.header[name], expected)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_count(value: Any) -> bool:
+    return _is_int(value) and value >= 0
+
+
+def _is_number(value: Any) -> bool:
+    return (_is_int(value) or isinstance(value, float)) and bool(np.isfinite(value))
+
+
+#: kind -> (check, what was expected): the kinds of header entries `MapFile.require` checks
+HEADER_KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "count": (_is_count, "an integer >= 0"),
+    "count or null": (lambda v: v is None or _is_count(v), "an integer >= 0 or null"),
+    "integer": (_is_int, "an integer"),
+    "bool": (lambda v: isinstance(v, bool), "true or false"),
+    "integers or null": (
+        lambda v: v is None or (isinstance(v, list) and all(_is_int(x) for x in v)),
+        "a list of integers or null",
+    ),
+    "camera": (
+        lambda v: (
+            isinstance(v, dict)
+            and _is_number(v.get("hfov_deg"))
+            and 0 < v["hfov_deg"] < 180
+            and _is_count(v.get("width"))
+            and _is_count(v.get("height"))
+            and v["width"] > 0
+            and v["height"] > 0
+        ),
+        "{hfov_deg: (0, 180), width: integer > 0, height: integer > 0}",
+    ),
+}
+
 
 def resolve(path: str | os.PathLike) -> Path:
     """`path` as an absolute path (relative to the working directory); an empty one refused."""
@@ -102,10 +150,17 @@ def replace_atomically(
     `suffix`: `np.savez` appends ".npz" to a name without it), flushed to the disk with `sync`,
     then renamed over `target` (atomic on POSIX): a reader sees the old complete file or the new
     one, never a torn one. A failure removes the temporary file and leaves `target` untouched."""
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=target.parent)
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=target.parent)
+    except OSError as exc:  # e.g. a directory that says it is writable and is not (/proc)
+        raise OSError(
+            exc.errno, f"no file can be created in {target.parent} for {target} ({exc.strerror})"
+        ) from exc
     os.close(fd)
     tmp = Path(name)
     try:
+        # the mode of the file replaced, or the one a new file gets (mkstemp's: the owner's only)
+        os.chmod(tmp, target.stat().st_mode & 0o777 if target.exists() else 0o666 & ~UMASK)
         write(tmp)
         if sync:
             with tmp.open("rb") as written:
@@ -114,6 +169,17 @@ def replace_atomically(
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    """The process's umask, read once at import (POSIX reads it only by setting it, which is
+    process-wide: not done again while node threads may be creating files)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+UMASK = _umask()
 
 
 def write_map(
@@ -153,9 +219,9 @@ def read_map(path: str | os.PathLike, content: str) -> MapFile:
         with np.load(source, allow_pickle=False) as archive:
             arrays = {name: archive[name] for name in archive.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
-        raise InputError(
-            "path", str(source), f"a complete area3d map file (read failed: {exc})"
-        ) from exc
+        # numpy takes a file that is no zip archive for a pickle and advises loading it unsafely
+        why = "not a zip archive" if not zipfile.is_zipfile(source) else f"read failed: {exc}"
+        raise InputError("path", str(source), f"a complete area3d map file ({why})") from exc
     if HEADER not in arrays:
         raise InputError("path", str(source), f"an area3d map file (no {HEADER!r} entry)")
     try:

@@ -33,6 +33,22 @@ VOXEL_FIELDS = (
     "best_confidence", "directions",
 )  # fmt: skip
 RANGE_FIELDS = ("range_confidence", "range_hits")
+# the header's entries `restore` reads, and their kinds (`mapfile.HEADER_KINDS`)
+HEADER_FIELDS = {
+    "frames": "count",
+    "semantic_frames": "count",
+    "committed": "count",
+    "initial_frames": "count or null",
+    "initial_counted": "count",
+    "initial_views": "count or null",
+    "last_fused_stamp": "integer",
+    "handed_out": "integers or null",
+    "has_sequence": "bool",
+    "map_version": "count",
+    "pipeline_base": "count",
+    "base": "integers or null",
+    "camera": "camera",
+}
 
 
 def _poses(poses: list) -> np.ndarray:
@@ -157,6 +173,7 @@ def read(server, path) -> mapfile.MapFile:
         if key not in h:
             raise InputError(f"{source}: {key}", "missing", "a planner map's header whole")
         mapfile.check_same(source, key, h[key], running)
+    loaded.require(HEADER_FIELDS)
     n = server.grid.spec.num_voxels
     ids = loaded.array("voxel_ids", np.int64, (None,))
     if ids.size and (ids.min() < 0 or ids.max() >= n):
@@ -164,7 +181,10 @@ def read(server, path) -> mapfile.MapFile:
             f"{source}: voxel_ids", [int(ids.min()), int(ids.max())], f"ids in [0, {n})"
         )
     for name in VOXEL_FIELDS:
-        loaded.array(f"voxel_{name}", getattr(server.grid, name).dtype, (ids.size,))
+        dtype = getattr(server.grid, name).dtype
+        values = loaded.array(f"voxel_{name}", dtype, (ids.size,))
+        if dtype.kind == "f" and not np.isfinite(values).all():
+            raise InputError(f"{source}: array 'voxel_{name}'", "NaN or inf", "finite values")
     for name in RANGE_FIELDS:
         loaded.array(name, np.float64, getattr(server.grid, name).shape)
     decay_ids = loaded.array("decay_ids", np.int64, (None,))
@@ -172,7 +192,7 @@ def read(server, path) -> mapfile.MapFile:
     if decay_ids.size and (decay_ids.min() < 0 or decay_ids.max() >= n):
         raise InputError(f"{source}: decay_ids", int(decay_ids.max()), f"ids in [0, {n})")
     stamps = loaded.array("fused_stamps", np.int64, (None,))
-    if stamps.size != int(h.get("frames", -1)):
+    if stamps.size != h["frames"]:
         raise InputError(f"{source}: fused_stamps", stamps.size, f"{h.get('frames')} (frames)")
     loaded.array("camera_poses", np.float64, (stamps.size, 4, 4))
     loaded.array("stamp_versions", np.int64, (stamps.size,))
@@ -192,7 +212,11 @@ def read(server, path) -> mapfile.MapFile:
     sequence = loaded.array("sequence_gains", np.float64, (None,))
     loaded.array("sequence_poses", np.float64, (sequence.size, 4, 4))
     base = loaded.array("base_occupancy", np.int8, (None,))
-    if h.get("base") is not None and base.size != n:
+    if h["base"] is not None and len(h["base"]) != 2:
+        raise InputError(f"{source}: base", h["base"], "[map version, stamp] or null")
+    if h["handed_out"] is not None and len(h["handed_out"]) != 3:
+        raise InputError(f"{source}: handed_out", h["handed_out"], "3 integers or null")
+    if h["base"] is not None and base.size != n:
         raise InputError(f"{source}: base_occupancy", base.size, f"{n} voxels")
     return loaded
 

@@ -317,6 +317,9 @@ class PlannerNode(Node):
         except (InputError, OSError) as exc:
             scheduler.close(0.0)
             return map_files.refused(response, service, exc, self.get_logger())
+        except Exception as exc:  # restored into the new map only: the running one stays
+            scheduler.close(0.0)
+            return map_files.failed(response, service, exc, self.get_logger())
         old.close(0.0)
         self._publish_state(self.scheduler.core.last_fused_stamp or self._now_ns())
         h = loaded.header

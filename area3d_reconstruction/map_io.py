@@ -57,11 +57,15 @@ def read(fusion: TsdfFusion, path) -> mapfile.MapFile:
                 )
             continue
         mapfile.check_same(loaded.path, key, saved, running)
-    blocks = int(loaded.header.get("blocks", -1))
+    loaded.require({"frames": "count", "blocks": "count"})
+    blocks = loaded.header["blocks"]
     loaded.array("block_keys", np.int32, (blocks, 3))
     for name, channels in (("tsdf", 1), ("weight", 1), ("color", 3)):
-        loaded.array(name, np.float32, (blocks, None, None, None, channels))
-    loaded.array("stamps", np.int64, (None,))
+        values = loaded.array(name, np.float32, (blocks, None, None, None, channels))
+        if not np.isfinite(values).all():
+            raise InputError(f"{loaded.path}: array {name!r}", "NaN or inf", "finite values")
+    # one stamp a frame integrated (a frame is integrated once, after a load too)
+    loaded.array("stamps", np.int64, (loaded.header["frames"],))
     return loaded
 
 
@@ -77,6 +81,14 @@ def export_mesh(mesh, path) -> tuple[Path, int]:
     o3d = import_open3d()
     if mapfile.resolve(path).suffix.lower() != ".ply":
         raise InputError("path", str(mapfile.resolve(path)), "a file name ending in .ply")
+
+    if len(mesh.triangles) == 0:
+        raise InputError(
+            "mesh",
+            "0 triangles",
+            "a reconstruction with a surface (no frame "
+            "integrated yet, or none since a reset or the load of an empty map)",
+        )
 
     def write(tmp: Path) -> None:
         if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False):

@@ -1,6 +1,7 @@
 """The planner's map saved and loaded (`map_io`): a mission resumed from a saved map chooses the
 views of the mission never stopped; a map that does not fit is refused and the running map kept."""
 
+import re
 import zipfile
 
 import numpy as np
@@ -14,6 +15,7 @@ from area3d_planner.requests import PlanRequest
 from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
 from area3d_planner.server import NextBestViewServer
 from area3d_planner.test.conftest import WALL_K, server_config
+from tests.map_files import MISSING, rewrite_map
 
 
 def config(**kw):
@@ -145,8 +147,9 @@ def test_truncated_foreign_missing_and_future_files_are_refused(tmp_path):
         map_io.read(srv, truncated)
     foreign = tmp_path / "foreign.ply"
     foreign.write_text("ply\nformat ascii 1.0\nend_header\n")
-    with pytest.raises(InputError, match="complete area3d map file"):
+    with pytest.raises(InputError, match="complete area3d map file .not a zip archive") as info:
         map_io.read(srv, foreign)
+    assert "pickle" not in str(info.value)  # numpy's advice to load it unsafely
     with pytest.raises(InputError, match="existing map file"):
         map_io.read(srv, tmp_path / "nowhere.a3map")
     future = tmp_path / "future.a3map"
@@ -158,6 +161,46 @@ def test_truncated_foreign_missing_and_future_files_are_refused(tmp_path):
     mapfile.write_map(other, "reconstruction", {}, {})
     with pytest.raises(InputError, match="content"):
         map_io.read(srv, other)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"semantic_frames": MISSING}, "semantic_frames: got 'missing', expected an integer >= 0"),
+        ({"frames": "ten"}, "frames: got 'ten', expected an integer >= 0"),
+        ({"committed": -1}, "committed: got -1, expected an integer >= 0"),
+        ({"has_sequence": 1}, "has_sequence: got 1, expected true or false"),
+        ({"handed_out": [1, 2]}, "handed_out: got [1, 2], expected 3 integers or null"),
+        ({"base": "x"}, "base: got 'x', expected a list of integers or null"),
+        ({"camera": {"hfov_deg": 90.0}}, "camera: got"),
+    ],
+)
+def test_a_header_entry_missing_or_of_another_kind_is_refused_naming_it(tmp_path, change, message):
+    path = rewrite_map(saved(tmp_path), tmp_path / "bad.a3map", header=change)
+    with pytest.raises(InputError, match=re.escape(message)):
+        map_io.read(NextBestViewServer(config()), path)
+
+
+def test_an_array_of_nan_is_refused_naming_it(tmp_path):
+    path = saved(tmp_path)
+    with np.load(path) as archive:
+        conf = np.full_like(archive["voxel_conf_sum"], np.nan)
+    bad = rewrite_map(path, tmp_path / "nan.a3map", arrays={"voxel_conf_sum": conf})
+    with pytest.raises(InputError, match="voxel_conf_sum'. got 'NaN or inf', expected finite"):
+        map_io.read(NextBestViewServer(config()), bad)
+
+
+def test_a_saved_map_gets_the_mode_of_a_new_file_or_keeps_the_one_it_replaces(tmp_path):
+    srv = NextBestViewServer(config())
+    run(srv, range(1))
+    new = tmp_path / "new.a3map"
+    map_io.save(srv, new)
+    assert new.stat().st_mode & 0o777 == 0o666 & ~mapfile.UMASK
+    kept = tmp_path / "kept.a3map"
+    kept.write_bytes(b"")
+    kept.chmod(0o640)
+    map_io.save(srv, kept)
+    assert kept.stat().st_mode & 0o777 == 0o640 and kept.stat().st_size > 0
 
 
 def test_a_file_of_a_newer_format_version_is_refused(tmp_path, monkeypatch):

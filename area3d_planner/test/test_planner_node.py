@@ -18,6 +18,7 @@ from rclpy.parameter import Parameter
 from area3d_msgs_py import codecs, msgs, qos, services, topics
 from area3d_msgs_py.diagnostics import DIAGNOSTICS_TOPIC, ERROR, OK
 from area3d_msgs_py.spinning import Spinner
+from area3d_planner import map_io
 from area3d_planner.node import PlannerNode
 from area3d_planner.test.conftest import WALL_DIRECTIONS, WALL_K, banded_wall_view
 
@@ -375,6 +376,15 @@ def test_a_mission_resumed_from_a_saved_map_over_the_services_chooses_the_same_v
     (tmp_path / "foreign.a3map").write_bytes(b"PK\x03\x04 not a whole zip")
     refused = _map_call(resumed, topics.PLANNER_LOAD_MAP, tmp_path / "foreign.a3map")
     assert not refused.success and "complete area3d map file" in refused.message
+
+    # a file that passes the checks and still fails to load (a bug): said, the node runs on
+    def broken(*args):
+        raise RuntimeError("a file the checks let through")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(map_io, "restore", broken)
+        failed = _map_call(resumed, topics.PLANNER_LOAD_MAP, tmp_path / "planner.a3map")
+    assert not failed.success and "could not be done: RuntimeError" in failed.message
     loaded = _map_call(resumed, topics.PLANNER_LOAD_MAP, tmp_path / "planner.a3map")
     assert loaded.success and "loaded 2 fused frames" in loaded.message, loaded.message
     assert "17 views remain" in loaded.message  # 20 - (1 initial + 2 handed out)

@@ -21,7 +21,9 @@ from area3d_eval.render import canonical_mesh
 from area3d_msgs_py import codecs, msgs, services, topics
 from area3d_msgs_py.camera_pose import look_at
 from area3d_msgs_py.spinning import Spinner
+from area3d_reconstruction import map_io
 from area3d_reconstruction.node import ReconstructionNode
+from tests.map_files import MISSING, rewrite_map
 
 TIMEOUT_S = 120.0  # generous: a loaded machine is slow (every wait ends once its condition holds)
 OPTICAL = "camera_optical_frame"
@@ -196,7 +198,7 @@ def test_frames_become_a_published_mesh_and_the_export_is_the_offline_reconstruc
 
 
 def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_as_it_was(
-    rig, tmp_path
+    rig, tmp_path, monkeypatch
 ):
     frames = [sphere_frame(i) for i in range(3)]
     for f in frames:
@@ -212,13 +214,35 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
     ]
     (tmp_path / "foreign.a3map").write_text("not a map")
     refusals.append((topics.RECONSTRUCTION_LOAD_MAP, tmp_path / "foreign.a3map", "complete"))
-    data = (tmp_path / "volume.a3map").read_bytes()
+    volume = tmp_path / "volume.a3map"
+    data = volume.read_bytes()
     (tmp_path / "cut.a3map").write_bytes(data[: len(data) // 3])
     refusals.append((topics.RECONSTRUCTION_LOAD_MAP, tmp_path / "cut.a3map", "complete"))
+    # damaged headers and arrays (which crashed the node before): refused, each named
+    with np.load(volume) as archive:
+        nan_tsdf = np.full_like(archive["tsdf"], np.nan)
+    for name, change, why in (
+        ("ten", {"header": {"frames": "ten"}}, "frames: got 'ten', expected an integer >= 0"),
+        ("noframes", {"header": {"frames": MISSING}}, "frames: got 'missing'"),
+        ("stamps", {"header": {"frames": 10}}, "array 'stamps': got (3,), expected shape (10,)"),
+        ("nan", {"arrays": {"tsdf": nan_tsdf}}, "array 'tsdf': got 'NaN or inf'"),
+    ):
+        bad = rewrite_map(volume, tmp_path / f"{name}.a3map", **change)
+        refusals.append((topics.RECONSTRUCTION_LOAD_MAP, bad, why))
     for service, path, why in refusals:
         answer = rig.call(service, path)
         assert not answer.success and why in answer.message, answer.message
     assert not (tmp_path / "nowhere").exists() and not (tmp_path / "mesh.txt").exists()
+    assert rig.node._status()["frames_integrated"] == 3
+
+    # a file that passes the checks and still fails to load (a bug): said, the volume kept
+    def broken(*args):
+        raise RuntimeError("a file the checks let through")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(map_io, "restore", broken)
+        answer = rig.call(topics.RECONSTRUCTION_LOAD_MAP, volume)
+    assert not answer.success and "could not be done: RuntimeError" in answer.message
     assert rig.node._status()["frames_integrated"] == 3
     # one node at a time from here: two would both serve area3d/reconstruction/load_map
     rig.close()
@@ -248,5 +272,9 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
         assert reset.success and "4 frames integrated" in reset.message
         assert fresh.integrated(0)
         assert fresh.wait(lambda: len(fresh.meshes[-1].points) == 0)
+        # nothing to export: said so, nothing written
+        empty = fresh.call(topics.RECONSTRUCTION_EXPORT_MESH, tmp_path / "empty.ply")
+        assert not empty.success and "mesh: got '0 triangles'" in empty.message, empty.message
+        assert not (tmp_path / "empty.ply").exists()
     finally:
         fresh.close()
