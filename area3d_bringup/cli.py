@@ -227,12 +227,16 @@ def report(
 ) -> None:
     """Evaluate run directories (if not yet) and write a Markdown + HTML report."""
     from area3d_eval.rundir import EPISODE_FILE
+    from area3d_msgs_py.errors import InputError
 
     for run_dir in run_dirs:
         if not (run_dir / EPISODE_FILE).is_file():
             _fail(f"run dir: got {str(run_dir)!r}, expected a directory containing episode.json")
     out = out or (run_dirs[0] / "report" if len(run_dirs) == 1 else Path("report"))
-    md, html = _evaluate_and_report(run_dirs, out)
+    try:
+        md, html = _evaluate_and_report(run_dirs, out)
+    except InputError as err:  # a damaged run directory: which file, and what is wrong with it
+        _fail(str(err))
     print(f"report: {html}\nmarkdown: {md}")
 
 

@@ -9,7 +9,6 @@ which fill it, are `runner._Episode`'s (a subclass): its `run` sets `domain_id` 
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,7 @@ from area3d_bringup.recorder import BagRecorder
 from area3d_eval import rundir
 from area3d_eval.rundir import Frame
 from area3d_msgs_py import topics
+from area3d_msgs_py.errors import InputError
 from area3d_planner.config import paper_budget
 
 
@@ -97,7 +97,10 @@ class EpisodeRecord:
                 f"resume: got {str(run_dir)!r}, expected a run directory with episode.json"
             )
         rundir.check_output_dir(run_dir, config.min_free_mb)
-        saved = json.loads(episode_path.read_text())
+        saved = rundir.read_json_object(episode_path, "the episode.json a run writes")
+        for key in ("scene", "policy", "mode", "seed", "budget", "views"):
+            if key not in saved:
+                raise InputError(f"{episode_path}: {key}", "missing", "the run's own")
         config.scene, config.policy, config.mode = saved["scene"], saved["policy"], saved["mode"]
         config.seed, self.budget = saved["seed"], saved["budget"]
         config.depth_source = saved.get("depth_source", config.depth_source)

@@ -35,7 +35,7 @@ from area3d_eval.rundir import (
     MESH_FILE,
     METRICS_FILE,
     check_depth_source,
-    frame_files,
+    check_frames,
     read_episode,
     read_frame,
     reconstruction_input,
@@ -182,7 +182,7 @@ def evaluate_run(
     episode = read_episode(run_dir)
     scene = _load_scene(scene, episode.scene)
     depth_source = check_depth_source(depth_source or episode.depth_source)
-    files = frame_files(run_dir)
+    files = check_frames(run_dir, episode)
     if not files:
         raise InputError("run_dir", str(run_dir), "a run directory with frames/NNNN.npz files")
     checkpoints = sorted(

@@ -41,6 +41,7 @@ import json
 import math
 import shutil
 import tempfile
+import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -150,24 +151,42 @@ def read_episode(run_dir: Path) -> Episode:
     path = Path(run_dir) / EPISODE_FILE
     if not path.is_file():
         raise InputError("run_dir", str(run_dir), f"a run directory containing {EPISODE_FILE}")
-    data = json.loads(path.read_text())
+    data = read_json_object(path, "the episode.json a run writes")
     for key in ("scene", "policy"):
         if key not in data:
-            raise InputError(f"{EPISODE_FILE}.{key}", None, "a string")
-    views = sorted(data.get("views", []), key=lambda v: int(v["index"]))
-    return Episode(
-        scene=str(data["scene"]),
-        policy=str(data["policy"]),
-        seed=int(data.get("seed", 0)),
-        budget=int(data.get("budget", len(views))),
-        level=str(data.get("level", "object")),
-        mode=str(data.get("mode", "")),
-        views=views,
-        timings_s={str(k): float(v) for k, v in data.get("timings_s", {}).items()},
-        config=dict(data.get("config", {})),
-        depth_source=str(data.get("depth_source", "sensor")),
-        stopped_early=str(data.get("stopped_early", "")),
-    )
+            raise InputError(f"{path}: {key}", "missing", "a string")
+    try:
+        views = sorted(data.get("views", []), key=lambda v: int(v["index"]))
+        return Episode(
+            scene=str(data["scene"]),
+            policy=str(data["policy"]),
+            seed=int(data.get("seed", 0)),
+            budget=int(data.get("budget", len(views))),
+            level=str(data.get("level", "object")),
+            mode=str(data.get("mode", "")),
+            views=views,
+            timings_s={str(k): float(v) for k, v in data.get("timings_s", {}).items()},
+            config=dict(data.get("config", {})),
+            depth_source=str(data.get("depth_source", "sensor")),
+            stopped_early=str(data.get("stopped_early", "")),
+        )
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise InputError(
+            str(path),
+            f"an entry of another kind ({type(exc).__name__}: {exc})",
+            "the episode.json a run writes",
+        ) from exc
+
+
+def read_json_object(path: Path, expected: str) -> dict:
+    """The JSON object in `path`; a file that is no JSON object refused, the file named."""
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(str(path), f"not JSON ({exc})", expected) from exc
+    if not isinstance(data, dict):
+        raise InputError(str(path), type(data).__name__, f"a JSON object: {expected}")
+    return data
 
 
 def check_output_dir(directory: Path, min_free_mb: float = MIN_FREE_MB) -> None:
@@ -318,7 +337,19 @@ def attach_estimates(
 
 
 def read_frame(path: Path) -> Frame:
-    with np.load(path) as data:
+    """One frames/NNNN.npz; a file that is not a whole frame refused, the file named."""
+    try:
+        return _read_frame(path)
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(
+            str(path), f"unreadable ({type(exc).__name__}: {exc})", "a whole frame file of a run"
+        ) from exc
+
+
+def _read_frame(path: Path) -> Frame:
+    with np.load(path, allow_pickle=False) as data:
         return Frame(
             rgb=data["rgb"],
             depth=data["depth"].astype(np.float32),
@@ -384,5 +415,27 @@ def to_jsonable(value: Any) -> Any:
 
 
 def read_metrics(run_dir: Path) -> dict[str, Any] | None:
+    """RUN_DIR/metrics.json (None when the run was not evaluated); a file that is not what the
+    evaluation writes ({"final": {...}, ...}) refused, the file named."""
     path = Path(run_dir) / METRICS_FILE
-    return json.loads(path.read_text()) if path.is_file() else None
+    if not path.is_file():
+        return None
+    metrics = read_json_object(path, "the metrics.json the evaluation writes")
+    if not isinstance(metrics.get("final"), dict):
+        raise InputError(f"{path}: final", metrics.get("final"), "an object of the final figures")
+    return metrics
+
+
+def check_frames(run_dir: Path, episode: Episode) -> list[Path]:
+    """The run's frame files, refused when a view episode.json lists has none (a frame file
+    deleted or lost: the evaluation would silently score fewer views)."""
+    files = frame_files(run_dir)
+    have = {int(p.stem) for p in files}
+    missing = sorted(int(v["index"]) for v in episode.views if int(v["index"]) not in have)
+    if missing:
+        raise InputError(
+            f"{Path(run_dir) / FRAMES_DIR}",
+            f"no frame file for views {missing}",
+            f"frames/NNNN.npz of every view {EPISODE_FILE} lists ({len(episode.views)})",
+        )
+    return files

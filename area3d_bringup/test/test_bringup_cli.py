@@ -100,6 +100,16 @@ def test_an_error_message_with_brackets_is_printed_whole(tmp_path):
     )
 
 
+def test_a_report_of_a_damaged_run_directory_is_one_line_naming_the_file(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "episode.json").write_text('{"scene": "single_object", "policy": "area3d", "vi')
+    result = _invoke(["report", str(run_dir)])
+    assert result.exit_code == 2, result.output
+    assert result.output.startswith("error: ") and "Traceback" not in result.output
+    assert f"{run_dir / 'episode.json'}: got 'not JSON" in " ".join(result.output.split())
+
+
 def _refused_run(tmp_path, *args: str):
     out = tmp_path / "runs"
     result = _invoke(["run", "--out", str(out), *args])

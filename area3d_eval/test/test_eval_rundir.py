@@ -7,8 +7,12 @@ import numpy as np
 import pytest
 
 from area3d_eval.rundir import (
+    check_frames,
+    frame_path,
     iter_frames,
     read_episode,
+    read_frame,
+    read_metrics,
     reconstruction_input,
     to_jsonable,
     write_episode,
@@ -57,6 +61,39 @@ def test_missing_episode_and_bad_frames_are_rejected(tmp_path):
         write_frame(
             tmp_path, 0, np.zeros((4, 4, 3), np.uint8), np.zeros((4, 5)), np.eye(3), np.eye(4)
         )
+
+
+def _run(tmp_path, views: int = 3):
+    for i in range(views):
+        write_frame(
+            tmp_path, i, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4)), np.eye(3), np.eye(4)
+        )
+    listed = [{"index": i, "T_world_cam": np.eye(4), "kind": "initial"} for i in range(views)]
+    write_episode(tmp_path, {"scene": "s", "policy": "p", "budget": views, "views": listed})
+    return read_episode(tmp_path)
+
+
+def test_a_damaged_run_directory_is_refused_naming_the_file_and_what_is_wrong(tmp_path):
+    episode = _run(tmp_path)
+    assert len(check_frames(tmp_path, episode)) == 3
+    # a frame file lost: the evaluation would score two views as if they were the run
+    frame_path(tmp_path, 1).unlink()
+    with pytest.raises(InputError, match=r"frames: got 'no frame file for views \[1\]'"):
+        check_frames(tmp_path, episode)
+    cut = frame_path(tmp_path, 2)
+    cut.write_bytes(cut.read_bytes()[:100])
+    with pytest.raises(InputError, match=f"{cut}: got 'unreadable"):
+        read_frame(cut)
+    (tmp_path / "metrics.json").write_text('{"final": 3}')
+    with pytest.raises(InputError, match="metrics.json: final: got 3"):
+        read_metrics(tmp_path)
+    episode_file = tmp_path / "episode.json"
+    episode_file.write_text(episode_file.read_text()[:40])
+    with pytest.raises(InputError, match="episode.json: got 'not JSON"):
+        read_episode(tmp_path)
+    episode_file.write_text('{"scene": "s", "policy": "p", "views": [{"kind": "initial"}]}')
+    with pytest.raises(InputError, match="episode.json: got .an entry of another kind .KeyError: 'index'"):
+        read_episode(tmp_path)
 
 
 def test_perception_estimates_round_trip_and_feed_the_tsdf_only_when_asked(tmp_path):
