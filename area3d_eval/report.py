@@ -128,16 +128,18 @@ def aggregate(
     records = [r if isinstance(r, RunRecord) else None for r in run_dirs]
     if any(r is None for r in records):
         records = load_runs([Path(p) for p in run_dirs], evaluate_missing)
+    labels = _row_labels(records)
     groups: dict[tuple[str, str], list[RunRecord]] = defaultdict(list)
     for r in records:
-        groups[(r.episode.scene, r.episode.policy)].append(r)
+        groups[(r.episode.scene, labels[id(r)])].append(r)
     names = _scene_names([r.episode for r in records])
     rows = []
-    for (scene, policy), runs in sorted(groups.items()):
+    for (scene, label), runs in sorted(groups.items()):
         row: dict[str, Any] = {
             "scene": scene,
             "scene_name": names[scene],
-            "policy": policy,
+            "policy": runs[0].episode.policy,
+            "label": label,
             "runs": len(runs),
         }
         for key, *_ in TABLE_METRICS + WHOLE_IMAGE_METRICS:
@@ -147,6 +149,30 @@ def aggregate(
             row[f"{key}_std"] = float(values.std()) if values.size > 1 else 0.0
         rows.append(row)
     return rows
+
+
+def _row_labels(records: Sequence[RunRecord]) -> dict[int, str]:
+    """{id(record): its row's name}: the policy, with the view budget, mode and depth source
+    added where runs of one policy differ in them (runs of 25 and of 10 views are not seeds of
+    one row, and their mean would be no one's)."""
+
+    def settings(e: Episode) -> dict[str, str]:
+        return {
+            "budget": f"{e.budget} views",
+            "mode": e.mode,
+            "depth": f"{e.depth_source} depth",
+        }
+
+    differ: dict[str, list[str]] = {}
+    for policy in {r.episode.policy for r in records}:
+        seen = [settings(r.episode) for r in records if r.episode.policy == policy]
+        differ[policy] = [k for k in seen[0] if len({s[k] for s in seen}) > 1]
+    labels = {}
+    for r in records:
+        keys, mine = differ[r.episode.policy], settings(r.episode)
+        extra = ", ".join(mine[k] for k in keys)
+        labels[id(r)] = f"{r.episode.policy} ({extra})" if extra else r.episode.policy
+    return labels
 
 
 def _cell(row: dict[str, Any] | None, key: str, scale: float, fmt: str) -> str:
@@ -166,8 +192,8 @@ def _table(
     paper-style table."""
     scenes = sorted({r["scene"] for r in rows})
     names = {r["scene"]: r["scene_name"] for r in rows}
-    policies = sorted({r["policy"] for r in rows})
-    index = {(r["scene"], r["policy"]): r for r in rows}
+    policies = sorted({r["label"] for r in rows})
+    index = {(r["scene"], r["label"]): r for r in rows}
     cells, bold = [], []
     best: dict[tuple[str, str], float] = {}
     for scene in scenes:

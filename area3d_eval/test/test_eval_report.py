@@ -317,3 +317,26 @@ def test_region_psnr_splits_into_empty_pixels_and_the_reconstructed_ones(scene):
     assert 0.05 < cut["roi_unreconstructed"] == pytest.approx(empty)
     # the empty pixels, black against a lit surface, are what lowers the region PSNR
     assert cut["psnr_roi"] < cut["psnr_roi_reconstructed"]
+
+
+def test_runs_of_one_policy_with_other_budgets_are_rows_of_their_own(tmp_path, scene):
+    runs = []
+    for name, budget, seed in (("a", 2, 0), ("b", 2, 1), ("c", 3, 0)):
+        poses = hemisphere_views(
+            scene.center, scene.view_radius, np.linspace(0.0, 240.0, budget), np.full(budget, 30.0)
+        )
+        run = make_run(
+            tmp_path / name, scene, policy="uniform", seed=seed, budget=budget,
+            width=80, height=60, poses=poses,
+        )  # fmt: skip
+        evaluate_run(run, scene, **SMALL)
+        runs.append(run)
+    rows = {row["label"]: row for row in aggregate(runs)}
+    # two seeds of 2 views in one row; the run of 3 views is not averaged into it
+    assert set(rows) == {"uniform (2 views)", "uniform (3 views)"}
+    assert rows["uniform (2 views)"]["runs"] == 2 and rows["uniform (3 views)"]["runs"] == 1
+    assert all(row["policy"] == "uniform" for row in rows.values())
+    single = json.loads((runs[2] / "metrics.json").read_text())["final"]["completion"]
+    assert rows["uniform (3 views)"]["completion"] == pytest.approx(single)
+    # runs alike keep the policy's name alone
+    assert [row["label"] for row in aggregate(runs[:2])] == ["uniform"]
