@@ -20,6 +20,7 @@ The episode's state and run directory are `episode_record.EpisodeRecord`'s, its 
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -71,6 +72,23 @@ class _Episode(EpisodeRecord):
         self.check_next_capture = False
 
     # -- the run --------------------------------------------------------------------------------
+    def _note_sigint(self) -> Callable[[], None]:
+        """Note a Ctrl-C (`interrupted`) and leave the stopping to rclpy, whose handler,
+        installed next, calls this one after its own: it stops the mission manager's context, so
+        a request in flight fails, and that must read as the user's stop, not the planner's
+        failure. Only in the main thread (where Python takes signals); returns what puts the
+        handler back."""
+        self.interrupted = False
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+        previous = signal.getsignal(signal.SIGINT)
+
+        def noted(signum: int, frame: Any) -> None:
+            self.interrupted = True  # no KeyboardInterrupt: rclpy's handler does the stopping
+
+        signal.signal(signal.SIGINT, noted)
+        return lambda: signal.signal(signal.SIGINT, previous)
+
     def run(self, progress: Any) -> Path:
         config = self.config
         lease = middleware.DomainLease(config.domain_id)
@@ -100,6 +118,7 @@ class _Episode(EpisodeRecord):
             respawn_max_retries=config.respawn_max_retries,
         )
         context = rclpy.Context()
+        restore_sigint = self._note_sigint()
         rclpy.init(context=context, domain_id=self.domain_id)
         self.manager = MissionManager(
             self.recorder,
@@ -126,9 +145,12 @@ class _Episode(EpisodeRecord):
             self.add_time("episode_total", time.monotonic() - t0)
             self.save()
         except (NodeDied, TimeoutError, EpisodeError) as err:
+            if self.interrupted:  # Ctrl-C: the nodes and the manager were stopped by it
+                self.stopped_early = ""
             self.save()
+            why = "interrupted (Ctrl-C)" if self.interrupted else str(err)
             raise EpisodeError(
-                f"{err}\n{self._kept()}continue with --resume {self.run_dir}"
+                f"{why}\n{self._kept()}continue with --resume {self.run_dir}"
             ) from err
         except OSError as err:  # the disk filled up or went away mid-run
             raise EpisodeError(
@@ -148,6 +170,7 @@ class _Episode(EpisodeRecord):
                 self.log(f"could not write the run directory at the end: {err}")
             lease.release()
             self._log_file.close()
+            restore_sigint()
         return self.run_dir
 
     def _start_graph(self, t0: float, progress: Any) -> None:
@@ -312,6 +335,8 @@ class _Episode(EpisodeRecord):
             plan_s = time.monotonic() - t
             self.add_time("plan", plan_s)
             self.launcher.check()
+            if not poses and self.interrupted:
+                raise EpisodeError("interrupted (Ctrl-C)")
             if not poses:
                 self.stopped_early = rundir.stopped_early(to_plan - planned, manager.plan_message)
                 self.log(f"{self.stopped_early}; stopping early")

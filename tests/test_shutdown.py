@@ -153,3 +153,39 @@ def test_a_busy_planner_exits_on_sigint_without_waiting_for_its_work(tmp_path: P
     assert code == 0, lines[-20:]
     assert exit_s < EXIT_BOUND_S, f"the busy planner took {exit_s:.2f} s to exit on SIGINT"
     assert not any("Traceback" in line for line in lines), lines[-40:]
+
+
+def test_ctrl_c_during_an_episode_is_the_users_stop_not_the_planners_failure(tmp_path: Path):
+    """Ctrl-C in a terminal signals `area3d run` and its nodes together: the run says it was
+    interrupted and how to go on, and episode.json does not record the planner as the reason."""
+    import json
+    import os
+    import sys
+
+    out = tmp_path / "runs"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "area3d_bringup.cli", "run", "--budget", "40", "--no-evaluate",
+         "--no-record", "--out", str(out),
+         "-p", "sim_bridge.width=160", "-p", "sim_bridge.height=120",
+         "-p", "planner.width=160", "-p", "planner.height=120"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and proc.poll() is None:
+            if len(list(out.glob("*/frames/*.npz"))) >= 6:  # two views planned
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()[0][-3000:]
+        os.killpg(proc.pid, signal.SIGINT)  # the terminal's Ctrl-C: the whole process group
+        output, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 2, output[-3000:]
+    text = " ".join(output.split())
+    assert "error: interrupted (Ctrl-C)" in text and "continue with --resume" in text, text
+    (episode,) = out.glob("*/episode.json")
+    saved = json.loads(episode.read_text())
+    assert saved["stopped_early"] == "" and 6 <= len(saved["views"]) < 40
