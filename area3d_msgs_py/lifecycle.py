@@ -213,6 +213,11 @@ def run_node(
             raise
         signalled = True  # the context was shut down under the executor's wait: a signal
     finally:
+        # Stopping: a second Ctrl-C (a terminal's reaches the launcher and every node, and the
+        # launcher then stops each node with one of its own) would raise KeyboardInterrupt in
+        # the middle of the teardown below; SIGTERM still ends a node whose teardown hangs.
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         if log_handler is not None:
             logging.getLogger().removeHandler(log_handler)
         if on_stop is not None and node is not None:

@@ -429,7 +429,10 @@ class PlannerNode(Node):
             self.get_logger().warning(f"{service}: {plan.reason}")
         except Exception as exc:  # a refusal, and the node keeps serving
             plan = Plan([], [], f"request failed: {type(exc).__name__}: {exc}")
-            self.get_logger().error(f"{service}: {plan.reason}")
+            if self.context.ok():
+                self.get_logger().error(f"{service}: {plan.reason}")
+            else:  # Ctrl-C shut the context down while the request was served: the stop
+                self.get_logger().info(f"{service}: request ended by the node's stop")
         stamp = codecs.stamp_to_ns(request.current.header.stamp) or self._now_ns()
         if plan.reason:
             return codecs.view_refusal_to_msg(plan.reason, stamp, self.world_frame)

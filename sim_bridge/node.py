@@ -25,7 +25,7 @@ from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded
 from area3d_msgs_py.inputs import check_frame_id, check_stamp
-from area3d_msgs_py.lifecycle import exit_process, run_node
+from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     MAX_STAMP_AHEAD_PARAM,
     Param,
@@ -142,6 +142,7 @@ class SimBridgeNode(Node):
         self.pub_info = self._publisher(topics.CAMERA_INFO)
         self.pub_pose = self._publisher(topics.POSE)
         self.pub_status = self._publisher(topics.CAMERA_STATUS)
+        self.gate = PublishGate(self.context.ok)
         self.pub_right = self.pub_right_info = None
         if p["stereo"]:
             self.pub_right = self._publisher(topics.RIGHT_IMAGE)
@@ -267,6 +268,14 @@ class SimBridgeNode(Node):
             self._publish(*self.held.popleft())
 
     def _publish(self, stamp_ns: int, capture: Capture) -> None:
+        """Publish one capture, unless the node is stopping: a Ctrl-C shuts the context down
+        between two callbacks or in the middle of this one, and the publish then raised (a
+        traceback as the node exited); the gate takes it as the stop it is."""
+        with self.gate as running:
+            if running:
+                self._send(stamp_ns, capture)
+
+    def _send(self, stamp_ns: int, capture: Capture) -> None:
         T = capture.T_world_cam
         self.pub_color.publish(codecs.image_to_msg(capture.rgb, "rgb8", stamp_ns, OPTICAL_FRAME))
         self.pub_depth.publish(codecs.image_to_msg(capture.depth, "32FC1", stamp_ns, OPTICAL_FRAME))
@@ -333,7 +342,9 @@ class SimBridgeNode(Node):
     def _refuse(self, stamp_ns: int, reason: str, kind: str) -> None:
         self.get_logger().warning(f"goal at stamp {stamp_ns} refused: {reason}")
         self.refused[kind] += 1
-        self._status(stamp_ns, False, reason)
+        with self.gate as running:  # as in `_publish`
+            if running:
+                self._status(stamp_ns, False, reason)
         self.diagnostics.changed()
 
     def _status(self, stamp_ns: int, ok: bool, reason: str) -> None:

@@ -157,7 +157,8 @@ def test_a_busy_planner_exits_on_sigint_without_waiting_for_its_work(tmp_path: P
 
 def test_ctrl_c_during_an_episode_is_the_users_stop_not_the_planners_failure(tmp_path: Path):
     """Ctrl-C in a terminal signals `area3d run` and its nodes together: the run says it was
-    interrupted and how to go on, and episode.json does not record the planner as the reason."""
+    interrupted and how to go on, episode.json does not record the planner as the reason, and no
+    node ends in a traceback."""
     import json
     import os
     import sys
@@ -189,3 +190,8 @@ def test_ctrl_c_during_an_episode_is_the_users_stop_not_the_planners_failure(tmp
     (episode,) = out.glob("*/episode.json")
     saved = json.loads(episode.read_text())
     assert saved["stopped_early"] == "" and 6 <= len(saved["views"]) < 40
+    # every node stopped quietly: the terminal's SIGINT and then the launcher's own raised
+    # KeyboardInterrupt in their teardown, and a capture in flight failed to publish
+    log = (episode.parent / "nodes.log").read_text()
+    at = log.find("Traceback")
+    assert at < 0, log[max(0, at - 300) : at + 3000]
