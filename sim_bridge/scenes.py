@@ -105,7 +105,8 @@ def derive_scene(path: Path, name: str | None = None) -> Scene:
         model, data = scene.model()
     except ValueError as err:  # MuJoCo's XML / compile errors do not name the file
         raise ValueError(
-            f"scene file {str(path)!r}: MuJoCo could not load it: {err}".strip()
+            # on one line: MuJoCo's message spans several
+            f"scene file {str(path)!r}: MuJoCo could not load it: {' '.join(str(err).split())}"
         ) from err
     if len(solid_geom_ids(model)) == 0:
         raise ValueError(

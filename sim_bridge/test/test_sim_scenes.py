@@ -131,3 +131,11 @@ def test_a_user_mjcf_gets_derived_bounds_and_views(tmp_path):
 def test_unknown_scene_name_is_rejected_naming_the_choices():
     with pytest.raises(ValueError, match="scene: got 'no_such_scene'.*single_object"):
         load_scene("no_such_scene")
+
+
+def test_a_file_mujoco_cannot_load_is_refused_on_one_line_naming_it(tmp_path):
+    path = tmp_path / "mesh.xml"
+    path.write_text("ply\nformat ascii 1.0\nend_header\n")  # not MJCF
+    with pytest.raises(ValueError, match="MuJoCo could not load it") as info:
+        load_scene(str(path))
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
