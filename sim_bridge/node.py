@@ -198,9 +198,12 @@ class SimBridgeNode(Node):
         }
         if everyone:  # the status that follows the first frame reaches them too
             required[self.pub_status] = everyone
+        # the right camera's topics wait for their own readers only: `readers.all` is who reads
+        # a frame (`area3d run`'s mission manager records colour, depth, camera_info and pose),
+        # and a reader of the pair's right image is perception's stereo backend
         if p["stereo"]:
-            required[self.pub_right] = set(p["readers.right"]) | everyone
-            required[self.pub_right_info] = set(p["readers.right_camera_info"]) | everyone
+            required[self.pub_right] = set(p["readers.right"])
+            required[self.pub_right_info] = set(p["readers.right_camera_info"])
         return required
 
     def _now_ns(self) -> int:

@@ -69,6 +69,9 @@ def test_with_estimated_stereo_depth_both_paths_choose_the_same_views_and_keep_t
     overrides = {**SMALL_CAMERA, "perception": {"backend": "stereo"}}
     graph, in_process = _both(tmp_path, "single_object", 6, overrides, "estimated")
     _same_views(graph, in_process, 6)
+    # the camera's first frame waited for its readers, not for readers_timeout_s: the mission
+    # manager reads no right image (it waited 10 s in every stereo episode)
+    assert "without these readers" not in (graph / "nodes.log").read_text()
     # the graph's run keeps perception's depth in every frame: the TSDF reconstructs from it,
     # and it is what perception computes in process (renders of a pose that went through a
     # quaternion differ in a few pixels, and stereo matching with them)
