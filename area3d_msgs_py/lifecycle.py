@@ -190,7 +190,12 @@ def run_node(
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     tune_process()  # before rclpy and the node start their threads
     middleware.configure()
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # rcl parses --ros-args: a params file missing or not YAML
+        message = " ".join(str(exc).split())
+        print(f"[FATAL] [{name}]: cannot start: {message}", file=sys.stderr, flush=True)
+        return 1
     node: Node | None = None
     spinner: Executor | None = None
     signalled = False

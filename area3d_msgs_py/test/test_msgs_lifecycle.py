@@ -165,3 +165,21 @@ def test_a_node_process_maps_blocks_of_megabytes_afresh_and_switches_threads_eve
     mapped, interval = _mapped_bytes_and_switch_interval("tuned")
     assert 3 * 2**20 <= mapped < 3 * 2**20 + LARGE_BLOCK_BYTES // 2
     assert interval == GIL_SWITCH_INTERVAL_S
+
+
+def test_a_params_file_rcl_cannot_read_stops_a_node_with_one_line(tmp_path):
+    # missing here; one that is not YAML fails in the same parse of --ros-args
+    import os
+    import subprocess
+    import sys
+
+    path = tmp_path / "params.yaml"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    done = subprocess.run(
+        [sys.executable, "-m", "sim_bridge.node", "--ros-args", "--params-file", str(path)],
+        capture_output=True, text=True, timeout=120, env=env,
+    )  # fmt: skip
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr, done.stderr[-2000:]
+    fatal = [line for line in done.stderr.splitlines() if "cannot start" in line]
+    assert len(fatal) == 1 and str(path) in fatal[0], done.stderr[-2000:]
