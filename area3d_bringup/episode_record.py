@@ -145,6 +145,14 @@ class EpisodeRecord:
     def _kept(self) -> str:
         return f"kept {len(self.frames)} captured views in {self.run_dir}; "
 
+    def _go_on(self) -> str:
+        """How to go on after a run that stopped: --resume where views were captured; where
+        none was (a node that could not start: a backend's weights missing), nothing to resume."""
+        if not self.frames:
+            log = self.run_dir / "nodes.log"
+            return f"no view was captured (the nodes' output: {log}); fix the cause and run again"
+        return f"{self._kept()}continue with --resume {self.run_dir}"
+
     def add_time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
 

@@ -149,9 +149,7 @@ class _Episode(EpisodeRecord):
                 self.stopped_early = ""
             self.save()
             why = "interrupted (Ctrl-C)" if self.interrupted else str(err)
-            raise EpisodeError(
-                f"{why}\n{self._kept()}continue with --resume {self.run_dir}"
-            ) from err
+            raise EpisodeError(f"{why}\n{self._go_on()}") from err
         except OSError as err:  # the disk filled up or went away mid-run
             raise EpisodeError(
                 f"writing the run directory failed: {err}\n{self._kept()}free space, then "

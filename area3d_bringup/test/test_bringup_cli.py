@@ -145,3 +145,15 @@ def test_a_parameter_file_with_a_typo_or_broken_yaml_is_refused_by_name(tmp_path
     broken.write_text("planner:\n  ros__parameters:\n    eta: [1,\n")
     text = _refused_run(tmp_path, "--params", str(broken))
     assert f"params file {broken}: not valid YAML" in text and "line 4, column 1" in text
+
+
+def test_a_graph_that_cannot_start_suggests_no_resume(tmp_path):
+    # perception's vggt backend without torch or weights: the node stops at once, no view is
+    # captured, and there is nothing a --resume could go on with
+    out = tmp_path / "runs"
+    result = _invoke(["run", "--out", str(out), "--no-evaluate", "--no-record",
+                      "-p", "perception.backend=vggt"])  # fmt: skip
+    text = " ".join(result.output.split())
+    assert result.exit_code == 2, text
+    assert "perception" in text and "no view was captured" in text, text
+    assert "--resume" not in text, text
