@@ -11,6 +11,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from area3d_bringup.runner import EpisodeConfig, run_episode
 from area3d_eval import rundir
@@ -20,6 +21,14 @@ from sim_bridge.scenes import load_scene
 W, H = 160, 120
 HOUR_NS = 3600 * 10**9
 SMALL = {"sim_bridge": {"width": W, "height": H}, "planner": {"width": W, "height": H}}
+
+
+@pytest.fixture(autouse=True)
+def own_domain(monkeypatch):
+    """The graph on a domain of its own, picked free as `area3d run` picks one: the test asks
+    that every frame a node names dropped be the run's, and the test process's domain has
+    carried other tests' nodes (a stale frame of an earlier test reached a node once)."""
+    monkeypatch.delenv("ROS_DOMAIN_ID")
 
 
 class SteppingClock:
