@@ -270,7 +270,8 @@ class NoneBackend:
 
 def make_backend(name: str, **options) -> Backend:
     """Backend by name: "heuristic" | "openai" (base_url, model, api_key_env, timeout_s, retries,
-    max_tokens, temperature) | "transformers" (model_dir, device, trust_remote_code) | "none".
+    max_tokens, temperature) | "transformers" (model_dir, device, trust_remote_code, max_tokens as
+    its max_new_tokens) | "none".
     Options that the chosen backend does not take are ignored."""
     if name == "heuristic":
         return HeuristicBackend(options.get("heuristic_params"))
@@ -293,7 +294,8 @@ def make_backend(name: str, **options) -> Backend:
         )
     if name == "transformers":
         keys = ("device", "trust_remote_code", "max_new_tokens")
-        return TransformersBackend(
-            options.get("model_dir", ""), **{k: options[k] for k in keys if k in options}
-        )
+        chosen = {k: options[k] for k in keys if k in options}
+        if "max_tokens" in options:  # the node's answer length limit, as for a served VLM
+            chosen.setdefault("max_new_tokens", options["max_tokens"])
+        return TransformersBackend(options.get("model_dir", ""), **chosen)
     raise InputError("backend", name, f"one of {', '.join(BACKEND_NAMES)}")

@@ -234,3 +234,21 @@ def test_transformers_backend_without_a_model_directory_says_where_the_model_goe
             TransformersBackend(tmp_path)
     else:  # with the libraries present, construction is lazy and loads nothing yet
         assert TransformersBackend(tmp_path)._model is None
+
+
+def test_the_nodes_answer_length_limit_reaches_the_transformers_backend(monkeypatch):
+    from area3d_semantics import backends
+    from area3d_semantics.node import PARAMS, backend_from_parameters
+
+    made = {}
+
+    class Recorded:  # stands in for the model class: torch is not needed to check the wiring
+        def __init__(self, model_dir, **options):
+            made.update(options, model_dir=model_dir)
+
+    monkeypatch.setattr(backends, "TransformersBackend", Recorded)
+    p = {param.name: param.default for param in PARAMS}
+    p |= {"backend": "transformers", "model_dir": "/models/qwen", "max_tokens": 300}
+    backend, problem = backend_from_parameters(p)
+    assert problem is None and isinstance(backend, Recorded)
+    assert made["max_new_tokens"] == 300 and made["model_dir"] == "/models/qwen"
