@@ -369,7 +369,8 @@ def backend_from_parameters(p: dict) -> tuple[Backend, str | None]:
         fallback = HeuristicBackend() if p["fallback"] == "heuristic" else NoneBackend()
         return (
             fallback,
-            f"{p['backend']} backend unavailable ({exc}); using {fallback.name} instead",
+            f"{p['backend']} backend unavailable ({exc}); fallback {p['fallback']}: using the "
+            f"{fallback.name} backend instead",
         )
 
 
