@@ -193,7 +193,11 @@ def declare_parameters(node: Node, params: Iterable[Param]) -> dict[str, Any]:
             value = node.declare_parameter(p.name, default, p.descriptor()).value
         except Exception as exc:  # rclpy's type / range exceptions
             given = overrides[p.name].value if p.name in overrides else default
-            raise InputError(p.name, given, f"{p.descriptor().description} ({exc})") from None
+            described = p.descriptor().description
+            expected = f"{described} ({exc})"
+            if _out_of_range(p, given):  # the range, not rclpy's text about it
+                expected = f"a value in [{p.range[0]}, {p.range[1]}]: {described}"
+            raise InputError(p.name, given, expected) from None
         problem = p.problem(value)
         if problem:
             raise InputError(p.name, value, problem)
@@ -220,15 +224,21 @@ def parameter_values(params: Iterable[Param], given: dict[str, Any]) -> dict[str
             isinstance(p.default, list | tuple) and isinstance(value, list | tuple)
         ):
             raise InputError(p.name, value, f"a {type(p.default).__name__}: {p.description}")
-        if p.range is not None and not isinstance(value, bool) and not isinstance(value, str):
+        if _out_of_range(p, value):
             lo, hi = p.range
-            if isinstance(value, int | float) and not lo <= value <= hi:
-                raise InputError(p.name, value, f"a value in [{lo}, {hi}]: {p.description}")
+            raise InputError(p.name, value, f"a value in [{lo}, {hi}]: {p.description}")
         problem = p.problem(value)
         if problem:
             raise InputError(p.name, value, problem)
         values[p.name] = value
     return values
+
+
+def _out_of_range(p: Param, value: Any) -> bool:
+    """A number outside the parameter's declared range."""
+    if p.range is None or isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    return not p.range[0] <= value <= p.range[1]
 
 
 def _all_numbers(values: Any) -> bool:

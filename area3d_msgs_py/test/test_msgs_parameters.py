@@ -1,5 +1,7 @@
 """Declared parameters: the values a node starts with, with and without a node."""
 
+import re
+
 import pytest
 import rclpy
 from rclpy.node import Node
@@ -16,6 +18,7 @@ PARAMS = (
     Param("readers", ("perception",), "node names"),
     Param("noise", True, "add noise"),
 )
+PARAMS_BY_NAME = {p.name: p for p in PARAMS}
 
 
 def test_without_a_node_the_values_are_those_a_node_declares():
@@ -47,3 +50,19 @@ def test_without_a_node_the_values_are_those_a_node_declares():
 def test_a_refused_value_names_the_parameter(given, field):
     with pytest.raises(InputError, match=field):
         parameter_values(PARAMS, given)
+
+
+@pytest.mark.parametrize(("name", "value"), [("eta", 1.5), ("budget", 0)])
+def test_a_value_out_of_range_names_the_range_on_a_node_as_without_one(name, value):
+    expected = f"{name}: got {value}, expected a value in [{PARAMS_BY_NAME[name].range[0]}, "
+    with pytest.raises(InputError, match=re.escape(expected)):
+        parameter_values(PARAMS, {name: value})
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = Node("ranged", context=context, parameter_overrides=[Parameter(name, value=value)])
+        with pytest.raises(InputError, match=re.escape(expected)):
+            declare_parameters(node, PARAMS)
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
