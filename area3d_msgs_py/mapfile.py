@@ -159,12 +159,13 @@ def replace_atomically(
     os.close(fd)
     tmp = Path(name)
     try:
-        # the mode of the file replaced, or the one a new file gets (mkstemp's: the owner's only)
-        os.chmod(tmp, target.stat().st_mode & 0o777 if target.exists() else 0o666 & ~UMASK)
         write(tmp)
         if sync:
             with tmp.open("rb") as written:
                 os.fsync(written.fileno())
+        # the mode of the file replaced, or the one a new file gets (mkstemp's: the owner's
+        # only); set once written, so that a read-only mode does not stop the write
+        os.chmod(tmp, target.stat().st_mode & 0o777 if target.exists() else 0o666 & ~UMASK)
         os.replace(tmp, target)
     except BaseException:
         tmp.unlink(missing_ok=True)

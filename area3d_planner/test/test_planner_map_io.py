@@ -196,11 +196,12 @@ def test_a_saved_map_gets_the_mode_of_a_new_file_or_keeps_the_one_it_replaces(tm
     new = tmp_path / "new.a3map"
     map_io.save(srv, new)
     assert new.stat().st_mode & 0o777 == 0o666 & ~mapfile.UMASK
-    kept = tmp_path / "kept.a3map"
-    kept.write_bytes(b"")
-    kept.chmod(0o640)
-    map_io.save(srv, kept)
-    assert kept.stat().st_mode & 0o777 == 0o640 and kept.stat().st_size > 0
+    for mode in (0o640, 0o444):  # a read-only file is replaced (as `mv` would) and stays so
+        kept = tmp_path / f"kept{mode:o}.a3map"
+        kept.write_bytes(b"")
+        kept.chmod(mode)
+        map_io.save(srv, kept)
+        assert kept.stat().st_mode & 0o777 == mode and kept.stat().st_size > 0
 
 
 def test_a_file_of_a_newer_format_version_is_refused(tmp_path, monkeypatch):
