@@ -146,10 +146,16 @@ class FeedForwardOutput:
     cam_centres: np.ndarray | None
 
 
-def _missing_parts(modules: Sequence[str], weights: Path | None, weights_what: str) -> list[str]:
+def _missing_parts(
+    modules: Sequence[str], weights: Path | None, weights_what: str, directory: bool = False
+) -> list[str]:
+    """What a backend lacks: its packages, and its weights (a file, or a `directory`) where
+    `weights` says."""
     missing = [f"python package `{m}`" for m in modules if importlib.util.find_spec(m) is None]
-    if weights is not None and not weights.exists():
-        missing.append(f"{weights_what} at '{weights}'")
+    there = weights is not None and (weights.is_dir() if directory else weights.is_file())
+    if weights is not None and not there:
+        kind = "a directory" if directory else "a file"
+        missing.append(f"{weights_what} at '{weights}' ({kind}; not found there)")
     return missing
 
 
@@ -254,7 +260,7 @@ class DepthAnything3Backend:
             Path(model_dir).expanduser() if model_dir else Path("<checkpoint parameter is empty>")
         )
         missing = _missing_parts(
-            ("torch", "depth_anything_3"), path, "the Depth Anything 3 model directory"
+            ("torch", "depth_anything_3"), path, "the Depth Anything 3 model directory", True
         )
         if missing:
             raise BackendUnavailableError(

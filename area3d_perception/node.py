@@ -14,6 +14,7 @@ stamp and frame_id. Topics: `area3d_msgs_py/topics.py`; names are relative: `__n
 from __future__ import annotations
 
 import dataclasses
+import re
 import traceback
 from collections.abc import Sequence
 from typing import Any
@@ -69,10 +70,17 @@ ESTIMATOR_BACKLOG = 16
 # On shutdown the frame in flight gets this long to finish.
 CLOSE_WAIT_S = 1.0
 
+DEVICE = re.compile(r"auto|cpu|cuda(:[0-9]+)?")  # the torch devices a backend runs on
+
 PARAMS = (
     Param("backend", "rgbd", "depth + confidence estimator", choices=BACKENDS),
     Param("checkpoint", "", "local VGGT / Depth Anything 3 weights (never downloaded at run time)"),
-    Param("device", "auto", "torch device of a feed-forward backend: auto | cpu | cuda[:N]"),
+    Param(
+        "device",
+        "auto",
+        "torch device of a feed-forward backend: auto | cpu | cuda[:N]",
+        check=lambda v: None if DEVICE.fullmatch(v) else "auto, cpu, cuda or cuda:N",
+    ),
     Param("window", FEEDFORWARD_WINDOW, "views per feed-forward pass, frames", range=(1, 256)),
     Param(
         "confidence_normalization",

@@ -131,3 +131,13 @@ def test_depth_anything_backend_without_weights_names_the_model_directory(tmp_pa
     with pytest.raises(BackendUnavailableError) as err:
         DepthAnything3Backend(str(tmp_path / "da3-large"))
     assert str(tmp_path / "da3-large") in str(err.value) and "depth-anything-3" in str(err.value)
+
+
+def test_weights_of_the_wrong_kind_are_named_missing(tmp_path):
+    # a directory where VGGT's model.pt goes, a file where Depth Anything 3's directory goes
+    (tmp_path / "model.pt").mkdir()
+    with pytest.raises(BackendUnavailableError, match=r"model.pt' \(a file; not found there\)"):
+        VggtBackend(str(tmp_path / "model.pt"))
+    (tmp_path / "da3").write_text("not a directory")
+    with pytest.raises(BackendUnavailableError, match=r"da3' \(a directory; not found there\)"):
+        DepthAnything3Backend(str(tmp_path / "da3"))

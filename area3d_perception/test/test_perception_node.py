@@ -513,3 +513,14 @@ def test_a_bad_transform_is_refused_by_index_and_field_and_its_neighbours_are_ke
     assert node.node.rejections.snapshot()["by_field"] == {"transforms[1].transform.rotation": 1}
     send_frame(node, 5 * S, order=("color", "depth"))
     assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1  # the good transform of that message held
+
+
+def test_a_torch_device_name_is_checked_before_a_backend_is_made():
+    from area3d_msgs_py.errors import InputError
+    from area3d_msgs_py.parameters import parameter_values
+    from area3d_perception.node import PARAMS
+
+    for device in ("auto", "cpu", "cuda", "cuda:1"):
+        assert parameter_values(PARAMS, {"device": device})["device"] == device
+    with pytest.raises(InputError, match="device: got 'tpu', expected auto, cpu, cuda or cuda:N"):
+        parameter_values(PARAMS, {"device": "tpu"})
