@@ -92,7 +92,9 @@ def test_a_damaged_run_directory_is_refused_naming_the_file_and_what_is_wrong(tm
     with pytest.raises(InputError, match="episode.json: got 'not JSON"):
         read_episode(tmp_path)
     episode_file.write_text('{"scene": "s", "policy": "p", "views": [{"kind": "initial"}]}')
-    with pytest.raises(InputError, match="episode.json: got .an entry of another kind .KeyError: 'index'"):
+    with pytest.raises(
+        InputError, match="episode.json: got .an entry of another kind .KeyError: 'index'"
+    ):
         read_episode(tmp_path)
 
 
