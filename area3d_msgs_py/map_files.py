@@ -7,6 +7,8 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from area3d_msgs_py.errors import InputError
+
 
 def done(response: Any, service: str, path: Path, size: int, logger: Any, what: str) -> Any:
     """Success: what was done, the absolute path and its size, logged."""
@@ -29,9 +31,13 @@ def refused(response: Any, service: str, exc: Exception, logger: Any) -> Any:
     return response
 
 
-def failed(response: Any, service: str, exc: Exception, logger: Any) -> Any:
-    """A load that passed the file's checks and still failed (a file the checks do not cover, or
-    a bug): said in the answer, the traceback in the log; the node keeps its map and runs on."""
+def load_failed(response: Any, service: str, exc: Exception, logger: Any) -> Any:
+    """A load that did not happen, into a new map the node then drops: a file that does not fit
+    or cannot be read (`InputError`, `OSError`) is refused; any other failure (a file the checks
+    do not cover, or a bug) is said in the answer with the traceback in the log. Either way the
+    node keeps its map and runs on."""
+    if isinstance(exc, InputError | OSError):
+        return refused(response, service, exc, logger)
     response.success = False
     response.path = ""
     response.size_bytes = 0

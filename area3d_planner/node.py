@@ -314,12 +314,9 @@ class PlannerNode(Node):
                 scheduler.loaded()
                 old, self.scheduler = self.scheduler, scheduler
                 self.inputs.clear()
-        except (InputError, OSError) as exc:
+        except Exception as exc:  # read and restored into the new map only: the running one stays
             scheduler.close(0.0)
-            return map_files.refused(response, service, exc, self.get_logger())
-        except Exception as exc:  # restored into the new map only: the running one stays
-            scheduler.close(0.0)
-            return map_files.failed(response, service, exc, self.get_logger())
+            return map_files.load_failed(response, service, exc, self.get_logger())
         old.close(0.0)
         self._publish_state(self.scheduler.core.last_fused_stamp or self._now_ns())
         h = loaded.header
@@ -427,12 +424,10 @@ class PlannerNode(Node):
         except InputError as exc:
             plan = Plan([], [], f"request rejected: {exc}")
             self.get_logger().warning(f"{service}: {plan.reason}")
-        except Exception as exc:  # a refusal, and the node keeps serving
+        except Exception as exc:  # a refusal, and the node serves on (after Ctrl-C: info)
             plan = Plan([], [], f"request failed: {type(exc).__name__}: {exc}")
-            if self.context.ok():
-                self.get_logger().error(f"{service}: {plan.reason}")
-            else:  # Ctrl-C shut the context down while the request was served: the stop
-                self.get_logger().info(f"{service}: request ended by the node's stop")
+            log = self.get_logger().error if self.context.ok() else self.get_logger().info
+            log(f"{service}: {plan.reason}")
         stamp = codecs.stamp_to_ns(request.current.header.stamp) or self._now_ns()
         if plan.reason:
             return codecs.view_refusal_to_msg(plan.reason, stamp, self.world_frame)

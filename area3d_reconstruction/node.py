@@ -291,10 +291,8 @@ class ReconstructionNode(Node):
             volume = self._new_volume()
             loaded = map_io.read(volume, request.path)
             stamps = map_io.restore(volume, loaded)
-        except (InputError, OSError) as exc:
-            return map_files.refused(response, service, exc, self.get_logger())
-        except Exception as exc:  # restored into a new volume only: the running one stays
-            return map_files.failed(response, service, exc, self.get_logger())
+        except Exception as exc:  # read and restored into a new volume only: the running one stays
+            return map_files.load_failed(response, service, exc, self.get_logger())
         with self.worker.cleared(), self._lock:
             self.volume, self.stamps, self._integrated = volume, stamps, set(stamps)
             self.inputs.clear()
