@@ -5,7 +5,9 @@ the planner has fused a frame (before, the answer would be an empty plan), until
 answer at least.
 
 Figures: frames the camera sent, published by perception and fused by the planner, and those
-each node dropped and counted (none may be lost uncounted, and at the target rate none dropped); each node's resident memory at the start and the end of the stream (it must stay flat);
+each node dropped and counted (`frame_accounting`: none may be lost uncounted, and at the target
+rate none dropped); each node's resident memory at the start and the end of the stream (it must
+stay flat);
 the next-best-view round trips during fusion (planning and fusion must not block each other),
 beside the closed-loop target. The frames are the scene's views rendered once and sent again
 with new stamps, so rendering does not compete with the nodes for the CPU.
@@ -24,6 +26,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from area3d_bench.frame_accounting import (
+    PERCEPTION_DROPS,
+    dropped,
+    perception_accounted,
+    planner_accounted,
+)
 
 # Per request during fusion, p95: the object-level closed-loop target (planner.py).
 TARGET_PLAN_P95_S = 0.3
@@ -171,8 +180,8 @@ def run_bench(
             # dropped and counted); a frame neither node counts is lost on the way
             run.caught_up = launcher.wait_for(
                 lambda: (
-                    _perception_accounted(_last(perception_status)) == len(run.sent)
-                    and _planner_accounted(_last(planner_status))
+                    perception_accounted(_last(perception_status)) == len(run.sent)
+                    and planner_accounted(_last(planner_status))
                     == _last(perception_status).get("frames_published")
                 ),
                 180,
@@ -194,33 +203,6 @@ def run_bench(
 
 def _last(statuses: list) -> dict:
     return json.loads(statuses[-1].data) if statuses else {}
-
-
-# the frames each node drops and counts (each said in its log): its status's names; the pose
-# source's drops (with TF or odometry) are counted by cause
-PERCEPTION_DROPS = (
-    "frames_dropped_backlog",
-    "frames_dropped_without_camera_info",
-    "frames_dropped_backend_failure",
-    "frames_dropped_no_pose",
-)
-PLANNER_DROPS = ("frames_dropped_backlog", "frames_dropped_no_pose")
-
-
-def _dropped(status: dict, names: tuple[str, ...]) -> int:
-    """The frames one status line counts as dropped under `names` (a count or {cause: count})."""
-    counts = [status.get(name) or 0 for name in names]
-    return sum(sum(c.values()) if isinstance(c, dict) else c for c in counts)
-
-
-def _perception_accounted(status: dict) -> int:
-    """Frames perception published or dropped and counted, from one of its status lines."""
-    return status.get("frames_published", 0) + _dropped(status, PERCEPTION_DROPS)
-
-
-def _planner_accounted(status: dict) -> int:
-    """Frames the planner fused or dropped and counted, from one of its status lines."""
-    return status.get("frames_fused", 0) + _dropped(status, PLANNER_DROPS)
 
 
 def _read_manager(manager: subprocess.Popen, run: _Run) -> threading.Thread:
@@ -364,9 +346,9 @@ def _status_figures(
         "fusion_s": _p50_p95_max(fusion_s),
         "perception_rejected": _last(perception_status).get("rejected"),
         "perception_frames_dropped": {
-            k: _dropped(_last(perception_status), (k,)) for k in PERCEPTION_DROPS
+            k: dropped(_last(perception_status), (k,)) for k in PERCEPTION_DROPS
         },
-        "planner_frames_dropped_no_pose": _dropped(
+        "planner_frames_dropped_no_pose": dropped(
             _last(planner_status), ("frames_dropped_no_pose",)
         ),
         "planner_parts_dropped": _last(planner_status).get("parts_dropped_unpaired"),
