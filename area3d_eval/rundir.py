@@ -341,8 +341,6 @@ def read_frame(path: Path) -> Frame:
     try:
         return _read_frame(path)
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
-        if isinstance(exc, InputError):
-            raise
         raise InputError(
             str(path), f"unreadable ({type(exc).__name__}: {exc})", "a whole frame file of a run"
         ) from exc

@@ -86,8 +86,8 @@ def export_mesh(mesh, path) -> tuple[Path, int]:
         raise InputError(
             "mesh",
             "0 triangles",
-            "a reconstruction with a surface (no frame "
-            "integrated yet, or none since a reset or the load of an empty map)",
+            "a reconstruction with a surface "
+            "(no frame integrated yet, or none since a reset or the load of an empty map)",
         )
 
     def write(tmp: Path) -> None:
