@@ -38,6 +38,10 @@ from sim_bridge.scenes import load_scene
 
 DRIVER = Path(__file__).parent / "robot_driver.py"
 WAIT_S = 180.0  # processes, DDS and software rendering on a loaded 2-core machine
+# each node's time to stop on SIGINT before SIGTERM (the launcher's default is 5 s): with the
+# driver streaming on, a loaded 2-core machine took longer once; how fast nodes stop is measured
+# in tests/test_shutdown.py, not here
+STOP_GRACE_S = 30.0
 # a triggered camera's frame not fused after this long is taken as lost on the way (best effort:
 # a frame sent while a reader is still being matched never arrives) and captured again
 RETRIGGER_S = 15.0
@@ -298,7 +302,7 @@ def run_mission(options: MissionOptions, workdir: Path) -> MissionResult:
         rss = {name: (rss_first.get(name), _rss(p.pid)) for name, p in launcher.processes.items()}
     finally:
         probe.close()
-        codes = launcher.stop()
+        codes = launcher.stop(grace_s=STOP_GRACE_S)
         driver.terminate()
         try:
             output, _ = driver.communicate(timeout=30)

@@ -79,6 +79,7 @@ class Launcher:
         self.log_sink = log_sink or (lambda line: print(line, file=sys.stderr, flush=True))
         self.processes: dict[str, subprocess.Popen] = {}
         self.output: dict[str, list[str]] = {}
+        self._lines_read: dict[str, int] = {spec.name: 0 for spec in specs}
         self._threads: list[threading.Thread] = []
         self._stopping = False
         self.respawn = respawn
@@ -156,6 +157,7 @@ class Launcher:
         for line in proc.stdout:
             line = line.rstrip("\n")
             lines.append(line)
+            self._lines_read[name] += 1
             if len(lines) > 200:
                 del lines[:100]
             self.log_sink(f"[{name}] {line}")
@@ -199,8 +201,10 @@ class Launcher:
             signal.signal(signal.SIGTERM, previous)
             signal.signal(signal.SIGINT, previous_int)
 
-    def stop(self, grace_s: float = 5.0) -> dict[str, int]:
-        """Stop every node (SIGINT, then SIGTERM, then SIGKILL); returns their exit codes."""
+    def stop(self, grace_s: float = 5.0, dump_wait_s: float = 2.0) -> dict[str, int]:
+        """Stop every node (SIGINT, then SIGTERM, then SIGKILL); returns their exit codes. Before
+        the SIGKILL, a node still running is asked where its threads are (SIGUSR1) and given up
+        to `dump_wait_s` to say it."""
         with self._spawn_lock:
             self._stopping = True
             self._stop_event.set()
@@ -208,6 +212,8 @@ class Launcher:
             alive = [p for p in self.processes.values() if p.poll() is None]
             if not alive:
                 break
+            if sig == signal.SIGKILL:
+                self._dump_threads(alive, dump_wait_s)
             for proc in alive:
                 proc.send_signal(sig)
             deadline = time.monotonic() + wait_s
@@ -219,6 +225,20 @@ class Launcher:
         for thread in self._threads:
             thread.join(timeout=1.0)
         return {name: proc.poll() for name, proc in self.processes.items()}
+
+    def _dump_threads(self, alive: list[subprocess.Popen], wait_s: float) -> None:
+        """Before a node is killed: where its threads hang, into its log (every node prints its
+        threads' stacks on SIGUSR1, `run_node`); waits until each has said something more."""
+        names = {proc.pid: name for name, proc in self.processes.items()}
+        read = {name: self._lines_read[name] for name in names.values()}
+        for proc in alive:
+            self.log_sink(f"[launcher] {names[proc.pid]} did not stop; its threads:")
+            proc.send_signal(signal.SIGUSR1)
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            if all(self._lines_read[names[p.pid]] > read[names[p.pid]] for p in alive):
+                return  # the rest of a dump begun is in the pipe, read after the kill too
+            time.sleep(0.05)
 
     def __enter__(self) -> Launcher:
         self.start()

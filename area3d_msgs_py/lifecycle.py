@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
@@ -209,7 +210,7 @@ def run_node(
             return 1
         log_handler = forward_python_logging(node)
         spinner.add_node(node)
-        spinner.spin()
+        _spin(spinner, node)
         signalled = True  # spin returns only once the context is shut down: a signal
     except (KeyboardInterrupt, ExternalShutdownException):
         signalled = True
@@ -235,6 +236,21 @@ def run_node(
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def _spin(spinner: Executor, node: Node) -> None:
+    """Spin until the context is shut down. A callback that raises (one no input guard covers: a
+    timer's, a service's) is a fault of this node, not its end: rclpy's executor re-raises it
+    from `spin`, which ended the process and with it everything the node held; its traceback is
+    logged as an error and the node spins on."""
+    while True:
+        try:
+            spinner.spin()
+            return
+        except Exception:
+            if not rclpy.ok():  # the context was shut down under the callback: the stop
+                raise
+            node.get_logger().error(f"a callback raised; spinning on:\n{traceback.format_exc()}")
 
 
 def _wait_for_signal_shutdown(timeout_s: float) -> None:

@@ -32,9 +32,7 @@ from rclpy.node import Node
 from area3d_msgs_py import codecs, map_files, msgs, qos, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded, reject
-from area3d_msgs_py.inputs import (
-    decode_frame_part,
-)
+from area3d_msgs_py.inputs import decode_frame_part
 from area3d_msgs_py.keyframes import KeyframeConfig
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
@@ -402,7 +400,7 @@ class PlannerNode(Node):
             stamp = codecs.stamp_to_ns(request.start.header.stamp)
             _, response.plan = self._serve("next_best_view", PlanRequest(start, stamp, count))
         except Exception as exc:  # an empty plan, and the node keeps serving
-            self.get_logger().error(f"next_best_view: request failed: {exc}")
+            self._failed("next_best_view", exc)
             response.plan = views_path([], self.world_frame, self._now_ns())
         return response
 
@@ -424,16 +422,21 @@ class PlannerNode(Node):
         except InputError as exc:
             plan = Plan([], [], f"request rejected: {exc}")
             self.get_logger().warning(f"{service}: {plan.reason}")
-        except Exception as exc:  # a refusal, and the node serves on (after Ctrl-C: info)
-            plan = Plan([], [], f"request failed: {type(exc).__name__}: {exc}")
-            log = self.get_logger().error if self.context.ok() else self.get_logger().info
-            log(f"{service}: {plan.reason}")
+        except Exception as exc:  # a refusal, and the node serves on
+            plan = Plan([], [], self._failed(service, exc))
         stamp = codecs.stamp_to_ns(request.current.header.stamp) or self._now_ns()
         if plan.reason:
             return codecs.view_refusal_to_msg(plan.reason, stamp, self.world_frame)
         return codecs.view_answer_to_msg(
             np.array(plan.poses), plan.gains, stamp, self.world_frame, plan.note
         )
+
+    def _failed(self, service: str, exc: Exception) -> str:
+        """Why a request raised, logged as an error (at info after Ctrl-C: the stop ended it)."""
+        reason = f"request failed: {type(exc).__name__}: {exc}"
+        log = self.get_logger().error if self.context.ok() else self.get_logger().info
+        log(f"{service}: {reason}")
+        return reason
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds

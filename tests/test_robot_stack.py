@@ -76,7 +76,9 @@ def check_mission(result, scene_name: str, planned: int) -> None:
     reconstruction = result.statuses["reconstruction"]
     assert reconstruction["frames_integrated"] > 0 and reconstruction["mesh"]["triangles"] > 0
     assert reconstruction["rejected"]["total"] == 0
-    assert all(code == 0 for code in result.exit_codes.values()), (result.exit_codes, log)
+    failed = [name for name, code in result.exit_codes.items() if code != 0]
+    own = [line for line in result.log if any(line.startswith(f"[{name}]") for name in failed)]
+    assert not failed, f"{result.exit_codes}\n" + "\n".join(own[-30:])
     tracebacks = [i for i, line in enumerate(result.log) if "Traceback" in line]
     assert not tracebacks, "\n".join(result.log[tracebacks[0] : tracebacks[0] + 40])
 

@@ -153,6 +153,8 @@ def test_a_busy_planner_exits_on_sigint_without_waiting_for_its_work(tmp_path: P
     assert code == 0, lines[-20:]
     assert exit_s < EXIT_BOUND_S, f"the busy planner took {exit_s:.2f} s to exit on SIGINT"
     assert not any("Traceback" in line for line in lines), lines[-40:]
+    # the request the stop ended is no error of the planner's
+    assert not any("[ERROR]" in line for line in lines), lines[-40:]
 
 
 def test_ctrl_c_during_an_episode_is_the_users_stop_not_the_planners_failure(tmp_path: Path):

@@ -24,7 +24,8 @@ from area3d_bringup.launcher import Launcher, NodeDied
 
 FAKE_NODE = textwrap.dedent(
     """
-    import os, sys, time, signal, yaml
+    import faulthandler, os, sys, time, signal, yaml
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # as every node (run_node)
     args = sys.argv[1:]
     params_file = args[args.index("--params-file") + 1]
     name = args[args.index("-r") + 1].split(":=")[1]
@@ -32,6 +33,8 @@ FAKE_NODE = textwrap.dedent(
     signal.signal(signal.SIGINT, lambda *a: (print("clean stop", flush=True), sys.exit(0)))
     if params.get("ignore_sigint"):
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if params.get("ignore_sigterm"):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     print(f"pid={os.getpid()} params={params}", flush=True)  # up, its SIGINT handling set
     if params.get("die_after_s") is not None:
         time.sleep(params["die_after_s"]); sys.exit(3)
@@ -104,6 +107,20 @@ def test_a_node_that_ignores_sigint_is_still_stopped(tmp_path, fake_env):
     codes = launcher.stop(grace_s=0.5)
     assert codes["stubborn"] == -signal.SIGTERM
     assert not _alive(pid)
+
+
+def test_a_node_that_will_not_stop_is_killed_with_its_threads_stacks_in_the_log(tmp_path, fake_env):
+    specs = [NodeSpec("hung", "fake_node", {"ignore_sigint": True, "ignore_sigterm": True})]
+    lines: list[str] = []
+    launcher = Launcher(specs, tmp_path, env=fake_env, log_sink=lines.append)
+    launcher.start()
+    pid = _pids(launcher)["hung"]
+    codes = launcher.stop(grace_s=0.5, dump_wait_s=60)
+    assert codes["hung"] == -signal.SIGKILL
+    assert not _alive(pid)
+    said = lines.index("[launcher] hung did not stop; its threads:")
+    # where it hung: the node's main thread in its loop (faulthandler's dump, before the kill)
+    assert any(line.startswith("[hung]") and "fake_node.py" in line for line in lines[said:])
 
 
 def test_death_of_a_node_is_reported_by_name(tmp_path, fake_env):

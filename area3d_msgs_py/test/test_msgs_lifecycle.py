@@ -183,3 +183,56 @@ def test_a_params_file_rcl_cannot_read_stops_a_node_with_one_line(tmp_path):
     assert "Traceback" not in done.stderr, done.stderr[-2000:]
     fatal = [line for line in done.stderr.splitlines() if "cannot start" in line]
     assert len(fatal) == 1 and str(path) in fatal[0], done.stderr[-2000:]
+
+
+FAULTY_NODE = """
+import sys
+from rclpy.node import Node
+from std_msgs.msg import String
+from area3d_msgs_py.lifecycle import run_node
+
+class Faulty(Node):
+    def __init__(self):
+        super().__init__("faulty")
+        self.pub = self.create_publisher(String, "faulty_ticks", 10)
+        self.ticks = 0
+        self.create_timer(0.05, self.tick)
+
+    def tick(self):
+        self.ticks += 1
+        if self.ticks == 3:
+            raise ZeroDivisionError("tick three")
+        self.pub.publish(String(data=str(self.ticks)))
+
+sys.exit(run_node(Faulty, "faulty"))
+"""
+
+
+def test_a_callback_that_raises_is_logged_and_the_node_goes_on():
+    """A timer's exception reached rclpy's spin, which ended the node's process (code 1)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from std_msgs.msg import String
+
+    from area3d_msgs_py.probe import Probe
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    process = subprocess.Popen(
+        [sys.executable, "-c", FAULTY_NODE], env=env, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    try:
+        with Probe("faulty_reader") as probe:
+            ticks = probe.listen(String, "faulty_ticks")
+            # ticks after the third: the node spun on
+            assert probe.wait_for(lambda: any(int(m.data) > 5 for m in ticks), 60)
+            assert "3" not in [m.data for m in ticks]
+    finally:
+        process.send_signal(signal.SIGINT)
+        out, _ = process.communicate(timeout=60)
+    assert process.returncode == 0, out[-3000:]
+    assert "a callback raised; spinning on" in out and "ZeroDivisionError: tick three" in out, out
+    assert out.count("Traceback") == 1, out[-3000:]
