@@ -53,7 +53,7 @@ sees the region to reconstruct (a pixel the reconstruction leaves empty counts a
 whole-image PSNR / SSIM in the second table also count the black background outside the region,
 which every reconstruction matches for free: they are shown for reference only. Beside them, what
 splits the region PSNR: the share of region pixels the reconstruction leaves empty (coverage) and the
-PSNR over the pixels it has (appearance: colour, and geometry off its place). Cells show the mean over runs (seeds) and, when there are several, ± one standard deviation;
+PSNR over the pixels it has (appearance: colour, and geometry off its place). Cells show the mean over a row's runs (its seeds; a seed run twice counts twice) and, when there are several, ± one standard deviation;
 the best value of each column is bold. The curves show how each metric grows with the number of
 views: a policy whose curve rises earlier reaches the same quality with fewer views. The view plots
 show where each run put its camera (grey = initial views, colour = order of the planned views); the

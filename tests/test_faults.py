@@ -41,7 +41,9 @@ class Graph:
         self.launcher.start()
 
     def stop(self) -> dict[str, int]:
-        codes = self.launcher.stop()
+        # a quiet stop is asked of every node, not a fast one on a loaded machine (the time to
+        # stop is tests/test_shutdown.py's)
+        codes = self.launcher.stop(grace_s=30.0)
         self.probe.close()
         return codes
 
