@@ -76,13 +76,16 @@ class EpisodeRecord:
         """The graph's node specs for this episode (ValueError naming a refused parameter)."""
         config = self.config
         rundir.check_depth_source(config.depth_source)
+        camera: dict = {"readers.all": [NAME]}
+        if self.frames:  # resumed: the camera's noise goes on after the saved frames' captures
+            camera["noise_skip"] = len(self.frames)
         return episode_specs(
             config.scene,
             config.policy,
             config.seed,
             self.budget,
             config.mode,
-            merge({"sim_bridge": {"readers.all": [NAME]}}, config.overrides),
+            merge({"sim_bridge": camera}, config.overrides),
             config.params_file,
         )
 

@@ -48,6 +48,9 @@ __all__ = ["EpisodeConfig", "EpisodeError", "run_episode"]
 SERVICE_POLL_S = 0.02
 # A running graph without the reconstruction node: its reset is given up after this long.
 OPTIONAL_RESET_S = 10.0
+# A resumed episode's planner, asked again for a saved view, answers it within this (metres, and
+# rotation matrix entries): the camera's pose comes back through a quaternion.
+SAVED_VIEW_TOL = 1e-6
 
 
 def run_episode(
@@ -70,6 +73,9 @@ class _Episode(EpisodeRecord):
         # the runner can wait on): the first frame captured after a restart is checked as fused,
         # and replayed through the runner's writers (matched, waited for) if it is not.
         self.check_next_capture = False
+        # A resumed episode's saved planned views that the graph has not been given yet: each is
+        # replayed once the planner has been asked for it again (`_planned_views`).
+        self.held_back = 0
 
     # -- the run --------------------------------------------------------------------------------
     def _note_sigint(self) -> Callable[[], None]:
@@ -228,7 +234,10 @@ class _Episode(EpisodeRecord):
         config, manager = self.config, self.manager
         if self.frames:  # what an interrupted episode had already captured: the graph learns it
             t = time.monotonic()
-            self.step(lambda: manager.replay_all(self.frames, config.fuse_timeout_s, self.log))
+            # the initial views now, the planned ones as the planner is asked for them again
+            initial = self.frames[: self.n_init]
+            self.held_back = len(self.frames) - len(initial)
+            self.step(lambda: manager.replay_all(initial, config.fuse_timeout_s, self.log))
             self.add_time("replay", time.monotonic() - t)
         self._initial_views(progress)
         initial_grid = self.run_dir / rundir.GRID_INITIAL_FILE
@@ -321,17 +330,16 @@ class _Episode(EpisodeRecord):
         """Ask the planner for views (one at a time in closed loop, all at once in batch) and
         capture them until the budget is spent or the planner has no view left."""
         config, manager = self.config, self.manager
-        planned = len(self.frames) - self.n_init
+        planned = len(self.frames) - self.held_back - self.n_init
         refused = 0
         to_plan = self.budget - self.n_init
         while planned < to_plan:
             t = time.monotonic()
             count = 1 if config.mode == "closed_loop" else to_plan - planned
-            poses = self.step(
-                lambda c=count: manager.plan(self.frames[-1], c, config.plan_timeout_s)
-            )
+            current = self.frames[len(self.frames) - self.held_back - 1]  # the graph's last
+            poses = self.step(lambda c=count, f=current: manager.plan(f, c, config.plan_timeout_s))
             plan_s = time.monotonic() - t
-            self.add_time("plan", plan_s)
+            self.add_time("replay" if self.held_back else "plan", plan_s)  # asked again: replay
             self.launcher.check()
             if not poses and self.interrupted:
                 raise EpisodeError("interrupted (Ctrl-C)")
@@ -340,6 +348,10 @@ class _Episode(EpisodeRecord):
                 self.log(f"{self.stopped_early}; stopping early")
                 return
             for T in poses[: to_plan - planned]:
+                if self.held_back:  # a saved view of the resumed episode: replayed, not captured
+                    self._replay_saved_view(T)
+                    planned += 1
+                    continue
                 t = time.monotonic()
                 stamp = manager.clock()  # kept if the capture is repeated
                 result = self.step(
@@ -358,6 +370,25 @@ class _Episode(EpisodeRecord):
                 stage_times = {"plan": plan_s / len(poses), "capture": time.monotonic() - t}
                 self.keep(result, "planned", stage_times, progress)
                 self.captured()
+
+    def _replay_saved_view(self, T: np.ndarray) -> None:
+        """Replay the next saved planned view of a resumed episode, which the planner has just been
+        asked for again: so the planner holds what it held when the episode was stopped (the views
+        it handed out and their decay, the masks of the last request's frame, the working distance
+        of the initial views), and goes on choosing the views of the episode never stopped. Every
+        saved frame replayed before the first request would count as an initial view, with none
+        handed out, and other views would follow."""
+        index = len(self.frames) - self.held_back
+        frame = self.frames[index]
+        if not np.allclose(T, frame.T_world_cam, rtol=0.0, atol=SAVED_VIEW_TOL):
+            self.log(
+                f"the planner chose another view {index} than the saved one; replaying the saved "
+                "one (the views from here may differ from those of the episode never stopped)"
+            )
+        timeout_s = self.config.fuse_timeout_s
+        self.step(lambda: self.manager.replay_all([frame], timeout_s, self.log))
+        self.held_back -= 1
+        self.step(lambda: self.manager.wait_fused(index + 1, timeout_s))
 
     # -- restarts ---------------------------------------------------------------------------------
     def step(self, action: Callable[[], Any]) -> Any:
@@ -389,8 +420,9 @@ class _Episode(EpisodeRecord):
                 for name in sorted(self.catching_up):
                     manager.wait_new_readers([name], self.config.startup_timeout_s)
                     self.catching_up.discard(name)
-                if self.replay_due and self.frames:
-                    manager.replay_all(self.frames, self.config.fuse_timeout_s, self.log)
+                given = self.frames[: len(self.frames) - self.held_back]  # the graph's frames
+                if self.replay_due and given:
+                    manager.replay_all(given, self.config.fuse_timeout_s, self.log)
                     if self.with_semantics and len(self.frames) >= self.n_init:
                         self.semantic_maps_back()
                 self.replay_due = False

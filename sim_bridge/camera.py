@@ -16,7 +16,7 @@ import numpy as np
 
 from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE
 from area3d_msgs_py.depth_sensor import RgbdSensorParams
-from sim_bridge.noise import add_depth_noise
+from sim_bridge.noise import add_depth_noise, draw_depth_noise
 from sim_bridge.render import RgbdRenderer
 from sim_bridge.scene import Scene
 from sim_bridge.validity import CLEARANCE, check_pose
@@ -69,6 +69,9 @@ class SimCamera:
     depth image, drawn from a generator seeded with `seed` (repeatable episodes); False returns
     the renderer's exact depth (ground truth for benchmarks). image_noise: standard deviation of
     the Gaussian read noise added to every colour image, grey levels (0 = the exact rendering).
+    noise_skip: captures whose noise is drawn and dropped after construction and each `reseed`,
+    so that a camera started for a resumed episode goes on with the noise of the episode's next
+    capture, as the camera of the episode never stopped would have.
     """
 
     def __init__(
@@ -84,6 +87,7 @@ class SimCamera:
         stereo_baseline: float = 0.0,
         sensor: RgbdSensorParams | None = None,
         image_noise: float = 0.0,
+        noise_skip: int = 0,
     ) -> None:
         if not (np.isfinite(stereo_baseline) and stereo_baseline >= 0):
             raise ValueError(
@@ -99,6 +103,9 @@ class SimCamera:
         self.depth_noise = bool(depth_noise)
         self.sensor = sensor or RgbdSensorParams(max_range=max_range)
         self.seed = int(seed)
+        if not noise_skip >= 0:
+            raise ValueError(f"noise_skip: got {noise_skip!r}, expected captures >= 0")
+        self.noise_skip = int(noise_skip)
         self.reseed()
         self._renderer: RgbdRenderer | None = None
 
@@ -109,6 +116,15 @@ class SimCamera:
         depth_seed, image_seed = np.random.SeedSequence(self.seed).spawn(2)
         self._depth_rng = np.random.default_rng(depth_seed)
         self._image_rng = np.random.default_rng(image_seed)
+        # the noise of `noise_skip` captures, drawn as `capture` draws it (its draws depend on
+        # the image size alone) and dropped
+        images = 2 if self.stereo_baseline > 0 else 1
+        for _ in range(self.noise_skip):
+            if self.depth_noise:
+                draw_depth_noise(self._depth_rng, self.height * self.width)
+            if self.image_noise > 0:
+                for _ in range(images):
+                    self._image_rng.standard_normal((self.height, self.width, 3), np.float32)
 
     @property
     def renderer(self) -> RgbdRenderer:

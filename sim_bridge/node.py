@@ -92,6 +92,13 @@ PARAMS = (
         "seed of the depth and image noise (repeatable episodes)",
         range=(0, 2**31 - 1),
     ),
+    Param(
+        "noise_skip",
+        0,
+        "noise of this many captures drawn and dropped at the start and after each reset, so the "
+        "noise goes on from there (`area3d run --resume`: its saved frames), captures",
+        range=(0, 2**31 - 1),
+    ),
     # the simulated depth camera's noise model; its range is max_range
     *params_of(RgbdSensorParams, "sensor.", skip=("max_range",)),
     Param("stereo", False, "also render and publish the right image of a rectified stereo pair"),
@@ -378,6 +385,7 @@ def camera_from_parameters(scene: Any, p: dict) -> SimCamera:
         p["depth_noise"],
         seed=p["noise_seed"],
         image_noise=p["image_noise"],
+        noise_skip=p["noise_skip"],
         stereo_baseline=p["stereo_baseline"] if p["stereo"] else 0.0,
         sensor=RgbdSensorParams(
             max_range=p["max_range"],

@@ -32,6 +32,21 @@ def _add_axial_noise(depth, theta, noise, a, b, z0, c, max_theta):  # pragma: no
         depth[n] += sigma * noise[n]
 
 
+def draw_depth_noise(
+    rng: np.random.Generator, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The draws of one noisy depth image of `n` pixels: (axial (n,), lateral (2, n), edge (n,),
+    grazing (n,)). Every draw covers the whole image, whatever the depth holds: the noise of a
+    pixel depends on the generator's state and the pixel only, so two renderings that differ in
+    a few edge pixels (a pose through a quaternion and back) get the same noise everywhere else,
+    and a camera can skip a capture's noise by drawing it (`SimCamera.reseed`)."""
+    axial = rng.standard_normal(n, dtype=np.float32)
+    lateral = rng.standard_normal((2, n), dtype=np.float32)
+    edge_draw = rng.random(n, dtype=np.float32)
+    grazing_draw = rng.random(n, dtype=np.float32)
+    return axial, lateral, edge_draw, grazing_draw
+
+
 def add_depth_noise(
     depth: np.ndarray,
     K: np.ndarray,
@@ -61,13 +76,7 @@ def add_depth_noise(
     theta = np.arccos(cos)
     dist = edge_distance(edges, params.edge_radius_px)
 
-    # Every draw covers the whole image, whatever the depth holds: the noise of a pixel depends
-    # on the generator's state and the pixel only, so two renderings that differ in a few edge
-    # pixels (a pose through a quaternion and back) get the same noise everywhere else.
-    axial = rng.standard_normal(h * w, dtype=np.float32)
-    lateral = rng.standard_normal((2, h * w), dtype=np.float32)
-    edge_draw = rng.random(h * w, dtype=np.float32)
-    grazing_draw = rng.random(h * w, dtype=np.float32)
+    axial, lateral, edge_draw, grazing_draw = draw_depth_noise(rng, h * w)
 
     out = clean.copy()
     band = np.flatnonzero(dist.ravel() <= params.edge_radius_px)
