@@ -15,7 +15,8 @@ Three sources, chosen by a node's `pose_source` parameter:
 
 A frame whose transforms have not all arrived (the stamp is after the newest sample of an edge, or
 a frame is not known yet) waits for them up to `pose_wait_s`, as tf2's message filter does; a
-stamp before the history kept is dropped at once. A dropped frame is counted by cause
+stamp before the history kept, or between two samples of an edge more than `pose_max_interval_s`
+apart (an odometry outage: where the camera was is not known), is dropped at once. A dropped frame is counted by cause
 (`transforms.LookupFailure.CAUSES`); the first drop of each cause carries `first` so that a node
 logs it once. Samples are checked where they enter (`TransformBuffer.add`): a non-unit quaternion,
 a jump faster than the speed limits, a stamp ahead of the clock or a second parent is refused with
@@ -49,6 +50,9 @@ MOUNT_SOURCES = ("parameters", "tf_static")
 MOUNTED_CAMERA = "(camera)"
 # Frames waiting for their transforms at most (the oldest is dropped beyond).
 WAITING_CAPACITY = 64
+# lookups that waiting cannot mend: the stamp fell out of the history, or lies in a gap between
+# samples already in it
+FINAL = (LookupFailure.TOO_OLD, LookupFailure.GAP)
 
 
 def _xyz(value: tuple) -> str | None:
@@ -93,6 +97,15 @@ class PoseSourceConfig:
         "reach the planner after perception, seconds late with a feed-forward model on a CPU)",
         "seconds",
         (0.1, 3600.0),
+    )
+    pose_max_interval_s: float = described(
+        1.0,
+        "tf / odometry: a frame stamped between two transforms of an edge further apart than "
+        "this is dropped (gap: the transforms paused, an odometry outage, and where the camera "
+        "was meanwhile is not known; tf2 interpolates across any gap); raise it for an edge "
+        "published more slowly; 0 = no limit",
+        "seconds",
+        (0.0, 3600.0),
     )
     pose_max_linear_speed: float = described(
         0.0,
@@ -191,6 +204,7 @@ class CameraPoses:
             max_linear_speed=config.pose_max_linear_speed or None,
             max_angular_speed=config.pose_max_angular_speed or None,
             max_ahead_s=max_ahead_s,
+            max_interval_s=config.pose_max_interval_s,
         )
         self.mounted = config.pose_source == "odometry" and config.camera_mount == "parameters"
         if config.pose_source == "odometry":
@@ -275,7 +289,7 @@ class CameraPoses:
         try:
             return [Posed(int(stamp_ns), frame, self._lookup(stamp_ns, frame_id))]
         except LookupFailure as failure:
-            if failure.cause == LookupFailure.TOO_OLD:
+            if failure.cause in FINAL:
                 self._drop(int(stamp_ns), failure)
                 return []
             self._waiting.append(_Waiting(int(stamp_ns), frame_id, frame, int(now_ns), failure))
@@ -305,7 +319,7 @@ class CameraPoses:
                 continue
             except LookupFailure as failure:
                 waiting.failure = failure
-            if waiting.failure.cause == LookupFailure.TOO_OLD:
+            if waiting.failure.cause in FINAL:
                 self._drop(waiting.stamp_ns, waiting.failure)
             elif now_ns - waiting.since_ns > self.wait_ns:
                 self._drop(

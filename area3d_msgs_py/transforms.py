@@ -13,8 +13,9 @@ the message field, the value and what was expected: empty or equal frame names, 
 for a frame or a loop, a stamp <= 0 or further ahead of the receiver's clock than `max_ahead_s`,
 non-finite values, a quaternion off unit length, and a jump (faster than `max_linear_speed` or
 `max_angular_speed` from the previous sample of that edge). A lookup that cannot be answered raises
-`LookupFailure` with one of four causes (no transform yet, too old, in the future, disconnected),
-so that a node can count and log each cause once.
+`LookupFailure` with one of five causes (no transform yet, too old, in the future, disconnected,
+a gap: the samples around the stamp further apart than `max_interval_s`, where nobody knows how
+the frame moved), so that a node can count and log each cause once.
 
 Conventions: poses are 4x4 float64 homogeneous matrices; quaternions are (x, y, z, w) as in ROS;
 stamps are int nanoseconds; `lookup(target, source)` returns T_target_source, which maps points in
@@ -72,13 +73,14 @@ ODOMETRY_FIELDS = Fields(translation="pose.pose.position", rotation="pose.pose.o
 
 
 class LookupFailure(LookupError):
-    """A transform that cannot be had at the stamp asked for; `cause` is one of the four below."""
+    """A transform that cannot be had at the stamp asked for; `cause` is one of the five below."""
 
     NO_TRANSFORM = "no_transform"  # a frame has never been seen (nothing published for it yet)
     TOO_OLD = "too_old"  # before an edge's oldest sample kept, beyond the tolerance
     IN_FUTURE = "in_future"  # after an edge's newest sample, beyond the tolerance (not arrived yet)
     DISCONNECTED = "disconnected"  # both frames known, in two trees with no common ancestor
-    CAUSES = (NO_TRANSFORM, TOO_OLD, IN_FUTURE, DISCONNECTED)
+    GAP = "gap"  # between two samples of an edge further apart than max_interval_s
+    CAUSES = (NO_TRANSFORM, TOO_OLD, IN_FUTURE, DISCONNECTED, GAP)
 
     def __init__(self, cause: str, message: str) -> None:
         self.cause = cause
@@ -159,6 +161,9 @@ class TransformBuffer:
     max_angular_speed: rad/s; the same for rotation. None = not checked.
     max_ahead_s: a dynamic sample's stamp may be at most this far ahead of the receiver's clock
         (`now_ns` given to `add`).
+    max_interval_s: a stamp between two samples of a dynamic edge further apart than this fails
+        (`gap`): the transforms paused (an odometry outage) and the frame may have moved in any
+        way meanwhile; tf2 interpolates across any gap. 0 = no limit.
 
     Not thread-safe: a node whose callbacks run on several threads holds one lock around `add`
     and `lookup`.
@@ -171,11 +176,13 @@ class TransformBuffer:
         max_linear_speed: float | None = None,
         max_angular_speed: float | None = None,
         max_ahead_s: float = DEFAULT_MAX_AHEAD_S,
+        max_interval_s: float = 0.0,
     ) -> None:
         for name, value in (
             ("history_s", history_s),
             ("tolerance_s", tolerance_s),
             ("max_ahead_s", max_ahead_s),
+            ("max_interval_s", max_interval_s),
             ("max_linear_speed", max_linear_speed),
             ("max_angular_speed", max_angular_speed),
         ):
@@ -188,6 +195,7 @@ class TransformBuffer:
         self.max_linear_speed = max_linear_speed
         self.max_angular_speed = max_angular_speed
         self.max_ahead_ns = int(max_ahead_s * NS_PER_S)
+        self.max_interval_ns = int(max_interval_s * NS_PER_S)
         self._edges: dict[str, _Edge] = {}  # by child frame: each frame has one parent
 
     # input ---------------------------------------------------------------------------------------
@@ -363,7 +371,16 @@ class TransformBuffer:
             k = start + nearest
             return matrix(history.translations[k], history.rotations[k])
         k0, k1 = start + i - 1, start + i
-        u = (stamp_ns - int(stamps[i - 1])) / (int(stamps[i]) - int(stamps[i - 1]))
+        before, after = int(stamps[i - 1]), int(stamps[i])
+        if self.max_interval_ns and after - before > self.max_interval_ns:
+            raise LookupFailure(
+                LookupFailure.GAP,
+                f"stamp {stamp_ns} falls between transforms {edge.parent!r} -> {child!r} at "
+                f"{before} and {after} ns, {(after - before) / NS_PER_S:.3f} s apart, more than "
+                f"max_interval_s {self.max_interval_ns / NS_PER_S:g}: the transforms paused and "
+                "where the frame was meanwhile is not known",
+            )
+        u = (stamp_ns - before) / (after - before)
         t = (1.0 - u) * history.translations[k0] + u * history.translations[k1]
         return matrix(t, slerp(history.rotations[k0], history.rotations[k1], u))
 

@@ -133,6 +133,33 @@ def test_frames_without_a_pose_are_dropped_and_counted_by_cause_logged_once_each
     }
 
 
+def test_a_frame_taken_during_an_odometry_outage_is_dropped_not_posed_by_interpolation():
+    poses = odometry_source()  # pose_max_interval_s 1 s by default
+    feed_odometry(poses, 1.0)
+    feed_odometry(poses, 5.0, start_s=4.0)  # no odometry from 1 s to 4 s
+    # waiting after the outage: the samples around its stamp are in, 3 s apart
+    assert poses.submit(T0 + 2 * S, "cam", "during", NOW) == []
+    (gap,) = poses.pop_drops()
+    assert (gap.cause, gap.first) == (LookupFailure.GAP, True)
+    assert "3.000 s apart" in gap.message and "max_interval_s 1" in gap.message
+    # a frame stamped during the outage, before its end arrived, waits and is dropped once it has
+    late = odometry_source()
+    feed_odometry(late, 1.0)
+    assert late.submit(T0 + 2 * S, "cam", "during", NOW) == [] and len(late) == 1
+    feed_odometry(late, 5.0, start_s=4.0)
+    assert late.release(NOW) == [] and len(late) == 0
+    assert [d.cause for d in late.pop_drops()] == [LookupFailure.GAP]
+    (after,) = late.submit(T0 + 4 * S + S // 100, "cam", "after", NOW)  # posed again
+    assert poses.status()["frames_dropped_no_pose"] == {"gap": 1}
+    assert after.frame == "after"
+    # with no limit, as tf2, the outage is interpolated across
+    unlimited = odometry_source(pose_max_interval_s=0.0)
+    feed_odometry(unlimited, 1.0)
+    feed_odometry(unlimited, 5.0, start_s=4.0)
+    (across,) = unlimited.submit(T0 + 2 * S, "cam", "during", NOW)
+    assert across.frame == "during" and unlimited.pop_drops() == []
+
+
 def test_an_unknown_image_frame_waits_then_is_dropped_as_no_transform():
     tf = CameraPoses(PoseSourceConfig(pose_source="tf", pose_wait_s=1.0), "world")
     tf.add_transform("world", "camera_link", T0, (0, 0, 1), (0, 0, 0, 1), static=False, now_ns=NOW)

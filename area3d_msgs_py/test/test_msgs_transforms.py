@@ -189,7 +189,29 @@ def test_a_frame_never_seen_and_two_unconnected_trees_are_told_apart():
         apart.value.cause,
         LookupFailure.TOO_OLD,
         LookupFailure.IN_FUTURE,
+        LookupFailure.GAP,
     }
+
+
+def test_a_stamp_in_a_pause_of_the_transforms_longer_than_the_limit_is_a_gap():
+    """An odometry outage: between two samples 3 s apart the body may have moved in any way;
+    tf2 would interpolate across it. Within the limit, and with no limit, it interpolates."""
+    buffer = TransformBuffer(max_interval_s=1.0)
+    for k in range(3):  # 50 Hz, then a pause of 3 s, then 50 Hz again, 1 m further on
+        buffer.add("odom", "base_link", T0 + k * S // 50, [0.0, 0, 0], [0, 0, 0, 1.0])
+    resumed = T0 + 2 * S // 50 + 3 * S
+    for k in range(3):
+        buffer.add("odom", "base_link", resumed + k * S // 50, [1.0, 0, 0], [0, 0, 0, 1.0])
+    assert buffer.lookup("odom", "base_link", T0 + S // 100)[0, 3] == 0.0  # 20 ms apart: kept
+    with pytest.raises(LookupFailure) as pause:
+        buffer.lookup("odom", "base_link", T0 + 2 * S)
+    assert pause.value.cause == LookupFailure.GAP
+    assert "3.000 s apart" in str(pause.value) and "max_interval_s 1" in str(pause.value)
+    assert buffer.lookup("odom", "base_link", resumed + S // 100)[0, 3] == 1.0
+    unlimited = TransformBuffer()
+    unlimited.add("odom", "base_link", T0, [0.0, 0, 0], [0, 0, 0, 1.0])
+    unlimited.add("odom", "base_link", T0 + 3 * S, [3.0, 0, 0], [0, 0, 0, 1.0])
+    assert unlimited.lookup("odom", "base_link", T0 + S)[0, 3] == pytest.approx(1.0)
 
 
 def test_history_is_bounded_and_older_stamps_are_too_old():
