@@ -25,6 +25,9 @@ MAX_IMAGE_PIXELS = 4096 * 4096
 MAX_STAMP_AHEAD_S = 5.0
 COLOR_ENCODINGS = ("rgb8", "bgr8")
 DEPTH_ENCODINGS = ("32FC1", "16UC1")
+# No RGB-D camera returns depth this far (16UC1 millimetres end at 65.5 m): a 32FC1 depth whose
+# returns lie beyond it is in other units, a driver's millimetres most often.
+MAX_CAMERA_DEPTH_M = 100.0
 FLOAT_ENCODINGS = ("32FC1",)
 
 
@@ -82,6 +85,24 @@ def decode_image(
     """`codecs.msg_to_image` after `check_image_header` (step and data length checked there)."""
     check_image_header(msg, encodings, size, max_pixels)
     return codecs.msg_to_image(msg)
+
+
+def decode_camera_depth(msg: Any, size: tuple[int, int] | None = None) -> np.ndarray:
+    """A camera's depth image in metres (32FC1 metres, REP 117, or 16UC1 millimetres); a 32FC1
+    image whose median return lies beyond MAX_CAMERA_DEPTH_M is refused as one in other units."""
+    depth = decode_image(msg, DEPTH_ENCODINGS, size)
+    if msg.encoding == "32FC1":
+        sample = depth.ravel()[::16]  # every frame: a sample tells the units
+        returns = sample[np.isfinite(sample) & (sample > 0)]
+        median = float(np.median(returns)) if returns.size else 0.0
+        if median > MAX_CAMERA_DEPTH_M:
+            raise InputError(
+                "data",
+                f"32FC1 depth with a median return of {median:.4g}",
+                f"metres (REP 117), returns within {MAX_CAMERA_DEPTH_M:g}; a driver's "
+                "millimetres come as 16UC1",
+            )
+    return depth
 
 
 def _range_ignoring_nan(image: np.ndarray) -> tuple[float, float]:

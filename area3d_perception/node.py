@@ -27,9 +27,9 @@ from area3d_msgs_py.frame_sync import MAX_AGE_NS, HeldFrames, StampSync, pairing
 from area3d_msgs_py.guard import Rejections, guarded, reject
 from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
-    DEPTH_ENCODINGS,
     check_frame_id,
     check_stamp,
+    decode_camera_depth,
     decode_camera_info,
     decode_image,
 )
@@ -256,7 +256,7 @@ class PerceptionNode(Node):
         self._add("color", msg, lambda m: decode_image(m, COLOR_ENCODINGS, self._camera_size()))
 
     def on_depth(self, msg: Any) -> None:
-        self._add("depth", msg, lambda m: decode_image(m, DEPTH_ENCODINGS, self._camera_size()))
+        self._add("depth", msg, lambda m: decode_camera_depth(m, self._camera_size()))
 
     def on_pose(self, msg: Any) -> None:
         check_frame_id(msg, self.world_frame)

@@ -23,11 +23,11 @@ from area3d_msgs_py import codecs, msgs, topics
 from area3d_msgs_py.guard import Rejections, guarded
 from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
-    DEPTH_ENCODINGS,
     FLOAT_ENCODINGS,
     check_frame_id,
     check_stamp,
     check_unit_range,
+    decode_camera_depth,
     decode_image,
 )
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
@@ -210,7 +210,7 @@ class SemanticsNode(Node):
 
     def on_depth(self, msg) -> None:
         stamp = self._stamp(msg)
-        depth = decode_image(msg, DEPTH_ENCODINGS)
+        depth = decode_camera_depth(msg)
         with self._lock:
             self.views.add_depth(stamp, depth)
         self._maybe_start_initial()

@@ -122,3 +122,21 @@ def test_a_callback_of_a_node_being_destroyed_ends_quietly_and_counts_nothing():
     assert failing(_image()) is None
     assert rejections.snapshot()["by_field"] == {"exception": 1}
     assert "ZeroDivisionError" in lines[-1]
+
+
+def test_a_cameras_depth_in_millimetres_sent_as_32fc1_metres_is_refused_naming_the_units():
+    metres = np.full((48, 64), 1.2, np.float32)
+    metres[:, :8] = np.nan  # no return there
+    size = (64, 48)
+    ok = inputs.decode_camera_depth(codecs.image_to_msg(metres, "32FC1", NOW, "cam"), size)
+    np.testing.assert_array_equal(ok, metres)
+    millimetres = (np.nan_to_num(metres) * 1000).astype(np.uint16)  # 16UC1 is millimetres
+    as_16 = inputs.decode_camera_depth(codecs.image_to_msg(millimetres, "16UC1", NOW, "c"), size)
+    np.testing.assert_allclose(as_16[:, 8:], 1.2, atol=1e-6)
+    with pytest.raises(InputError) as wrong:
+        inputs.decode_camera_depth(codecs.image_to_msg(metres * 1000, "32FC1", NOW, "cam"), size)
+    assert wrong.value.field == "data"
+    assert "median return of 1200" in str(wrong.value) and "16UC1" in str(wrong.value)
+    # a camera that sees nothing (every pixel NaN or +inf) is no units error
+    nothing = np.full((48, 64), np.inf, np.float32)
+    inputs.decode_camera_depth(codecs.image_to_msg(nothing, "32FC1", NOW, "cam"), size)

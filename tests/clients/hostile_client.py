@@ -137,6 +137,7 @@ def cases(now, w, h):
         (DEPTH, "color image on the depth topic", image(now, rgb, "rgb8"), "encoding"),
         (DEPTH, "step smaller than a row", broken_step(image(now, depth, "32FC1")), "step"),
         (DEPTH, "zero-size image", image(now, depth[:0, :0], "32FC1"), "width x height"),
+        (DEPTH, "millimetres as 32FC1", image(now, depth * np.float32(1000), "32FC1"), "data"),
         (DEPTH, "stamp a year ahead", image(future, depth, "32FC1"), "header.stamp"),
         (INFO, "fx = 0 (uncalibrated)", camera_info(now, w, h, fx=0.0), "k"),
         (INFO, "NaN in K", camera_info(now, w, h, fx=float("nan")), "k"),
