@@ -53,7 +53,7 @@ from area3d_msgs_py.status import StatusPublisher
 from area3d_planner import map_io
 from area3d_planner.config import PlannerConfig
 from area3d_planner.markers import grid_messages, view_markers, views_path
-from area3d_planner.requests import Plan, PlanRequest
+from area3d_planner.requests import Plan, PlanRequest, get_plan_request
 from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
 from area3d_planner.server import NextBestViewServer
 
@@ -396,11 +396,14 @@ class PlannerNode(Node):
                     f"next_best_view: start pose rejected ({exc}); planning without a start"
                 )
                 start = None
-            count = int(round(request.goal.pose.position.x))
             stamp = codecs.stamp_to_ns(request.start.header.stamp)
-            _, response.plan = self._serve("next_best_view", PlanRequest(start, stamp, count))
-        except Exception as exc:  # an empty plan, and the node keeps serving
-            self._failed("next_best_view", exc)
+            wanted = get_plan_request(start, stamp, request.goal.pose.position.x)
+            _, response.plan = self._serve("next_best_view", wanted)
+        except Exception as exc:  # an empty plan, the reason in the log; the node serves on
+            if isinstance(exc, InputError):
+                self.get_logger().warning(f"next_best_view: request rejected: {exc}")
+            else:
+                self._failed("next_best_view", exc)
             response.plan = views_path([], self.world_frame, self._now_ns())
         return response
 

@@ -10,6 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from area3d_msgs_py.errors import InputError
 from area3d_planner.config import MODES
 from area3d_planner.greedy import poses_alike
 
@@ -19,13 +20,23 @@ class PlanRequest:
     """A next-best-view request: current camera pose, the stamp of the last captured frame
     (0 = do not wait), how many views (0 = all that the remaining budget allows in batch mode,
     one in closed loop), the mode ("" = the planner's `mode`) and the caller's id for the
-    request (0 = none: `scheduler.ANSWERS_KEPT`)."""
+    request (0 = none: `scheduler.ANSWERS_KEPT`); `count_field` names how many views in the
+    caller's message (NextBestView's `count`, GetPlan's `goal.pose.position.x`)."""
 
     start: np.ndarray | None
     stamp_ns: int = 0
     num_views: int = 0
     mode: str = ""
     request_id: int = 0
+    count_field: str = "count"
+
+
+def get_plan_request(start: np.ndarray | None, stamp_ns: int, x: float) -> PlanRequest:
+    """nav_msgs/GetPlan's request, how many views in `goal.pose.position.x`; InputError unless
+    that is a whole number (NaN, 2.7)."""
+    if not (np.isfinite(x) and x == round(x)):
+        raise InputError("goal.pose.position.x", x, "a whole number of views >= 0")
+    return PlanRequest(start, stamp_ns, int(x), count_field="goal.pose.position.x")
 
 
 class Plan(NamedTuple):
@@ -96,9 +107,11 @@ def check_request(
     try:
         num = int(request.num_views)
     except (TypeError, ValueError):
-        return f"num_views: got {request.num_views!r}, expected an integer >= 0"
+        return f"{request.count_field}: got {request.num_views!r}, expected an integer >= 0"
     if num < 0:
-        return f"num_views: got {num}, expected an integer >= 0 (0 = the remaining budget)"
+        return (
+            f"{request.count_field}: got {num}, expected an integer >= 0 (0 = the remaining budget)"
+        )
     mode = request.mode or default_mode
     if mode not in MODES:
         return f"mode: got {mode!r}, expected one of {', '.join(MODES)} (empty: the planner's)"
@@ -107,7 +120,9 @@ def check_request(
     # 0: batch plans the whole remaining budget at once, closed loop the next best view only
     want = num or (remaining if mode == "batch" else 1)
     if want > remaining:
-        return f"num_views: got {num}, expected at most the remaining budget {remaining}"
+        return (
+            f"{request.count_field}: got {num}, expected at most the remaining budget {remaining}"
+        )
     for name, arr in sums.items():
         # a float64 sum of float32 values cannot overflow: it is finite iff every value is
         if not np.isfinite(arr.sum(dtype=np.float64)):

@@ -377,7 +377,8 @@ class NextBestViewServer(MaskRebuilds):
                     return Plan(
                         [],
                         [],
-                        f"num_views: got {want}, expected at most the {candidates} candidate views",
+                        f"{request.count_field}: got {want}, expected at most the {candidates} "
+                        "candidate views",
                     )
                 if self.policy.sequential:
                     if self._sequence is None:  # planned once, handed out in order

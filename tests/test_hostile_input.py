@@ -145,6 +145,11 @@ def test_every_node_rejects_a_barrage_of_malformed_messages_by_field_and_keeps_s
     plan_request = msgs.GetPlan_Request()
     plan_request.start.header = codecs.header(stamp, "world")
     plan_request.start.pose = codecs.matrix_to_pose(T)
+    plan_request.goal.pose.position.x = float("nan")  # how many views: refused, by its field
+    plan = graph.probe.call(msgs.GetPlan, "area3d/planner/next_best_view", plan_request, 120)
+    assert len(plan.plan.poses) == 0
+    assert graph.wait_for(lambda: any("goal.pose.position.x: got nan" in s for s in graph.lines))
+    assert not any("[ERROR]" in line and "[planner]" in line for line in graph.lines)
     plan_request.goal.pose.position.x = 1.0
     plan = graph.probe.call(msgs.GetPlan, "area3d/planner/next_best_view", plan_request, 120)
     assert len(plan.plan.poses) == 1, graph.lines[-30:]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from area3d_msgs_py.errors import InputError
-from area3d_planner.requests import PlanRequest
+from area3d_planner.requests import PlanRequest, get_plan_request
 from area3d_planner.server import NextBestViewServer
 from area3d_planner.test.conftest import (
     closed_loop_config,
@@ -39,7 +39,12 @@ def test_closed_loop_counts_captured_and_committed_views_against_the_budget():
     srv.add_frame(2, *wall_frame())  # the planned view was captured: still 2 left
     assert srv.remaining_budget() == 2
     poses, reason = srv.plan(PlanRequest(None, 2, 3))
-    assert poses == [] and "remaining budget 2" in reason
+    assert poses == [] and reason == "count: got 3, expected at most the remaining budget 2"
+    # the field as the caller's message names it: NextBestView's count, GetPlan's goal x
+    poses, reason = srv.plan(get_plan_request(None, 2, 3.0))
+    assert reason.startswith("goal.pose.position.x: got 3, expected at most")
+    with pytest.raises(InputError, match="goal.pose.position.x: got 2.7"):
+        get_plan_request(None, 2, 2.7)
 
 
 def test_more_views_than_candidates_and_nan_uncertainty_give_empty_plans():
