@@ -5,12 +5,15 @@ message from another process must not do that. ``guarded(node, callback, what, r
 the error (an ``InputError`` as one line naming field, value and expectation; anything else with
 its traceback) and returns None. With a ``Rejections`` it also counts the rejection under the topic
 and the field, so the node's status topic can say what it refused (a hostile or broken publisher
-shows up there, not only in a log nobody reads).
+shows up there, not only in a log nobody reads). A refusal of the same topic and field repeats
+at the publisher's rate (a driver's 50 Hz odometry with a bad quaternion): it is logged at most
+once every LOG_PERIOD_S, saying how many like it were not; the counts stay exact.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 import traceback
 from collections import Counter
 from collections.abc import Callable
@@ -20,6 +23,8 @@ from rclpy.exceptions import InvalidHandle
 
 from area3d_msgs_py.errors import InputError
 
+LOG_PERIOD_S = 1.0
+
 
 class Rejections:
     """Thread-safe counts of rejected inputs per topic and per field (the InputError's field).
@@ -28,11 +33,30 @@ class Rejections:
     1
     """
 
-    def __init__(self, on_count: Callable[[], None] | None = None) -> None:
+    def __init__(
+        self,
+        on_count: Callable[[], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self._lock = threading.Lock()
         self._by_topic: Counter[str] = Counter()
         self._by_field: Counter[str] = Counter()
         self._on_count = on_count  # e.g. publish the status soon
+        self._clock = clock
+        # (topic, field): [when one was last logged, how many since were not]
+        self._logged: dict[tuple[str, str], list] = {}
+
+    def to_log(self, topic: str, field: str) -> int | None:
+        """None when this refusal goes unlogged (one of its topic and field was logged less than
+        LOG_PERIOD_S ago); else how many like it were not logged since the last that was."""
+        now = self._clock()
+        with self._lock:
+            last = self._logged.get((topic, field))
+            if last is not None and now - last[0] < LOG_PERIOD_S:
+                last[1] += 1
+                return None
+            self._logged[(topic, field)] = [now, 0]
+            return 0 if last is None else last[1]
 
     def count(self, topic: str, field: str) -> None:
         with self._lock:
@@ -63,10 +87,15 @@ def reject(
     exc: InputError,
     topic: str | None = None,
 ) -> None:
-    """Log one rejected input as a single warning line and count it under `topic` (or `what`)."""
-    node.get_logger().warning(f"{what}: rejected: {exc}")
+    """Log one rejected input as a single warning line (with `rejections`, at most one a
+    LOG_PERIOD_S per topic and field) and count it under `topic` (or `what`)."""
+    key = topic or what
+    unlogged = 0 if rejections is None else rejections.to_log(key, exc.field)
+    if unlogged is not None:
+        more = f" ({unlogged} more of {exc.field} refused since, not logged)" if unlogged else ""
+        node.get_logger().warning(f"{what}: rejected: {exc}{more}")
     if rejections is not None:
-        rejections.count(topic or what, exc.field)
+        rejections.count(key, exc.field)
 
 
 def _stamp_of(args: tuple) -> str:

@@ -24,8 +24,9 @@ import numpy as np
 
 from area3d_msgs_py.errors import InputError
 
-# ROS tools (tf2) warn beyond ~1e-3 off unit length.
-QUATERNION_NORM_TOLERANCE = 1e-3
+# How far a quaternion's squared norm may be off 1, as tf2 and RViz accept it (their
+# QUATERNION_NORMALIZATION_TOLERANCE): a driver's float32 quaternions that ROS tools take are taken.
+QUATERNION_NORM2_TOLERANCE = 1e-2
 # Below this angle slerp is replaced by a normalised linear blend (sin(theta) ~ 0).
 _SLERP_LINEAR_BELOW_RAD = 1e-6
 
@@ -75,14 +76,15 @@ def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
 
 def check_quaternion(values: Any, field: str) -> np.ndarray:
     """(4,) float64 unit quaternion (x, y, z, w) from `values`, normalised; a quaternion that is
-    not finite or whose norm is off 1 by more than QUATERNION_NORM_TOLERANCE is refused."""
+    not finite or whose squared norm is off 1 by more than QUATERNION_NORM2_TOLERANCE is
+    refused."""
     q = np.asarray(values, dtype=np.float64).reshape(-1)
     norm = np.linalg.norm(q) if q.shape == (4,) else np.nan
-    if not np.isfinite(norm) or abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+    if not np.isfinite(norm) or abs(norm * norm - 1.0) > QUATERNION_NORM2_TOLERANCE:
         raise InputError(
             field,
             q.tolist(),
-            f"a unit quaternion (|norm - 1| <= {QUATERNION_NORM_TOLERANCE})",
+            f"a unit quaternion (|norm^2 - 1| <= {QUATERNION_NORM2_TOLERANCE:g}, as tf2)",
         )
     return q / norm
 

@@ -95,6 +95,32 @@ def test_guarded_counts_rejections_by_topic_and_field_and_logs_one_line():
     assert lines == ["pose at stamp 7: rejected: header.frame_id: got 'map', expected 'world'"]
 
 
+def test_a_refusal_repeated_at_the_publishers_rate_is_logged_once_a_period_and_counted_each_time():
+    lines, now = [], [100.0]
+    rejections = Rejections(clock=lambda: now[0])
+
+    def check(msg):
+        inputs.check_stamp(msg, NOW)
+        inputs.check_frame_id(msg, "world")
+
+    callback = guarded(_Node(lines), check, "odom", rejections)
+    for stamp in range(1, 51):  # 50 Hz for a second, all refused
+        callback(msgs.PoseStamped(header=codecs.header(stamp, "map")))
+        now[0] += 0.02
+    callback(msgs.PoseStamped(header=codecs.header(0, "map")))  # another field: logged at once
+    assert rejections.snapshot()["total"] == 51
+    assert len(lines) == 2 and lines[0] == (
+        "odom at stamp 1: rejected: header.frame_id: got 'map', expected 'world'"
+    )
+    assert lines[1].startswith("odom at stamp 0: rejected: header.stamp: got 0")
+    now[0] += 1.0
+    callback(msgs.PoseStamped(header=codecs.header(52, "map")))
+    assert lines[-1] == (
+        "odom at stamp 52: rejected: header.frame_id: got 'map', expected 'world' "
+        "(49 more of header.frame_id refused since, not logged)"
+    )
+
+
 def test_a_callback_of_a_node_being_destroyed_ends_quietly_and_counts_nothing():
     """rclpy raises InvalidHandle when a callback still running at shutdown publishes, or when
     counting a rejection resets the status timer of a node being destroyed: neither is an input's

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.rotations import (
-    QUATERNION_NORM_TOLERANCE,
+    QUATERNION_NORM2_TOLERANCE,
     check_quaternion,
     invert,
     matrix,
@@ -89,9 +89,13 @@ def test_a_transform_and_its_inverse_compose_to_the_identity(q, t):
 
 
 def test_a_quaternion_is_normalised_within_the_tolerance_and_refused_beyond_it():
-    slightly_long = np.array([0.0, 0.0, 0.0, 1.0 + 0.5 * QUATERNION_NORM_TOLERANCE])
+    slightly_long = np.array([0.0, 0.0, 0.0, 1.0 + 0.5 * QUATERNION_NORM2_TOLERANCE / 2])
     np.testing.assert_allclose(check_quaternion(slightly_long, "pose.orientation"), [0, 0, 0, 1])
-    for bad in ([0.0, 0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 0.0], [np.nan, 0, 0, 1], [0.0, 1.0]):
+    # a norm of 0.997 is taken as tf2 and RViz take it (|0.997^2 - 1| = 0.006); 0.99 is not (0.0199)
+    short = check_quaternion([0.0, 0.0, 0.6 * 0.997, 0.8 * 0.997], "pose.orientation")
+    np.testing.assert_allclose(short, [0, 0, 0.6, 0.8], atol=1e-12)
+    for bad in ([0, 0, 0.6 * 0.99, 0.8 * 0.99], [0.0, 0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 0.0],
+                [np.nan, 0, 0, 1], [0.0, 1.0]):  # fmt: skip
         with pytest.raises(InputError) as refused:
             check_quaternion(bad, "pose.orientation")
         assert refused.value.field == "pose.orientation"
