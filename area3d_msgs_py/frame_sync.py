@@ -37,8 +37,9 @@ MAX_PENDING = 64
 RATE_WINDOW = 100
 # Frames that never arrived at all are estimated from the gaps between the reference stream's
 # stamps (`count_gaps`): the stream's period is the median of the single-period gaps among its
-# last GAP_WINDOW (frames that came back to back, `_period`), counted only for a stream of at least 5 Hz, and a gap longer
-# than MAX_GAP_NS is a pause of the camera, not frames lost.
+# last GAP_WINDOW (frames that came back to back, `_period`), counted only for a stream of at
+# least 5 Hz whose gaps are whole periods, and a gap longer than MAX_GAP_NS is a pause of the
+# camera, not frames lost.
 GAP_WINDOW = 50
 MIN_GAPS = 10
 MAX_PERIOD_NS = 200_000_000
@@ -69,7 +70,11 @@ def _period(gaps) -> float:
     are not a period), or its half or third when that is what nine gaps in ten are whole
     multiples of. A stream that seldom sends two frames in a row (a third lost and a driver often
     late: measured beside a loaded 30 Hz driver) has gaps of two and three periods, whose
-    shortest is two; every gap then would read as half the frames it lost."""
+    shortest is two; every gap then would read as half the frames it lost. 0.0 when no such
+    period makes nine gaps in ten whole: a stream stamped irregularly (a driver stamping on
+    publish, late by up to most of a period under load) says nothing by its gaps of what it lost,
+    and its shortest gaps read as a period a fraction of the real one, every frame as several
+    lost."""
     ordered = sorted(gaps)
     floor = 0.5 * ordered[len(ordered) // 10]
     counted = [g for g in ordered if g >= floor]
@@ -81,7 +86,7 @@ def _period(gaps) -> float:
         whole = sum(abs(g / period - round(g / period)) <= PERIOD_TOLERANCE for g in counted)
         if whole >= 0.9 * len(counted):
             return period
-    return base
+    return 0.0
 
 
 class StampSync:
