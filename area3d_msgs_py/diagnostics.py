@@ -97,6 +97,10 @@ def assess(status: Mapping[str, Any], baseline: Mapping[str, Any] | None = None)
     if rejected:
         warnings.append(f"{rejected} inputs rejected")
     standing = [str(w) for w in status.get("warnings") or ()]
+    mismatched = (status.get("rejected") or {}).get("incompatible_qos") or {}
+    standing += [
+        f"nothing arrives on {t}: its publisher's QoS ({p})" for t, p in mismatched.items()
+    ]
     if warnings or standing:
         recent = [", ".join(warnings) + " in the last period"] if warnings else []
         return Assessment(WARN, "; ".join(recent + standing))

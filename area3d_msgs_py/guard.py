@@ -7,7 +7,10 @@ its traceback) and returns None. With a ``Rejections`` it also counts the reject
 and the field, so the node's status topic can say what it refused (a hostile or broken publisher
 shows up there, not only in a log nobody reads). A refusal of the same topic and field repeats
 at the publisher's rate (a driver's 50 Hz odometry with a bad quaternion): it is logged at most
-once every LOG_PERIOD_S, saying how many like it were not; the counts stay exact.
+once every LOG_PERIOD_S, saying how many like it were not; the counts stay exact. A reader whose
+topic has a writer offering a QoS it cannot match gets nothing from it, which no callback sees:
+`Rejections.qos_events` logs it once, by the topic's remapped name, and keeps it in the status
+(`incompatible_qos`), which `/diagnostics` reports as a standing warning.
 """
 
 from __future__ import annotations
@@ -19,7 +22,9 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidHandle
+from rclpy.qos import QoSPolicyKind
 
 from area3d_msgs_py.errors import InputError
 
@@ -45,6 +50,36 @@ class Rejections:
         self._clock = clock
         # (topic, field): [when one was last logged, how many since were not]
         self._logged: dict[tuple[str, str], list] = {}
+        self._incompatible: dict[str, str] = {}  # topic as remapped: the QoS policy at odds
+
+    def qos_events(self, node: Any, topic: str) -> SubscriptionEventCallbacks:
+        """`event_callbacks` for the node's reader of `topic`: a writer offering a QoS the reader
+        cannot match (a best-effort driver beside a reliable reader) is logged once and kept
+        under `incompatible_qos` in the snapshot until the node restarts."""
+
+        def incompatible(info: Any) -> None:
+            try:
+                policy = QoSPolicyKind(info.last_policy_kind).name
+            except ValueError:
+                policy = str(info.last_policy_kind)
+            name = node.resolve_topic_name(topic)
+            with self._lock:
+                first = name not in self._incompatible
+                self._incompatible[name] = policy
+            if first:
+                hint = (
+                    ": a best-effort writer, a reliable reader (camera_qos: sensor_data reads it)"
+                    if policy == "RELIABILITY"
+                    else ""
+                )
+                node.get_logger().warning(
+                    f"{name}: a publisher offers a QoS this reader cannot match ({policy}"
+                    f"{hint}); nothing it publishes arrives"
+                )
+            if self._on_count is not None:
+                self._on_count()
+
+        return SubscriptionEventCallbacks(incompatible_qos=incompatible)
 
     def to_log(self, topic: str, field: str) -> int | None:
         """None when this refusal goes unlogged (one of its topic and field was logged less than
@@ -71,13 +106,17 @@ class Rejections:
             return sum(self._by_topic.values())
 
     def snapshot(self) -> dict:
-        """{"total": n, "by_topic": {topic: n}, "by_field": {field: n}} (JSON-ready)."""
+        """{"total": n, "by_topic": {topic: n}, "by_field": {field: n}} (JSON-ready), and
+        "incompatible_qos": {topic: policy} once a writer's QoS did not match a reader's."""
         with self._lock:
-            return {
+            snapshot = {
                 "total": sum(self._by_topic.values()),
                 "by_topic": dict(self._by_topic),
                 "by_field": dict(self._by_field),
             }
+            if self._incompatible:
+                snapshot["incompatible_qos"] = dict(self._incompatible)
+            return snapshot
 
 
 def reject(

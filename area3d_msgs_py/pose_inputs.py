@@ -62,6 +62,7 @@ class PoseInputs:
                 guarded(node, callback, topic.name, rejections),
                 profile,
                 callback_group=callback_group,
+                event_callbacks=rejections.qos_events(node, topic.name),
             )
         node.create_timer(WAIT_CHECK_S, self.release, callback_group=callback_group)
 

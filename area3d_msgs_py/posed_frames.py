@@ -94,6 +94,7 @@ class PosedFrames:
                 guarded(node, callback, topic.name, rejections),
                 topic.reader_qos(p["camera_qos"], depth),
                 callback_group=callback_group,
+                event_callbacks=rejections.qos_events(node, topic.name),
             )
 
     @property

@@ -204,6 +204,7 @@ class PerceptionNode(Node):
                 topic.name,
                 guarded(self, callback, topic.name, self.rejections),
                 topic.reader_qos(p["camera_qos"]),
+                event_callbacks=self.rejections.qos_events(self, topic.name),
             )
         self.get_logger().info(
             f"backend={p['backend']} use_depth={self.use_depth} "

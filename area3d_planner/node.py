@@ -185,6 +185,7 @@ class PlannerNode(Node):
             guarded(self, self._on_semantic, semantic.name, self.rejections),
             semantic.reader_qos(p["camera_qos"], qos.FRAME_DEPTH),
             callback_group=frames,
+            event_callbacks=self.rejections.qos_events(self, semantic.name),
         )
         for service, handler in (
             (topics.SELECT_VIEWS, self._on_select_views),

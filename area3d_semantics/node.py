@@ -163,6 +163,7 @@ class SemanticsNode(Node):
                 topic.name,
                 guarded(self, callback, topic.name, self.rejections),
                 topic.reader_qos(p["camera_qos"], depth),
+                event_callbacks=self.rejections.qos_events(self, topic.name),
             )
         self.create_service(
             topics.SEMANTICS_RESET.srv_type, topics.SEMANTICS_RESET.name, self._on_reset

@@ -77,3 +77,42 @@ def test_a_reliable_driver_reaches_both_readers():
         ), {choice: len(got) for choice, (got, _) in readers.items()}
         for got, incompatible in readers.values():
             assert got[0].data == "frame" and not incompatible.is_set()
+
+
+def test_a_reader_that_a_best_effort_driver_cannot_reach_says_so_in_its_status_and_diagnostics():
+    """Nothing arrives on a reliable reader beside a best-effort driver, and no callback runs:
+    the event is logged once, by the topic as remapped, and kept in the status, which the
+    diagnostics read as a standing warning."""
+    from area3d_msgs_py.diagnostics import WARN, assess
+    from area3d_msgs_py.guard import Rejections
+
+    with Probe("camera_driver") as driver, Probe("camera_reader") as reader:
+        rejections = Rejections()
+        warnings = []
+        topic = "camera/color/image_raw"
+
+        class Logged:  # the reader's node, its warnings kept
+            resolve_topic_name = reader.node.resolve_topic_name
+
+            def get_logger(self):
+                return self
+
+            def warning(self, message):
+                warnings.append(message)
+
+        reader.node.create_subscription(
+            msgs.String, topic, lambda _m: None, qos.camera_input("reliable"),
+            event_callbacks=rejections.qos_events(Logged(), topic),
+        )  # fmt: skip
+        publisher = driver.publisher(msgs.String, topic, qos.sensor_data(5))
+        assert reader.wait_for(lambda: "incompatible_qos" in rejections.snapshot(), TIMEOUT_S)
+        publisher.publish(msgs.String(data="frame"))
+        snapshot = rejections.snapshot()
+        assert snapshot["incompatible_qos"] == {"/camera/color/image_raw": "RELIABILITY"}
+        assert snapshot["total"] == 0  # nothing rejected: nothing arrived
+        assert len(warnings) == 1 and warnings[0].startswith("/camera/color/image_raw: a publisher")
+        assert "camera_qos: sensor_data" in warnings[0]
+        verdict = assess({"rejected": snapshot})
+        assert verdict.level == WARN
+        assert "nothing arrives on /camera/color/image_raw" in verdict.message
+        assert assess({"rejected": Rejections().snapshot()}).level != WARN
