@@ -401,10 +401,7 @@ class PlannerNode(Node):
             wanted = get_plan_request(start, stamp, request.goal.pose.position.x)
             _, response.plan = self._serve("next_best_view", wanted)
         except Exception as exc:  # an empty plan, the reason in the log; the node serves on
-            if isinstance(exc, InputError):
-                self.get_logger().warning(f"next_best_view: request rejected: {exc}")
-            else:
-                self._failed("next_best_view", exc)
+            self._failed("next_best_view", exc)
             response.plan = views_path([], self.world_frame, self._now_ns())
         return response
 
@@ -423,9 +420,6 @@ class PlannerNode(Node):
             a = asked
             wanted = PlanRequest(a.current, a.stamp_ns, a.count, a.mode, a.request_id)
             plan, _ = self._serve("select_views", wanted)
-        except InputError as exc:
-            plan = Plan([], [], f"request rejected: {exc}")
-            self.get_logger().warning(f"{service}: {plan.reason}")
         except Exception as exc:  # a refusal, and the node serves on
             plan = Plan([], [], self._failed(service, exc))
         stamp = codecs.stamp_to_ns(request.current.header.stamp) or self._now_ns()
@@ -436,9 +430,13 @@ class PlannerNode(Node):
         )
 
     def _failed(self, service: str, exc: Exception) -> str:
-        """Why a request raised, logged as an error (at info after Ctrl-C: the stop ended it)."""
-        reason = f"request failed: {type(exc).__name__}: {exc}"
-        log = self.get_logger().error if self.context.ok() else self.get_logger().info
+        """Why a request got no plan, logged: a bad request (InputError) as a warning, any other
+        failure as an error (at info after Ctrl-C: the stop ended it)."""
+        if isinstance(exc, InputError):
+            reason, log = f"request rejected: {exc}", self.get_logger().warning
+        else:
+            reason = f"request failed: {type(exc).__name__}: {exc}"
+            log = self.get_logger().error if self.context.ok() else self.get_logger().info
         log(f"{service}: {reason}")
         return reason
 
