@@ -50,12 +50,13 @@ class Rejections:
         self._clock = clock
         # (topic, field): [when one was last logged, how many since were not]
         self._logged: dict[tuple[str, str], list] = {}
-        self._incompatible: dict[str, str] = {}  # topic as remapped: the QoS policy at odds
+        # topic as subscribed: (as remapped, the QoS policy at odds), until a message arrives
+        self._incompatible: dict[str, tuple[str, str]] = {}
 
     def qos_events(self, node: Any, topic: str) -> SubscriptionEventCallbacks:
         """`event_callbacks` for the node's reader of `topic`: a writer offering a QoS the reader
         cannot match (a best-effort driver beside a reliable reader) is logged once and kept
-        under `incompatible_qos` in the snapshot until the node restarts."""
+        under `incompatible_qos` in the snapshot until a message arrives on it (`arrived`)."""
 
         def incompatible(info: Any) -> None:
             try:
@@ -64,8 +65,8 @@ class Rejections:
                 policy = str(info.last_policy_kind)
             name = node.resolve_topic_name(topic)
             with self._lock:
-                first = name not in self._incompatible
-                self._incompatible[name] = policy
+                first = topic not in self._incompatible
+                self._incompatible[topic] = (name, policy)
             if first:
                 hint = (
                     ": a best-effort writer, a reliable reader (camera_qos: sensor_data reads it)"
@@ -115,8 +116,15 @@ class Rejections:
                 "by_field": dict(self._by_field),
             }
             if self._incompatible:
-                snapshot["incompatible_qos"] = dict(self._incompatible)
+                snapshot["incompatible_qos"] = dict(self._incompatible.values())
             return snapshot
+
+    def arrived(self, topic: str) -> None:
+        """A message arrived on `topic`: a writer reaches it now (the one at odds may have been
+        restarted with a QoS that matches)."""
+        if topic in self._incompatible:  # a dict lookup per message while nothing is at odds
+            with self._lock:
+                self._incompatible.pop(topic, None)
 
 
 def reject(
@@ -151,6 +159,8 @@ def guarded(
 ) -> Callable:
     def call(*args: Any) -> Any:
         try:
+            if rejections is not None:
+                rejections.arrived(what)
             try:
                 return callback(*args)
             except InputError as exc:

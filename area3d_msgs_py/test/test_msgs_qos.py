@@ -84,7 +84,7 @@ def test_a_reader_that_a_best_effort_driver_cannot_reach_says_so_in_its_status_a
     the event is logged once, by the topic as remapped, and kept in the status, which the
     diagnostics read as a standing warning."""
     from area3d_msgs_py.diagnostics import WARN, assess
-    from area3d_msgs_py.guard import Rejections
+    from area3d_msgs_py.guard import Rejections, guarded
 
     with Probe("camera_driver") as driver, Probe("camera_reader") as reader:
         rejections = Rejections()
@@ -100,9 +100,10 @@ def test_a_reader_that_a_best_effort_driver_cannot_reach_says_so_in_its_status_a
             def warning(self, message):
                 warnings.append(message)
 
+        got = []
         reader.node.create_subscription(
-            msgs.String, topic, lambda _m: None, qos.camera_input("reliable"),
-            event_callbacks=rejections.qos_events(Logged(), topic),
+            msgs.String, topic, guarded(Logged(), got.append, topic, rejections),
+            qos.camera_input("reliable"), event_callbacks=rejections.qos_events(Logged(), topic),
         )  # fmt: skip
         publisher = driver.publisher(msgs.String, topic, qos.sensor_data(5))
         assert reader.wait_for(lambda: "incompatible_qos" in rejections.snapshot(), TIMEOUT_S)
@@ -116,3 +117,9 @@ def test_a_reader_that_a_best_effort_driver_cannot_reach_says_so_in_its_status_a
         assert verdict.level == WARN
         assert "nothing arrives on /camera/color/image_raw" in verdict.message
         assert assess({"rejected": Rejections().snapshot()}).level != WARN
+        # the driver restarted reliable: its frames arrive, and the warning is gone
+        fixed = driver.publisher(msgs.String, topic, qos.frames())
+        assert reader.wait_for(
+            lambda: fixed.publish(msgs.String(data="frame")) or got, TIMEOUT_S, poll_s=0.05
+        )
+        assert "incompatible_qos" not in rejections.snapshot()
