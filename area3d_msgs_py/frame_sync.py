@@ -65,24 +65,24 @@ class Dropped:
 
 
 def _period(gaps) -> float:
-    """A stream's period from its recent gaps: the shortest gaps' median (those within 1.25 times
-    the shortest of the gaps at least half the 10th percentile: two parts of one frame sent twice
-    are not a period), or its half or third when that is what nine gaps in ten are whole
-    multiples of. A stream that seldom sends two frames in a row (a third lost and a driver often
-    late: measured beside a loaded 30 Hz driver) has gaps of two and three periods, whose
-    shortest is two; every gap then would read as half the frames it lost. 0.0 when no such
-    period makes nine gaps in ten whole: a stream stamped irregularly (a driver stamping on
-    publish, late by up to most of a period under load) says nothing by its gaps of what it lost,
-    and its shortest gaps read as a period a fraction of the real one, every frame as several
-    lost."""
+    """A stream's period from its recent gaps: their median, when nine gaps in ten are whole
+    multiples of it (most frames arrive: a frame published late, then the next on time, leaves a
+    short gap that is no period); else the shortest gaps' median (those within 1.25 times the
+    shortest of the gaps at least half the 10th percentile: two parts of one frame sent twice are
+    not a period), or its half or third, whichever makes nine gaps in ten whole. A stream that
+    seldom sends two frames in a row (a third lost and a driver often late: measured beside a
+    loaded 30 Hz driver) has gaps of two and three periods, whose shortest is two; every gap then
+    would read as half the frames it lost. 0.0 when none does: a stream stamped irregularly (a
+    driver stamping on publish, late by up to most of a period under load) says nothing by its
+    gaps of what it lost, and its shortest gaps read as a period a fraction of the real one,
+    every frame as several lost."""
     ordered = sorted(gaps)
     floor = 0.5 * ordered[len(ordered) // 10]
     counted = [g for g in ordered if g >= floor]
     shortest = counted[0]
     cluster = [g for g in counted if g <= 1.25 * shortest]
     base = cluster[len(cluster) // 2]
-    for n in (1, 2, 3):
-        period = base / n
+    for period in (counted[len(counted) // 2], base, base / 2, base / 3):
         whole = sum(abs(g / period - round(g / period)) <= PERIOD_TOLERANCE for g in counted)
         if whole >= 0.9 * len(counted):
             return period
