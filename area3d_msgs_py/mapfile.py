@@ -47,9 +47,12 @@ class MapFile:
     arrays: dict[str, np.ndarray]
     size_bytes: int
 
-    def array(self, name: str, dtype: Any = None, shape: tuple | None = None) -> np.ndarray:
+    def array(
+        self, name: str, dtype: Any = None, shape: tuple | None = None, finite: bool = False
+    ) -> np.ndarray:
         """The array `name`, refused with the file's path named when it is missing or has another
-        dtype (`dtype`) or shape (`shape`: None for any length on that axis)."""
+        dtype (`dtype`) or shape (`shape`: None for any length on that axis), or with `finite`
+        when a value is NaN or inf."""
         if name not in self.arrays:
             raise InputError(f"{self.path}: array {name!r}", "missing", "an area3d map file whole")
         value = self.arrays[name]
@@ -63,6 +66,8 @@ class MapFile:
             )
         ):
             raise InputError(f"{self.path}: array {name!r}", value.shape, f"shape {shape}")
+        if finite and not np.isfinite(value).all():
+            raise InputError(f"{self.path}: array {name!r}", "NaN or inf", "finite values")
         return value
 
     def require(self, fields: dict[str, str]) -> None:

@@ -182,9 +182,7 @@ def read(server, path) -> mapfile.MapFile:
         )
     for name in VOXEL_FIELDS:
         dtype = getattr(server.grid, name).dtype
-        values = loaded.array(f"voxel_{name}", dtype, (ids.size,))
-        if dtype.kind == "f" and not np.isfinite(values).all():
-            raise InputError(f"{source}: array 'voxel_{name}'", "NaN or inf", "finite values")
+        loaded.array(f"voxel_{name}", dtype, (ids.size,), finite=dtype.kind == "f")
     for name in RANGE_FIELDS:
         loaded.array(name, np.float64, getattr(server.grid, name).shape)
     decay_ids = loaded.array("decay_ids", np.int64, (None,))

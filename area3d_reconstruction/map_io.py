@@ -61,9 +61,7 @@ def read(fusion: TsdfFusion, path) -> mapfile.MapFile:
     blocks = loaded.header["blocks"]
     loaded.array("block_keys", np.int32, (blocks, 3))
     for name, channels in (("tsdf", 1), ("weight", 1), ("color", 3)):
-        values = loaded.array(name, np.float32, (blocks, None, None, None, channels))
-        if not np.isfinite(values).all():
-            raise InputError(f"{loaded.path}: array {name!r}", "NaN or inf", "finite values")
+        loaded.array(name, np.float32, (blocks, None, None, None, channels), finite=True)
     # one stamp a frame integrated (a frame is integrated once, after a load too)
     loaded.array("stamps", np.int64, (loaded.header["frames"],))
     return loaded
