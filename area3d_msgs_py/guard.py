@@ -179,3 +179,25 @@ def guarded(
 
     call.__name__ = getattr(callback, "__name__", "callback")
     return call
+
+
+def subscribe(
+    node: Any,
+    msg_type: type,
+    topic: str,
+    callback: Callable,
+    qos_profile: Any,
+    rejections: Rejections,
+    **kwargs: Any,
+) -> Any:
+    """`node.create_subscription` for a topic another process publishes: the callback `guarded`
+    (bad input logged and counted), and a writer whose QoS cannot reach the reader reported
+    (`Rejections.qos_events`)."""
+    return node.create_subscription(
+        msg_type,
+        topic,
+        guarded(node, callback, topic, rejections),
+        qos_profile,
+        event_callbacks=rejections.qos_events(node, topic),
+        **kwargs,
+    )

@@ -221,7 +221,8 @@ def run_node(
     finally:
         # Stopping: a second Ctrl-C (a terminal's reaches the launcher and every node, and the
         # launcher then stops each node with one of its own) would raise KeyboardInterrupt in
-        # the middle of the teardown below; SIGTERM still ends a node whose teardown hangs.
+        # the middle of the teardown below (rclpy takes SIGTERM as a stop, too: a teardown that
+        # hangs ends at the launcher's SIGKILL, its threads' stacks logged first).
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         if log_handler is not None:

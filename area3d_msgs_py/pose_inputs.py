@@ -17,7 +17,7 @@ import numpy as np
 
 from area3d_msgs_py import codecs, topics
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.guard import Rejections, guarded, reject
+from area3d_msgs_py.guard import Rejections, reject, subscribe
 from area3d_msgs_py.pose_source import CameraPoses, Posed, PoseSourceConfig, tf_fields
 
 # How often the frames waiting for their transforms are checked against pose_wait_s, seconds.
@@ -56,14 +56,10 @@ class PoseInputs:
             static = topics.TF_STATIC
             inputs.append((static, lambda m: self._on_tf(m, static=True), static.qos()))
         for topic, callback, profile in inputs:
-            node.create_subscription(
-                topic.msg_type,
-                topic.name,
-                guarded(node, callback, topic.name, rejections),
-                profile,
+            subscribe(
+                node, topic.msg_type, topic.name, callback, profile, rejections,
                 callback_group=callback_group,
-                event_callbacks=rejections.qos_events(node, topic.name),
-            )
+            )  # fmt: skip
         node.create_timer(WAIT_CHECK_S, self.release, callback_group=callback_group)
 
     def _now_ns(self) -> int:

@@ -16,9 +16,9 @@ Three sources, chosen by a node's `pose_source` parameter:
 A frame whose transforms have not all arrived (the stamp is after the newest sample of an edge, or
 a frame is not known yet) waits for them up to `pose_wait_s`, as tf2's message filter does; a
 stamp before the history kept, or between two samples of an edge more than `pose_max_interval_s`
-apart (an odometry outage: where the camera was is not known), is dropped at once. A dropped frame is counted by cause
-(`transforms.LookupFailure.CAUSES`); the first drop of each cause carries `first` so that a node
-logs it once. Samples are checked where they enter (`TransformBuffer.add`): a non-unit quaternion,
+apart (an odometry outage: where the camera was is not known), is dropped at once. A dropped frame
+is counted by cause (`transforms.LookupFailure.CAUSES`); the first drop of each cause carries
+`first` so that a node logs it once. Samples are checked where they enter (`TransformBuffer.add`): a non-unit quaternion,
 a jump faster than the speed limits, a stamp ahead of the clock or a second parent is refused with
 an `InputError` naming the message field.
 """

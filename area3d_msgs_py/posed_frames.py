@@ -20,7 +20,7 @@ import numpy as np
 
 from area3d_msgs_py import codecs, topics
 from area3d_msgs_py.frame_sync import CameraInfoCache, HeldFrames, StampSync, pairing_warning
-from area3d_msgs_py.guard import Rejections, guarded
+from area3d_msgs_py.guard import Rejections, subscribe
 from area3d_msgs_py.inputs import check_frame_id, check_stamp, decode_camera_info
 from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
 from area3d_msgs_py.pose_inputs import PoseInputs
@@ -88,14 +88,11 @@ class PosedFrames:
         if pose_topic:
             inputs.append((topics.POSE, lambda m: self._part("pose", m), POSES_PENDING))
         for topic, callback, depth in inputs:
-            node.create_subscription(
-                topic.msg_type,
-                topic.name,
-                guarded(node, callback, topic.name, rejections),
-                topic.reader_qos(p["camera_qos"], depth),
+            subscribe(
+                node, topic.msg_type, topic.name, callback,
+                topic.reader_qos(p["camera_qos"], depth), rejections,
                 callback_group=callback_group,
-                event_callbacks=rejections.qos_events(node, topic.name),
-            )
+            )  # fmt: skip
 
     @property
     def near(self) -> Callable | None:

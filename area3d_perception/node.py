@@ -24,7 +24,7 @@ from rclpy.node import Node
 from area3d_msgs_py import codecs, topics
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.frame_sync import MAX_AGE_NS, HeldFrames, StampSync, pairing_warning
-from area3d_msgs_py.guard import Rejections, guarded, reject
+from area3d_msgs_py.guard import Rejections, reject, subscribe
 from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
     check_frame_id,
@@ -199,13 +199,10 @@ class PerceptionNode(Node):
                 (topics.RIGHT_CAMERA_INFO, self.on_right_camera_info),
             ]
         for topic, callback in inputs:
-            self.create_subscription(
-                topic.msg_type,
-                topic.name,
-                guarded(self, callback, topic.name, self.rejections),
-                topic.reader_qos(p["camera_qos"]),
-                event_callbacks=self.rejections.qos_events(self, topic.name),
-            )
+            subscribe(
+                self, topic.msg_type, topic.name, callback, topic.reader_qos(p["camera_qos"]),
+                self.rejections,
+            )  # fmt: skip
         self.get_logger().info(
             f"backend={p['backend']} use_depth={self.use_depth} "
             f"pose_source={pose_config.pose_source} camera_qos={p['camera_qos']}"

@@ -31,7 +31,7 @@ from rclpy.node import Node
 
 from area3d_msgs_py import codecs, map_files, msgs, qos, topics
 from area3d_msgs_py.errors import InputError
-from area3d_msgs_py.guard import Rejections, guarded, reject
+from area3d_msgs_py.guard import Rejections, reject, subscribe
 from area3d_msgs_py.inputs import decode_frame_part
 from area3d_msgs_py.keyframes import KeyframeConfig
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
@@ -179,14 +179,11 @@ class PlannerNode(Node):
         # a frame as new, or one taken near its pose, was fused (`NextBestViewServer.covers`)
         self.near = self.inputs.near
         semantic = topics.SEMANTIC_UNCERTAINTY
-        self.create_subscription(
-            semantic.msg_type,
-            semantic.name,
-            guarded(self, self._on_semantic, semantic.name, self.rejections),
-            semantic.reader_qos(p["camera_qos"], qos.FRAME_DEPTH),
+        subscribe(
+            self, semantic.msg_type, semantic.name, self._on_semantic,
+            semantic.reader_qos(p["camera_qos"], qos.FRAME_DEPTH), self.rejections,
             callback_group=frames,
-            event_callbacks=self.rejections.qos_events(self, semantic.name),
-        )
+        )  # fmt: skip
         for service, handler in (
             (topics.SELECT_VIEWS, self._on_select_views),
             (topics.NEXT_BEST_VIEW, self._on_request),

@@ -20,7 +20,7 @@ import numpy as np
 from rclpy.node import Node
 
 from area3d_msgs_py import codecs, msgs, topics
-from area3d_msgs_py.guard import Rejections, guarded
+from area3d_msgs_py.guard import Rejections, subscribe
 from area3d_msgs_py.inputs import (
     COLOR_ENCODINGS,
     FLOAT_ENCODINGS,
@@ -158,13 +158,10 @@ class SemanticsNode(Node):
             (topics.PERCEPTION_CONFIDENCE, self.on_confidence, IMAGE_QUEUE_DEPTH),
             (topics.SEMANTIC_REQUEST, self.on_request, None),
         ):
-            self.create_subscription(
-                topic.msg_type,
-                topic.name,
-                guarded(self, callback, topic.name, self.rejections),
-                topic.reader_qos(p["camera_qos"], depth),
-                event_callbacks=self.rejections.qos_events(self, topic.name),
-            )
+            subscribe(
+                self, topic.msg_type, topic.name, callback,
+                topic.reader_qos(p["camera_qos"], depth), self.rejections,
+            )  # fmt: skip
         self.create_service(
             topics.SEMANTICS_RESET.srv_type, topics.SEMANTICS_RESET.name, self._on_reset
         )
