@@ -53,7 +53,7 @@ from area3d_msgs_py.status import StatusPublisher
 from area3d_planner import map_io
 from area3d_planner.config import PlannerConfig
 from area3d_planner.markers import grid_messages, view_markers, views_path
-from area3d_planner.requests import Plan, PlanRequest, get_plan_request
+from area3d_planner.requests import Plan, PlanRequest, check_request_stamp, get_plan_request
 from area3d_planner.scheduler import PlannerScheduler, SchedulerConfig
 from area3d_planner.server import NextBestViewServer
 
@@ -395,6 +395,7 @@ class PlannerNode(Node):
                 )
                 start = None
             stamp = codecs.stamp_to_ns(request.start.header.stamp)
+            check_request_stamp("start.header.stamp", stamp, self._now_ns(), self.max_stamp_ahead_s)
             wanted = get_plan_request(start, stamp, request.goal.pose.position.x)
             _, response.plan = self._serve("next_best_view", wanted)
         except Exception as exc:  # an empty plan, the reason in the log; the node serves on
@@ -415,6 +416,9 @@ class PlannerNode(Node):
                     "current.header.frame_id", asked.frame_id, f"{self.world_frame!r} (world_frame)"
                 )
             a = asked
+            check_request_stamp(
+                "current.header.stamp", a.stamp_ns, self._now_ns(), self.max_stamp_ahead_s
+            )
             wanted = PlanRequest(a.current, a.stamp_ns, a.count, a.mode, a.request_id)
             plan, _ = self._serve("select_views", wanted)
         except Exception as exc:  # a refusal, and the node serves on

@@ -33,10 +33,23 @@ class PlanRequest:
 
 def get_plan_request(start: np.ndarray | None, stamp_ns: int, x: float) -> PlanRequest:
     """nav_msgs/GetPlan's request, how many views in `goal.pose.position.x`; InputError unless
-    that is a whole number (NaN, 2.7)."""
-    if not (np.isfinite(x) and x == round(x)):
+    that is a whole number >= 0 (NaN, 2.7, -1)."""
+    if not (np.isfinite(x) and x == round(x) and x >= 0):
         raise InputError("goal.pose.position.x", x, "a whole number of views >= 0")
     return PlanRequest(start, stamp_ns, int(x), count_field="goal.pose.position.x")
+
+
+def check_request_stamp(field: str, stamp_ns: int, now_ns: int, max_ahead_s: float) -> None:
+    """InputError when a request's frame stamp (0 = do not wait) is more than `max_ahead_s`
+    ahead of the planner's clock: no frame of it can be fused, and the request would wait its
+    whole `sync_timeout_s` (a caller's clock ahead, or a stamp in the wrong units)."""
+    if stamp_ns > now_ns + int(max_ahead_s * 1e9):
+        raise InputError(
+            field,
+            stamp_ns,
+            f"0 (do not wait) or a frame stamp at most {max_ahead_s:g} s ahead of the planner's "
+            f"clock ({now_ns} ns)",
+        )
 
 
 class Plan(NamedTuple):

@@ -45,6 +45,8 @@ def test_closed_loop_counts_captured_and_committed_views_against_the_budget():
     assert reason.startswith("goal.pose.position.x: got 3, expected at most")
     with pytest.raises(InputError, match="goal.pose.position.x: got 2.7"):
         get_plan_request(None, 2, 2.7)
+    with pytest.raises(InputError, match="goal.pose.position.x: got -1"):
+        get_plan_request(None, 2, -1.0)
 
 
 def test_more_views_than_candidates_and_nan_uncertainty_give_empty_plans():

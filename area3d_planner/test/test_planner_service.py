@@ -139,7 +139,22 @@ def test_a_request_with_an_unknown_mode_or_a_bad_pose_is_refused_by_field(planne
     request.current.pose.orientation.w = 2.0
     refused = planner._on_select_views(request, msgs.NextBestView.Response())
     assert not refused.success and "current.pose.orientation: got" in refused.message
+    # a frame stamped an hour ahead of the planner's clock is refused, not waited for
+    ahead = planner.get_clock().now().nanoseconds + 3600 * S
+    refused = ask(planner, 1, T, ahead)
+    assert not refused.success
+    assert refused.message.startswith(f"request rejected: current.header.stamp: got {ahead}")
+    get_plan = msgs.GetPlan.Request()
+    get_plan.start.header = codecs.header(ahead, "odom")
+    get_plan.start.pose = codecs.matrix_to_pose(T)
+    get_plan.goal.pose.position.x = 1.0
+    assert planner._on_request(get_plan, msgs.GetPlan.Response()).plan.poses == []
+    get_plan.start.header = codecs.header(T0, "odom")
+    get_plan.goal.pose.position.x = -1.0  # refused as a request, as NaN and 2.7 are
+    assert planner._on_request(get_plan, msgs.GetPlan.Response()).plan.poses == []
     assert planner.scheduler.core.committed == 0  # nothing was planned for them
+    get_plan.goal.pose.position.x = 1.0  # and the node serves on
+    assert len(planner._on_request(get_plan, msgs.GetPlan.Response()).plan.poses) == 1
 
 
 def test_a_frame_without_odometry_is_dropped_and_counted_not_fused(planner):
