@@ -115,6 +115,15 @@ PARAMS = (
     *params_of(KeyframeConfig),
     WORLD_FRAME_PARAM,
     MAX_STAMP_AHEAD_PARAM,
+    Param(
+        "max_stamp_lag_s",
+        5.0,
+        "a frame that pairs more than this after its stamp (by this node's clock) is a standing "
+        "warning on /diagnostics until one arrives in time: the camera's clock behind this "
+        "node's (hosts without time sync), a bag played without use_sim_time; 0 = no check, "
+        "seconds",
+        range=(0.0, 86400.0),
+    ),
     CAMERA_QOS_PARAM,
     *params_of(PoseSourceConfig),
     *params_of(RgbdSensorParams, "sensor."),
@@ -160,6 +169,8 @@ class PerceptionNode(Node):
         self.frames_published = 0
         self.world_frame = p["world_frame"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
+        self.max_stamp_lag_s = p["max_stamp_lag_s"]
+        self.arrival_lag_s: float | None = None  # the last paired frame's, seconds
         self.status = StatusPublisher(self, topics.PERCEPTION_STATUS, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
@@ -222,7 +233,7 @@ class PerceptionNode(Node):
         super().destroy_node()
 
     def _status(self) -> dict:
-        warning = pairing_warning(self.sync, self.min_pairing_rate)
+        warnings = [pairing_warning(self.sync, self.min_pairing_rate), self._lag_warning()]
         return {
             "node": "perception",
             "frames_published": self.frames_published,
@@ -233,7 +244,8 @@ class PerceptionNode(Node):
             "frames_waiting_for_estimator": self.worker.waiting,
             "frames_dropped_backlog": self.worker.dropped,
             "workers": {"estimator": self.worker.alive or self.worker.stopping},
-            "warnings": [warning] if warning else [],
+            "warnings": [w for w in warnings if w],
+            "arrival_lag_s": None if self.arrival_lag_s is None else round(self.arrival_lag_s, 4),
             "last_frame_age_s": None
             if self.last_frame_age_s is None
             else round(self.last_frame_age_s, 4),
@@ -245,6 +257,16 @@ class PerceptionNode(Node):
             **({} if self.poses is None else self.poses.status()),
             "rejected": self.rejections.snapshot(),
         }
+
+    def _lag_warning(self) -> str | None:
+        lag, limit = self.arrival_lag_s, self.max_stamp_lag_s
+        if lag is None or limit <= 0 or lag <= limit:
+            return None
+        return (
+            f"the last frame paired {lag:.1f} s after its stamp (max_stamp_lag_s {limit:g}): the "
+            "camera's clock is behind this node's (hosts without time sync?) or a bag plays "
+            "without use_sim_time"
+        )
 
     # inputs ---------------------------------------------------------------------------------
     def _camera_size(self) -> tuple[int, int] | None:
@@ -299,6 +321,10 @@ class PerceptionNode(Node):
         if paired is None:
             return
         stamp, parts = paired
+        late = self._lag_warning() is not None
+        self.arrival_lag_s = (self._now_ns() - stamp) / 1e9
+        if (self._lag_warning() is not None) != late:
+            self.status.changed()  # the warning starts or ends
         if self.poses is not None:  # the pose at the frame's stamp, now or once it has arrived
             self.poses.submit(stamp, parts["color"][1], parts)
             return

@@ -96,6 +96,9 @@ class InlineWorker:
 
 # every frame is a keyframe unless a test says otherwise (the sim camera's setting)
 EVERY_FRAME = {"keyframe_distance": 0.0, "keyframe_angle_deg": 0.0, "keyframe_interval_s": 0.0}
+# the tests stamp frames seconds after the epoch, decades behind the node's clock: no lag check
+# unless a test asks for one
+NO_LAG_CHECK = {"max_stamp_lag_s": 0.0}
 
 
 class FakeNode:
@@ -103,7 +106,7 @@ class FakeNode:
     directly (no transport): `subs[topic](msg)`, `pubs[topic].sent`, `log.warnings()`."""
 
     def __init__(self, parameters=None):
-        parameters = {**EVERY_FRAME, **(parameters or {})}
+        parameters = {**EVERY_FRAME, **NO_LAG_CHECK, **(parameters or {})}
         overrides = [Parameter(k, value=v) for k, v in parameters.items()]
         self.node = PerceptionNode(context=pytest.perception_context, parameter_overrides=overrides)
         self.node.worker = InlineWorker(self.node.worker)
@@ -216,6 +219,27 @@ def test_a_pairing_rate_below_the_threshold_is_a_standing_warning_on_diagnostics
     assert "pairing rate" in warning and "min_pairing_rate 0.8" in warning
     result = assess(status, status)
     assert result.level == WARN and "pairing rate" in result.message
+
+
+def test_frames_pairing_long_after_their_stamps_warn_until_one_pairs_in_time():
+    """A camera host whose clock runs 20 s behind: its frames are used, and /diagnostics says
+    WARN naming the lag until a frame pairs within max_stamp_lag_s again."""
+    node = FakeNode({"max_stamp_lag_s": 5.0})
+    now = node.node.get_clock().now().nanoseconds
+    send_frame(node, now - 20 * S)
+    status = node.node._status()
+    assert status["frames_published"] == 1  # used all the same
+    assert 19.0 < status["arrival_lag_s"] < 60.0
+    (warning,) = status["warnings"]
+    assert "after its stamp (max_stamp_lag_s 5)" in warning and "clock" in warning
+    assert assess(status, status).level == WARN
+    send_frame(node, node.node.get_clock().now().nanoseconds, x=0.5)
+    status = node.node._status()
+    assert status["warnings"] == [] and status["arrival_lag_s"] < 5.0
+    assert assess(status, status).level == OK
+    off = FakeNode({"max_stamp_lag_s": 0.0})  # 0: no check
+    send_frame(off, now - 20 * S)
+    assert off.node._status()["warnings"] == []
 
 
 def test_uniform_backend_parameter_is_honoured():
