@@ -395,7 +395,6 @@ class PlannerNode(Node):
                 )
                 start = None
             stamp = codecs.stamp_to_ns(request.start.header.stamp)
-            check_request_stamp("start.header.stamp", stamp, self._now_ns(), self.max_stamp_ahead_s)
             wanted = get_plan_request(start, stamp, request.goal.pose.position.x)
             _, response.plan = self._serve("next_best_view", wanted)
         except Exception as exc:  # an empty plan, the reason in the log; the node serves on
@@ -416,9 +415,6 @@ class PlannerNode(Node):
                     "current.header.frame_id", asked.frame_id, f"{self.world_frame!r} (world_frame)"
                 )
             a = asked
-            check_request_stamp(
-                "current.header.stamp", a.stamp_ns, self._now_ns(), self.max_stamp_ahead_s
-            )
             wanted = PlanRequest(a.current, a.stamp_ns, a.count, a.mode, a.request_id)
             plan, _ = self._serve("select_views", wanted)
         except Exception as exc:  # a refusal, and the node serves on
@@ -446,11 +442,13 @@ class PlannerNode(Node):
 
     def _serve(self, service: str, request: PlanRequest) -> tuple[Plan, msgs.Path]:
         """Wait for the request's frame, plan, publish the views (the Path returned) and their
-        markers. A request with the id of one answered gets that answer again at once."""
+        markers. A request with the id of one answered gets that answer again at once; one whose
+        frame lies ahead of the clock is refused (InputError)."""
         log = self.get_logger()
         # the map of the whole request, even if a reset replaces it meanwhile
         scheduler = self.scheduler
         server = scheduler.core
+        check_request_stamp(request, self._now_ns(), self.max_stamp_ahead_s)
         if (plan := scheduler.answered(request.request_id)) is not None:
             log.info(f"{service}: request {request.request_id} again: answered as before")
             return plan, self._publish_views(plan.poses, server)

@@ -20,8 +20,9 @@ class PlanRequest:
     """A next-best-view request: current camera pose, the stamp of the last captured frame
     (0 = do not wait), how many views (0 = all that the remaining budget allows in batch mode,
     one in closed loop), the mode ("" = the planner's `mode`) and the caller's id for the
-    request (0 = none: `scheduler.ANSWERS_KEPT`); `count_field` names how many views in the
-    caller's message (NextBestView's `count`, GetPlan's `goal.pose.position.x`)."""
+    request (0 = none: `scheduler.ANSWERS_KEPT`); `count_field` and `stamp_field` name how many
+    views and the frame's stamp in the caller's message (NextBestView's `count` and
+    `current.header.stamp`, GetPlan's `goal.pose.position.x` and `start.header.stamp`)."""
 
     start: np.ndarray | None
     stamp_ns: int = 0
@@ -29,6 +30,7 @@ class PlanRequest:
     mode: str = ""
     request_id: int = 0
     count_field: str = "count"
+    stamp_field: str = "current.header.stamp"
 
 
 def get_plan_request(start: np.ndarray | None, stamp_ns: int, x: float) -> PlanRequest:
@@ -36,17 +38,23 @@ def get_plan_request(start: np.ndarray | None, stamp_ns: int, x: float) -> PlanR
     that is a whole number >= 0 (NaN, 2.7, -1)."""
     if not (np.isfinite(x) and x == round(x) and x >= 0):
         raise InputError("goal.pose.position.x", x, "a whole number of views >= 0")
-    return PlanRequest(start, stamp_ns, int(x), count_field="goal.pose.position.x")
+    return PlanRequest(
+        start,
+        stamp_ns,
+        int(x),
+        count_field="goal.pose.position.x",
+        stamp_field="start.header.stamp",
+    )
 
 
-def check_request_stamp(field: str, stamp_ns: int, now_ns: int, max_ahead_s: float) -> None:
+def check_request_stamp(request: PlanRequest, now_ns: int, max_ahead_s: float) -> None:
     """InputError when a request's frame stamp (0 = do not wait) is more than `max_ahead_s`
     ahead of the planner's clock: no frame of it can be fused, and the request would wait its
     whole `sync_timeout_s` (a caller's clock ahead, or a stamp in the wrong units)."""
-    if stamp_ns > now_ns + int(max_ahead_s * 1e9):
+    if request.stamp_ns > now_ns + int(max_ahead_s * 1e9):
         raise InputError(
-            field,
-            stamp_ns,
+            request.stamp_field,
+            request.stamp_ns,
             f"0 (do not wait) or a frame stamp at most {max_ahead_s:g} s ahead of the planner's "
             f"clock ({now_ns} ns)",
         )
