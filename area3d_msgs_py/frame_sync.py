@@ -140,6 +140,7 @@ class StampSync:
         self.frames_missed = 0  # reference frames that never arrived (estimated from the gaps)
         self._gaps: deque[int] = deque(maxlen=GAP_WINDOW)
         self._last_reference: int | None = None
+        self._last_missed = 0  # frames the last gap counted as missed
 
     def add(self, key: str, stamp_ns: int, value: Any) -> dict[str, Any] | None:
         """Store one part; returns {key: value} for every stream once the frame is complete
@@ -171,12 +172,20 @@ class StampSync:
 
     def _count_gap(self, stamp_ns: int) -> None:
         """Frames the reference stream skipped before `stamp_ns`: a gap of n periods is n - 1
-        frames that never arrived (a streaming camera's frames lost on the way)."""
+        frames that never arrived (a streaming camera's frames lost on the way). A frame
+        stamped less than half a period after, or before, the end of a gap counted as frames
+        lost takes one back: the frame at that end was published late by more than half a
+        period, not after a lost one."""
         last, self._last_reference = self._last_reference, stamp_ns
         if last is None or stamp_ns <= last:
             self._last_reference = last if last is not None else stamp_ns
+            if last is not None and stamp_ns < last and self._last_missed > 0:
+                self._last_missed -= 1  # it arrived after a later one: in that gap
+                self.frames_missed -= 1
+                self._take_back_missed()
             return
         gap = stamp_ns - last
+        counted, self._last_missed = self._last_missed, 0
         if gap <= MAX_GAP_NS and (self.period_ns or len(self._gaps) >= MIN_GAPS):
             period = self.period_ns or _period(self._gaps)
             if self.period_ns or 0 < period <= MAX_PERIOD_NS:
@@ -184,7 +193,18 @@ class StampSync:
                 if missed > 0:
                     self.frames_missed += missed
                     self._outcomes.extend([False] * missed)
+                    self._last_missed = missed
+                elif missed < 0 and counted > 0:
+                    self.frames_missed -= 1
+                    self._take_back_missed()
         self._gaps.append(gap)
+
+    def _take_back_missed(self) -> None:
+        """Remove the newest False (a frame counted as missed) from the rate's window."""
+        for i in range(len(self._outcomes) - 1, -1, -1):
+            if not self._outcomes[i]:
+                del self._outcomes[i]
+                return
 
     def _closest(self, key: str, stamp_ns: int) -> int | None:
         """The stamp of `key`'s waiting part closest to `stamp_ns`, within the slop; None if
