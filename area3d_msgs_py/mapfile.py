@@ -156,7 +156,9 @@ def replace_atomically(
     then renamed over `target` (atomic on POSIX): a reader sees the old complete file or the new
     one, never a torn one. A failure removes the temporary file and leaves `target` untouched."""
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=target.parent)
+        # the name cut short: a legal name of 255 bytes plus these would be too long
+        prefix = f".{target.name[:64]}."
+        fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=target.parent)
     except OSError as exc:  # e.g. a directory that says it is writable and is not (/proc)
         raise OSError(
             exc.errno, f"no file can be created in {target.parent} for {target} ({exc.strerror})"
@@ -172,6 +174,13 @@ def replace_atomically(
         # only); set once written, so that a read-only mode does not stop the write
         os.chmod(tmp, target.stat().st_mode & 0o777 if target.exists() else 0o666 & ~UMASK)
         os.replace(tmp, target)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if exc.filename is not None or str(target) in str(exc):
+            raise
+        # a full disk says only "No space left on device": the answer names the file
+        message = f"{target} not written: {exc.strerror or exc}"
+        raise (OSError(exc.errno, message) if exc.errno else OSError(message)) from exc
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from area3d_eval.open3d_loader import import_open3d
-from area3d_eval.reconstruct import TsdfFusion
+from area3d_eval.reconstruct import BLOCK_RESOLUTION, TsdfFusion
 from area3d_msgs_py import mapfile
 from area3d_msgs_py.errors import InputError
 
@@ -59,12 +59,33 @@ def read(fusion: TsdfFusion, path) -> mapfile.MapFile:
         mapfile.check_same(loaded.path, key, saved, running)
     loaded.require({"frames": "count", "blocks": "count"})
     blocks = loaded.header["blocks"]
-    loaded.array("block_keys", np.int32, (blocks, 3))
+    _check_blocks(fusion, loaded, loaded.array("block_keys", np.int32, (blocks, 3)))
     for name, channels in (("tsdf", 1), ("weight", 1), ("color", 3)):
         loaded.array(name, np.float32, (blocks, None, None, None, channels), finite=True)
     # one stamp a frame integrated (a frame is integrated once, after a load too)
     loaded.array("stamps", np.int64, (loaded.header["frames"],))
     return loaded
+
+
+def _check_blocks(fusion: TsdfFusion, loaded: mapfile.MapFile, keys: np.ndarray) -> None:
+    """Refuse block coordinates that repeat, or that lie off the region (grown by its margin,
+    the truncation band and a block): a volume the running one could not have integrated."""
+    if np.unique(keys, axis=0).shape[0] != keys.shape[0]:
+        raise InputError(f"{loaded.path}: array 'block_keys'", "repeated blocks", "each once")
+    if fusion.roi_lo is None or keys.shape[0] == 0:
+        return
+    p = fusion.params
+    size = p.voxel_length * BLOCK_RESOLUTION
+    grow = p.roi_margin + p.sdf_trunc + size
+    lo, hi = keys * size, (keys + 1) * size  # each block's extent, metres
+    off = np.any((hi < fusion.roi_lo - grow) | (lo > fusion.roi_hi + grow), axis=1)
+    if off.any():
+        raise InputError(
+            f"{loaded.path}: array 'block_keys'",
+            f"{int(off.sum())} blocks off the region (the first at {lo[off][0].tolist()} m)",
+            f"blocks within {fusion.roi_lo.tolist()} .. {fusion.roi_hi.tolist()} grown by "
+            f"{grow:g} m",
+        )
 
 
 def restore(fusion: TsdfFusion, loaded: mapfile.MapFile) -> list[int]:
@@ -91,5 +112,13 @@ def export_mesh(mesh, path) -> tuple[Path, int]:
     def write(tmp: Path) -> None:
         if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False):
             raise OSError(f"open3d could not write {tmp}")
+        # read back whole: open3d says it wrote a PLY that a full disk cut short
+        back = o3d.io.read_triangle_mesh(str(tmp))
+        wrote = (len(back.vertices), len(back.triangles))
+        if wrote != (len(mesh.vertices), len(mesh.triangles)):
+            raise OSError(
+                f"the mesh written to {tmp} reads back as {wrote[0]} vertices and {wrote[1]} "
+                f"triangles, not {len(mesh.vertices)} and {len(mesh.triangles)} (a full disk?)"
+            )
 
     return mapfile.write_file(path, write, suffix=".ply")

@@ -222,10 +222,19 @@ def test_a_save_that_fails_leaves_the_previous_file_and_no_temporary_one(tmp_pat
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(np, "savez", broken)
-    with pytest.raises(OSError, match="No space"):
+    with pytest.raises(OSError, match="No space") as raised:
         map_io.save(srv, path)
+    assert str(path) in str(raised.value)  # the answer names the file (ENOSPC names none)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+def test_a_file_name_of_the_longest_length_a_file_system_takes_is_saved(tmp_path):
+    """255 bytes: the temporary file beside it has a name of its own that is no longer."""
+    srv = NextBestViewServer(config())
+    run(srv, range(2))
+    path, size, _ = map_io.save(srv, tmp_path / ("m" * 249 + ".a3map"))
+    assert path.is_file() and size > 0 and [p.name for p in tmp_path.iterdir()] == [path.name]
 
 
 def test_unwritable_paths_are_refused_by_name(tmp_path):

@@ -221,7 +221,14 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
     # damaged headers and arrays (which crashed the node before): refused, each named
     with np.load(volume) as archive:
         nan_tsdf = np.full_like(archive["tsdf"], np.nan)
+        keys = archive["block_keys"]
+    repeated = keys.copy()
+    repeated[1] = repeated[0]
     for name, change, why in (
+        # blocks 320 m off the region (a damaged file whose checksum was made again), one
+        # block twice: loaded, they left an empty or a wrong volume with "loaded 3 frames"
+        ("far", {"arrays": {"block_keys": keys + 1000}}, "blocks off the region"),
+        ("twice", {"arrays": {"block_keys": repeated}}, "repeated blocks"),
         ("ten", {"header": {"frames": "ten"}}, "frames: got 'ten', expected an integer >= 0"),
         ("noframes", {"header": {"frames": MISSING}}, "frames: got 'missing'"),
         ("stamps", {"header": {"frames": 10}}, "array 'stamps': got (3,), expected shape (10,)"),
@@ -278,3 +285,29 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
         assert not (tmp_path / "empty.ply").exists()
     finally:
         fresh.close()
+
+
+def test_an_export_that_reads_back_short_is_refused_and_the_mesh_there_kept(tmp_path, monkeypatch):
+    """open3d returns True for a PLY a full disk cut short (its "RPly: Error closing up" only
+    logged): the export reads the file back, and one short of the mesh is not renamed over the
+    good mesh at that path."""
+    o3d = import_open3d()
+    mesh = offline([sphere_frame(i) for i in range(2)])
+    path = tmp_path / "mesh.ply"
+    map_io.export_mesh(mesh, path)
+    good = path.read_bytes()
+
+    def cut_short(name, mesh, **kwargs):
+        assert o3d.io.write_triangle_mesh(name, mesh, **kwargs)
+        with open(name, "r+b") as f:
+            f.truncate(os.path.getsize(name) // 2)
+        return True
+
+    fake = type("O3d", (), {"io": type("Io", (), {})})()
+    fake.io.write_triangle_mesh = cut_short
+    fake.io.read_triangle_mesh = o3d.io.read_triangle_mesh
+    monkeypatch.setattr(map_io, "import_open3d", lambda: fake)
+    with pytest.raises(OSError, match="reads back as") as raised:
+        map_io.export_mesh(mesh, path)
+    assert str(path) in str(raised.value)
+    assert path.read_bytes() == good and [p.name for p in tmp_path.iterdir()] == ["mesh.ply"]
