@@ -198,11 +198,15 @@ UMASK = _umask()
 
 
 def write_map(
-    path: str | os.PathLike, content: str, header: dict, arrays: dict
+    path: str | os.PathLike,
+    content: str,
+    header: dict,
+    arrays: dict,
+    world_frame: str | None = None,
 ) -> tuple[Path, int]:
     """Write a map file of `content` atomically (`write_file`): (the absolute path, its size in
     bytes). `header` is the content's part of the header (JSON-serialisable); `arrays` maps names
-    to NumPy arrays."""
+    to NumPy arrays; `world_frame` the frame the map is expressed in (None: not recorded)."""
     if content not in CONTENTS:
         raise InputError("content", content, f"one of {', '.join(CONTENTS)}")
     if HEADER in arrays:
@@ -212,6 +216,7 @@ def write_map(
         "version": VERSION,
         "content": content,
         "saved_at": datetime.now(UTC).isoformat(timespec="seconds"),
+        **({} if world_frame is None else {"world_frame": world_frame}),
         **header,
     }
     encoded = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
@@ -223,10 +228,11 @@ def write_map(
     return write_file(path, write)
 
 
-def read_map(path: str | os.PathLike, content: str) -> MapFile:
+def read_map(path: str | os.PathLike, content: str, world_frame: str | None = None) -> MapFile:
     """Read a map file of `content` whole. Refused by name, with nothing returned: a missing
-    file, one that is not a complete map file (truncated, another program's), another content
-    or a format version this code does not know."""
+    file, one that is not a complete map file (truncated, another program's), another content,
+    a format version this code does not know, or a map recorded in a frame other than
+    `world_frame` (when given; a file that records none is taken)."""
     source = resolve(path)
     if not source.is_file():
         raise InputError("path", str(source), "an existing map file")
@@ -250,6 +256,11 @@ def read_map(path: str | os.PathLike, content: str) -> MapFile:
         raise InputError(f"{source}: version", header.get("version"), f"{VERSION}")
     if header.get("content") != content:
         raise InputError(f"{source}: content", header.get("content"), f"{content!r}")
+    saved_frame = header.get("world_frame", world_frame)
+    if world_frame is not None and saved_frame != world_frame:
+        raise InputError(
+            f"{source}: world_frame", saved_frame, f"{world_frame!r} (the running node's)"
+        )
     return MapFile(source, header, arrays, source.stat().st_size)
 
 

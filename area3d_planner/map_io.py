@@ -157,17 +157,18 @@ def _base_map(server) -> tuple | None:
     return kept
 
 
-def save(server, path) -> tuple[Path, int, dict]:
-    """Write `server`'s map to `path` atomically: (the absolute path, its size, the header)."""
+def save(server, path, world_frame: str | None = None) -> tuple[Path, int, dict]:
+    """Write `server`'s map, expressed in `world_frame`, to `path` atomically: (the absolute
+    path, its size, the header)."""
     header, arrays = snapshot(server)
-    written, size = mapfile.write_map(path, CONTENT, header, arrays)
+    written, size = mapfile.write_map(path, CONTENT, header, arrays, world_frame)
     return written, size, header
 
 
-def read(server, path) -> mapfile.MapFile:
-    """Read a planner map for `server` and check it whole: its grid and region must be the
-    running map's, every array present with the dtype and length the header says."""
-    loaded = mapfile.read_map(path, CONTENT)
+def read(server, path, world_frame: str | None = None) -> mapfile.MapFile:
+    """Read a planner map for `server` and check it whole: its grid, region and frame must be
+    the running map's, every array present with the dtype and length the header says."""
+    loaded = mapfile.read_map(path, CONTENT, world_frame)
     h, source = loaded.header, loaded.path
     for key, running in grid_header(server).items():
         if key not in h:

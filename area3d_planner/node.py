@@ -289,7 +289,7 @@ class PlannerNode(Node):
         go on being fused meanwhile (the map is copied under its lock first)."""
         service = topics.PLANNER_SAVE_MAP.name
         try:
-            written, size, header = map_io.save(self.scheduler.core, request.path)
+            written, size, header = map_io.save(self.scheduler.core, request.path, self.world_frame)
         except (InputError, OSError) as exc:
             return map_files.refused(response, service, exc, self.get_logger())
         return map_files.done(
@@ -304,7 +304,7 @@ class PlannerNode(Node):
         service = topics.PLANNER_LOAD_MAP.name
         scheduler = self._new_map()
         try:
-            loaded = map_io.read(scheduler.core, request.path)
+            loaded = map_io.read(scheduler.core, request.path, self.world_frame)
             with self.fusion.cleared():
                 map_io.restore(scheduler.core, loaded)
                 scheduler.loaded()

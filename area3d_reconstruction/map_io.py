@@ -32,20 +32,24 @@ def volume_header(fusion: TsdfFusion) -> dict:
     }
 
 
-def save(fusion: TsdfFusion, stamps: list[int], path) -> tuple[Path, int]:
-    """Write the volume and its integrated frames' stamps to `path` atomically."""
+def save(
+    fusion: TsdfFusion, stamps: list[int], path, world_frame: str | None = None
+) -> tuple[Path, int]:
+    """Write the volume (in `world_frame`) and its integrated frames' stamps to `path`
+    atomically."""
     arrays = {**fusion.state(), "stamps": np.asarray(stamps, np.int64)}
     header = {
         **volume_header(fusion),
         "frames": fusion.num_frames,
         "blocks": int(arrays["block_keys"].shape[0]),
     }
-    return mapfile.write_map(path, CONTENT, header, arrays)
+    return mapfile.write_map(path, CONTENT, header, arrays, world_frame)
 
 
-def read(fusion: TsdfFusion, path) -> mapfile.MapFile:
-    """Read a reconstruction file for `fusion`, checked whole (parameters, region, arrays)."""
-    loaded = mapfile.read_map(path, CONTENT)
+def read(fusion: TsdfFusion, path, world_frame: str | None = None) -> mapfile.MapFile:
+    """Read a reconstruction file for `fusion`, checked whole (parameters, region, frame,
+    arrays)."""
+    loaded = mapfile.read_map(path, CONTENT, world_frame)
     for key, running in volume_header(fusion).items():
         if key not in loaded.header:
             raise InputError(f"{loaded.path}: {key}", "missing", "a reconstruction file's header")

@@ -277,7 +277,9 @@ class ReconstructionNode(Node):
         service = topics.RECONSTRUCTION_SAVE_MAP.name
         try:
             with self._lock:
-                written, size = map_io.save(self.volume, self.stamps, request.path)
+                written, size = map_io.save(
+                    self.volume, self.stamps, request.path, self.world_frame
+                )
                 frames = len(self.stamps)
         except (InputError, OSError) as exc:
             return map_files.refused(response, service, exc, self.get_logger())
@@ -289,7 +291,7 @@ class ReconstructionNode(Node):
         service = topics.RECONSTRUCTION_LOAD_MAP.name
         try:
             volume = self._new_volume()
-            loaded = map_io.read(volume, request.path)
+            loaded = map_io.read(volume, request.path, self.world_frame)
             stamps = map_io.restore(volume, loaded)
         except Exception as exc:  # read and restored into a new volume only: the running one stays
             return map_files.load_failed(response, service, exc, self.get_logger())

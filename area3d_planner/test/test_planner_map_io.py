@@ -245,3 +245,17 @@ def test_unwritable_paths_are_refused_by_name(tmp_path):
         map_io.save(srv, tmp_path)
     with pytest.raises(InputError, match="path"):
         map_io.save(srv, "")
+
+
+def test_a_map_saved_in_one_world_frame_is_refused_by_a_node_in_another(tmp_path):
+    """A map saved in `map` loaded by a graph whose world_frame is `odom` would put every voxel
+    where `odom` has it: refused by name; a file that records no frame (written before the
+    frame was recorded) is taken."""
+    srv = NextBestViewServer(config())
+    run(srv, range(2))
+    path, _, _ = map_io.save(srv, tmp_path / "planner.a3map", "map")
+    with pytest.raises(InputError, match="world_frame: got 'map', expected 'odom'"):
+        map_io.read(NextBestViewServer(config()), path, "odom")
+    assert map_io.read(NextBestViewServer(config()), path, "map").header["world_frame"] == "map"
+    unrecorded, _, _ = map_io.save(srv, tmp_path / "old.a3map")
+    assert "world_frame" not in map_io.read(srv, unrecorded, "odom").header
