@@ -139,7 +139,8 @@ def write_file(
         raise InputError("path", str(target), "a file path, not a directory")
     folder = target.parent
     if not folder.is_dir():
-        raise InputError("path", str(target), f"a path in an existing directory ({folder} is not)")
+        why = "is not a directory" if folder.exists() else "does not exist"
+        raise InputError("path", str(target), f"a path in an existing directory ({folder} {why})")
     if not os.access(folder, os.W_OK):
         raise InputError(
             "path", str(target), f"a path in a directory this node may write ({folder})"
