@@ -4,6 +4,7 @@ the offline heuristic analyzer, or nothing. Every backend answers in the prompt'
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -12,6 +13,7 @@ from typing import Protocol
 
 import numpy as np
 import requests
+import urllib3
 
 from area3d_msgs_py.errors import InputError
 from area3d_semantics.heuristic import HeuristicParams, analyze_image, format_answer
@@ -20,6 +22,11 @@ from area3d_semantics.prompt import build_messages, check_image, prompt_text
 LOG = logging.getLogger(__name__)
 
 BACKEND_NAMES = ("heuristic", "openai", "transformers", "none")
+# an answer of regions is kilobytes; one larger is not read on (and not held in memory)
+MAX_ANSWER_BYTES = 16 * 2**20
+READ_CHUNK = 64 * 2**10
+# the server asks to be asked again (timeout, rate limit): retried like a 5xx, after Retry-After
+RETRIED_STATUS = (408, 429)
 
 
 class VLMError(RuntimeError):
@@ -51,7 +58,9 @@ def _check_inputs(images: list[np.ndarray], depths: list | None) -> None:
 
 class OpenAIBackend:
     """Any server speaking POST /v1/chat/completions with image_url parts (vLLM, LMDeploy, SGLang,
-    Ollama, OpenAI). Retries timeouts, connection errors and 5xx with exponential backoff."""
+    Ollama, OpenAI). Retries timeouts, broken connections, 5xx, 408 and 429 (after Retry-After,
+    at most `timeout_s`) with exponential backoff; each attempt's whole answer must arrive
+    within `timeout_s` and be at most MAX_ANSWER_BYTES."""
 
     name = "openai"
 
@@ -104,13 +113,13 @@ class OpenAIBackend:
         if key:
             headers["Authorization"] = f"Bearer {key}"
         last: VLMError | None = None
+        wait = 0.0
         for attempt in range(self.retries + 1):
             if attempt:
-                time.sleep(self.backoff_s * 2 ** (attempt - 1))
+                time.sleep(wait)
+            wait = self.backoff_s * 2**attempt
             try:
-                response = requests.post(
-                    self.url, json=payload, headers=headers, timeout=self.timeout_s
-                )
+                status, body, retry_after = self._post(payload, headers)
             except requests.Timeout:
                 last = VLMError(
                     f"VLM server {self.url} did not answer within {self.timeout_s:g} s (timeout_s)"
@@ -120,40 +129,94 @@ class OpenAIBackend:
                     f"cannot reach the VLM server at {self.url}: {exc.__class__.__name__}; "
                     "check that it is running and that base_url is right"
                 )
+            except requests.RequestException as exc:  # the connection broke off mid-answer
+                last = VLMError(
+                    f"VLM server {self.url}: the answer broke off ({exc.__class__.__name__}: "
+                    f"{str(exc)[:200]})"
+                )
             else:
-                if response.status_code >= 500:
-                    last = VLMError(
-                        f"VLM server {self.url} answered HTTP {response.status_code}: {response.text[:300]!r}"
-                    )
-                elif response.status_code >= 400:
+                text = body[:300].decode("utf-8", errors="replace")
+                if status >= 500 or status in RETRIED_STATUS:
+                    last = VLMError(f"VLM server {self.url} answered HTTP {status}: {text!r}")
+                    if retry_after is not None:
+                        wait = min(max(wait, retry_after), self.timeout_s)
+                elif status >= 400:
+                    unset = "" if key or not self.api_key_env else ", which is not set"
                     raise VLMError(
-                        f"VLM server {self.url} rejected the request with HTTP {response.status_code} "
-                        f"(check model={self.model!r} and the API key in ${self.api_key_env}): "
-                        f"{response.text[:300]!r}"
+                        f"VLM server {self.url} rejected the request with HTTP {status} "
+                        f"(check model={self.model!r} and the API key in ${self.api_key_env}"
+                        f"{unset}): {text!r}"
                     )
                 else:
-                    return self._content(response)
+                    return self._content(body)
             LOG.warning("VLM attempt %d/%d failed: %s", attempt + 1, self.retries + 1, last)
         assert last is not None
         raise last
 
-    def _content(self, response: requests.Response) -> str:
+    def _post(self, payload: dict, headers: dict) -> tuple[int, bytes, float | None]:
+        """One POST: (status, body, Retry-After in seconds or None). requests' timeout bounds
+        each read only, so a server that drips its answer would hold the node: the body is read
+        as it comes and given up `timeout_s` after the request went out (requests.Timeout), or
+        once it passes MAX_ANSWER_BYTES (VLMError)."""
+        deadline = time.monotonic() + self.timeout_s
+        with requests.post(
+            self.url, json=payload, headers=headers, timeout=self.timeout_s, stream=True
+        ) as response:
+            body = bytearray()
+            try:
+                while chunk := response.raw.read1(READ_CHUNK, decode_content=True):
+                    body += chunk
+                    if len(body) > MAX_ANSWER_BYTES:
+                        raise VLMError(
+                            f"VLM server {self.url} sent an answer larger than "
+                            f"{MAX_ANSWER_BYTES // 2**20} MB (not read on): {bytes(body[:200])!r}"
+                        )
+                    if time.monotonic() > deadline:
+                        raise requests.Timeout(f"{self.url}: answer not whole in time")
+            except requests.RequestException:  # (an OSError too)
+                raise
+            except urllib3.exceptions.ReadTimeoutError as exc:
+                raise requests.Timeout(str(exc)) from exc
+            except (urllib3.exceptions.HTTPError, OSError) as exc:
+                raise requests.exceptions.ChunkedEncodingError(str(exc)) from exc
+            return response.status_code, bytes(body), _retry_after(response.headers)
+
+    def _content(self, data: bytes) -> str:
         try:
-            body = response.json()
+            body = json.loads(data)
         except ValueError:
             raise VLMError(
-                f"VLM server {self.url} returned a body that is not JSON: {response.text[:200]!r}"
+                f"VLM server {self.url} returned a body that is not JSON: {data[:200]!r}"
             ) from None
         choices = body.get("choices") if isinstance(body, dict) else None
         if not choices or not isinstance(choices, list):
             raise VLMError(f"VLM server {self.url} returned no choices: {str(body)[:200]!r}")
-        message = choices[0].get("message") if isinstance(choices[0], dict) else None
+        choice = choices[0] if isinstance(choices[0], dict) else {}
+        message = choice.get("message")
         content = message.get("content") if isinstance(message, dict) else None
         if isinstance(content, list):  # some servers return content parts
             content = "".join(p.get("text", "") for p in content if isinstance(p, dict))
         if not isinstance(content, str) or not content.strip():
-            raise VLMError(f"VLM server {self.url} returned an empty answer: {str(body)[:200]!r}")
+            raise VLMError(
+                f"VLM server {self.url} returned an empty answer (finish_reason "
+                f"{choice.get('finish_reason')!r}): {str(body)[:200]!r}"
+            )
+        if choice.get("finish_reason") == "length":
+            # the images the answer did not reach would get no region, as if seen clear
+            raise VLMError(
+                f"VLM server {self.url} cut the answer at max_tokens ({self.max_tokens}): "
+                "raise max_tokens (the server's context must hold it beside the images)"
+            )
         return content
+
+
+def _retry_after(headers) -> float | None:
+    """A Retry-After header in seconds (its HTTP-date form is not read: None)."""
+    try:
+        value = float(headers.get("Retry-After", ""))
+    except ValueError:
+        return None
+    return value if value >= 0 and np.isfinite(value) else None
 
 
 class TransformersBackend:

@@ -59,7 +59,12 @@ PARAMS = (
     Param("base_url", "http://127.0.0.1:8000/v1", "OpenAI-compatible server (backend openai)"),
     Param("model", "OpenGVLab/InternVL3-8B", "VLM name (paper: InternVL3)"),
     Param("api_key_env", "OPENAI_API_KEY", "environment variable holding the API key"),
-    Param("timeout_s", 60.0, "VLM request timeout, seconds", range=(0.1, 3600.0)),
+    Param(
+        "timeout_s",
+        60.0,
+        "VLM request timeout: each attempt's whole answer within it, seconds",
+        range=(0.1, 3600.0),
+    ),
     Param("retries", 2, "VLM request retries after a failure, count", range=(0, 100)),
     Param("max_tokens", 2048, "VLM answer length limit, tokens", range=(16, 65536)),
     Param("model_dir", "", "local model directory (backend transformers)"),

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from area3d_semantics import backends
 from area3d_semantics.analysis import analyze_views
 from area3d_semantics.backends import OpenAIBackend, TransformersBackend, VLMError, VLMUnavailable
 from area3d_semantics.parser import parse_answer
@@ -23,7 +24,10 @@ H, W = 48, 64
 
 class FakeVLM:
     """A chat-completions server whose next replies are scripted: ("answer", text) | ("status",
-    code, body) | ("late", text): answered only once the test is over | ("raw", body)."""
+    code, body[, headers]) | ("late", text): answered only once the test is over | ("raw",
+    body) | ("length", text): finish_reason "length" | ("drip", body): one byte every 0.2 s,
+    until the test is over | ("cut", body): the connection closed half-way through the body |
+    ("huge", size): a body of `size` bytes."""
 
     def __init__(self):
         self.script: list[tuple] = []
@@ -44,7 +48,7 @@ class FakeVLM:
                 if step[0] == "late":  # later than any client waits, however slow the machine
                     fake.over.wait(60.0)
                     step = ("answer", step[1])
-                if step[0] == "answer":
+                if step[0] in ("answer", "length"):
                     reply = {
                         "id": "chatcmpl-1",
                         "object": "chat.completion",
@@ -53,23 +57,42 @@ class FakeVLM:
                             {
                                 "index": 0,
                                 "message": {"role": "assistant", "content": step[1]},
-                                "finish_reason": "stop",
+                                "finish_reason": "stop" if step[0] == "answer" else "length",
                             }
                         ],
                     }
                     self._send(200, json.dumps(reply).encode())
                 elif step[0] == "status":
-                    self._send(step[1], step[2].encode())
+                    self._send(step[1], step[2].encode(), *step[3:])
+                elif step[0] == "drip":
+                    self._send(200, step[1].encode(), drip=True)
+                elif step[0] == "cut":
+                    self._send(200, step[1].encode(), cut=True)
+                elif step[0] == "huge":
+                    self._send(200, b"x" * step[1])
                 else:
                     self._send(200, step[1].encode())
 
-            def _send(self, code, data):
+            def _send(self, code, data, headers=None, drip=False, cut=False):
                 try:
                     self.send_response(code)
                     self.send_header("Content-Type", "application/json")
                     self.send_header("Content-Length", str(len(data)))
+                    for name, value in (headers or {}).items():
+                        self.send_header(name, value)
                     self.end_headers()
-                    self.wfile.write(data)
+                    if drip:
+                        for i in range(len(data)):
+                            if fake.over.wait(0.2):
+                                return
+                            self.wfile.write(data[i : i + 1])
+                            self.wfile.flush()
+                    elif cut:
+                        self.wfile.write(data[: len(data) // 2])
+                        self.wfile.flush()
+                        self.close_connection = True
+                    else:
+                        self.wfile.write(data)
                 except (BrokenPipeError, ConnectionResetError):
                     pass
 
@@ -173,6 +196,46 @@ def test_server_error_then_success_returns_the_answer(server):
         ("answer", "IMAGE 1\nREGION: right-top | TYPE: LIGHTING"),
     ]
     assert "right-top" in backend(server.url, retries=1).analyze(images(1))
+
+
+def test_an_answer_dripped_byte_by_byte_is_given_up_after_timeout_s(server):
+    """Headers at once, then a byte every 0.2 s: each read is quick, the answer never whole.
+    requests' timeout bounds each read only: the client hung for as long as the server went
+    on; the whole answer must arrive within timeout_s (each read may take up to it more)."""
+    answer = json.dumps({"choices": [{"message": {"content": "IMAGE 1"}}]}) + " " * 2000
+    server.script = [("drip", answer)]
+    start = time.monotonic()
+    with pytest.raises(VLMError, match=r"did not answer within 1 s"):
+        backend(server.url, timeout_s=1.0, retries=0).analyze(images(1))
+    assert time.monotonic() - start < 60.0  # the drip lasts 400 s (loose: a loaded machine)
+
+
+def test_rate_limits_and_broken_answers_are_retried_and_named(server):
+    """429 with Retry-After and 408 are asked again (a 429 failed at once, its message about the
+    API key); a connection that breaks off mid-answer is retried and names the URL."""
+    body = json.dumps({"choices": [{"message": {"content": "IMAGE 1\nREGION: left-top"}}]})
+    server.script = [
+        ("status", 429, "slow down", {"Retry-After": "0"}),
+        ("status", 408, "timeout"),
+        ("cut", body),
+        ("raw", body),
+    ]
+    assert "left-top" in backend(server.url, retries=3).analyze(images(1))
+    assert len(server.requests) == 4
+    server.script = [("cut", body)]
+    with pytest.raises(VLMError, match=rf"{server.url}/chat/completions: the answer broke off"):
+        backend(server.url, retries=0).analyze(images(1))
+
+
+def test_an_answer_cut_at_max_tokens_or_too_large_is_refused_not_used(server):
+    """finish_reason "length": the images the answer did not reach would get no region, as if
+    clear; an answer of more than MAX_ANSWER_BYTES is not read on."""
+    server.script = [("length", "IMAGE 1\nREGION: left-top | TYPE: OCCLUSION\nIMAGE 2")]
+    with pytest.raises(VLMError, match=r"cut the answer at max_tokens \(2048\)"):
+        backend(server.url).analyze(images(2))
+    server.script = [("huge", backends.MAX_ANSWER_BYTES + 2**20)]
+    with pytest.raises(VLMError, match=r"larger than 16 MB"):
+        backend(server.url, retries=0).analyze(images(1))
 
 
 def test_client_error_is_not_retried_and_names_the_status(server):
