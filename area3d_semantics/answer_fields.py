@@ -167,13 +167,35 @@ def parse_size(text: str) -> str | None:
     return None
 
 
+# a number that opens an image's name: "2", "Image 2", "#2 (left)", or one that is not a whole
+# number >= 0 ("-3", "4.9", "1e308"), which names no image
+IMAGE_NUMBER_RE = re.compile(
+    r"(?:(?:image|view|img|picture|photo|frame)\s*)?(?:#|no\.?|number)?\s*"
+    r"([-+]?\d+(?:[.,]\d+)?(?:e[-+]?\d+)?)",
+    re.I,
+)
+
+
+def whole_image_number(text: str) -> int:
+    """A number as an image's: the int of plain digits, else 0 (out of range: the region is
+    skipped, not moved to another image as "-3" -> 3 or "4.9" -> 4 did)."""
+    return int(text) if text.isdigit() else 0
+
+
 def parse_image_number(value) -> int | None:
+    """The image a region names (from 1): an int, a whole float, text that opens with a number
+    or an ordinal ("second"); 0 for a number that is no whole number >= 0 (skipped as out of
+    range); None when it names none."""
     if isinstance(value, bool):
         return None
     if isinstance(value, int):
         return value
-    match = re.search(r"\d+", str(value))
+    if isinstance(value, float):
+        return int(value) if value.is_integer() and 0 <= value < 2**31 else 0
+    match = IMAGE_NUMBER_RE.match(str(value).strip())
     if match:
-        return int(match.group())
+        return whole_image_number(match.group(1))
+    if re.search(r"\d", str(value)):
+        return 0
     word = str(value).strip().lower().split(" ")[0]
     return ORDINALS.get(word)

@@ -25,6 +25,7 @@ from area3d_semantics.answer_fields import (
     parse_priority,
     parse_size,
     parse_type,
+    whole_image_number,
 )
 from area3d_semantics.region import (
     DEFAULT_PRIORITY_BY_TYPE,
@@ -66,7 +67,8 @@ class ParseResult:
 
 
 HEADER_RE = re.compile(
-    r"^(?:for\s+)?(?:the\s+)?(?:image|view|img|picture|photo|frame)\s*(?:#|no\.?|number)?\s*(\d+)\b"
+    r"^(?:for\s+)?(?:the\s+)?(?:image|view|img|picture|photo|frame)\s*(?:#|no\.?|number)?\s*"
+    r"([-+]?\d+(?:[.,]\d+)?(?:e[-+]?\d+)?)\b"
     r"|^(" + "|".join(ORDINALS) + r")\s+(?:image|view|picture|photo)\b",
     re.I,
 )
@@ -105,7 +107,10 @@ def _header_image(line: str) -> tuple[int, str] | None:
     match = HEADER_RE.match(bare)
     if not match:
         return None
-    number = int(match.group(1)) if match.group(1) else ORDINALS[match.group(2).lower()]
+    # "IMAGE -3" or "IMAGE 4.9" opens a section of no image (0: skipped, out of range)
+    number = (
+        whole_image_number(match.group(1)) if match.group(1) else ORDINALS[match.group(2).lower()]
+    )
     rest = bare[match.end() :].lstrip("]):.-\u2013\u2014 \t")
     return number, rest
 

@@ -136,3 +136,29 @@ def test_bad_arguments_are_rejected_at_the_boundary():
         parse_answer("IMAGE 1", 0)
     with pytest.raises(InputError, match="text"):
         parse_answer(None, 1)
+
+
+def test_an_image_number_that_is_no_whole_number_is_skipped_not_moved_to_another_image():
+    """ "-3" was read as 3, "4.9" and 1.7 as 4 and 1, "1e308" as 1, and regions under "IMAGE -3"
+    went to the image before: each now names no image, and its regions are skipped."""
+    entries = [
+        {"image": 2, "region": "left-top", "type": "OCCLUSION"},  # kept, as a control
+        {"image": "Image 3", "region": "right-top", "type": "LIGHTING"},  # kept
+        {"image": "-3", "region": "center-top", "type": "OCCLUSION"},
+        {"image": "4.9", "region": "left-bottom", "type": "OCCLUSION"},
+        {"image": 1.7, "region": "right-bottom", "type": "OCCLUSION"},
+        {"image": "1e308", "region": "center-bottom", "type": "OCCLUSION"},
+        {"image": 1e308, "region": "left-middle", "type": "OCCLUSION"},
+    ]
+    result = parse_answer(json.dumps(entries), 4)
+    assert [(r.image_index, r.location) for r in result.regions] == [
+        (1, "left-top"),
+        (2, "right-top"),
+    ]
+    assert len(result.skipped) == 5 and all("out of range" in s for s in result.skipped)
+    text = (
+        "IMAGE 1\nREGION: left-top | TYPE: OCCLUSION\nIMAGE -3\nREGION: right-top | TYPE: LIGHTING"
+    )
+    result = parse_answer(text, 2)
+    assert [(r.image_index, r.location) for r in result.regions] == [(0, "left-top")]
+    assert result.skipped and "image 0 out of range" in result.skipped[0]
