@@ -155,8 +155,23 @@ def _missing_parts(
     there = weights is not None and (weights.is_dir() if directory else weights.is_file())
     if weights is not None and not there:
         kind = "a directory" if directory else "a file"
-        missing.append(f"{weights_what} at '{weights}' ({kind}; not found there)")
+        found = "a file is there" if weights.is_file() else "a directory is there"
+        found = found if weights.exists() else "not found there"
+        missing.append(f"{weights_what} at '{weights}' ({kind}; {found})")
     return missing
+
+
+def _load_weights(backend: str, path: Path, what: str, load):
+    """`load()`, the weights at `path` read by the model's own code; any failure there (a file
+    that is no checkpoint, another model's, a torn download) is BackendUnavailableError naming
+    the path: the node says it cannot start instead of ending in a traceback."""
+    try:
+        return load()
+    except Exception as exc:
+        raise BackendUnavailableError(
+            f"{backend} backend cannot start: {path} is not {what} this backend can load "
+            f"({type(exc).__name__}: {str(exc)[:300]})"
+        ) from exc
 
 
 def _check_images(images: Sequence[np.ndarray]) -> None:
@@ -209,8 +224,12 @@ class VggtBackend:
         self._torch = torch
         self.device = _pick_device(torch, device)
         model = VGGT()
-        state = torch.load(str(path), map_location="cpu")
-        model.load_state_dict(state)
+        _load_weights(
+            "vggt",
+            path,
+            "a VGGT-1B checkpoint (model.pt of facebook/VGGT-1B)",
+            lambda: model.load_state_dict(torch.load(str(path), map_location="cpu")),
+        )
         self.model = model.to(self.device).eval()
 
     def predict_views(self, images: Sequence[np.ndarray]) -> FeedForwardOutput:
@@ -274,7 +293,13 @@ class DepthAnything3Backend:
         from depth_anything_3.api import DepthAnything3
 
         self.device = _pick_device(torch, device)
-        self.model = DepthAnything3.from_pretrained(str(path)).to(self.device).eval()
+        model = _load_weights(
+            "depth_anything_3",
+            path,
+            "a Depth Anything 3 model directory",
+            lambda: DepthAnything3.from_pretrained(str(path)),
+        )
+        self.model = model.to(self.device).eval()
 
     def predict_views(self, images: Sequence[np.ndarray]) -> FeedForwardOutput:
         """Depth, raw confidence and camera centres for N views, resized back to the inputs."""

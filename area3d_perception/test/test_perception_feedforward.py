@@ -1,5 +1,10 @@
 """Feed-forward backends: confidence normalisation, scale alignment and clear start-up errors."""
 
+import importlib.machinery
+import pickle
+import sys
+import types
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -136,8 +141,49 @@ def test_depth_anything_backend_without_weights_names_the_model_directory(tmp_pa
 def test_weights_of_the_wrong_kind_are_named_missing(tmp_path):
     # a directory where VGGT's model.pt goes, a file where Depth Anything 3's directory goes
     (tmp_path / "model.pt").mkdir()
-    with pytest.raises(BackendUnavailableError, match=r"model.pt' \(a file; not found there\)"):
+    with pytest.raises(
+        BackendUnavailableError, match=r"model.pt' \(a file; a directory is there\)"
+    ):
         VggtBackend(str(tmp_path / "model.pt"))
     (tmp_path / "da3").write_text("not a directory")
-    with pytest.raises(BackendUnavailableError, match=r"da3' \(a directory; not found there\)"):
+    with pytest.raises(BackendUnavailableError, match=r"da3' \(a directory; a file is there\)"):
         DepthAnything3Backend(str(tmp_path / "da3"))
+
+
+def _module(monkeypatch, name: str, **attrs) -> types.ModuleType:
+    module = types.ModuleType(name)
+    module.__spec__ = importlib.machinery.ModuleSpec(name, None)
+    for key, value in attrs.items():
+        setattr(module, key, value)
+    monkeypatch.setitem(sys.modules, name, module)
+    return module
+
+
+def test_a_file_that_is_no_vggt_checkpoint_cannot_start_the_backend_naming_it(
+    tmp_path, monkeypatch
+):
+    """torch and vggt importable (stand-ins here: neither is installed), the checkpoint a text
+    file: torch.load's UnpicklingError ended the node in a traceback; now the backend cannot
+    start, and says which file is not a checkpoint."""
+    loaded = []
+
+    def load(path, map_location=None):
+        loaded.append(path)
+        raise pickle.UnpicklingError("invalid load key, 'n'.")
+
+    class VGGT:
+        def load_state_dict(self, state):
+            raise AssertionError("not reached")
+
+    cuda = types.SimpleNamespace(is_available=lambda: False)
+    _module(monkeypatch, "torch", load=load, cuda=cuda)
+    for name in ("vggt", "vggt.models"):
+        _module(monkeypatch, name)
+    _module(monkeypatch, "vggt.models.vggt", VGGT=VGGT)
+    checkpoint = tmp_path / "model.pt"
+    checkpoint.write_text("not a checkpoint")
+    with pytest.raises(BackendUnavailableError) as err:
+        VggtBackend(str(checkpoint))
+    assert loaded == [str(checkpoint)]
+    assert f"{checkpoint} is not a VGGT-1B checkpoint" in str(err.value)
+    assert "UnpicklingError: invalid load key" in str(err.value)
