@@ -66,6 +66,7 @@ class ParseResult:
         return [r for r in self.regions if r.image_index == image_index]
 
 
+SKIPPED_LOGGED = 20  # skipped pieces of one answer logged one by one; the rest counted
 HEADER_RE = re.compile(
     r"^(?:for\s+)?(?:the\s+)?(?:image|view|img|picture|photo|frame)\s*(?:#|no\.?|number)?\s*"
     r"([-+]?\d+(?:[.,]\d+)?(?:e[-+]?\d+)?)\b"
@@ -382,8 +383,10 @@ def parse_answer(
             index_of[(idx, column, row, type_)] = len(regions)
             regions.append(Region(idx, column, row, type_, priority, size, reason))
 
-    for line in skipped:
+    for line in skipped[:SKIPPED_LOGGED]:
         LOG.info("VLM answer: skipped %s", line)
+    if len(skipped) > SKIPPED_LOGGED:  # an answer of junk lines is not as many log lines
+        LOG.info("VLM answer: %d more lines skipped", len(skipped) - SKIPPED_LOGGED)
     if not regions:
         if REFUSAL_RE.search(text):
             raise UnusableAnswer("the model refused", text)

@@ -1,6 +1,7 @@
 """The answer parser against hand-written answers in the styles real VLMs produce."""
 
 import json
+import logging
 import re
 from pathlib import Path
 
@@ -8,7 +9,7 @@ import pytest
 
 from area3d_msgs_py.errors import InputError
 from area3d_semantics.answer_fields import parse_location
-from area3d_semantics.parser import UnusableAnswer, parse_answer
+from area3d_semantics.parser import SKIPPED_LOGGED, UnusableAnswer, parse_answer
 from area3d_semantics.prompt import PROMPT_VERSION, prompt_text
 from area3d_semantics.region import COLUMNS, PRIORITIES, ROWS, SIZES, TYPES
 from area3d_semantics.weights import SemanticParams
@@ -162,3 +163,14 @@ def test_an_image_number_that_is_no_whole_number_is_skipped_not_moved_to_another
     result = parse_answer(text, 2)
     assert [(r.image_index, r.location) for r in result.regions] == [(0, "left-top")]
     assert result.skipped and "image 0 out of range" in result.skipped[0]
+
+
+def test_an_answer_of_many_junk_lines_logs_a_few_and_counts_the_rest(caplog):
+    lines = ["IMAGE 1", "REGION: left-top | TYPE: OCCLUSION"]
+    lines += [f"IMAGE {n + 5}\nREGION: right-top | TYPE: LIGHTING" for n in range(500)]
+    with caplog.at_level(logging.INFO, logger="area3d_semantics.parser"):
+        result = parse_answer("\n".join(lines), 2)
+    assert len(result.skipped) == 500 and len(result.regions) == 1
+    logged = [r.getMessage() for r in caplog.records]
+    assert len(logged) == SKIPPED_LOGGED + 1
+    assert logged[-1] == f"VLM answer: {500 - SKIPPED_LOGGED} more lines skipped"
