@@ -206,6 +206,14 @@ class AnalysisWorker:
         self.runs = 0  # analyses finished
         self.failures = 0  # analyses that raised (each ended its thread)
         self.healthy = True  # False from an analysis that raised until one finishes
+        self._started: float | None = None  # time.monotonic() the running analysis began
+
+    @property
+    def running_s(self) -> float | None:
+        """How long the running analysis has run, seconds (None: none runs)."""
+        with self._lock:
+            started = self._started
+        return None if started is None else time.monotonic() - started
 
     @property
     def busy(self) -> bool:
@@ -243,11 +251,14 @@ class AnalysisWorker:
     def _run(self, stamps: list[int], reason: str) -> None:
         while True:
             finished = False
+            with self._lock:
+                self._started = time.monotonic()
             try:
                 self._analyse(stamps, reason)
                 finished = True
             finally:  # an analysis that raised ends the worker; the next submit starts a new one
                 with self._lock:
+                    self._started = None
                     self.runs += 1
                     self.failures += not finished
                     self.healthy = finished

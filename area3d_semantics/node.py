@@ -184,6 +184,7 @@ class SemanticsNode(Node):
         return self.get_parameter("requery_scope").value
 
     def _status(self) -> dict:
+        running = self.worker.running_s
         with self._lock:
             return {
                 "node": "semantics",
@@ -195,6 +196,9 @@ class SemanticsNode(Node):
                 "usem_published": len(self.published_usem),
                 "backend_error": self.backend_problem or self.analysis_error,
                 "analysis_failures": self.worker.failures,
+                # a query under way (null: none), and whether a request waits for it
+                "analysis_running_s": None if running is None else round(running, 1),
+                "analysis_pending": self.worker.pending,
                 "workers": {"analysis": self.worker.healthy},
                 "rejected": self.rejections.snapshot(),
             }

@@ -37,6 +37,8 @@ def test_requests_during_an_analysis_run_once_after_it_with_the_frames_of_then()
     worker = AnalysisWorker(work.analyse, work.requery, "analysis")
     assert worker.submit([1, 2], "initial views")
     assert work.entered.wait(TIMEOUT_S)
+    running = worker.running_s  # the status says a query is under way, and since when
+    assert running is not None and running >= 0.0
     work.frames.append(3)  # a frame completes while the first query runs
     assert not worker.submit([1, 2, 3], "request") and worker.pending
     assert not worker.submit([1, 2, 3], "request")  # coalesces with the one waiting
@@ -44,6 +46,7 @@ def test_requests_during_an_analysis_run_once_after_it_with_the_frames_of_then()
     assert worker.join(TIMEOUT_S)
     assert work.runs == [([1, 2], "initial views"), ([1, 2, 3], "request")]
     assert not work.overlapped and worker.runs == 2 and not worker.pending
+    assert worker.running_s is None
 
 
 def test_a_request_after_the_analysis_ended_starts_a_new_one():
