@@ -141,6 +141,7 @@ class EpisodeRecord:
                 "recorded": counts,
                 "respawns": dict(self.launcher.respawns) if self.launcher else {},
                 "planner_status": self.manager.planner_status if self.manager else {},
+                "semantics": self.manager.semantics if self.manager else {},
                 "stopped_early": self.stopped_early,  # empty when the budget was spent
             },
         )

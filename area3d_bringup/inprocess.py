@@ -117,6 +117,7 @@ def run_inprocess_episode(
             "depth_source": depth_source,
             "views": episode.views,
             "stopped_early": stopped,  # empty when the budget was spent
+            "semantics": episode.semantics,
             "timings_s": episode.timings,
             "config": {spec.name: spec.parameters for spec in specs} | {"in_process": True},
         },
@@ -141,6 +142,7 @@ class _Episode:
         self.timings: dict[str, float] = {}
         self.captured: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
         self.analysed = False
+        self.semantics: dict = {}  # as the mission manager keeps it (`SEMANTICS_KEYS`)
 
     def add_time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
@@ -209,6 +211,11 @@ class _Episode:
             [c[2] for c in self.captured],
             fallback=graph.fallback,
         )
+        self.semantics = {
+            "backend": analysis.backend,
+            "fallback_used": analysis.fallback_used,
+            "error": analysis.error,
+        }
         params = graph.semantic_params
         for i, (stamp, rgb, _, confidence) in enumerate(self.captured):
             weight = weight_map(analysis.regions_of(i), rgb.shape[0], rgb.shape[1], params)

@@ -70,6 +70,8 @@ FRAME_OUTPUTS = (
     topics.PERCEPTION_DEPTH, topics.PERCEPTION_CONFIDENCE, topics.PERCEPTION_WEIGHT,
     topics.SEMANTIC_WEIGHT, topics.SEMANTIC_UNCERTAINTY, topics.UNCERTAINTY_GRID,
 )  # fmt: skip
+#: what episode.json keeps of the semantic regions: where they came from
+SEMANTICS_KEYS = ("backend", "fallback_used", "error")
 #: perception's outputs a run directory keeps per frame (`area3d_eval.rundir.attach_estimates`)
 ESTIMATE_KEYS = {
     topics.PERCEPTION_DEPTH: "depth",
@@ -112,6 +114,7 @@ class MissionManager(GraphSync, Node):
         self._status: dict[int, dict] = {}
         self.planner_status: dict = {}
         self.reconstruction_status: dict = {}
+        self.semantics: dict = {}  # the last regions' backend, fallback and error
         self.stamps: set[int] = set()  # the frames this episode captured or replayed
         self.latest_grid: bytes | None = None
         self.received: dict[str, int] = {}
@@ -189,6 +192,9 @@ class MissionManager(GraphSync, Node):
                 self.planner_status = json.loads(msg.data)
             elif topic == topics.RECONSTRUCTION_STATUS:
                 self.reconstruction_status = json.loads(msg.data)
+            elif topic == topics.SEMANTIC_REGIONS:
+                regions = json.loads(msg.data)
+                self.semantics = {k: regions.get(k) for k in SEMANTICS_KEYS}
             elif topic == topics.UNCERTAINTY_GRID:
                 self.latest_grid = cdr
 

@@ -230,6 +230,21 @@ def stopped_text(episode: Episode) -> str:
     )
 
 
+def semantics_text(episode: Episode) -> str:
+    """Where the run's semantic regions came from, in a sentence ("" when it says nothing)."""
+    s = episode.semantics
+    if not s or not s.get("backend"):
+        return ""
+    if s["backend"] == "none":
+        return "No semantic guidance (semantics backend `none`)."
+    if s.get("fallback_used"):
+        return (
+            f"Semantic regions from the `{s['fallback_used']}` fallback, not from the "
+            f"`{s['backend']}` backend: {s.get('error') or 'no reason given'}."
+        )
+    return f"Semantic regions from the `{s['backend']}` backend."
+
+
 def _mesh_path(r: RunRecord, out_dir: Path) -> str:
     """The run's mesh file, relative to the report (the runs need not lie below it)."""
     return Path(os.path.relpath(r.path / EVAL_DIR / MESH_FILE, out_dir)).as_posix()
@@ -319,6 +334,8 @@ def _markdown(
         lines += [f"### {r.label}", "", f"![views]({_rel(r.figures['views'], out_dir)})", ""]
         if r.episode.stopped_early:
             lines += [stopped_text(r.episode), ""]
+        if semantics_text(r.episode):
+            lines += [semantics_text(r.episode), ""]
     lines += ["## Reconstruction", ""]
     meshed = [r for r in records if "mesh" in r.figures]
     for r in meshed:
@@ -414,6 +431,8 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
         )
         if r.episode.stopped_early:
             parts.append(f"<p>{e(stopped_text(r.episode))}</p>")
+        if semantics_text(r.episode):
+            parts.append(f"<p>{e(semantics_text(r.episode))}</p>")
     parts.append("<h2>Reconstruction</h2>")
     meshed = [r for r in records if "mesh" in r.figures]
     for r in meshed:

@@ -111,6 +111,9 @@ class Episode:
     config: dict[str, Any] = field(default_factory=dict)
     depth_source: str = "sensor"
     stopped_early: str = ""  # why the episode ended before its budget ("": it did not)
+    # where the regions of the last semantic query came from: {"backend", "fallback_used" (None
+    # or the analyser that stood in), "error" (why the backend's answer was not used)}; {}: none
+    semantics: dict[str, Any] = field(default_factory=dict)
 
     @property
     def scene_name(self) -> str:
@@ -169,6 +172,7 @@ def read_episode(run_dir: Path) -> Episode:
             config=dict(data.get("config", {})),
             depth_source=str(data.get("depth_source", "sensor")),
             stopped_early=str(data.get("stopped_early", "")),
+            semantics=dict(data.get("semantics") or {}),
         )
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise InputError(

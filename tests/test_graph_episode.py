@@ -83,6 +83,9 @@ def test_the_in_process_path_chooses_the_views_the_graph_chose(episode, tmp_path
     )
     assert in_process.kinds() == graph.kinds()
     np.testing.assert_allclose(in_process.poses(), graph.poses(), atol=POSE_TOLERANCE)
+    # both say where the semantic regions came from: the heuristic analyser, used as asked
+    used = {"backend": "heuristic", "fallback_used": None, "error": ""}
+    assert graph.semantics == used and in_process.semantics == used
 
 
 def test_a_mission_resumed_from_the_map_the_graph_saved_chooses_the_next_view_of_one_not_stopped(

@@ -111,6 +111,9 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     saved = json.loads(episode_json.read_text())
     saved["budget"] = len(saved["views"]) + 3
     saved["stopped_early"] = stopped_early(3, "budget: all 9 views are spent")
+    # and its VLM failed: the regions came from the fallback, which the report says
+    why = "cannot reach the VLM server at http://127.0.0.1:9/v1/chat/completions"
+    saved["semantics"] = {"backend": "openai", "fallback_used": "heuristic", "error": why}
     episode_json.write_text(json.dumps(saved))
 
     md_path, html_path = write_report(runs, tmp_path / "report", evaluate_missing=False)
@@ -120,6 +123,10 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
         "planner returned no view with 3 left (budget: all 9 views are spent)."
     )
     assert md.count("Stopped early") == 1 and stopped in md and stopped in page
+    fell_back = (
+        f"Semantic regions from the `heuristic` fallback, not from the `openai` backend: {why}."
+    )
+    assert md.count("Semantic regions from") == 1 and fell_back in md and fell_back in page
 
     rows = [line for line in md.splitlines() if line.startswith("| ")]
     starts = [i for i, r in enumerate(rows) if r.startswith("| Policy |")]
