@@ -39,6 +39,7 @@ ROSDEP_KEYS: dict[str, str | None] = {
     "matplotlib": "python3-matplotlib",
     "PIL": "python3-pil",
     "requests": "python3-requests",
+    "urllib3": "python3-urllib3",
     "typer": "python3-typer",
     "rich": "python3-rich",
     "numba": "python3-numba",
