@@ -82,6 +82,7 @@ class Launcher:
         self._lines_read: dict[str, int] = {spec.name: 0 for spec in specs}
         self._threads: list[threading.Thread] = []
         self._stopping = False
+        self._interrupted = False  # Ctrl-C: no node is started again
         self.respawn = respawn
         self.respawn_delay_s = float(respawn_delay_s)
         self.respawn_max_retries = int(respawn_max_retries)
@@ -129,7 +130,21 @@ class Launcher:
         self._threads.append(thread)
 
     def _can_respawn(self, name: str) -> bool:
-        return self.respawn and self.respawns[name] < self.respawn_max_retries
+        return (
+            self.respawn
+            and not self._interrupted
+            and self.respawns[name] < self.respawn_max_retries
+        )
+
+    def interrupt(self) -> None:
+        """Ctrl-C as a terminal gives it to the whole process group: SIGINT to every node still
+        running, and none is respawned; their exits then read as `NodeDied` (the caller knows it
+        was interrupted). For a caller that was sent SIGINT alone (`kill -INT`, `timeout`)."""
+        with self._spawn_lock:
+            self._interrupted = True
+            alive = [p for p in self.processes.values() if p.poll() is None]
+        for proc in alive:
+            proc.send_signal(signal.SIGINT)
 
     def _monitor(self, poll_s: float = 0.1) -> None:
         """Start nodes that exited again, each after the delay, while retries are left."""

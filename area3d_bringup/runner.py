@@ -78,19 +78,23 @@ class _Episode(EpisodeRecord):
         self.held_back = 0
 
     # -- the run --------------------------------------------------------------------------------
-    def _note_sigint(self) -> Callable[[], None]:
-        """Note a Ctrl-C (`interrupted`) and leave the stopping to rclpy, whose handler,
-        installed next, calls this one after its own: it stops the mission manager's context, so
-        a request in flight fails, and that must read as the user's stop, not the planner's
-        failure. Only in the main thread (where Python takes signals); returns what puts the
-        handler back."""
+    def _note_sigint(self, context: Any) -> Callable[[], None]:
+        """On Ctrl-C: note it (`interrupted`), pass SIGINT on to the graph's nodes (a terminal
+        gives it to the whole process group; `kill -INT`, `timeout -s INT` to this process alone)
+        and stop the mission manager's `context` (rclpy installs no handler for a context of
+        its own), so a request in flight fails, which reads as the user's stop, not the
+        planner's failure. Only in the main thread (where Python takes signals); returns what
+        puts the handler back."""
         self.interrupted = False
         if threading.current_thread() is not threading.main_thread():
             return lambda: None
         previous = signal.getsignal(signal.SIGINT)
 
         def noted(signum: int, frame: Any) -> None:
-            self.interrupted = True  # no KeyboardInterrupt: rclpy's handler does the stopping
+            self.interrupted = True  # no KeyboardInterrupt: the run ends through its errors
+            if getattr(self, "launcher", None) is not None:
+                self.launcher.interrupt()
+            context.try_shutdown()
 
         signal.signal(signal.SIGINT, noted)
         return lambda: signal.signal(signal.SIGINT, previous)
@@ -124,7 +128,6 @@ class _Episode(EpisodeRecord):
             respawn_max_retries=config.respawn_max_retries,
         )
         context = rclpy.Context()
-        restore_sigint = self._note_sigint()
         rclpy.init(context=context, domain_id=self.domain_id)
         self.manager = MissionManager(
             self.recorder,
@@ -134,6 +137,7 @@ class _Episode(EpisodeRecord):
             context=context,
             namespace=config.namespace or None,
         )
+        restore_sigint = self._note_sigint(context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(self.manager)
         spinner = Spinner(executor, name=NAME)
@@ -182,6 +186,9 @@ class _Episode(EpisodeRecord):
         have their readers."""
         manager, config = self.manager, self.config
         self.launcher.start()
+        if self.interrupted:  # Ctrl-C while the nodes were being started
+            self.launcher.interrupt()
+            raise EpisodeError("interrupted (Ctrl-C)")
         ready = manager.client.service_is_ready
         if not self.launcher.wait_for(ready, config.startup_timeout_s, SERVICE_POLL_S):
             raise EpisodeError(
