@@ -210,7 +210,7 @@ def bench_episode(
             "them (a cluster has its own workers)"
         )
     try:
-        run_episode_bench(
+        result = run_episode_bench(
             seeds=seeds,
             policies=policies.split(","),
             scenes=[s for s in scenes_.split(",") if s],
@@ -227,6 +227,9 @@ def bench_episode(
         )
     except (RuntimeError, ValueError) as err:
         _fail(str(err))
+    if result["failures"]:  # the table holds the rest; the command says that some failed
+        console.print(f"[bold red]{len(result['failures'])} episodes failed[/] (above)")
+        raise typer.Exit(code=1)
 
 
 if __name__ == "__main__":

@@ -248,6 +248,30 @@ def _print_wall_times(runs: list[RunSet], shape: str, console: Console) -> None:
             )
 
 
+def _check_request(seeds: int, policies: list[str], scenes: list[str], budget) -> None:
+    """Refuse, before any episode runs, what every episode would fail on: no seed, a policy or
+    a scene that does not exist (each episode failed with it, and the run ended 'done')."""
+    from area3d_bringup.presets import RUN_PRESETS
+    from sim_bridge.scenes import list_scenes
+
+    if not isinstance(seeds, int) or seeds < 1:
+        raise ValueError(f"seeds: got {seeds}, expected an int >= 1")
+    unknown = [p for p in policies if p not in RUN_PRESETS]
+    if unknown or not policies:
+        raise ValueError(
+            f"policies: got {unknown or policies}, expected names among {sorted(RUN_PRESETS)}"
+        )
+    bundled = set(list_scenes())
+    missing = [s for s in scenes if s not in bundled and not Path(s).expanduser().is_file()]
+    if missing:
+        raise ValueError(
+            f"scenes: got {missing}, expected bundled scene names ({', '.join(sorted(bundled))}) "
+            "or paths of MJCF files"
+        )
+    if budget is not None and budget < 1:
+        raise ValueError(f"budget: got {budget}, expected the total number of views (>= |O_0|)")
+
+
 def run_episode_bench(
     seeds: int,
     policies: list[str],
@@ -276,6 +300,7 @@ def run_episode_bench(
     from sim_bridge.scenes import list_scenes
 
     scenes = list(scenes) or list_scenes()
+    _check_request(seeds, policies, scenes, budget)
     kinds = list(holdout_kinds) if holdout_kinds else list(HOLDOUT_WRITERS)
     unknown = [kind for kind in kinds if kind not in HOLDOUT_WRITERS]
     if unknown:

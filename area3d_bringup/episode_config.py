@@ -13,6 +13,20 @@ from area3d_eval import rundir
 MODES = ("closed_loop", "batch")
 
 
+def episode_budget(scene, budget: int | None) -> int:
+    """The view budget T of an episode on `scene` (O_0 included): the paper's for its level when
+    None; ValueError when it does not hold the initial views."""
+    from area3d_planner.config import paper_budget
+
+    total = paper_budget(scene.level) if budget is None else int(budget)
+    if total < len(scene.initial_views):
+        raise ValueError(
+            f"budget: got {total}, expected the total number of views, at least "
+            f"|O_0| = {len(scene.initial_views)}"
+        )
+    return total
+
+
 class EpisodeError(RuntimeError):
     """The episode could not go on; the message says why and what was kept."""
 

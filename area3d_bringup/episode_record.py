@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from area3d_bringup.episode_config import EpisodeConfig
+from area3d_bringup.episode_config import EpisodeConfig, episode_budget
 from area3d_bringup.launch_description import merge
 from area3d_bringup.launcher import Launcher
 from area3d_bringup.mission_manager import NAME, MissionManager
@@ -23,7 +23,6 @@ from area3d_eval import rundir
 from area3d_eval.rundir import Frame
 from area3d_msgs_py import topics
 from area3d_msgs_py.errors import InputError
-from area3d_planner.config import paper_budget
 
 
 class EpisodeRecord:
@@ -35,14 +34,7 @@ class EpisodeRecord:
         config.validate()
         self.config = config
         self.scene = load_scene(config.scene)
-        self.budget = (
-            paper_budget(self.scene.level) if config.budget is None else int(config.budget)
-        )
-        if self.budget < len(self.scene.initial_views):
-            raise ValueError(
-                f"budget: got {self.budget}, expected the total number of views, at least "
-                f"|O_0| = {len(self.scene.initial_views)}"
-            )
+        self.budget = episode_budget(self.scene, config.budget)
         self.timings: dict[str, float] = {}
         self.views: list[dict] = []
         self.frames: list[Frame] = []

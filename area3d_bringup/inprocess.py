@@ -75,12 +75,12 @@ def run_inprocess_episode(
     episode.json, as `area3d run` writes them, with a timing per stage). depth_source: what the
     TSDF of the evaluation integrates (rundir.DEPTH_SOURCES); "estimated" keeps perception's depth
     and confidence in every frame file."""
-    from area3d_planner.config import paper_budget
+    from area3d_bringup.episode_config import episode_budget
     from sim_bridge.scenes import load_scene
 
     check_depth_source(depth_source)
     scene = load_scene(scene_name)
-    total = paper_budget(scene.level) if budget is None else int(budget)
+    total = episode_budget(scene, budget)
     specs = episode_specs(scene_name, policy, seed, total, "closed_loop", overrides)
     run_dir = Path(out_dir) / (run_name or f"{scene.name}_{policy}_s{seed}")
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -202,6 +202,11 @@ def test_a_result_from_another_machine_names_the_scene_as_this_machine_does(tmp_
         (["--workers", "0"], "workers: got '0', expected an int >= 1"),
         (["--workers", "2", "--cluster", "tcp://127.0.0.1:8786"], "expected one of them"),
         (["--holdout-kinds", "tabletop,kitchen"], "holdout_kinds: got ['kitchen'], expected"),
+        # each of these failed every episode, and the command ended 'done' with exit 0
+        (["--scenes", "single_object,nosuch"], "scenes: got ['nosuch'], expected bundled"),
+        (["--policies", "area3d,foo"], "policies: got ['foo'], expected names among"),
+        (["--seeds", "0"], "seeds: got 0, expected an int >= 1"),
+        (["--budget", "0"], "budget: got 0, expected the total number of views"),
     ],
 )
 def test_the_bench_command_refuses_bad_worker_options_before_running_anything(
@@ -215,3 +220,20 @@ def test_the_bench_command_refuses_bad_worker_options_before_running_anything(
     assert result.exit_code == 2
     assert message in " ".join(result.output.split())
     assert not any(tmp_path.iterdir())  # nothing was started or written
+
+
+def test_the_bench_command_exits_non_zero_when_episodes_failed(tmp_path):
+    """A scene file that exists and does not load: its episode fails; the command says how many
+    failed and exits 1 (it printed 'failed' and exited 0, as a run of good episodes does)."""
+    from typer.testing import CliRunner
+
+    from area3d_bench.cli import app
+
+    scene = tmp_path / "broken.xml"
+    scene.write_text("<mujoco><worldbody><geom type='box' size='0.1 0.1'")
+    args = ["episode", "--in-process", "--no-holdout", "--scenes", str(scene), "--policies"]
+    args += ["uniform", "--seeds", "1", "--budget", "5", "--out", str(tmp_path / "runs")]
+    result = CliRunner().invoke(app, args)
+    text = " ".join(result.output.split())
+    assert result.exit_code == 1, text
+    assert "failed" in text and "1 episodes failed" in text
