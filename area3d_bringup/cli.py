@@ -235,7 +235,7 @@ def report(
     out = out or (run_dirs[0] / "report" if len(run_dirs) == 1 else Path("report"))
     try:
         md, html = _evaluate_and_report(run_dirs, out)
-    except InputError as err:  # a damaged run directory: which file, and what is wrong with it
+    except (InputError, ValueError) as err:  # a damaged run directory, a scene that moved
         _fail(str(err))
     print(f"report: {html}\nmarkdown: {md}")
 
@@ -351,7 +351,10 @@ def rviz(
     overrides = _overrides(param)
     if scene:
         overrides.setdefault("sim_bridge", {})["scene"] = scene
-    specs = build_graph(load_parameters(params), overrides)
+    try:
+        specs = build_graph(load_parameters(params), overrides)
+    except ValueError as err:  # an unknown scene, a parameter file that does not fit
+        _fail(str(err))
     voxel = write_config(out, next(s for s in specs if s.name == "planner").parameters)
     command = ["rviz2", "-d", str(out)]
     if namespace:

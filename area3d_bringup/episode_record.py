@@ -111,6 +111,8 @@ class EpisodeRecord:
     # -- the run directory ----------------------------------------------------------------------
     def save(self) -> None:
         """Rewrite episode.json with everything known so far."""
+        from sim_bridge.scenes import scene_reference
+
         counts = dict(self.recorded)
         if self.recorder is not None:
             for topic, n in self.recorder.counts.items():
@@ -119,7 +121,7 @@ class EpisodeRecord:
         rundir.write_episode(
             self.run_dir,
             {
-                "scene": config.scene,
+                "scene": scene_reference(self.scene),  # found again from any directory
                 "policy": config.policy,
                 "seed": config.seed,
                 "budget": self.budget,

@@ -76,7 +76,7 @@ def run_inprocess_episode(
     TSDF of the evaluation integrates (rundir.DEPTH_SOURCES); "estimated" keeps perception's depth
     and confidence in every frame file."""
     from area3d_bringup.episode_config import episode_budget
-    from sim_bridge.scenes import load_scene
+    from sim_bridge.scenes import load_scene, scene_reference
 
     check_depth_source(depth_source)
     scene = load_scene(scene_name)
@@ -108,7 +108,7 @@ def run_inprocess_episode(
     write_episode(
         run_dir,
         {
-            "scene": str(scene.mjcf_path) if "/" in str(scene_name) else scene.name,
+            "scene": scene_reference(scene),
             "policy": policy,
             "seed": seed,
             "budget": total,

@@ -18,6 +18,11 @@ from sim_bridge.scene_layout import geometry_boxes, scene_layout
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 
 
+# what a derived scene may be: a camera reconstructs objects of centimetres (tau 1 cm) up to rooms
+MIN_GEOM_RADIUS_M = 0.005
+MAX_ROI_EXTENT_M = 50.0
+
+
 def list_scenes() -> list[str]:
     """Names of the bundled scenes."""
     return sorted(p.parent.name for p in SCENES_DIR.glob("*/scene.xml"))
@@ -38,24 +43,70 @@ def load_scene(name_or_path: str | Path) -> Scene:
     path = path.resolve()
     for sidecar in (path.with_suffix(".json"), path.parent / "scene.json"):
         if sidecar.is_file():
-            return _from_sidecar(path, json.loads(sidecar.read_text()))
+            return _from_sidecar(path, sidecar)
     return derive_scene(path)
 
 
-def _from_sidecar(path: Path, meta: dict) -> Scene:
-    level = meta.get("level", "object")
+def scene_reference(scene: Scene) -> str:
+    """How a run records `scene` so that `load_scene` finds it again from any directory: a
+    bundled scene by its name, any other by its absolute path."""
+    bundled = (SCENES_DIR / scene.name / "scene.xml").resolve()
+    return scene.name if Path(scene.mjcf_path).resolve() == bundled else str(scene.mjcf_path)
+
+
+#: a sidecar's fields: (what it is, the array shape or None for a number/string)
+SIDECAR_FIELDS = {
+    "workspace_min": (3,),
+    "workspace_max": (3,),
+    "roi_min": (3,),
+    "roi_max": (3,),
+    "initial_views": (-1, 4, 4),
+    "eval_views": (-1, 4, 4),
+}
+
+
+def _from_sidecar(path: Path, sidecar: Path) -> Scene:
+    """The scene with a sidecar's metadata; the fields it leaves out derived from the geometry
+    as without one. A sidecar that is no JSON object, or a field of the wrong kind, refused with
+    the file and the field named."""
+    try:
+        meta = json.loads(sidecar.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"scene sidecar {str(sidecar)!r}: not JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise ValueError(
+            f"scene sidecar {str(sidecar)!r}: got {type(meta).__name__}, expected an object"
+        )
+    derived = None if set(SIDECAR_FIELDS) <= set(meta) else derive_scene(path, meta.get("name"))
+    level = meta.get("level", derived.level if derived else "object")
+    if level not in GAMMA:
+        raise ValueError(
+            f"scene sidecar {str(sidecar)!r}: level: got {level!r}, expected one of {list(GAMMA)}"
+        )
+    values = {}
+    for name, shape in SIDECAR_FIELDS.items():
+        if name not in meta:
+            values[name] = getattr(derived, name)
+            continue
+        try:
+            value = np.asarray(meta[name], dtype=np.float64)
+            value = value.reshape(shape) if shape[0] == -1 else value
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"scene sidecar {str(sidecar)!r}: {name}: {exc}") from exc
+        if value.shape[1:] != shape[1:] or (shape[0] != -1 and value.shape != shape):
+            raise ValueError(
+                f"scene sidecar {str(sidecar)!r}: {name}: got shape {value.shape}, expected {shape}"
+            )
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"scene sidecar {str(sidecar)!r}: {name}: got non-finite values")
+        values[name] = value
     return Scene(
-        name=meta.get("name", path.stem),
+        name=str(meta.get("name", path.stem)),
         level=level,
         mjcf_path=path,
-        workspace_min=np.asarray(meta["workspace_min"], dtype=np.float64),
-        workspace_max=np.asarray(meta["workspace_max"], dtype=np.float64),
-        roi_min=np.asarray(meta["roi_min"], dtype=np.float64),
-        roi_max=np.asarray(meta["roi_max"], dtype=np.float64),
-        initial_views=np.asarray(meta["initial_views"], dtype=np.float64).reshape(-1, 4, 4),
-        eval_views=np.asarray(meta["eval_views"], dtype=np.float64).reshape(-1, 4, 4),
         gamma=float(meta.get("gamma", GAMMA[level])),
         tau=float(meta.get("tau", TAU[level])),
+        **values,
     )
 
 
@@ -108,11 +159,24 @@ def derive_scene(path: Path, name: str | None = None) -> Scene:
             # on one line: MuJoCo's message spans several
             f"scene file {str(path)!r}: MuJoCo could not load it: {' '.join(str(err).split())}"
         ) from err
-    if len(solid_geom_ids(model)) == 0:
+    if len(solid_geom_ids(model)) == 0:  # (a scene of planes only)
         raise ValueError(
             f"scene file {str(path)!r}: no solid geoms, expected at least one visible geom that is not a plane"
         )
+    solid = solid_geom_ids(model)
+    largest = float(np.max(model.geom_rbound[solid])) if len(solid) else 0.0
+    if largest < MIN_GEOM_RADIUS_M:
+        raise ValueError(
+            f"scene file {str(path)!r}: its largest solid geom reaches {largest:.2g} m from its "
+            f"centre, expected objects of centimetres or more (an MJCF in other units than metres?)"
+        )
     layout = scene_layout(*geometry_boxes(model, data))
+    extent = float(np.max(layout["roi_max"] - layout["roi_min"]))
+    if extent > MAX_ROI_EXTENT_M:
+        raise ValueError(
+            f"scene file {str(path)!r}: the region to reconstruct spans {extent:.3g} m, expected "
+            f"at most {MAX_ROI_EXTENT_M:g} m (an MJCF in centimetres or millimetres?)"
+        )
     level = layout["level"]
     scene.level = level
     scene.gamma, scene.tau = GAMMA[level], TAU[level]

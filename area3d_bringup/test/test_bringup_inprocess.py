@@ -42,11 +42,33 @@ def test_an_in_process_episode_whose_planner_has_no_view_stops_and_says_why(tmp_
     assert episode.stopped_early.startswith("the planner returned no view with 2 left (workspace:")
 
 
-def test_an_in_process_episode_refuses_an_unknown_policy(tmp_path):
+def test_an_in_process_episode_refuses_an_unknown_policy_and_a_budget_short_of_o0(tmp_path):
     import pytest
 
     with pytest.raises(ValueError, match="policy"):
         run_inprocess_episode("single_object", "best", 0, tmp_path, budget=5)
+    # it ran the 4 initial views and recorded a budget of 0
+    with pytest.raises(ValueError, match=r"budget: got 0, expected .* at least \|O_0\| = 4"):
+        run_inprocess_episode("single_object", "area3d", 0, tmp_path, budget=0)
+
+
+def test_a_scene_given_by_a_relative_path_is_recorded_so_it_is_found_from_anywhere(
+    tmp_path, monkeypatch
+):
+    """`--scene table.xml` from the scene's folder: the run recorded 'table' (in process) or
+    'table.xml' (over the graph), which a report or --resume from elsewhere could not load."""
+    import shutil
+
+    from sim_bridge.scenes import SCENES_DIR
+
+    mine = tmp_path / "mine"
+    shutil.copytree(SCENES_DIR / "single_object", mine)  # with its meshes and textures
+    (mine / "scene.xml").rename(mine / "table.xml")
+    monkeypatch.chdir(mine)
+    run_dir = run_inprocess_episode("table.xml", "uniform", 0, tmp_path / "runs", budget=4)
+    assert read_episode(run_dir).scene == str((mine / "table.xml").resolve())
+    bundled = run_inprocess_episode("single_object", "uniform", 0, tmp_path / "runs", budget=4)
+    assert read_episode(bundled).scene == "single_object"
 
 
 def test_a_stereo_episode_keeps_the_estimated_depth_for_the_tsdf(tmp_path):

@@ -1,5 +1,8 @@
 """Scenes load with consistent metadata; rendered depth lands on the ground-truth mesh."""
 
+import json
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -139,3 +142,45 @@ def test_a_file_mujoco_cannot_load_is_refused_on_one_line_naming_it(tmp_path):
     with pytest.raises(ValueError, match="MuJoCo could not load it") as info:
         load_scene(str(path))
     assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_sidecar_gives_the_fields_it_has_and_the_rest_is_derived(tmp_path):
+    """A sidecar with the region only (KeyError 'workspace_min' before): that region, the rest
+    as derived; a sidecar that is no JSON, or a field of the wrong shape, refused naming it."""
+    path = tmp_path / "user_scene.xml"
+    path.write_text(USER_MJCF)
+    derived = load_scene(str(path))
+    sidecar = tmp_path / "user_scene.json"
+    sidecar.write_text(json.dumps({"roi_min": [-0.2, -0.1, 0.0], "roi_max": [0.2, 0.1, 0.3]}))
+    scene = load_scene(str(path))
+    assert scene.roi_min.tolist() == [-0.2, -0.1, 0.0] and scene.roi_max.tolist() == [0.2, 0.1, 0.3]
+    np.testing.assert_array_equal(scene.workspace_min, derived.workspace_min)
+    np.testing.assert_array_equal(scene.initial_views, derived.initial_views)
+    for text, why in (
+        ('{"roi_min": [0, 0,}', "not JSON"),
+        ('{"roi_min": [0, 0]}', "roi_min: got shape (2,), expected (3,)"),
+        ('{"initial_views": [[1, 2]]}', "initial_views"),
+        ('{"level": "house"}', "level: got 'house'"),
+    ):
+        sidecar.write_text(text)
+        with pytest.raises(ValueError, match=re.escape(why)) as info:
+            load_scene(str(path))
+        assert str(sidecar) in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("scale", "why"), [(0.002, "expected objects of centimetres"), (400.0, "at most 50 m")]
+)
+def test_a_scene_in_other_units_than_metres_is_refused(tmp_path, scale, why):
+    """The user scene at 1/500 (millimetres read as metres: it ran, reconstructing nothing, with
+    a PSNR of 100 dB) and at 400 times (centimetres read as metres: a 'room' of 100 m)."""
+    scaled = re.sub(
+        r'(size|pos)="([^"]+)"',
+        lambda m: f'{m.group(1)}="{" ".join(str(float(v) * scale) for v in m.group(2).split())}"',
+        USER_MJCF,
+    )
+    path = tmp_path / "scaled.xml"
+    path.write_text(scaled)
+    with pytest.raises(ValueError, match=why) as info:
+        load_scene(str(path))
+    assert str(path) in str(info.value)
