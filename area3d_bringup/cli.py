@@ -131,7 +131,11 @@ def run(
     ),
     seed: int = typer.Option(0),
     out: Path = typer.Option(Path("runs"), help="where run directories are created"),
-    resume: Path = typer.Option(None, help="continue an interrupted run directory"),
+    resume: Path = typer.Option(
+        None,
+        help="continue an interrupted run directory (with the run's own scene, policy, seed, "
+        "budget, mode and depth source: those options are not read)",
+    ),
     record: bool = typer.Option(True, help="record the episode as rosbag2 (MCAP)"),
     evaluate: bool = typer.Option(
         True, help="reconstruct, score and write the report after the episode"
