@@ -46,6 +46,10 @@ BACKENDS = ("rgbd", "vggt", "depth_anything_3", "uniform", "stereo")
 # beyond range; an isolated dropout of a dark, specular or grazing surface is not), all or none.
 NO_RETURN_RULES = ("none", "regions", "all")
 NO_RETURN_REGION_PX = 6
+# A frame with returns in fewer of its pixels than this is the camera failing (all zeros, all
+# saturated: a driver fault, the emitter off), not open space: none of it is declared a return
+# beyond range, which would carve free space through the whole map in front of it.
+MIN_RETURN_SHARE = 0.01
 FEEDFORWARD_BACKENDS = ("vggt", "depth_anything_3")
 # Views per feed-forward pass: the new frame plus up to 7 recent ones (our choice; VGGT is
 # multi-view and its depth improves with context, while memory and time grow with the window).
@@ -242,7 +246,15 @@ class FrameEstimator:
         finite = np.isfinite(metric)
         metric[finite & (metric > self.sensor.max_range)] = np.nan
         metric[finite & (metric < self.sensor.min_range)] = -np.inf  # nearer than it measures
-        declare_no_return(metric, self.no_return)  # of the pixels without a return only
+        returned = float(np.mean(np.isfinite(metric) | np.isneginf(metric)))
+        if self.no_return != "none" and returned < MIN_RETURN_SHARE:
+            notes.append(
+                f"depth: a return in {100 * returned:.2g} % of the pixels (below "
+                f"{100 * MIN_RETURN_SHARE:g} %): a blank or saturated frame, taken as the camera "
+                "failing, not as open space: no pixel of it declared beyond range"
+            )
+        else:
+            declare_no_return(metric, self.no_return)  # of the pixels without a return only
         metric[np.isneginf(metric)] = np.nan  # too near: no estimate
         if self.backend == "uniform":
             confidence = np.isfinite(metric).astype(np.float32)

@@ -156,6 +156,23 @@ def test_a_depth_cameras_regions_without_a_return_are_declared_no_return_and_its
         FrameEstimator("rgbd", no_return="sky")
 
 
+def test_a_blank_or_saturated_frame_declares_nothing_beyond_range_and_says_so():
+    """All zeros, or all at a 16-bit driver's 65.535 m (beyond range): every pixel was a
+    region of no return, +Inf, and the planner carved free space through the whole map in front
+    of the camera (a walkthrough's map lost half its box). A frame with returns in under 1 % of
+    its pixels is the camera failing: nothing declared, a note; one with a few returns is not."""
+    for blank in (0.0, 65.535):
+        for rule in ("regions", "all"):
+            depth = np.full((H, W), blank, np.float32)
+            out = FrameEstimator("rgbd", no_return=rule).process(RGB, depth, K, np.eye(4))
+            assert not np.isposinf(out.depth).any() and not out.confidence.any()
+            assert any("blank or saturated frame" in note for note in out.notes), out.notes
+    depth = np.full((H, W), np.nan, np.float32)
+    depth[: H // 10] = 2.0  # a tenth of the image sees a surface, the rest open space
+    out = FrameEstimator("rgbd").process(RGB, depth, K, np.eye(4))
+    assert np.isposinf(out.depth).any() and out.notes == []
+
+
 def test_a_surface_nearer_than_the_cameras_minimum_range_is_no_estimate_never_no_return():
     """A wall too near fills the image (the camera says -Inf, REP 117, or a driver gives values
     below its minimum range): no estimate, however large the region, so nothing is carved through
