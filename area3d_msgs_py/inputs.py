@@ -139,11 +139,39 @@ def check_depth_values(depth: np.ndarray, field: str = "depth") -> np.ndarray:
 
 
 def decode_camera_info(msg: Any, max_pixels: int = MAX_IMAGE_PIXELS) -> tuple[np.ndarray, int, int]:
-    """`codecs.camera_info_to_intrinsics` for a camera no larger than max_pixels."""
+    """`codecs.camera_info_to_intrinsics` for a camera no larger than max_pixels, of full-size
+    images: binning or a region of interest (which describe another image than the one sent
+    at the calibration's size) refused by field."""
+    for field in ("binning_x", "binning_y"):
+        if getattr(msg, field, 0) > 1:
+            raise InputError(field, getattr(msg, field), "0 or 1: full-resolution images")
+    roi = getattr(msg, "roi", None)
+    if roi is not None and (roi.width or roi.height or roi.x_offset or roi.y_offset):
+        raise InputError(
+            "roi", f"{roi.width}x{roi.height}+{roi.x_offset}+{roi.y_offset}", "all 0: full images"
+        )
     K, width, height = codecs.camera_info_to_intrinsics(msg)
     if width * height > max_pixels:
         raise InputError("width x height", f"{width}x{height}", f"at most {max_pixels} pixels")
     return K, width, height
+
+
+PINHOLE_MODELS = ("", "plumb_bob", "rational_polynomial")
+
+
+def distortion_note(msg: Any) -> str | None:
+    """What to say of a camera info that describes lens distortion (non-zero `d`, or a model
+    that is no pinhole): the graph projects with `k` as a pinhole camera and never undistorts, so
+    its images must be rectified; None when there is none."""
+    model = str(msg.distortion_model)
+    d = [float(v) for v in msg.d]
+    if model in PINHOLE_MODELS and not any(abs(v) > 1e-9 for v in d):
+        return None
+    return (
+        f"camera_info: distortion_model {model!r} with d {[round(v, 4) for v in d]}: the graph "
+        "projects with k as a pinhole camera and does not undistort: give it rectified images "
+        "(image_proc) whose intrinsics are k, or the surfaces land off their place"
+    )
 
 
 def decode_frame_part(key: str, msg: Any) -> np.ndarray:

@@ -32,6 +32,7 @@ from area3d_msgs_py.inputs import (
     decode_camera_depth,
     decode_camera_info,
     decode_image,
+    distortion_note,
 )
 from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
@@ -171,6 +172,7 @@ class PerceptionNode(Node):
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
         self.max_stamp_lag_s = p["max_stamp_lag_s"]
         self.arrival_lag_s: float | None = None  # the last paired frame's, seconds
+        self.distortion: str | None = None  # what the camera info says of lens distortion
         self.status = StatusPublisher(self, topics.PERCEPTION_STATUS, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
@@ -233,7 +235,11 @@ class PerceptionNode(Node):
         super().destroy_node()
 
     def _status(self) -> dict:
-        warnings = [pairing_warning(self.sync, self.min_pairing_rate), self._lag_warning()]
+        warnings = [
+            pairing_warning(self.sync, self.min_pairing_rate),
+            self._lag_warning(),
+            self.distortion,
+        ]
         return {
             "node": "perception",
             "frames_published": self.frames_published,
@@ -288,6 +294,12 @@ class PerceptionNode(Node):
     def on_camera_info(self, msg: Any) -> None:
         check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
         K, width, height = decode_camera_info(msg)
+        note = distortion_note(msg)
+        if note != self.distortion:
+            self.distortion = note
+            if note:
+                self.get_logger().warning(note)
+            self.status.changed()
         self.camera = (K, width, height)
         self._release_waiting()
 

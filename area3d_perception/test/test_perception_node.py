@@ -266,6 +266,38 @@ def test_frames_wait_for_camera_info():
     assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
 
 
+def test_a_camera_info_with_lens_distortion_is_a_standing_warning_and_binning_is_refused():
+    """A camera info with distortion (plumb_bob with d non-zero, a fisheye model) was read as an
+    undistorted pinhole camera without a word (surfaces 1-4 cm off near the image's edges in a
+    walkthrough): /diagnostics warns, naming the model and d, until an undistorted one comes.
+    Binning or a region of interest describe another image than the one sent: refused by field."""
+    node = FakeNode()
+    info = codecs.intrinsics_to_camera_info(K, W, H, 1 * S, FRAME)
+    info.d = [0.1, -0.2, 0.001, 0.001, 0.05]
+    node.subs[INFO_TOPIC](info)
+    send_frame(node, 1 * S, info=False)
+    assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1  # still used
+    status = node.node._status()
+    (warning,) = status["warnings"]
+    assert "distortion_model 'plumb_bob' with d [0.1, -0.2" in warning and "rectified" in warning
+    assert assess(status, status).level == WARN
+    fisheye = codecs.intrinsics_to_camera_info(K, W, H, 2 * S, FRAME)
+    fisheye.distortion_model = "equidistant"
+    node.subs[INFO_TOPIC](fisheye)
+    assert "'equidistant'" in node.node._status()["warnings"][0]
+    node.subs[INFO_TOPIC](codecs.intrinsics_to_camera_info(K, W, H, 3 * S, FRAME))
+    assert node.node._status()["warnings"] == []
+    binned = codecs.intrinsics_to_camera_info(K, W, H, 4 * S, FRAME)
+    binned.binning_x = 2
+    node.subs[INFO_TOPIC](binned)
+    cropped = codecs.intrinsics_to_camera_info(K, W, H, 5 * S, FRAME)
+    cropped.roi.width, cropped.roi.height = W // 2, H // 2
+    node.subs[INFO_TOPIC](cropped)
+    warnings = node.log.warnings()
+    assert any("binning_x: got 2, expected 0 or 1" in w for w in warnings), warnings
+    assert any("roi: got '32x24+0+0', expected all 0" in w for w in warnings), warnings
+
+
 def test_mismatched_color_and_depth_sizes_reject_the_frame_with_a_reason():
     node = FakeNode()
     send_frame(node, 1 * S, rgb=np.zeros((H, W + 2, 3), np.uint8))
