@@ -60,6 +60,7 @@ from area3d_perception.estimator import (
     check_frame,
 )
 from area3d_perception.sensor_model import RgbdSensorParams
+from area3d_perception.stamp_watch import StampWatch
 from area3d_perception.stereo import StereoParams
 
 FRAME = "frame"  # rejections of a complete frame whose parts do not fit together
@@ -170,8 +171,7 @@ class PerceptionNode(Node):
         self.frames_published = 0
         self.world_frame = p["world_frame"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
-        self.max_stamp_lag_s = p["max_stamp_lag_s"]
-        self.arrival_lag_s: float | None = None  # the last paired frame's, seconds
+        self.stamps = StampWatch(p["max_stamp_lag_s"])  # late and backward stamps
         self.distortion: str | None = None  # what the camera info says of lens distortion
         self.status = StatusPublisher(self, topics.PERCEPTION_STATUS, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
@@ -237,7 +237,7 @@ class PerceptionNode(Node):
     def _status(self) -> dict:
         warnings = [
             pairing_warning(self.sync, self.min_pairing_rate),
-            self._lag_warning(),
+            *self.stamps.warnings(),
             self.distortion,
         ]
         return {
@@ -251,7 +251,7 @@ class PerceptionNode(Node):
             "frames_dropped_backlog": self.worker.dropped,
             "workers": {"estimator": self.worker.alive or self.worker.stopping},
             "warnings": [w for w in warnings if w],
-            "arrival_lag_s": None if self.arrival_lag_s is None else round(self.arrival_lag_s, 4),
+            **self.stamps.status(),
             "last_frame_age_s": None
             if self.last_frame_age_s is None
             else round(self.last_frame_age_s, 4),
@@ -263,16 +263,6 @@ class PerceptionNode(Node):
             **({} if self.poses is None else self.poses.status()),
             "rejected": self.rejections.snapshot(),
         }
-
-    def _lag_warning(self) -> str | None:
-        lag, limit = self.arrival_lag_s, self.max_stamp_lag_s
-        if lag is None or limit <= 0 or lag <= limit:
-            return None
-        return (
-            f"the last frame paired {lag:.1f} s after its stamp (max_stamp_lag_s {limit:g}): the "
-            "camera's clock is behind this node's (hosts without time sync?) or a bag plays "
-            "without use_sim_time"
-        )
 
     # inputs ---------------------------------------------------------------------------------
     def _camera_size(self) -> tuple[int, int] | None:
@@ -333,10 +323,11 @@ class PerceptionNode(Node):
         if paired is None:
             return
         stamp, parts = paired
-        late = self._lag_warning() is not None
-        self.arrival_lag_s = (self._now_ns() - stamp) / 1e9
-        if (self._lag_warning() is not None) != late:
-            self.status.changed()  # the warning starts or ends
+        changed, jumped = self.stamps.note(stamp, self._now_ns())
+        if jumped:
+            self.get_logger().warning(jumped, throttle_duration_sec=1.0)
+        if changed:
+            self.status.changed()  # a warning starts or ends
         if self.poses is not None:  # the pose at the frame's stamp, now or once it has arrived
             self.poses.submit(stamp, parts["color"][1], parts)
             return

@@ -266,6 +266,26 @@ def test_frames_wait_for_camera_info():
     assert len(node.pubs[OUT_DEPTH_TOPIC].sent) == 1
 
 
+def test_stamps_that_go_back_are_a_warning_until_the_stream_is_past_its_newest_again():
+    """A driver restarted with its clock 2 s behind: its frames were fused with the poses of
+    another time and nothing said so (a walkthrough's mesh grew ghost surfaces 4 cm off). They
+    are still used, and /diagnostics warns while the stream is behind its newest frame."""
+    node = FakeNode()
+    for i, t in enumerate((10.0, 10.5, 8.0, 8.5)):
+        send_frame(node, int(t * S), x=0.1 * i)
+    status = node.node._status()
+    assert status["frames_published"] == 4 and status["stamp_jumps_back"] == 1
+    (warning,) = status["warnings"]
+    assert "stamps went back 2.5 s" in warning
+    assert assess(status, status).level == WARN
+    assert any("stamps went back" in w for w in node.log.warnings())
+    send_frame(node, int(10.6 * S), x=0.5)  # past the newest again
+    status = node.node._status()
+    assert status["warnings"] == [] and status["stamp_jumps_back"] == 1
+    send_frame(node, int(10.2 * S), x=0.6)  # out of order by less than a second: not a jump
+    assert node.node._status()["stamp_jumps_back"] == 1
+
+
 def test_a_camera_info_with_lens_distortion_is_a_standing_warning_and_binning_is_refused():
     """A camera info with distortion (plumb_bob with d non-zero, a fisheye model) was read as an
     undistorted pinhole camera without a word (surfaces 1-4 cm off near the image's edges in a
