@@ -95,7 +95,14 @@ def assess(status: Mapping[str, Any], baseline: Mapping[str, Any] | None = None)
     rejected = _rose("rejected.total", facts.get("rejected.total", 0), before)
     warnings = [f"{n} dropped ({key})" for key, n in dropped.items()]
     if rejected:
-        warnings.append(f"{rejected} inputs rejected")
+        fields = {
+            key.removeprefix("rejected.by_field."): n
+            for key, v in facts.items()
+            if key.startswith("rejected.by_field.") and (n := _rose(key, v, before))
+        }
+        named = sorted(fields.items(), key=lambda kv: -kv[1])[:3]
+        which = f" ({', '.join(f'{k} {n}' for k, n in named)})" if named else ""
+        warnings.append(f"{rejected} inputs rejected{which}")
     standing = [str(w) for w in status.get("warnings") or ()]
     mismatched = (status.get("rejected") or {}).get("incompatible_qos") or {}
     standing += [

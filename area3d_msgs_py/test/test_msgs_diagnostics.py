@@ -51,10 +51,15 @@ def test_frames_dropped_in_the_period_warn_naming_the_count():
     assert "3 dropped (parts_dropped_unpaired)" in result.message
 
 
-def test_inputs_rejected_in_the_period_warn():
+def test_inputs_rejected_in_the_period_warn_naming_the_fields():
     later = _with(rejected={**STATUS["rejected"], "total": 4})
     result = assess(later, STATUS)
     assert result.level == WARN and "1 inputs rejected" in result.message
+    # which fields, most first (a user read only "N inputs rejected" there)
+    fields = {"orientation": 3, "encoding": 9, "header.stamp": 5, "d": 4}
+    later = _with(rejected={**STATUS["rejected"], "total": 21, "by_field": fields})
+    result = assess(later, STATUS)
+    assert "18 inputs rejected (encoding 9, header.stamp 5, d 4)" in result.message
 
 
 def test_a_standing_warning_of_the_node_warns_for_as_long_as_it_stands():
