@@ -77,3 +77,7 @@ class EpisodeConfig:
         if self.mode not in MODES:
             raise ValueError(f"mode: got {self.mode!r}, expected 'closed_loop' or 'batch'")
         rundir.check_depth_source(self.depth_source)
+        if self.domain_id is not None:  # before the run directory is made
+            from area3d_msgs_py.middleware import check_domain_id
+
+            check_domain_id(self.domain_id)

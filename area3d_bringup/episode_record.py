@@ -146,6 +146,8 @@ class EpisodeRecord:
     def _go_on(self) -> str:
         """How to go on after a run that stopped: --resume where views were captured; where
         none was (a node that could not start: a backend's weights missing), nothing to resume."""
+        if not self.frames and getattr(self, "interrupted", False):
+            return "no view was captured before the stop; run the command again"
         if not self.frames:
             log = self.run_dir / "nodes.log"
             return f"no view was captured (the nodes' output: {log}); fix the cause and run again"

@@ -273,6 +273,7 @@ def test_a_node_dying_mid_episode_is_named_and_the_episode_resumes(tmp_path, chi
         (["--scene", "no_such_scene"], "no_such_scene"),
         (["--mode", "sideways"], "mode: got 'sideways'"),
         (["--budget", "2"], "budget: got 2"),
+        (["--domain-id", "999"], "ROS_DOMAIN_ID: got 999"),  # it left an empty run directory
     ],
 )
 def test_bad_episode_arguments_are_rejected_with_a_clear_message(tmp_path, args, message):
