@@ -1,6 +1,6 @@
 """What the stamps of the frames a camera sends say about its clock: frames that pair long after
-their stamps (a clock behind this node's, a bag played without use_sim_time) and stamps that go
-back (a driver restart, a clock step). Both are standing warnings in perception's status (WARN on
+their stamps (a clock behind this node's, a bag played without use_sim_time), stamps that go
+back (a driver restart, a clock step) and a stamp sent again (a frozen clock). Both are standing warnings in perception's status (WARN on
 /diagnostics); the frames are still used, posed at their stamps."""
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ class StampWatch:
         self.newest_stamp = 0  # of the frames paired so far
         self.jumps_back = 0  # times the frames went more than JUMP_BACK_S behind the newest
         self.jumped_back_s = 0.0  # the last jump, until the stream is past its newest again
+        self.repeated_stamps = 0  # frames paired with the newest frame's stamp again
+        self._repeating = False  # the last frame had the newest's stamp
 
     def note(self, stamp: int, now_ns: int) -> tuple[bool, str | None]:
         """(whether a warning started or ended, the jump's warning when this frame went back)."""
@@ -32,17 +34,26 @@ class StampWatch:
                 jumped = self._jump_warning()
         elif stamp > self.newest_stamp:
             self.jumped_back_s = 0.0  # past the newest again
+        self._repeating = stamp == self.newest_stamp
+        self.repeated_stamps += self._repeating
         self.newest_stamp = max(self.newest_stamp, stamp)
         return self.warnings() != before, jumped
 
     def warnings(self) -> list[str]:
-        return [w for w in (self._lag_warning(), self._jump_warning()) if w]
+        repeat = (
+            "the camera sent a frame with the stamp of the one before (a driver stamping with a "
+            "frozen clock?): the graph fuses each stamp once, so the map stops growing"
+            if self._repeating
+            else None
+        )
+        return [w for w in (self._lag_warning(), self._jump_warning(), repeat) if w]
 
     def status(self) -> dict:
         lag = self.arrival_lag_s
         return {
             "arrival_lag_s": None if lag is None else round(lag, 4),
             "stamp_jumps_back": self.jumps_back,
+            "stamps_repeated": self.repeated_stamps,
         }
 
     def _lag_warning(self) -> str | None:

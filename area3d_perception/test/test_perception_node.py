@@ -284,6 +284,12 @@ def test_stamps_that_go_back_are_a_warning_until_the_stream_is_past_its_newest_a
     assert status["warnings"] == [] and status["stamp_jumps_back"] == 1
     send_frame(node, int(10.2 * S), x=0.6)  # out of order by less than a second: not a jump
     assert node.node._status()["stamp_jumps_back"] == 1
+    # a frozen clock: every frame with the newest's stamp (the map stopped growing, unsaid)
+    send_frame(node, int(10.6 * S), x=0.7)
+    status = node.node._status()
+    assert status["stamps_repeated"] == 1 and "stamp of the one before" in status["warnings"][0]
+    send_frame(node, int(10.7 * S), x=0.8)
+    assert node.node._status()["warnings"] == []
 
 
 def test_a_camera_info_with_lens_distortion_is_a_standing_warning_and_binning_is_refused():
