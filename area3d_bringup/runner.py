@@ -90,11 +90,16 @@ class _Episode(EpisodeRecord):
             return lambda: None
         previous = signal.getsignal(signal.SIGINT)
 
-        def noted(signum: int, frame: Any) -> None:
-            self.interrupted = True  # no KeyboardInterrupt: the run ends through its errors
+        def stop() -> None:
             if getattr(self, "launcher", None) is not None:
                 self.launcher.interrupt()
             context.try_shutdown()
+
+        def noted(signum: int, frame: Any) -> None:
+            self.interrupted = True  # no KeyboardInterrupt: the run ends through its errors
+            # on a thread: the main thread, which runs this handler, may hold the locks these
+            # take (the launcher's, the context's) at the moment the signal came
+            threading.Thread(target=stop, name="sigint-stop", daemon=True).start()
 
         signal.signal(signal.SIGINT, noted)
         return lambda: signal.signal(signal.SIGINT, previous)
