@@ -71,7 +71,7 @@ class OpenAIBackend:
         api_key_env: str = "OPENAI_API_KEY",
         timeout_s: float = 60.0,
         retries: int = 2,
-        max_tokens: int = 2048,
+        max_tokens: int = 8192,
         temperature: float = 0.0,
         backoff_s: float = 1.0,
         image_format: str = "png",
@@ -230,7 +230,7 @@ class TransformersBackend:
         model_dir: str | Path,
         device: str = "auto",
         trust_remote_code: bool = False,
-        max_new_tokens: int = 2048,
+        max_new_tokens: int = 8192,
     ) -> None:
         self.model_dir = Path(model_dir).expanduser() if model_dir else Path()
         if (

@@ -66,7 +66,13 @@ PARAMS = (
         range=(0.1, 3600.0),
     ),
     Param("retries", 2, "VLM request retries after a failure, count", range=(0, 100)),
-    Param("max_tokens", 2048, "VLM answer length limit, tokens", range=(16, 65536)),
+    Param(
+        "max_tokens",
+        8192,
+        "VLM answer length limit, tokens (5-8 regions of about 45 tokens per image: a room's "
+        "15 views need about 5,000; an answer cut there is refused)",
+        range=(16, 65536),
+    ),
     Param("model_dir", "", "local model directory (backend transformers)"),
     Param("device", "auto", "torch device (backend transformers)"),
     Param("trust_remote_code", False, "let transformers run the model's own code"),

@@ -231,7 +231,7 @@ def test_an_answer_cut_at_max_tokens_or_too_large_is_refused_not_used(server):
     """finish_reason "length": the images the answer did not reach would get no region, as if
     clear; an answer of more than MAX_ANSWER_BYTES is not read on."""
     server.script = [("length", "IMAGE 1\nREGION: left-top | TYPE: OCCLUSION\nIMAGE 2")]
-    with pytest.raises(VLMError, match=r"cut the answer at max_tokens \(2048\)"):
+    with pytest.raises(VLMError, match=r"cut the answer at max_tokens \(8192\)"):
         backend(server.url).analyze(images(2))
     server.script = [("huge", backends.MAX_ANSWER_BYTES + 2**20)]
     with pytest.raises(VLMError, match=r"larger than 16 MB"):
