@@ -136,14 +136,15 @@ class Launcher:
             and self.respawns[name] < self.respawn_max_retries
         )
 
-    def interrupt(self) -> None:
-        """Ctrl-C as a terminal gives it to the whole process group: SIGINT to every node still
-        running, and none is respawned; their exits then read as `NodeDied` (the caller knows it
-        was interrupted). For a caller that was sent SIGINT alone (`kill -INT`, `timeout`)."""
+    def interrupt(self, send: bool = True) -> None:
+        """Ctrl-C as a terminal gives it to the whole process group: no node is respawned from
+        now on, and with `send` SIGINT goes to every node still running; their exits then read
+        as `NodeDied` (the caller knows it was interrupted). For a caller that was sent SIGINT
+        alone (`kill -INT`, `timeout`)."""
         with self._spawn_lock:
             self._interrupted = True
             alive = [p for p in self.processes.values() if p.poll() is None]
-        for proc in alive:
+        for proc in alive if send else ():
             proc.send_signal(signal.SIGINT)
 
     def _monitor(self, poll_s: float = 0.1) -> None:

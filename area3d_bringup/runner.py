@@ -61,6 +61,10 @@ def run_episode(
     return _Episode(config, resume).run(progress)
 
 
+# After a Ctrl-C of `area3d run`, SIGINT is passed on to the nodes still running this much later.
+FORWARD_SIGINT_AFTER_S = 1.0
+
+
 class _Episode(EpisodeRecord):
     """One episode's steps over the graph, in the order they run, on its record."""
 
@@ -91,9 +95,16 @@ class _Episode(EpisodeRecord):
         previous = signal.getsignal(signal.SIGINT)
 
         def stop() -> None:
-            if getattr(self, "launcher", None) is not None:
-                self.launcher.interrupt()
+            launcher = getattr(self, "launcher", None)
+            if launcher is not None:
+                launcher.interrupt(send=False)  # no node is started again
             context.try_shutdown()
+            # a terminal's Ctrl-C reached the nodes too: a second SIGINT at once would land in
+            # their teardown before they ignore it; a second later only the nodes still running
+            # (signalled alone: kill -INT to this process) need it, the others ignore it by then
+            time.sleep(FORWARD_SIGINT_AFTER_S)
+            if launcher is not None:
+                launcher.interrupt()
 
         def noted(signum: int, frame: Any) -> None:
             self.interrupted = True  # no KeyboardInterrupt: the run ends through its errors
