@@ -61,6 +61,8 @@ def run_episode(
     return _Episode(config, resume).run(progress)
 
 
+# How long the mission manager's callbacks may take to end when the run ends, seconds.
+SPINNER_STOP_S = 30.0
 # After a Ctrl-C of `area3d run`, SIGINT is passed on to the nodes still running this much later.
 FORWARD_SIGINT_AFTER_S = 1.0
 
@@ -183,8 +185,13 @@ class _Episode(EpisodeRecord):
             ) from err
         finally:
             self.launcher.stop()
-            spinner.stop(timeout_s=2.0)
-            self.manager.destroy_node()
+            # a callback still running (a grid read and recorded, on a loaded machine) must end
+            # before the node is destroyed under it: destroyed after 2 s, the run once ended in
+            # a segmentation fault; one that never ends leaves the node to the process's exit
+            if spinner.stop(timeout_s=SPINNER_STOP_S):
+                self.manager.destroy_node()
+            else:
+                self.log(f"the mission manager's callbacks did not end within {SPINNER_STOP_S} s")
             context.try_shutdown()
             try:
                 if self.recorder is not None:
