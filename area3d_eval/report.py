@@ -334,8 +334,8 @@ def _markdown(
         lines += [f"### {r.label}", "", f"![views]({_rel(r.figures['views'], out_dir)})", ""]
         if r.episode.stopped_early:
             lines += [stopped_text(r.episode), ""]
-        if semantics_text(r.episode):
-            lines += [semantics_text(r.episode), ""]
+        if said := semantics_text(r.episode):
+            lines += [said, ""]
     lines += ["## Reconstruction", ""]
     meshed = [r for r in records if "mesh" in r.figures]
     for r in meshed:
@@ -431,8 +431,8 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
         )
         if r.episode.stopped_early:
             parts.append(f"<p>{e(stopped_text(r.episode))}</p>")
-        if semantics_text(r.episode):
-            parts.append(f"<p>{e(semantics_text(r.episode))}</p>")
+        if said := semantics_text(r.episode):
+            parts.append(f"<p>{e(said)}</p>")
     parts.append("<h2>Reconstruction</h2>")
     meshed = [r for r in records if "mesh" in r.figures]
     for r in meshed:

@@ -175,16 +175,13 @@ def replace_atomically(
         # only); set once written, so that a read-only mode does not stop the write
         os.chmod(tmp, target.stat().st_mode & 0o777 if target.exists() else 0o666 & ~UMASK)
         os.replace(tmp, target)
-    except OSError as exc:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
-        if exc.filename is not None or str(target) in str(exc):
+        if not isinstance(exc, OSError) or exc.filename is not None or str(target) in str(exc):
             raise
         # a full disk says only "No space left on device": the answer names the file
         message = f"{target} not written: {exc.strerror or exc}"
         raise (OSError(exc.errno, message) if exc.errno else OSError(message)) from exc
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _umask() -> int:

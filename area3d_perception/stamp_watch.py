@@ -1,7 +1,8 @@
 """What the stamps of the frames a camera sends say about its clock: frames that pair long after
 their stamps (a clock behind this node's, a bag played without use_sim_time), stamps that go
-back (a driver restart, a clock step) and a stamp sent again (a frozen clock). Both are standing warnings in perception's status (WARN on
-/diagnostics); the frames are still used, posed at their stamps."""
+back (a driver restart, a clock step) and a stamp sent again (a frozen clock). Each is a
+standing warning in perception's status (WARN on /diagnostics); the frames are still used,
+posed at their stamps."""
 
 from __future__ import annotations
 

@@ -184,18 +184,12 @@ class PlannerNode(Node):
             semantic.reader_qos(p["camera_qos"], qos.FRAME_DEPTH), self.rejections,
             callback_group=frames,
         )  # fmt: skip
-        for service, handler in (
-            (topics.SELECT_VIEWS, self._on_select_views),
-            (topics.NEXT_BEST_VIEW, self._on_request),
-        ):  # one group each: a request waits for its frame while the other service answers
-            self.create_service(
-                service.srv_type,
-                service.name,
-                handler,
-                callback_group=MutuallyExclusiveCallbackGroup(),
-            )
-        # in the frames' group: no part of a frame is taken while the map is cleared or loaded
+        # the view services one group each: a request waits for its frame while the other
+        # answers; reset and load in the frames' group: no part of a frame is taken while the
+        # map is cleared or loaded
         for service, handler, group in (
+            (topics.SELECT_VIEWS, self._on_select_views, MutuallyExclusiveCallbackGroup()),
+            (topics.NEXT_BEST_VIEW, self._on_request, MutuallyExclusiveCallbackGroup()),
             (topics.PLANNER_RESET, self._on_reset, frames),
             (topics.PLANNER_LOAD_MAP, self._on_load_map, frames),
             (topics.PLANNER_SAVE_MAP, self._on_save_map, MutuallyExclusiveCallbackGroup()),
@@ -407,14 +401,12 @@ class PlannerNode(Node):
         reason (no frame yet, budget spent, degenerate workspace, a bad request, ...)."""
         service = topics.SELECT_VIEWS.name
         try:
-            asked = codecs.msg_to_view_request(request)
-            if asked.frame_id == "":  # as `ros2 service call ... "{count: 3}"` sends it
-                asked = asked._replace(frame_id=self.world_frame)
-            if asked.frame_id != self.world_frame:
+            a = codecs.msg_to_view_request(request)
+            # an empty frame_id (`ros2 service call ... "{count: 3}"` sends none) is world_frame
+            if a.frame_id not in ("", self.world_frame):
                 raise InputError(
-                    "current.header.frame_id", asked.frame_id, f"{self.world_frame!r} (world_frame)"
+                    "current.header.frame_id", a.frame_id, f"{self.world_frame!r} (world_frame)"
                 )
-            a = asked
             wanted = PlanRequest(a.current, a.stamp_ns, a.count, a.mode, a.request_id)
             plan, _ = self._serve("select_views", wanted)
         except Exception as exc:  # a refusal, and the node serves on
