@@ -11,7 +11,7 @@ its support at a sampled position and yaw, apart from every other object.
 
 from __future__ import annotations
 
-import sys
+import argparse
 from collections.abc import Callable
 from pathlib import Path
 
@@ -183,11 +183,14 @@ def write_holdout_scenes(out_dir: Path, seeds: tuple[int, ...] = (0, 1)) -> list
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = sys.argv[1:] if argv is None else argv
-    if not args:
-        raise SystemExit("usage: python -m sim_bridge.holdout_scenes OUT_DIR [SEED ...]")
-    seeds = tuple(int(s) for s in args[1:]) or (0, 1)
-    for path in write_holdout_scenes(Path(args[0]), seeds):
+    parser = argparse.ArgumentParser(
+        prog="python -m sim_bridge.holdout_scenes",
+        description="Write the hold-out scenes of every kind, one folder per kind and seed.",
+    )
+    parser.add_argument("out_dir", type=Path, help="folder to write the scenes into")
+    parser.add_argument("seeds", type=int, nargs="*", default=[0, 1], help="seeds (default: 0 1)")
+    args = parser.parse_args(argv)
+    for path in write_holdout_scenes(args.out_dir, tuple(args.seeds)):
         print(path)
 
 

@@ -389,3 +389,18 @@ def test_alcove_room_workspace_is_the_interior_off_the_walls(holdout, seed):
     # 5 x 4 m interior, walls 2.6 m high: 0.3 m in from the walls, 0.4 to 2.0 m above the floor
     assert np.allclose(scene.workspace_min, [-2.2, -1.7, 0.4])
     assert np.allclose(scene.workspace_max, [2.2, 1.7, 2.0])
+
+
+def test_the_command_line_asks_for_help_without_writing_a_folder_named_help(
+    tmp_path, monkeypatch, capsys
+):
+    from sim_bridge.holdout_scenes import main
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        main(["--help"])
+    assert stop.value.code == 0 and "out_dir" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as stop:
+        main(["out", "one"])  # a seed that is no number: refused by argparse, nothing written
+    assert stop.value.code == 2 and "invalid int value: 'one'" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
