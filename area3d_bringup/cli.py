@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -211,7 +212,14 @@ def run(
         _fail(str(err))
     console.print(f"episode written to [bold]{escape(str(run_dir))}[/]")
     if evaluate:
-        report_paths = _evaluate_and_report([run_dir], run_dir / "report")
+        try:
+            report_paths = _evaluate_and_report([run_dir], run_dir / "report")
+        except KeyboardInterrupt:  # the episode is on disk: say how to finish the report
+            console.print(
+                "stopped while evaluating; the episode is complete: "
+                f"`area3d report {escape(shlex.quote(str(run_dir)))}` evaluates it"
+            )
+            raise typer.Exit(code=130) from None
         print(f"report: {report_paths[1]}")
 
 

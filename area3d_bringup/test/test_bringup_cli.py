@@ -157,3 +157,21 @@ def test_a_graph_that_cannot_start_suggests_no_resume(tmp_path):
     assert result.exit_code == 2, text
     assert "perception" in text and "no view was captured" in text, text
     assert "--resume" not in text, text
+
+
+def test_a_stop_while_evaluating_names_the_command_that_finishes_the_report(tmp_path, monkeypatch):
+    import area3d_bringup.runner as runner
+
+    run_dir = tmp_path / "runs" / "episode one"  # a space: the command is quoted for a shell
+    run_dir.mkdir(parents=True)
+    monkeypatch.setattr(runner, "run_episode", lambda config, resume, progress: run_dir)
+
+    def interrupted(run_dirs, out_dir):
+        assert run_dirs == [run_dir]
+        raise KeyboardInterrupt  # Ctrl-C while the reconstruction is scored
+
+    monkeypatch.setattr(cli, "_evaluate_and_report", interrupted)
+    result = _invoke(["run", "--out", str(tmp_path / "runs"), "--no-record"])
+    text = " ".join(result.output.split())
+    assert result.exit_code == 130, text
+    assert f"area3d report '{run_dir}'" in text and "episode is complete" in text, text
