@@ -11,6 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from area3d_msgs_py.camera import PAPER_HFOV_DEG  # noqa: E402
 
@@ -68,6 +69,7 @@ def plot_metric_curves(
         if len(runs) > 1:
             ax.fill_between(views, mean - std, mean + std, color=line.get_color(), alpha=0.2)
     ax.set_xlabel("number of views")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # a count of views: no 4.5 tick
     ax.set_ylabel(METRIC_LABELS.get(metric, metric))
     ax.set_title(title or metric)
     ax.grid(True, alpha=0.3)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import html
 import math
 import os
+import re
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -399,13 +400,20 @@ def _html_table(scenes, policies, cells, bold, metrics) -> list[str]:
     return parts
 
 
+def _inline(text: str) -> str:
+    """Text the Markdown report writes with `code` and *emphasis*, as HTML (escaped first)."""
+    out = html.escape(text)
+    out = re.sub(r"`([^`]+)`", r"<code>\1</code>", out)
+    return re.sub(r"(?<![\w*])\*([^*\s][^*]*?)\*(?![\w*])", r"<em>\1</em>", out)
+
+
 def _html(title, records, scenes, policies, headline, whole, curves, timing_png, out_dir) -> str:
     e = html.escape
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(title)}</title><style>{CSS}</style></head><body>"
     ]
     parts.append(
-        f"<h1>{e(title)}</h1><h2>How to read this report</h2><p class='howto'>{e(HOW_TO_READ)}</p><h2>Results</h2>"
+        f"<h1>{e(title)}</h1><h2>How to read this report</h2><p class='howto'>{_inline(HOW_TO_READ)}</p><h2>Results</h2>"
     )
     if not records:
         parts.append("<p>No evaluated runs.</p></body></html>")
@@ -430,9 +438,9 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
             f"<h3>{e(r.label)}</h3><img src='{e(_rel(r.figures['views'], out_dir))}' alt='views'>"
         )
         if r.episode.stopped_early:
-            parts.append(f"<p>{e(stopped_text(r.episode))}</p>")
+            parts.append(f"<p>{_inline(stopped_text(r.episode))}</p>")
         if said := semantics_text(r.episode):
-            parts.append(f"<p>{e(said)}</p>")
+            parts.append(f"<p>{_inline(said)}</p>")
     parts.append("<h2>Reconstruction</h2>")
     meshed = [r for r in records if "mesh" in r.figures]
     for r in meshed:
@@ -449,7 +457,7 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
             f"<h3>{e(r.label)}</h3><img src='{e(_rel(r.figures['uncertainty'], out_dir))}' alt='uncertainty'>"
         )
         if r.hard_regions:
-            parts.append(f"<p>{e(r.hard_regions)}</p>")
+            parts.append(f"<p>{_inline(r.hard_regions)}</p>")
     if not with_grids:
         parts.append(
             "<p>No run saved its uncertainty grid (grid_initial.npz / grid_final.npz).</p>"

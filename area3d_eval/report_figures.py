@@ -94,11 +94,15 @@ def hard_region_text(grid: dict[str, np.ndarray] | None) -> str:
     regions = points_hard_regions(xyz[hard], np.asarray(grid["uncertainty"])[hard], voxel)
     largest = regions[0]
     centre = ", ".join(f"{c:.2f}" for c in largest["centroid"])
+    count, size = int(hard.sum()), int(largest["voxel_count"])
     return (
-        f"Hard regions in the final grid: {len(regions)} ({int(hard.sum())} hard voxels of "
-        f"{voxel * 100:.3g} cm; the largest, {int(largest['voxel_count'])} voxels, around "
-        f"({centre}) m)."
+        f"Hard regions in the final grid: {len(regions)} ({_count(count, 'hard voxel')} of "
+        f"{voxel * 100:.3g} cm; the largest, {_count(size, 'voxel')}, around ({centre}) m)."
     )
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def _scene_points(r: RunRecord) -> np.ndarray:

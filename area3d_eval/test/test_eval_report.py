@@ -126,7 +126,13 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     fell_back = (
         f"Semantic regions from the `heuristic` fallback, not from the `openai` backend: {why}."
     )
-    assert md.count("Semantic regions from") == 1 and fell_back in md and fell_back in page
+    assert md.count("Semantic regions from") == 1 and fell_back in md
+    assert (
+        fell_back.replace("`heuristic`", "<code>heuristic</code>").replace(
+            "`openai`", "<code>openai</code>"
+        )
+        in page
+    )  # the HTML shows the Markdown's code as code
 
     rows = [line for line in md.splitlines() if line.startswith("| ")]
     starts = [i for i, r in enumerate(rows) if r.startswith("| Policy |")]
@@ -347,3 +353,34 @@ def test_runs_of_one_policy_with_other_budgets_are_rows_of_their_own(tmp_path, s
     assert rows["uniform (3 views)"]["completion"] == pytest.approx(single)
     # runs alike keep the policy's name alone
     assert [row["label"] for row in aggregate(runs[:2])] == ["uniform"]
+
+
+def test_one_hard_voxel_is_counted_in_the_singular():
+    ijk = np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    xyz = ((ijk + 0.5) * 0.01).astype(np.float32)
+    hard = np.zeros(len(xyz), np.uint8)
+    hard[0] = 1
+    grid = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "hard": hard}
+    grid["uncertainty"] = np.ones(len(xyz), np.float32)
+    text = hard_region_text(grid)
+    assert "1 (1 hard voxel of 1 cm; the largest, 1 voxel, around" in text, text
+
+
+def test_the_html_report_renders_the_markdown_emphasis_and_code_of_its_text():
+    from area3d_eval.report import _inline
+
+    said = _inline("*Completion ratio* of `heuristic` <b> 2 * 3 * 4, a_b*c")
+    assert "<em>Completion ratio</em>" in said and "<code>heuristic</code>" in said
+    assert "&lt;b&gt;" in said  # escaped before any markup is added
+    assert "2 * 3 * 4" in said and "a_b*c" in said  # a product and a name stay as they are
+
+
+def test_the_curves_mark_whole_numbers_of_views_only(tmp_path, monkeypatch):
+    import area3d_eval.plots as plots
+
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figures.append(fig) or path)
+    rows = [{"num_views": n, "completion": n / 10} for n in (4, 5, 6)]
+    plots.plot_metric_curves({"area3d": [rows]}, "completion", tmp_path / "c.png")
+    ticks = figures[0].axes[0].get_xticks()
+    assert len(ticks) >= 2 and np.allclose(ticks, np.round(ticks)), ticks
