@@ -16,6 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from area3d_bringup.episode_config import EpisodeError
 from area3d_bringup.graph import GRAPH_NODES
 from area3d_eval.rundir import Frame
 from area3d_msgs_py import topics
@@ -70,7 +71,11 @@ class GraphSync:
         return {} if self.launcher is None else dict(self.launcher.respawns)
 
     def alive_check(self) -> None:
-        """Raise `NodeDied` if a node of the graph has died for good."""
+        """Raise `NodeDied` if a node of the graph has died for good, `EpisodeError` once the
+        runner's ROS context is shut down (a Ctrl-C: a wait for a frame or a plan would run to
+        its timeout, with no graph nodes of the runner's own to stop it)."""
+        if not self.context.ok():
+            raise EpisodeError("stopped: the mission manager's ROS context was shut down")
         if self.launcher is not None:
             self.launcher.check()
 

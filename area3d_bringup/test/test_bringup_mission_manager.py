@@ -51,3 +51,47 @@ def test_a_reader_that_is_not_the_camera_does_not_make_the_goal_topic_ready(monk
         spinner.stop(10)
         context.try_shutdown()
         lease.release()
+
+
+def test_a_plan_awaited_ends_when_the_runners_context_is_shut_down(monkeypatch):
+    # `area3d run --nodes none` (a graph started elsewhere) given SIGINT alone: its handler shuts
+    # the runner's context down, and the request in flight ends with the user's stop instead of
+    # waiting out its timeout for a planner that is not there
+    import threading
+
+    import numpy as np
+    import pytest
+
+    from area3d_bringup.episode_config import EpisodeError
+    from area3d_eval.rundir import Frame
+
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    lease = middleware.DomainLease()
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=lease.domain_id)
+    manager = MissionManager(None, context=context)
+    frame = Frame(
+        rgb=np.zeros((4, 4, 3), np.uint8), depth=np.ones((4, 4), np.float32), K=np.eye(3),
+        T_world_cam=np.eye(4), stamp_ns=1_000,
+    )  # fmt: skip
+    outcome: list = []
+
+    def ask() -> None:
+        try:
+            outcome.append(manager.plan(frame, 1, timeout_s=TIMEOUT_S))
+        except Exception as err:  # noqa: BLE001 - the test reads what ended the wait
+            outcome.append(err)
+
+    asking = threading.Thread(target=ask)
+    try:
+        asking.start()
+        time.sleep(0.5)  # the request is out, no planner answers it
+        context.try_shutdown()
+        asking.join(TIMEOUT_S / 2)  # ends long before the request's own timeout
+        assert not asking.is_alive()
+        assert isinstance(outcome[0], EpisodeError) and "shut down" in str(outcome[0])
+        with pytest.raises(EpisodeError):
+            manager.check("planner")
+    finally:
+        context.try_shutdown()
+        lease.release()
