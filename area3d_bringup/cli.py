@@ -215,9 +215,10 @@ def run(
         try:
             report_paths = _evaluate_and_report([run_dir], run_dir / "report")
         except KeyboardInterrupt:  # the episode is on disk: say how to finish the report
-            console.print(
+            console.print(  # one line, never folded: the command is copied from it
                 "stopped while evaluating; the episode is complete: "
-                f"`area3d report {escape(shlex.quote(str(run_dir)))}` evaluates it"
+                f"`area3d report {escape(shlex.quote(str(run_dir)))}` evaluates it",
+                soft_wrap=True,
             )
             raise typer.Exit(code=130) from None
         print(f"report: {report_paths[1]}")

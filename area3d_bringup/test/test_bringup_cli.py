@@ -172,6 +172,7 @@ def test_a_stop_while_evaluating_names_the_command_that_finishes_the_report(tmp_
 
     monkeypatch.setattr(cli, "_evaluate_and_report", interrupted)
     result = _invoke(["run", "--out", str(tmp_path / "runs"), "--no-record"])
-    text = " ".join(result.output.split())
-    assert result.exit_code == 130, text
-    assert f"area3d report '{run_dir}'" in text and "episode is complete" in text, text
+    assert result.exit_code == 130, result.output
+    # on one line, whatever the terminal's width: a folded path would not paste as one
+    line = next(row for row in result.output.splitlines() if "episode is complete" in row)
+    assert f"`area3d report '{run_dir}'` evaluates it" in line, result.output
