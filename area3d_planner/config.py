@@ -242,6 +242,12 @@ class PlannerConfig:
     unknown_occludes: bool = described(
         True, "a view sees up to the first layer that is not known free (occupied or unknown)"
     )
+    unknown_above_occludes: bool = described(
+        True,
+        "object level: unknown space over the region (above its top, within its footprint) "
+        "hides what lies below it too (off: a view from above sees the region through it; "
+        "measured better with stereo depth, docs/results.md)",
+    )
     incidence: bool = described(
         False, "a surface seen at a grazing angle counts by its cosine (off: no gain measured)"
     )
@@ -471,6 +477,7 @@ class PlannerConfig:
                 face_res=self.face_res or LEVEL_DEFAULTS[level]["face_res"],
                 pixels_per_voxel=self.pixels_per_voxel or LEVEL_DEFAULTS[level]["pixels_per_voxel"],
                 unknown_occludes=self.unknown_occludes,
+                unknown_above_occludes=self.unknown_above_occludes,
                 incidence=self.incidence,
                 range_profile=self.range_profile,
                 repeat_gain=self.repeat_gain,

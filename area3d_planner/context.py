@@ -19,7 +19,7 @@ from area3d_planner.candidates import (
     shell_rotations,
     valid_seeds,
 )
-from area3d_planner.fusion import FREE, FusedGrid
+from area3d_planner.fusion import FREE, UNKNOWN, FusedGrid
 from area3d_planner.greedy import (
     GreedyParams,
     decay_committed,
@@ -254,11 +254,9 @@ class PlanningContext:
     def _build_cache(
         self, kind: str, occupancy: np.ndarray, seeds: np.ndarray, rotations: np.ndarray
     ) -> VisibilityCache:
-        occluders = None
         relevant = self._relevant(kind, occupancy)
-        if self.visibility.unknown_occludes:
-            # everything not carved hides what is behind it: only its boundary can be seen
-            occluders = self.grid.boundary(occupancy)
+        occluders = self.occluders(occupancy)
+        if occluders is not None:
             relevant = relevant & occluders
         base = self._caches.get(kind) or self._previous.pop(kind, None)
         if base is not None:  # what the map changed since, re-examined only where it shows
@@ -273,6 +271,20 @@ class PlanningContext:
             occluders=occluders,
             incremental=True,
         )
+
+    def occluders(self, occupancy: np.ndarray) -> np.ndarray | None:
+        """(N,) bool: the voxels that hide what lies behind them, or None where only occupied
+        voxels do (`unknown_occludes: false`). Everything not carved hides what is behind it,
+        so only its boundary with carved space can be seen; with `unknown_above_occludes:
+        false`, at object level, unknown space over the region (above its top, within its
+        footprint) does not: a view from above sees the region through it, and a surface there
+        occludes once a frame maps it."""
+        if not self.visibility.unknown_occludes:
+            return None
+        occluders = self.grid.boundary(occupancy)
+        if self.visibility.level == "object" and not self.visibility.unknown_above_occludes:
+            occluders &= ~self.grid.over_region | (occupancy != UNKNOWN)
+        return occluders
 
     def install(self, candidates: tuple, caches: dict) -> None:
         """Use candidates and caches made by `build` (replaces the current ones and the fields)."""

@@ -148,6 +148,10 @@ class FusedGrid:
         centers = spec.centers()
         self.roi_mask = np.all((centers >= roi_lo) & (centers <= roi_hi), axis=1)
         self.roi_ids = np.flatnonzero(self.roi_mask)
+        # the column over the region: above its top, within its footprint
+        self.over_region = np.all(
+            (centers[:, :2] >= roi_lo[:2]) & (centers[:, :2] <= roi_hi[:2]), axis=1
+        ) & (centers[:, 2] > roi_hi[2])
         self.roi_centres = np.ascontiguousarray(centers[self.roi_ids])
         self.frames = 0
         self.semantic_frames = 0

@@ -45,7 +45,7 @@ def assert_same_masks(updated: VisibilityCache, full: VisibilityCache) -> None:
 def full_build(context, occupancy: np.ndarray) -> VisibilityCache:
     """The masks built from nothing, as the planner's context asks for them."""
     relevant = context.grid.roi_mask & (occupancy != FREE)
-    occluders = context.grid.boundary(occupancy)
+    occluders = context.occluders(occupancy)
     return VisibilityCache.build(
         context.grid.spec,
         occupancy,

@@ -507,3 +507,36 @@ def test_a_minimum_range_leaves_the_shells_in_place_and_moves_them_out_only_when
     assert moved.min() > radius
     assert moved.min() >= 1.0 + np.sqrt(3) * 0.1 - 1e-9  # the region's half diagonal beyond it
     assert cdist(far, occupied).min() >= 1.0 - half_diagonal
+
+
+@pytest.mark.parametrize("above_occludes", [False, True])
+def test_unknown_space_over_the_region_hides_nothing_at_object_level(above_occludes):
+    # the region carved free around an object, everything outside it unknown (a stereo pair's
+    # unmatched background carves nothing): with `unknown_above_occludes: false` a view from above
+    # sees the object's top through the unknown column over the region (a cupboard's top was
+    # never looked at from above: that column hid it); unknown space beside the region still
+    # hides what is behind it; the default, true, hides the object from every view
+    from area3d_planner.test.conftest import set_occupancy
+
+    config = PlannerConfig(level="object", unknown_above_occludes=above_occludes)
+    grid = config.fused_grid()
+    context = config.planning_context(grid)
+    centres = grid.spec.centers_of(np.arange(grid.spec.num_voxels))
+    occ = np.where(grid.roi_mask, 0, -1).astype(np.int8)
+    block = np.all(np.abs(centres - np.array([0.0, 0.0, 0.25])) <= 0.05, axis=1)
+    occ[block] = 1
+    set_occupancy(grid, occ)
+    (seeds, _), caches = context.build(occ, kinds=("roi_not_free",))
+    cache = caches["roi_not_free"]
+    assert len(seeds) > 0
+    seen = np.zeros(grid.spec.num_voxels, bool)
+    for view in range(cache.num_views):
+        seen[cache.mask(view)[0]] = True
+    faces = block & grid.boundary(occ)  # the voxels beside carved space
+    top = faces & (centres[:, 2] > 0.29)
+    assert top.sum() >= 50 and grid.over_region[centres[:, 2] > 0.55].any()
+    if above_occludes:
+        assert not seen[block].any()  # behind the unknown layer around the region
+    else:
+        assert seen[top].sum() >= 0.8 * top.sum()  # from above, through the column
+        assert not grid.over_region[grid.roi_mask].any()
