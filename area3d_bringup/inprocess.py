@@ -21,6 +21,7 @@ import numpy as np
 
 from area3d_bringup.presets import episode_specs
 from area3d_eval.rundir import check_depth_source, stopped_early, write_episode, write_frame
+from area3d_msgs_py import codecs
 
 
 def _node_values(specs: list, name: str, module: Any) -> dict:
@@ -153,7 +154,9 @@ class _Episode:
         graph = self.graph
         camera = graph.camera
         t = time.perf_counter()
-        cap = camera.capture(T)
+        # the pose as the graph's goal message carries it (a quaternion): the camera renders at
+        # the same pose to the last bit, and near ties between views fall alike on both paths
+        cap = camera.capture(codecs.pose_to_matrix(codecs.matrix_to_pose(T)))
         self.add_time("capture", time.perf_counter() - t)
         if not cap.ok:
             return False
