@@ -53,7 +53,7 @@ class VisibilityParams:
     unknown_occludes: bool = True
     # ... also over the region (above its top, within its footprint) at object level (off: a view
     # from above sees the region through it; a stereo pair leaves much of it uncarved).
-    unknown_above_occludes: bool = True
+    unknown_above_occludes: bool = False
     # Weigh each voxel by the cosine between its free-space side and the direction to the camera
     # (the surface it may hold is seen foreshortened at a grazing angle).
     incidence: bool = False

@@ -243,10 +243,9 @@ class PlannerConfig:
         True, "a view sees up to the first layer that is not known free (occupied or unknown)"
     )
     unknown_above_occludes: bool = described(
-        True,
+        False,
         "object level: unknown space over the region (above its top, within its footprint) "
-        "hides what lies below it too (off: a view from above sees the region through it; "
-        "measured better with stereo depth, docs/results.md)",
+        "hides what lies below it too (off: a view from above sees the region through it)",
     )
     incidence: bool = described(
         False, "a surface seen at a grazing angle counts by its cosine (off: no gain measured)"

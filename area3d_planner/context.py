@@ -275,10 +275,10 @@ class PlanningContext:
     def occluders(self, occupancy: np.ndarray) -> np.ndarray | None:
         """(N,) bool: the voxels that hide what lies behind them, or None where only occupied
         voxels do (`unknown_occludes: false`). Everything not carved hides what is behind it,
-        so only its boundary with carved space can be seen; with `unknown_above_occludes:
-        false`, at object level, unknown space over the region (above its top, within its
-        footprint) does not: a view from above sees the region through it, and a surface there
-        occludes once a frame maps it."""
+        so only its boundary with carved space can be seen; at object level, unknown space over
+        the region (above its top, within its footprint) does not (`unknown_above_occludes:
+        false`): a view from above sees the region through it, and a surface there occludes
+        once a frame maps it."""
         if not self.visibility.unknown_occludes:
             return None
         occluders = self.grid.boundary(occupancy)

@@ -512,10 +512,10 @@ def test_a_minimum_range_leaves_the_shells_in_place_and_moves_them_out_only_when
 @pytest.mark.parametrize("above_occludes", [False, True])
 def test_unknown_space_over_the_region_hides_nothing_at_object_level(above_occludes):
     # the region carved free around an object, everything outside it unknown (a stereo pair's
-    # unmatched background carves nothing): with `unknown_above_occludes: false` a view from above
-    # sees the object's top through the unknown column over the region (a cupboard's top was
-    # never looked at from above: that column hid it); unknown space beside the region still
-    # hides what is behind it; the default, true, hides the object from every view
+    # unmatched background carves nothing): by default (`unknown_above_occludes: false`) a view
+    # from above sees the object's top through the unknown column over the region (a cupboard's
+    # top was never looked at from above: that column hid it); unknown space beside the region
+    # still hides what is behind it; `true` hides the object from every view
     from area3d_planner.test.conftest import set_occupancy
 
     config = PlannerConfig(level="object", unknown_above_occludes=above_occludes)
