@@ -100,6 +100,41 @@ def _photo_mismatch(
     return float(mismatch.mean())
 
 
+def _blank_labels(
+    texture: np.ndarray, texture_vertical: np.ndarray, blank_texture: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (H, W) int32, stats) of the 4-connected blank regions: both texture factors below
+    `blank_texture` (label 0: the rest)."""
+    blank = ((texture < blank_texture) & (texture_vertical < blank_texture)).astype(np.uint8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(blank, connectivity=4)
+    return labels, stats
+
+
+def _large_regions(stats: np.ndarray, min_area_px: int) -> np.ndarray:
+    """Labels of the blank regions of at least `min_area_px` pixels (never 0, the rest)."""
+    large = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= min_area_px)
+    return large[large != 0]
+
+
+def _open(stat: np.ndarray, w: int, h: int) -> bool:
+    """Whether a region (its `connectedComponentsWithStats` row) reaches two adjacent borders of
+    the image (its top or bottom and a side): the sky over a horizon, a ceiling, a blank wall
+    filling a corner of the view. Nothing matched bounds it on two adjacent sides, and a plane
+    through the rest of its ring (a pole's edge, a horizontal edge that matches at any disparity)
+    extrapolates. A band from one border to the opposite one is matched on its two long sides."""
+    x, y, bw, bh = (int(v) for v in stat[:4])
+    return (y == 0 or y + bh == h) and (x == 0 or x + bw == w)
+
+
+def blank_regions(
+    texture: np.ndarray, texture_vertical: np.ndarray, blank_texture: float, min_area_px: int
+) -> np.ndarray:
+    """(H, W) bool: the pixels of the blank regions `fill_blank_planes` tries to fill (both
+    texture factors below `blank_texture`, 4-connected regions of at least `min_area_px`)."""
+    labels, stats = _blank_labels(texture, texture_vertical, blank_texture)
+    return np.isin(labels, _large_regions(stats, min_area_px))
+
+
 def fill_blank_planes(
     disparity: np.ndarray,
     lr_diff: np.ndarray,
@@ -130,8 +165,7 @@ def fill_blank_planes(
     """
     h, w = disparity.shape
     rng = np.random.default_rng(0)
-    blank = ((texture < blank_texture) & (texture_vertical < blank_texture)).astype(np.uint8)
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(blank, connectivity=4)
+    labels, stats = _blank_labels(texture, texture_vertical, blank_texture)
     with np.errstate(invalid="ignore"):
         reliable = (lr_diff <= RELIABLE_LR_PX) & (texture >= RELIABLE_TEXTURE)
     reliable &= np.isfinite(disparity)
@@ -140,14 +174,16 @@ def fill_blank_planes(
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * RING_PX + 1, 2 * RING_PX + 1))
     edge_kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * EDGE_PX + 1, 2 * EDGE_PX + 1))
     left_f, right_f = left.astype(np.float32), right.astype(np.float32)
-    for k in np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= min_area_px):
-        if k == 0:
-            continue  # the textured background of the labelling
+    for k in _large_regions(stats, min_area_px):
         x, y, bw, bh = stats[k, :4]
         x0, y0 = max(x - RING_PX, 0), max(y - RING_PX, 0)
         x1, y1 = min(x + bw + RING_PX, w), min(y + bh + RING_PX, h)
         region = (labels[y0:y1, x0:x1] == k).astype(np.uint8)
         pv, pu = np.nonzero(region)
+        if _open(stats[k], w, h):
+            # unbounded on two adjacent sides: no plane, and the matcher's values are no estimate
+            out[pv + y0, pu + x0] = np.nan
+            continue
         plane = _region_plane(
             region,
             (pu.mean(), pv.mean()),

@@ -8,7 +8,7 @@ import pytest
 
 from area3d_msgs_py.errors import InputError
 from area3d_perception.blank_fill import fill_blank_planes
-from area3d_perception.stereo import StereoMatcher, StereoParams
+from area3d_perception.stereo import StereoMatcher, StereoParams, texture_factor
 
 from .test_perception_stereo import BASELINE, FX, H, W, _pair, _texture
 
@@ -109,6 +109,29 @@ def test_a_refused_region_keeps_the_matchers_values_or_none_of_them():
     assert np.abs(out[texture < 0.1] - truth[texture < 0.1]).max() < 1e-3
 
 
+def test_a_region_open_to_two_borders_of_the_image_is_no_estimate():
+    """The sky over a horizon: a blank region reaching the image's top and one side has a ring
+    on two sides at most; whatever plane that ring agrees on (a pole's edge beside it) is an
+    extrapolation, and the matcher's values there are no estimate. Reaching one border, or two
+    opposite ones, a blank region matched on its other sides still takes its plane."""
+    truth, disparity, diff, texture = _maps(hole=(0, 50, 100, 160))  # the top right corner
+    hole = texture < 0.1
+    assert np.isfinite(disparity[hole]).mean() > 0.7  # the matcher's garbage, mostly
+    for drop_refused in (False, True):
+        out, support = fill_blank_planes(
+            disparity, diff, texture, texture, *_images(), 0.1, 300, drop_refused=drop_refused
+        )
+        assert not support.any()
+        assert np.isnan(out[hole]).all()
+        assert np.array_equal(out[~hole], disparity[~hole], equal_nan=True)
+    for hole in ((0, 50, 40, 120), (0, SHAPE[0], 40, 120)):  # the top border; top and bottom
+        truth, disparity, diff, texture = _maps(hole=hole)
+        out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+        hole = texture < 0.1
+        assert np.array_equal(support > 0, hole)
+        assert np.abs(out[hole] - truth[hole]).max() < 1e-3
+
+
 def test_small_striped_or_untrusted_regions_are_left_alone():
     truth, disparity, diff, texture = _maps()
     disparity[texture < 0.1] = np.nan
@@ -128,12 +151,12 @@ def test_small_striped_or_untrusted_regions_are_left_alone():
     assert not support.any()
 
 
-def _match(left, right, fill, downscale=1, drop_refused=False):
+def _match(left, right, fill, downscale=1, drop_refused=False, model="matcher"):
     params = StereoParams(
         num_disparities=32,
         blank_fill=fill,
         downscale=downscale,
-        confidence_model="matcher",
+        confidence_model=model,
         blank_drop_refused=drop_refused,
     )
     m = StereoMatcher(params)
@@ -205,6 +228,23 @@ def test_a_blank_board_with_only_the_wall_around_it_is_not_moved_onto_the_wall()
     wall_px = np.zeros((H, W), bool)
     wall_px[20:-20, 60 : W // 2 - 200] = True  # the wall is the matcher's own, untouched
     assert np.array_equal(plain.depth[wall_px], dropped.depth[wall_px], equal_nan=True)
+    # the values kept are no measurement: confidence 0 for the planner with either model, the
+    # calibrated one too (a smooth spread over a blank board looks like a good match to it)
+    for model in ("matcher", "calibrated"):
+        out = _match(left, right, True, model=model)
+        assert np.array_equal(out.depth[board], kept.depth[board], equal_nan=True)
+        assert (out.confidence[board & ~_near_texture(left)] == 0).all(), model
+    unfilled = _match(left, right, False, model="calibrated")
+    assert unfilled.confidence[board & np.isfinite(unfilled.depth)].mean() > 0.3
+
+
+def _near_texture(grey: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels whose texture factor is not blank (the board's edge)."""
+    p = StereoParams()
+    g = grey if grey.ndim == 2 else grey[..., 0]
+    across = texture_factor(g, p.texture_window_px, p.texture_ref)
+    along = texture_factor(g.T, p.texture_window_px, p.texture_ref).T
+    return (across >= p.blank_texture) | (along >= p.blank_texture)
 
 
 def test_bad_fill_parameters_are_refused_naming_them():
