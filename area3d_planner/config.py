@@ -33,6 +33,7 @@ LEVEL_DEFAULTS = {
         "budget": 25,
         "face_res": 256,
         "pixels_per_voxel": 64.0,
+        "unobserved_far_weight": 0.25,
     },
     "room": {
         "initial_views": 15,
@@ -41,6 +42,7 @@ LEVEL_DEFAULTS = {
         "budget": 40,
         "face_res": 128,
         "pixels_per_voxel": 64.0,
+        "unobserved_far_weight": 1.0,
     },
 }
 LEVELS = ("auto", "object", "room")
@@ -139,6 +141,21 @@ class PlannerConfig:
         "geometric uncertainty of a voxel no view has observed (DESIGN.md: the maximum)",
         "",
         (0.0, 10.0),
+    )
+    unobserved_reach: float = described(
+        0.15,
+        "an unknown voxel farther than this from every occupied voxel is probably air: it holds "
+        "unobserved_far_weight times unobserved_uncertainty (0 with unobserved_far_weight 1: "
+        "every unknown voxel holds it all)",
+        "m",
+        (0.0, 10.0),
+    )
+    unobserved_far_weight: float = described(
+        -1.0,
+        "... the share of unobserved_uncertainty an unknown voxel beyond unobserved_reach holds; "
+        f"-1 = the level's ({_level('unobserved_far_weight')}: a room is explored)",
+        "",
+        (-1.0, 1.0),
     )
     geometric_rule: str = described(
         "product",
@@ -426,6 +443,10 @@ class PlannerConfig:
     def resolved_gamma(self) -> float:
         return self.gamma if self.gamma >= 0 else LEVEL_DEFAULTS[self.resolved_level()]["gamma"]
 
+    def resolved_unobserved_far_weight(self) -> float:
+        w = self.unobserved_far_weight
+        return w if w >= 0 else LEVEL_DEFAULTS[self.resolved_level()]["unobserved_far_weight"]
+
     def resolved_budget(self) -> int:
         return int(self.budget) or LEVEL_DEFAULTS[self.resolved_level()]["budget"]
 
@@ -449,6 +470,8 @@ class PlannerConfig:
             self.hard_max_confidence,
             self.occupancy_rule,
             self.carve_min_confidence,
+            self.unobserved_reach,
+            self.resolved_unobserved_far_weight(),
         )
 
     def planning_context(self, grid: FusedGrid) -> PlanningContext:

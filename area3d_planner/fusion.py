@@ -6,8 +6,11 @@ demand, so the planner can copy `fused()` and decay the copy while it selects vi
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numba import njit
+from scipy import ndimage
 
 from area3d_msgs_py.backproject import backproject
 from area3d_msgs_py.errors import InputError
@@ -81,6 +84,8 @@ class FusedGrid:
         hard_max_confidence: float = 0.3,  # our choice: the rgbd model's edge confidence is 0.2
         occupancy_rule: str = "hits",
         carve_min_confidence: float = 0.0,
+        unobserved_reach: float = 0.0,
+        unobserved_far_weight: float = 1.0,
     ) -> None:
         if occupancy_rule not in OCCUPANCY_RULES:
             raise InputError(
@@ -106,6 +111,10 @@ class FusedGrid:
             raise InputError("carve_min_confidence", carve_min_confidence, "a value in [0, 1]")
         if not (0.0 <= hard_max_confidence <= 1.0):
             raise InputError("hard_max_confidence", hard_max_confidence, "a value in [0, 1]")
+        if not (np.isfinite(unobserved_reach) and unobserved_reach >= 0):
+            raise InputError("unobserved_reach", unobserved_reach, "a finite value >= 0 metres")
+        if not (0.0 <= unobserved_far_weight <= 1.0):
+            raise InputError("unobserved_far_weight", unobserved_far_weight, "a value in [0, 1]")
         roi_lo = np.asarray(roi_lo, dtype=np.float64)
         roi_hi = np.asarray(roi_hi, dtype=np.float64)
         if roi_lo.shape != (3,) or roi_hi.shape != (3,) or not np.all(roi_hi > roi_lo):
@@ -133,6 +142,8 @@ class FusedGrid:
         self.hard_max_confidence = float(hard_max_confidence)
         self.occupancy_rule = occupancy_rule
         self.carve_min_confidence = float(carve_min_confidence)
+        self.unobserved_reach = float(unobserved_reach)
+        self.unobserved_far_weight = float(unobserved_far_weight)
         n = spec.num_voxels
         self.conf_sum = np.zeros(n, np.float32)
         self.hit_count = np.zeros(n, np.float32)
@@ -148,10 +159,6 @@ class FusedGrid:
         centers = spec.centers()
         self.roi_mask = np.all((centers >= roi_lo) & (centers <= roi_hi), axis=1)
         self.roi_ids = np.flatnonzero(self.roi_mask)
-        # the column over the region: above its top, within its footprint
-        self.over_region = np.all(
-            (centers[:, :2] >= roi_lo[:2]) & (centers[:, :2] <= roi_hi[:2]), axis=1
-        ) & (centers[:, 2] > roi_hi[2])
         self.roi_centres = np.ascontiguousarray(centers[self.roi_ids])
         self.frames = 0
         self.semantic_frames = 0
@@ -163,6 +170,16 @@ class FusedGrid:
             self.max_confidence,
             self.carve_min_confidence,
         )
+
+    @functools.cached_property
+    def over_region(self) -> np.ndarray:
+        """(N,) bool: the column over the region, above its top and within its footprint (made
+        on first use: only object-level planning reads it)."""
+        centers = self.spec.centers()
+        inside = np.all(
+            (centers[:, :2] >= self.roi_lo[:2]) & (centers[:, :2] <= self.roi_hi[:2]), axis=1
+        )
+        return inside & (centers[:, 2] > self.roi_hi[2])
 
     # ------------------------------------------------------------------ integration
     def integrate_depth(
@@ -298,9 +315,16 @@ class FusedGrid:
         down. One view gives the paper's 1 - C; every further view lowers G, by a lot when it is
         confident and a little when it is not, so a surface never stays attractive forever.
         "mean" rule: G = 1 - mean_k c_k (does not fall with repeated views).
+
+        An unknown voxel farther than `unobserved_reach` (Chebyshev, whole voxels) from every
+        occupied voxel holds `unobserved_far_weight` times `unobserved_uncertainty`: it is most
+        likely air (the upper part of a region box drawn around one tall object), and the views
+        that would carve it see little surface.
         """
         occ = self.occupancy() if occ is None else occ
         g = np.full(self.spec.num_voxels, self.unobserved_uncertainty, np.float32)
+        if self.unobserved_far_weight < 1.0:
+            g[(occ == UNKNOWN) & ~self.near_surface(occ)] *= np.float32(self.unobserved_far_weight)
         g[occ == FREE] = 0.0
         surf = occ == OCCUPIED
         if self.geometric_rule == "product":
@@ -308,6 +332,17 @@ class FusedGrid:
         else:
             g[surf] = 1.0 - self.conf_sum[surf] / self.hit_count[surf]
         return g
+
+    def near_surface(self, occ: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool: voxels within `unobserved_reach` (whole voxels on every axis) of an occupied
+        voxel (a separable maximum filter: tens of milliseconds at the 4 M-voxel cap)."""
+        occ = self.occupancy() if occ is None else occ
+        reach = int(round(self.unobserved_reach / self.spec.voxel_size))
+        occupied = (occ == OCCUPIED).reshape(self.spec.shape).view(np.uint8)
+        if reach == 0:
+            return occupied.reshape(-1).astype(bool)
+        near = ndimage.maximum_filter(occupied, size=2 * reach + 1, mode="constant")
+        return near.reshape(-1).astype(bool)
 
     def boundary(self, occ: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: voxels that are not known free but have a known-free face neighbour: the

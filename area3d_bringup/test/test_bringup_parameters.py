@@ -16,7 +16,7 @@ from area3d_semantics.weights import SemanticParams
 UNITLESS = {
     "gamma", "eta", "semantic_weight", "unobserved_uncertainty", "max_confidence", "seed",
     "noise_seed", "sensor.incidence_power", "sensor.edge_confidence", "sensor.edge_dropout",
-    "retry_gain", "hard_max_confidence", "repeat_gain",
+    "retry_gain", "hard_max_confidence", "repeat_gain", "unobserved_far_weight",
     "stereo.p1_per_px", "stereo.p2_per_px", "stereo.downscale", "lambda",
 }  # fmt: skip
 UNITLESS |= {

@@ -242,6 +242,51 @@ def test_gamma_zero_ablation_leaves_unobserved_uncertainty_only():
     assert u[at(grid, [0.85, 0.5, 0.5])] == 1.0
 
 
+def test_unknown_space_far_from_every_surface_holds_a_share_of_the_unobserved_uncertainty():
+    """`unobserved_reach` / `unobserved_far_weight`: behind the wall, the unknown voxels within
+    reach of it hold all of `unobserved_uncertainty`, those beyond it the far share; before any
+    surface is mapped every unknown voxel is far. Free and occupied voxels are unaffected."""
+    depth, T = wall_frame()
+    grid = make_grid(gamma=0.01, unobserved_reach=0.1, unobserved_far_weight=0.25)
+    assert np.all(grid.geometric() == np.float32(0.25))  # nothing mapped yet: all far
+    grid.integrate_depth(depth, np.full_like(depth, 0.75), K, T, max_range=5.0, stride=1)
+    geo, occ = grid.geometric(), grid.occupancy()
+    plain = make_grid(gamma=0.01)
+    plain.integrate_depth(depth, np.full_like(depth, 0.75), K, T, max_range=5.0, stride=1)
+    assert np.array_equal(occ, plain.occupancy())
+    for x, expected in ((0.675, 1.0), (0.725, 1.0), (0.775, 0.25), (0.925, 0.25)):
+        assert occ[at(grid, [x, 0.5, 0.5])] == -1
+        assert geo[at(grid, [x, 0.5, 0.5])] == pytest.approx(expected), x
+    known = occ != -1
+    assert np.array_equal(geo[known], plain.geometric()[known])
+    # the fused field follows: a far voxel is worth a quarter of a near one (plus gamma)
+    u = grid.fused()
+    near, far = u[at(grid, [0.675, 0.5, 0.5])], u[at(grid, [0.925, 0.5, 0.5])]
+    assert far - 0.01 == pytest.approx(0.25 * (near - 0.01))
+    with pytest.raises(InputError, match="unobserved_far_weight"):
+        make_grid(gamma=0.01, unobserved_far_weight=1.5)
+    with pytest.raises(InputError, match="unobserved_reach"):
+        make_grid(gamma=0.01, unobserved_reach=-0.1)
+
+
+def test_unknown_space_far_from_surfaces_weighs_less_at_object_level_only():
+    """The level defaults: an object's region box holds air around the objects (the top of a box
+    drawn around one tall lamp); a room is explored, all of its unknown space counts."""
+    from area3d_planner.config import PlannerConfig
+
+    lo, hi = (-0.5, -0.5, 0.0), (0.5, 0.5, 1.0)
+    grids = {
+        level: PlannerConfig(level=level, roi_min=lo, roi_max=hi).fused_grid()
+        for level in ("object", "room")
+    }
+    assert grids["object"].unobserved_far_weight == 0.25
+    assert grids["room"].unobserved_far_weight == 1.0
+    assert (
+        PlannerConfig(level="room", unobserved_far_weight=0.5).fused_grid().unobserved_far_weight
+        == 0.5
+    )
+
+
 def test_each_observation_lowers_geometric_uncertainty_under_the_product_rule():
     product, mean = make_grid(gamma=0.0), make_grid(gamma=0.0, geometric_rule="mean")
     depth, T = wall_frame()
