@@ -19,7 +19,8 @@ a blank board before a textured wall has the wall's matches all around it, and t
 would shift the board's edge onto the wall). The region's pixels then take the plane's disparity
 (the matcher's values there had nothing to go on). A region whose border straddles two surfaces
 (a blank panel against the sky, two walls at a corner) finds no plane that most of its ring agrees
-on and stays as it was.
+on and stays as it was. A region reaching the image's top and a side (the sky over a horizon) is
+bounded on two sides at most: no plane, and no estimate (`_open`).
 
 The filled pixels are an inference, not a measurement: the backend gives them the confidence
 `blank_fill_confidence` (times the share of the ring that agreed), low enough that every matched
@@ -116,14 +117,15 @@ def _large_regions(stats: np.ndarray, min_area_px: int) -> np.ndarray:
     return large[large != 0]
 
 
-def _open(stat: np.ndarray, w: int, h: int) -> bool:
-    """Whether a region (its `connectedComponentsWithStats` row) reaches two adjacent borders of
-    the image (its top or bottom and a side): the sky over a horizon, a ceiling, a blank wall
-    filling a corner of the view. Nothing matched bounds it on two adjacent sides, and a plane
-    through the rest of its ring (a pole's edge, a horizontal edge that matches at any disparity)
-    extrapolates. A band from one border to the opposite one is matched on its two long sides."""
-    x, y, bw, bh = (int(v) for v in stat[:4])
-    return (y == 0 or y + bh == h) and (x == 0 or x + bw == w)
+def _open(stat: np.ndarray, w: int) -> bool:
+    """Whether a region (its `connectedComponentsWithStats` row) reaches the image's top and one
+    of its sides: above the horizon of an upright camera, where the scene may hold nothing (the
+    sky; a far ceiling, a blank wall filling that corner). Nothing matched bounds it there, and
+    a plane through the rest of its ring (a pole's edge, a horizontal edge that matches at any
+    disparity) extrapolates. A blank floor or table in a bottom corner, near the camera, is
+    matched along its far edge and its inner side and keeps its plane."""
+    x, y, bw = (int(v) for v in stat[:3])
+    return y == 0 and (x == 0 or x + bw == w)
 
 
 def blank_regions(
@@ -180,8 +182,8 @@ def fill_blank_planes(
         x1, y1 = min(x + bw + RING_PX, w), min(y + bh + RING_PX, h)
         region = (labels[y0:y1, x0:x1] == k).astype(np.uint8)
         pv, pu = np.nonzero(region)
-        if _open(stats[k], w, h):
-            # unbounded on two adjacent sides: no plane, and the matcher's values are no estimate
+        if _open(stats[k], w):
+            # above the horizon, unbounded on two sides: no plane, and no estimate
             out[pv + y0, pu + x0] = np.nan
             continue
         plane = _region_plane(

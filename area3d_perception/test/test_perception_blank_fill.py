@@ -109,22 +109,25 @@ def test_a_refused_region_keeps_the_matchers_values_or_none_of_them():
     assert np.abs(out[texture < 0.1] - truth[texture < 0.1]).max() < 1e-3
 
 
-def test_a_region_open_to_two_borders_of_the_image_is_no_estimate():
+def test_a_blank_region_reaching_the_images_top_and_a_side_is_no_estimate():
     """The sky over a horizon: a blank region reaching the image's top and one side has a ring
     on two sides at most; whatever plane that ring agrees on (a pole's edge beside it) is an
-    extrapolation, and the matcher's values there are no estimate. Reaching one border, or two
-    opposite ones, a blank region matched on its other sides still takes its plane."""
-    truth, disparity, diff, texture = _maps(hole=(0, 50, 100, 160))  # the top right corner
-    hole = texture < 0.1
-    assert np.isfinite(disparity[hole]).mean() > 0.7  # the matcher's garbage, mostly
-    for drop_refused in (False, True):
-        out, support = fill_blank_planes(
-            disparity, diff, texture, texture, *_images(), 0.1, 300, drop_refused=drop_refused
-        )
-        assert not support.any()
-        assert np.isnan(out[hole]).all()
-        assert np.array_equal(out[~hole], disparity[~hole], equal_nan=True)
-    for hole in ((0, 50, 40, 120), (0, SHAPE[0], 40, 120)):  # the top border; top and bottom
+    extrapolation, and the matcher's values there are no estimate. A region reaching the top
+    alone, the top and the bottom, or a bottom corner (a floor near the camera) is matched on
+    its other sides and still takes its plane."""
+    for hole in ((0, 50, 100, 160), (0, 50, 0, 60)):  # the top right and top left corners
+        truth, disparity, diff, texture = _maps(hole=hole)
+        hole = texture < 0.1
+        assert np.isfinite(disparity[hole]).mean() > 0.7  # the matcher's garbage, mostly
+        for drop_refused in (False, True):
+            out, support = fill_blank_planes(
+                disparity, diff, texture, texture, *_images(), 0.1, 300, drop_refused=drop_refused
+            )
+            assert not support.any()
+            assert np.isnan(out[hole]).all()
+            assert np.array_equal(out[~hole], disparity[~hole], equal_nan=True)
+    bottom_right = (SHAPE[0] - 50, SHAPE[0], 100, SHAPE[1])
+    for hole in ((0, 50, 40, 120), (0, SHAPE[0], 40, 120), bottom_right):
         truth, disparity, diff, texture = _maps(hole=hole)
         out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
         hole = texture < 0.1
