@@ -67,6 +67,14 @@ PARAMS = (
     ),
     Param("retries", 2, "VLM request retries after a failure, count", range=(0, 100)),
     Param(
+        "retry_after_s",
+        30.0,
+        "after an analysis whose VLM answer was not used (a server down or late, an answer "
+        "refused), query the same frames again this long after it, until one is used (0 = only "
+        "on a request), seconds",
+        range=(0.0, 86400.0),
+    ),
+    Param(
         "max_tokens",
         8192,
         "VLM answer length limit, tokens (5-8 regions of about 45 tokens per image: a room's "
@@ -151,6 +159,8 @@ class SemanticsNode(Node):
         self.resets = 0  # area3d/semantics/reset calls served
         self.requests = 0  # re-query requests received
         self._epoch = 0  # an analysis of views collected before the last reset is not published
+        self.retry_after_s = float(p["retry_after_s"])
+        self._retry: threading.Timer | None = None  # the next query after a failed one
         self._lock = threading.Lock()
         # the VLM query runs on a worker thread, so callbacks keep running meanwhile
         self.worker = AnalysisWorker(self._analyse, self._requery, "semantics-vlm")
@@ -205,6 +215,7 @@ class SemanticsNode(Node):
                 # a query under way (null: none), and whether a request waits for it
                 "analysis_running_s": None if running is None else round(running, 1),
                 "analysis_pending": self.worker.pending,
+                "analysis_retry_pending": self._retry is not None,
                 "workers": {"analysis": self.worker.healthy},
                 "rejected": self.rejections.snapshot(),
             }
@@ -270,6 +281,7 @@ class SemanticsNode(Node):
             self.queried = False
             self._epoch += 1
             self.resets += 1
+            self._cancel_retry()
         self.status.changed()
         response.success = True
         response.message = f"views cleared: {views} complete frames dropped"
@@ -312,10 +324,45 @@ class SemanticsNode(Node):
         with self._lock:
             self.analysis_error = analysis.error if analysis.fallback_used else None
         self._publish(analysis, views, epoch)
+        if analysis.fallback_used:
+            self._schedule_retry([v.stamp_ns for v in views], epoch)
+
+    def _schedule_retry(self, stamps: list[int], epoch: int) -> None:
+        """Query `stamps` again `retry_after_s` from now (one retry pending at a time; none after
+        a reset or once the node stops): a VLM server started after the graph, or one that was
+        down for a while, is used without a request from the mission."""
+        if self.retry_after_s <= 0:
+            return
+        with self._lock:
+            if epoch != self._epoch or self._retry is not None or not self.context.ok():
+                return
+            timer = threading.Timer(self.retry_after_s, self._retry_now, args=(stamps, epoch))
+            timer.name, timer.daemon = "semantics-retry", True
+            self._retry = timer
+        timer.start()
+        self.get_logger().info(f"querying {len(stamps)} frames again in {self.retry_after_s:g} s")
+        self.status.changed()
+
+    def _retry_now(self, stamps: list[int], epoch: int) -> None:
+        with self._lock:
+            if self._retry is None or epoch != self._epoch:
+                return  # cancelled: a reset, or the node stopped
+            self._retry = None
+        if self.context.ok():
+            self.worker.submit(stamps, reason="retry after an answer not used")
+
+    def _cancel_retry(self) -> None:
+        """Drop a pending retry (call with the lock held)."""
+        if self._retry is not None:
+            self._retry.cancel()
+            self._retry = None
 
     def destroy_node(self) -> None:
         """A query still running on the VLM worker when the node is destroyed publishes nothing
-        (its publishers are gone: rclpy raised InvalidHandle on that thread)."""
+        (its publishers are gone: rclpy raised InvalidHandle on that thread), and a retry
+        pending is dropped."""
+        with self._lock:
+            self._cancel_retry()
         self.gate.close()
         super().destroy_node()
 

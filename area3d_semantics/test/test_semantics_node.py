@@ -347,6 +347,69 @@ def test_a_vlm_that_fails_is_an_error_on_diagnostics_until_it_answers_again():
             server.close()
 
 
+def test_a_vlm_that_comes_up_after_a_failed_query_is_used_without_a_request():
+    """`retry_after_s`: the initial query fails (nothing listens at the address), the fallback's
+    weights are published, and the same frames are queried again after the delay until the
+    server, started later, answers; no request was sent. A reset drops a retry pending."""
+    port = closed_port()
+    rig = Rig(
+        {
+            "num_initial_views": 4,
+            "backend": "openai",
+            "base_url": f"http://127.0.0.1:{port}/v1",
+            "retries": 0,
+            "fallback": "zeros",
+            "retry_after_s": 1.0,
+        }
+    )
+    server = None
+    try:
+        data = frames(4)
+        for stamp, image, depth, _ in data:
+            rig.frame(stamp, image, depth)
+        assert rig.spin(lambda: rig.regions), "no analysis published"
+        first = json.loads(rig.regions[0].data)
+        assert first["fallback_used"] == "zeros"
+        answer = (Path(__file__).parent / "corpus" / "01_internvl3_strict.txt").read_text()
+        server = VLMServer(port, answer)
+        assert rig.spin(
+            lambda: any(json.loads(r.data)["fallback_used"] is None for r in rig.regions)
+        ), "the server's answer was never used"
+        used = next(
+            json.loads(r.data) for r in rig.regions if not json.loads(r.data)["fallback_used"]
+        )
+        stamps = [[image["stamp_ns"] for image in a["images"]] for a in (first, used)]
+        assert stamps[0] == stamps[1] == [d[0] for d in data]
+        assert rig.semantics.requests == 0 and rig.semantics._retry is None
+        # once an answer is used no retry is pending; the number of analyses stays put
+        count = len(rig.regions)
+        time.sleep(3 * rig.semantics.retry_after_s)
+        assert len(rig.regions) == count
+    finally:
+        rig.close()
+        if server is not None:
+            server.close()
+
+
+def test_a_reset_or_the_nodes_end_drops_a_pending_retry():
+    rig = Rig({"backend": "openai", "base_url": f"http://127.0.0.1:{closed_port()}/v1",
+               "retries": 0, "fallback": "zeros", "retry_after_s": 3600.0})  # fmt: skip
+    try:
+        for stamp, image, depth, _ in frames(4):
+            rig.frame(stamp, image, depth)
+        assert rig.spin(lambda: rig.regions and rig.semantics._retry is not None)
+        timer = rig.semantics._retry
+        rig.semantics._on_reset(msgs.Trigger.Request(), msgs.Trigger.Response())
+        assert rig.semantics._retry is None and timer.finished.is_set()
+        for stamp, image, depth, _ in frames(4):
+            rig.frame(stamp + 10**9, image, depth)
+        assert rig.spin(lambda: len(rig.regions) >= 2 and rig.semantics._retry is not None)
+        timer = rig.semantics._retry
+    finally:
+        rig.close()
+    assert timer.finished.is_set() and rig.semantics._retry is None
+
+
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
 def test_an_analysis_that_raises_is_an_error_and_the_next_one_restarts_the_worker():
     rig = Rig({"num_initial_views": 2, "backend": "heuristic"})
