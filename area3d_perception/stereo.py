@@ -396,7 +396,6 @@ class StereoMatcher:
         disp_left, diff = self._matched(left_grey, right_grey)
         texture = texture_factor(left_grey, p.texture_window_px, p.texture_ref)
         support = np.zeros_like(texture)
-        vertical = None
         if p.blank_fill:
             vertical = texture_factor(left_grey.T, p.texture_window_px, p.texture_ref).T
             disp_left, support = fill_blank_planes(
@@ -429,7 +428,7 @@ class StereoMatcher:
             confidence[~np.isfinite(depth)] = 0.0
         else:
             confidence = weight.copy()
-        if vertical is not None:
+        if p.blank_fill:
             # a blank region the fill refused: the matcher had nothing to go on there, so its
             # depth (the smoothness term's spread, kept for the reconstruction at its weight) is
             # no measurement: confidence 0, whatever the calibrated model makes of its smoothness

@@ -34,14 +34,15 @@ def grid_to_cloud(grid: FusedGrid, field: np.ndarray | None = None) -> np.ndarra
     voxels no view is expected to resolve (`FusedGrid.hard`), else 0.
     """
     occ = grid.occupancy()
-    u = grid.fused() if field is None else np.asarray(field, np.float32)
+    geo = grid.geometric(occ)
+    u = grid.fused(occ, geo) if field is None else np.asarray(field, np.float32)
     keep = np.flatnonzero((occ == OCCUPIED) | (u > grid.gamma + EMPTY_MARGIN))
     ijk = np.stack(np.unravel_index(keep, grid.spec.shape), axis=1)
     xyz = grid.spec.lower + (ijk + 0.5) * grid.spec.voxel_size
     cloud = np.empty(keep.size, CLOUD_DTYPE)
     cloud["x"], cloud["y"], cloud["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     cloud["uncertainty"] = u[keep]
-    cloud["geometric"] = grid.geometric()[keep]
+    cloud["geometric"] = geo[keep]
     cloud["semantic"] = grid.semantic()[keep]
     cloud["occupancy"] = occ[keep]
     cloud["hard"] = grid.hard(occ)[keep]

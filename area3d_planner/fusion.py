@@ -425,9 +425,10 @@ class FusedGrid:
             & (self.best_confidence < self.hard_max_confidence)
         )
 
-    def fused(self) -> np.ndarray:
+    def fused(self, occ: np.ndarray | None = None, geo: np.ndarray | None = None) -> np.ndarray:
         """(N,) float32 utility field on every voxel that is not known free (0 on known free
-        voxels and outside the ROI):
+        voxels and outside the ROI), from the `occupancy` and `geometric` field given (made here
+        when None: a caller that needs them too passes its own):
 
             held:       U = max(0, G + semantic_weight * S * sqrt(G)) + gamma
             removable:  U = a * max(0, G + semantic_weight * S * sqrt(G)) + gamma
@@ -441,9 +442,9 @@ class FusedGrid:
         a region the VLM flags as hard stays attractive for about twice as many views as one it
         does not flag (with the "mean" rule the semantic term is the plain mean, as before).
         """
-        occ = self.occupancy()
+        occ = self.occupancy() if occ is None else occ
         return _fused_field(
-            self.geometric(occ),
+            self.geometric(occ) if geo is None else geo,
             occ,
             self.roi_mask,
             self.sem_sum,
