@@ -163,10 +163,10 @@ def fill_blank_planes(
     downscale: the disparities were matched at 1 / downscale of the size and scaled up (the plane
     tolerance grows with it). drop_refused: a region no plane was kept for loses the matcher's
     values (NaN, no estimate): there they are whatever its smoothness term spread into the region.
-    Seeded: the same input gives the same output.
+    Seeded per region: the same input gives the same output, and a region's plane depends on
+    its own ring only (not on which other regions were fitted before it).
     """
     h, w = disparity.shape
-    rng = np.random.default_rng(0)
     labels, stats = _blank_labels(texture, texture_vertical, blank_texture)
     with np.errstate(invalid="ignore"):
         reliable = (lr_diff <= RELIABLE_LR_PX) & (texture >= RELIABLE_TEXTURE)
@@ -195,7 +195,7 @@ def fill_blank_planes(
             reliable,
             left_f,
             right_f,
-            rng,
+            np.random.default_rng(0),
             kernel,
             edge_kernel,
             downscale,

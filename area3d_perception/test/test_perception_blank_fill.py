@@ -48,6 +48,20 @@ def test_a_blank_hole_in_a_plane_takes_the_plane():
     assert np.array_equal(out, again, equal_nan=True)  # seeded
 
 
+def test_a_regions_plane_does_not_depend_on_the_other_regions_of_the_frame():
+    """Each region's RANSAC draws from its own seeded generator: a second blank region fitted
+    before it (or one no longer fitted, as an open one) leaves its plane bit for bit the same."""
+    truth, disparity, diff, texture = _maps(hole=(60, 100, 90, 150))
+    noise = np.random.default_rng(5).normal(0.0, 0.2, SHAPE).astype(np.float32)
+    disparity = disparity + noise * (texture > 0.1)  # a noisy ring: the draws decide the plane
+    alone, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    first = texture.copy()
+    first[10:50, 40:90] = 0.0  # a region labelled (and fitted) before the hole
+    both, support = fill_blank_planes(disparity, diff, first, first, *_images(), 0.1, 300)
+    assert support[10:50, 40:90].all() and support[60:100, 90:150].all()
+    assert np.array_equal(both[60:100, 90:150], alone[60:100, 90:150])
+
+
 def test_a_ring_on_two_surfaces_fills_nothing():
     # a step through the middle: a plane tilted across it agrees with 63 % of the ring
     truth, disparity, diff, texture = _maps()
