@@ -9,12 +9,12 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from numba import njit
 from scipy import ndimage
 
 from area3d_msgs_py.backproject import backproject
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.grid import GridSpec
+from area3d_planner.fusion_kernels import FREE, OCCUPIED, UNKNOWN, fused_field, occupancy_states
 from area3d_planner.observation import (
     DIRECTION_BINS,
     DepthObservation,
@@ -31,7 +31,6 @@ LOG_ODDS_MISS = float(np.log(0.4 / 0.6))
 LOG_ODDS_MIN = float(np.log(0.12 / 0.88))
 LOG_ODDS_MAX = float(np.log(0.97 / 0.03))
 
-UNKNOWN, FREE, OCCUPIED = -1, 0, 1
 GEOMETRIC_RULES = ("product", "mean")
 # What a hit adds to a voxel's occupancy log-odds: one observation of LOG_ODDS_HIT ("hits", as
 # OctoMap), or that times the frame's confidence in the voxel ("confidence": a stereo match at
@@ -293,8 +292,9 @@ class FusedGrid:
 
     def occupancy(self) -> np.ndarray:
         """(N,) int8: -1 unknown (never observed), 0 free, 1 occupied (log-odds > 0), in one
-        compiled pass (`_occupancy`; each request reads it, a room's grid has ~10^6 voxels)."""
-        return _occupancy(
+        compiled pass (`fusion_kernels.occupancy_states`; each request reads it, a room's grid
+        has ~10^6 voxels)."""
+        return occupancy_states(
             self.hit_count,
             self._hit_evidence(),
             self.free_count,
@@ -443,7 +443,7 @@ class FusedGrid:
         does not flag (with the "mean" rule the semantic term is the plain mean, as before).
         """
         occ = self.occupancy() if occ is None else occ
-        return _fused_field(
+        return fused_field(
             self.geometric(occ) if geo is None else geo,
             occ,
             self.roi_mask,
@@ -465,47 +465,3 @@ class FusedGrid:
         h = -(p * np.log2(p) + (1 - p) * np.log2(1 - p))
         h[~self.roi_mask] = 0.0
         return h.astype(np.float32)
-
-
-@njit(cache=True, nogil=True)
-def _fused_field(
-    g, occ, roi, sem_sum, sem_count, sqrt_rule, weight, removable, best, counts, powers, gamma
-):  # pragma: no cover - compiled
-    """`FusedGrid.fused` from the geometric uncertainty `g` in one pass, in float32 and in the
-    order numpy's passes over whole arrays took (the semantic mean, its product with sqrt(g), the
-    weighted sum, max(., 0) keeping a NaN as np.maximum does, the achievability with the power
-    looked up by each voxel's count of directions, `counts`, gamma): the same field bit for bit
-    (test)."""
-    out = np.empty(g.shape[0], np.float32)
-    zero = np.float32(0.0)
-    one = np.float32(1.0)
-    for i in range(g.shape[0]):
-        if occ[i] == FREE or not roi[i]:
-            out[i] = zero
-            continue
-        gi = g[i]
-        s = sem_sum[i] / sem_count[i] if sem_count[i] > 0 else zero
-        if sqrt_rule:
-            s = s * np.sqrt(gi)
-        x = gi + weight * s
-        u = x if (x >= zero or np.isnan(x)) else zero
-        if removable:
-            c = best[i]
-            u = u * (c + (one - c) * powers[counts[i]])
-        out[i] = u + gamma
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _occupancy(hit_count, hit_evidence, free_count, hit, miss):  # pragma: no cover - compiled
-    """`FusedGrid.occupancy` of the counts (float32): observed where hits + misses > 0, occupied
-    where the log-odds evidence * hit + misses * miss (float32, as `log_odds` computes them
-    before clamping, which keeps the sign) is > 0."""
-    out = np.empty(hit_count.shape[0], np.int8)
-    for i in range(hit_count.shape[0]):
-        h, f = hit_count[i], free_count[i]
-        if h + f > 0:
-            out[i] = OCCUPIED if hit_evidence[i] * hit + f * miss > 0 else FREE
-        else:
-            out[i] = UNKNOWN
-    return out
