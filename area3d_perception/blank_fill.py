@@ -128,15 +128,6 @@ def _open(stat: np.ndarray, w: int) -> bool:
     return y == 0 and (x == 0 or x + bw == w)
 
 
-def blank_regions(
-    texture: np.ndarray, texture_vertical: np.ndarray, blank_texture: float, min_area_px: int
-) -> np.ndarray:
-    """(H, W) bool: the pixels of the blank regions `fill_blank_planes` tries to fill (both
-    texture factors below `blank_texture`, 4-connected regions of at least `min_area_px`)."""
-    labels, stats = _blank_labels(texture, texture_vertical, blank_texture)
-    return np.isin(labels, _large_regions(stats, min_area_px))
-
-
 def fill_blank_planes(
     disparity: np.ndarray,
     lr_diff: np.ndarray,
@@ -148,10 +139,11 @@ def fill_blank_planes(
     min_area_px: int,
     downscale: int = 1,
     drop_refused: bool = False,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(disparity with blank regions filled (H, W) float32 px, NaN = invalid; support (H, W)
     float32 in [0, 1]: the share of its ring that agreed with the plane a filled pixel took, 0
-    where nothing was filled).
+    where nothing was filled; blank (H, W) bool: the pixels of the blank regions tried, both
+    texture factors below `blank_texture` in 4-connected regions of at least `min_area_px`).
 
     disparity: (H, W) float32 px, NaN = invalid; lr_diff: (H, W) left-right difference, px;
     texture: (H, W) texture factor in [0, 1) (`stereo.texture_factor`, of horizontal gradients:
@@ -173,10 +165,11 @@ def fill_blank_planes(
     reliable &= np.isfinite(disparity)
     out = disparity.copy()
     support = np.zeros((h, w), np.float32)
+    large = _large_regions(stats, min_area_px)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * RING_PX + 1, 2 * RING_PX + 1))
     edge_kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * EDGE_PX + 1, 2 * EDGE_PX + 1))
     left_f, right_f = left.astype(np.float32), right.astype(np.float32)
-    for k in _large_regions(stats, min_area_px):
+    for k in large:
         x, y, bw, bh = stats[k, :4]
         x0, y0 = max(x - RING_PX, 0), max(y - RING_PX, 0)
         x1, y1 = min(x + bw + RING_PX, w), min(y + bh + RING_PX, h)
@@ -212,7 +205,7 @@ def fill_blank_planes(
         pu, pv = pu[ahead] + x0, pv[ahead] + y0
         out[pv, pu] = values[ahead]
         support[pv, pu] = np.float32(share)
-    return out, support
+    return out, support, np.isin(labels, large)
 
 
 def _region_plane(

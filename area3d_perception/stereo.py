@@ -33,7 +33,7 @@ import numpy as np
 from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
-from area3d_perception.blank_fill import blank_regions, fill_blank_planes
+from area3d_perception.blank_fill import fill_blank_planes
 
 # OpenCV's StereoSGBM returns fixed-point disparities with 4 fractional bits.
 SGBM_DISPARITY_SCALE = 16.0
@@ -398,7 +398,7 @@ class StereoMatcher:
         support = np.zeros_like(texture)
         if p.blank_fill:
             vertical = texture_factor(left_grey.T, p.texture_window_px, p.texture_ref).T
-            disp_left, support = fill_blank_planes(
+            disp_left, support, blank = fill_blank_planes(
                 disp_left,
                 diff,
                 texture,
@@ -432,8 +432,7 @@ class StereoMatcher:
             # a blank region the fill refused: the matcher had nothing to go on there, so its
             # depth (the smoothness term's spread, kept for the reconstruction at its weight) is
             # no measurement: confidence 0, whatever the calibrated model makes of its smoothness
-            refused = blank_regions(texture, vertical, p.blank_texture, p.blank_min_area_px)
-            confidence[refused & ~filled] = 0.0
+            confidence[blank & ~filled] = 0.0
         return StereoResult(depth.astype(np.float32), confidence, disp_left, weight)
 
     def _matcher_confidence(

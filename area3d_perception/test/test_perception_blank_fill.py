@@ -38,13 +38,14 @@ def _images():
 
 def test_a_blank_hole_in_a_plane_takes_the_plane():
     truth, disparity, diff, texture = _maps()
-    out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    out, support, blank = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
     hole, filled = texture < 0.1, support > 0
     assert np.array_equal(filled, hole)  # every pixel of the hole, nothing else
+    assert np.array_equal(blank, hole)
     assert np.abs(out[hole] - truth[hole]).max() < 1e-3
     assert np.all(support[hole] > 0.99)
     assert np.array_equal(out[~hole], disparity[~hole])  # the matched pixels stay as they were
-    again, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    again, _, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
     assert np.array_equal(out, again, equal_nan=True)  # seeded
 
 
@@ -54,10 +55,10 @@ def test_a_regions_plane_does_not_depend_on_the_other_regions_of_the_frame():
     truth, disparity, diff, texture = _maps(hole=(60, 100, 90, 150))
     noise = np.random.default_rng(5).normal(0.0, 0.2, SHAPE).astype(np.float32)
     disparity = disparity + noise * (texture > 0.1)  # a noisy ring: the draws decide the plane
-    alone, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    alone, _, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
     first = texture.copy()
     first[10:50, 40:90] = 0.0  # a region labelled (and fitted) before the hole
-    both, support = fill_blank_planes(disparity, diff, first, first, *_images(), 0.1, 300)
+    both, support, _ = fill_blank_planes(disparity, diff, first, first, *_images(), 0.1, 300)
     assert support[10:50, 40:90].all() and support[60:100, 90:150].all()
     assert np.array_equal(both[60:100, 90:150], alone[60:100, 90:150])
 
@@ -67,7 +68,7 @@ def test_a_ring_on_two_surfaces_fills_nothing():
     truth, disparity, diff, texture = _maps()
     disparity[:, 80:] += 3.0  # a step through the middle of the hole: two surfaces around it
     disparity[texture < 0.1] = np.nan
-    out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    out, support, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
     assert not support.any()
     assert np.array_equal(out, disparity, equal_nan=True)
 
@@ -88,7 +89,7 @@ def test_a_blank_panel_before_a_farther_surface_takes_its_plane_from_its_own_edg
     ring[v0 - 4 : v1 + 4, u0 - 4 : u1 + 4] = True
     ring &= ~hole
     assert 0.65 < panel[ring].mean() < 0.7  # the share of the ring on the panel
-    out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    out, support, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
     assert np.array_equal(support > 0, hole)
     assert np.abs(out[hole] - truth[hole]).max() < 1e-3  # the panel's plane, not the far one
     assert np.all((support[hole] > 0.65) & (support[hole] < 0.7))
@@ -101,22 +102,22 @@ def test_a_refused_region_keeps_the_matchers_values_or_none_of_them():
     disparity[:, 80:] += 3.0  # two surfaces around the hole: no plane is kept
     hole = texture < 0.1
     assert np.isfinite(disparity[hole]).mean() > 0.7  # the matcher's garbage, mostly
-    kept, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+    kept, support, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
     assert not support.any() and np.array_equal(kept, disparity, equal_nan=True)
-    dropped, support = fill_blank_planes(
+    dropped, support, _ = fill_blank_planes(
         disparity, diff, texture, texture, *_images(), 0.1, 300, drop_refused=True
     )
     assert not support.any()
     assert np.isnan(dropped[hole]).all()
     assert np.array_equal(dropped[~hole], disparity[~hole], equal_nan=True)
     # a region too small to be looked at is not dropped: it was never refused
-    small, _ = fill_blank_planes(
+    small, _, _ = fill_blank_planes(
         disparity, diff, texture, texture, *_images(), 0.1, int(hole.sum()) + 1, drop_refused=True
     )
     assert np.array_equal(small, disparity, equal_nan=True)
     # a region that takes its plane is filled as before
     truth, disparity, diff, texture = _maps()
-    out, support = fill_blank_planes(
+    out, support, _ = fill_blank_planes(
         disparity, diff, texture, texture, *_images(), 0.1, 300, drop_refused=True
     )
     assert np.array_equal(support > 0, texture < 0.1)
@@ -134,16 +135,17 @@ def test_a_blank_region_reaching_the_images_top_and_a_side_is_no_estimate():
         hole = texture < 0.1
         assert np.isfinite(disparity[hole]).mean() > 0.7  # the matcher's garbage, mostly
         for drop_refused in (False, True):
-            out, support = fill_blank_planes(
+            out, support, blank = fill_blank_planes(
                 disparity, diff, texture, texture, *_images(), 0.1, 300, drop_refused=drop_refused
             )
             assert not support.any()
+            assert np.array_equal(blank, hole)  # tried, and refused
             assert np.isnan(out[hole]).all()
             assert np.array_equal(out[~hole], disparity[~hole], equal_nan=True)
     bottom_right = (SHAPE[0] - 50, SHAPE[0], 100, SHAPE[1])
     for hole in ((0, 50, 40, 120), (0, SHAPE[0], 40, 120), bottom_right):
         truth, disparity, diff, texture = _maps(hole=hole)
-        out, support = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
+        out, support, _ = fill_blank_planes(disparity, diff, texture, texture, *_images(), 0.1, 300)
         hole = texture < 0.1
         assert np.array_equal(support > 0, hole)
         assert np.abs(out[hole] - truth[hole]).max() < 1e-3
@@ -153,16 +155,16 @@ def test_small_striped_or_untrusted_regions_are_left_alone():
     truth, disparity, diff, texture = _maps()
     disparity[texture < 0.1] = np.nan
     # smaller than the least area
-    out, support = fill_blank_planes(
+    out, support, _ = fill_blank_planes(
         disparity, diff, texture, texture, *_images(), 0.1, 40 * 60 + 1
     )
     assert not support.any()
     # horizontal stripes: nothing to match along a row, but vertical texture: not blank
     vertical = np.full(SHAPE, 0.9, np.float32)
-    out, support = fill_blank_planes(disparity, diff, texture, vertical, *_images(), 0.1, 300)
+    out, support, _ = fill_blank_planes(disparity, diff, texture, vertical, *_images(), 0.1, 300)
     assert not support.any()
     # a ring whose matches failed the left-right check gives nothing to fit
-    out, support = fill_blank_planes(
+    out, support, _ = fill_blank_planes(
         disparity, np.full(SHAPE, 2.0), texture, texture, *_images(), 0.1, 300
     )
     assert not support.any()
