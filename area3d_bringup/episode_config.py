@@ -16,7 +16,7 @@ MODES = ("closed_loop", "batch")
 def episode_budget(scene, budget: int | None) -> int:
     """The view budget T of an episode on `scene` (O_0 included): the paper's for its level when
     None; ValueError when it does not hold the initial views."""
-    from area3d_planner.config import paper_budget
+    from area3d_planner.levels import paper_budget
 
     total = paper_budget(scene.level) if budget is None else int(budget)
     if total < len(scene.initial_views):

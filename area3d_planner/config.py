@@ -1,6 +1,6 @@
 """The planner's configuration: every parameter with its default and description
-(`PlannerConfig`), the paper's settings per level (`LEVEL_DEFAULTS`: |O_0|, T, gamma and ours),
-and the grid and planning context the configuration describes. No state: `server.py` builds the
+(`PlannerConfig`; the paper's settings per level: `levels.py`), and the grid and planning context
+the configuration describes. No state: `server.py` builds the
 planner from it."""
 
 from __future__ import annotations
@@ -16,47 +16,10 @@ from area3d_planner.candidates import VisibilityParams
 from area3d_planner.context import PlanningContext
 from area3d_planner.fusion import GAIN_RULES, GEOMETRIC_RULES, OCCUPANCY_RULES, FusedGrid
 from area3d_planner.greedy import DECAY_REGIONS, GreedyParams
+from area3d_planner.levels import LEVEL_DEFAULTS, LEVELS, level_defaults_text
 from area3d_planner.policies import POLICIES, make_policy
 
 MODES = ("batch", "closed_loop")
-
-# Where the paper distinguishes object level and scene (room) level.
-LEVEL_DEFAULTS = {
-    # paper: gamma, T; ours: voxel, z-buffer resolution (about half a voxel's angle at the working
-    # distance: 1 cm at 0.7 m, 5 cm at 2 m)
-    # and the resolution term (8 x 8 pixels per voxel: a pixel footprint of 1.25 mm at object
-    # level, 6 mm at room level; chosen on the bundled scenes, planner README)
-    "object": {
-        "initial_views": 4,
-        "voxel_size": 0.01,
-        "gamma": 0.01,
-        "budget": 25,
-        "face_res": 256,
-        "pixels_per_voxel": 64.0,
-        "unobserved_far_weight": 0.25,
-    },
-    "room": {
-        "initial_views": 15,
-        "voxel_size": 0.05,
-        "gamma": 0.005,
-        "budget": 40,
-        "face_res": 128,
-        "pixels_per_voxel": 64.0,
-        "unobserved_far_weight": 1.0,
-    },
-}
-LEVELS = ("auto", "object", "room")
-
-
-def paper_budget(level: str) -> int:
-    """The paper's view budget T at `level` ("object" or "room"): total views, O_0 included
-    (25 object level, 40 scene level)."""
-    return LEVEL_DEFAULTS[level]["budget"]
-
-
-def _level(key: str) -> str:
-    """The level defaults of `key`, as a description says them."""
-    return ", ".join(f"{v[key]:g} {level}" for level, v in LEVEL_DEFAULTS.items())
 
 
 def _xyz(value: tuple) -> str | None:
@@ -105,7 +68,7 @@ class PlannerConfig:
     voxel_size: float = described(
         0.0,
         "voxel edge of the fused grid; 0 = the level's "
-        f"({_level('voxel_size')}), coarser where the grid would exceed voxel_budget",
+        f"({level_defaults_text('voxel_size')}), coarser where the grid would exceed voxel_budget",
         "metres",
         (0.0, 1.0),
     )
@@ -121,7 +84,7 @@ class PlannerConfig:
     gamma: float = described(
         -1.0,
         "global weight every voxel starts from, so unexplored space stays attractive; < 0 = the "
-        f"level's (paper, supplement: {_level('gamma')})",
+        f"level's (paper, supplement: {level_defaults_text('gamma')})",
         "",
         (-1.0, 10.0),
     )
@@ -153,7 +116,7 @@ class PlannerConfig:
     unobserved_far_weight: float = described(
         -1.0,
         "... the share of unobserved_uncertainty an unknown voxel beyond unobserved_reach holds; "
-        f"-1 = the level's ({_level('unobserved_far_weight')}: a room is explored)",
+        f"-1 = the level's ({level_defaults_text('unobserved_far_weight')}: a room is explored)",
         "",
         (-1.0, 1.0),
     )
@@ -245,14 +208,14 @@ class PlannerConfig:
     pitch_bins: int = described(4, "room level: elevations per orientation", "count", (1, 90))
     face_res: int = described(
         0,
-        f"edge of each face of the cube-map z-buffer; 0 = the level's ({_level('face_res')})",
+        f"edge of each face of the cube-map z-buffer; 0 = the level's ({level_defaults_text('face_res')})",
         "pixels",
         (0, 4096),
     )
     pixels_per_voxel: float = described(
         0.0,
         "a voxel seen over this many image pixels counts as fully observed; 0 = the level's "
-        f"({_level('pixels_per_voxel')})",
+        f"({level_defaults_text('pixels_per_voxel')})",
         "pixels",
         (0.0, 1e4),
     )
@@ -354,7 +317,7 @@ class PlannerConfig:
     )
     budget: int = described(
         0,
-        f"total views, initial ones included; 0 = the paper's T ({_level('budget')}). It counts "
+        f"total views, initial ones included; 0 = the paper's T ({level_defaults_text('budget')}). It counts "
         "the initial views and the views handed out, never the frames a streaming camera sends "
         "in between (those are fused: evidence, not views)",
         "views",
@@ -363,7 +326,7 @@ class PlannerConfig:
     initial_views: int = described(
         0,
         "the initial views the budget counts: the frames fused before the first request, at most "
-        f"this many; 0 = the paper's |O_0| ({_level('initial_views')})",
+        f"this many; 0 = the paper's |O_0| ({level_defaults_text('initial_views')})",
         "views",
         (0, 2**31 - 1),
     )
