@@ -155,10 +155,11 @@ def _run_set(
 
 def _print_table(run: RunSet, console: Console) -> list[dict]:
     from area3d_eval import rundir
-    from area3d_eval.report import TABLE_METRICS, aggregate
+    from area3d_eval.report import TABLE_METRICS, aggregate, load_runs
 
     run_dirs = run.run_dirs()
-    rows = aggregate(run_dirs)
+    records = load_runs(run_dirs, evaluate_missing=False)
+    rows = aggregate(records)
     episode_seconds: dict[tuple[str, str], list[float]] = defaultdict(list)
     for run_dir in run_dirs:
         episode = rundir.read_episode(run_dir)
@@ -184,7 +185,27 @@ def _print_table(run: RunSet, console: Console) -> list[dict]:
         cells.append(f"{np.mean(seconds):.1f} (max {np.max(seconds):.1f})" if seconds else "–")
         table.add_row(*cells)
     console.print(table, width=max(console.width, 160))
+    _print_fewer_views(records, console)
     return rows
+
+
+def _print_fewer_views(records: list, console: Console) -> None:
+    """Per scene, the views each policy took to reach `uniform`'s final completion (the paper's
+    "fewer views" figure; `area3d_eval.fewer_views`). Printed only where uniform ran."""
+    from area3d_eval import fewer_views
+    from area3d_eval.report import view_curves
+
+    entries = fewer_views.views_to_reach(view_curves(records))
+    if not entries:
+        return
+    reference = fewer_views.REFERENCE_POLICY
+    table = Table(title=f"views to reach {reference}'s final completion (mean over seeds)")
+    scenes, labels, cells = fewer_views.grid(entries)
+    for column in ("scene", *labels):
+        table.add_column(column)
+    for i, scene in enumerate(scenes):
+        table.add_row(Path(scene).stem, *[row[i] for row in cells])
+    console.print(table, width=max(console.width, 160))
 
 
 def _print_wall_times(runs: list[RunSet], shape: str, console: Console) -> None:

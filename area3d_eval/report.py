@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from area3d_eval import fewer_views
 from area3d_eval.report_figures import draw_figures
 from area3d_eval.rundir import EVAL_DIR, MESH_FILE, Episode, read_episode, read_metrics, scene_name
 
@@ -152,6 +153,16 @@ def aggregate(
     return rows
 
 
+def view_curves(records: Sequence[RunRecord]) -> dict[tuple[str, str], list[list[dict]]]:
+    """{(scene's name, row label): the metric-vs-views curve of each of its runs}, the rows of
+    `aggregate`."""
+    labels = _row_labels(records)
+    curves: dict[tuple[str, str], list[list[dict]]] = defaultdict(list)
+    for r in records:
+        curves[(r.scene, labels[id(r)])].append(r.metrics.get("curve") or [])
+    return dict(curves)
+
+
 def _row_labels(records: Sequence[RunRecord]) -> dict[int, str]:
     """{id(record): its row's name}: the policy, with the view budget, mode and depth source
     added where runs of one policy differ in them (runs of 25 and of 10 views are not seeds of
@@ -272,17 +283,38 @@ def write_report(
     records = load_runs([Path(p) for p in run_dirs], evaluate_missing)
     rows = aggregate(records)
     scenes, policies, cells, bold = _table(rows)
+    fewer = fewer_views.views_to_reach(view_curves(records))
     whole = _table(rows, WHOLE_IMAGE_METRICS)[2:]
     curves, timing_png = draw_figures(records, fig_dir) if records else ({}, None)
     md_path = out_dir / "report.md"
     html_path = out_dir / "report.html"
     md_path.write_text(
         _markdown(
-            title, records, scenes, policies, (cells, bold), whole, curves, timing_png, out_dir
+            title,
+            records,
+            scenes,
+            policies,
+            (cells, bold),
+            whole,
+            fewer,
+            curves,
+            timing_png,
+            out_dir,
         )
     )
     html_path.write_text(
-        _html(title, records, scenes, policies, (cells, bold), whole, curves, timing_png, out_dir)
+        _html(
+            title,
+            records,
+            scenes,
+            policies,
+            (cells, bold),
+            whole,
+            fewer,
+            curves,
+            timing_png,
+            out_dir,
+        )
     )
     return md_path, html_path
 
@@ -300,7 +332,7 @@ def _markdown_table(scenes, policies, cells, bold, metrics) -> list[str]:
 
 
 def _markdown(
-    title, records, scenes, policies, headline, whole, curves, timing_png, out_dir
+    title, records, scenes, policies, headline, whole, fewer, curves, timing_png, out_dir
 ) -> str:
     lines = [f"# {title}", "", "## How to read this report", "", HOW_TO_READ, "", "## Results", ""]
     if not records:
@@ -322,6 +354,7 @@ def _markdown(
         + ".",
         "",
     ]
+    lines += fewer_views.markdown_lines(fewer)
     lines += ["## Metrics against the number of views", ""]
     for scene in scenes:
         lines += [f"### {scene}", ""]
@@ -407,7 +440,9 @@ def _inline(text: str) -> str:
     return re.sub(r"(?<![\w*])\*([^*\s][^*]*?)\*(?![\w*])", r"<em>\1</em>", out)
 
 
-def _html(title, records, scenes, policies, headline, whole, curves, timing_png, out_dir) -> str:
+def _html(
+    title, records, scenes, policies, headline, whole, fewer, curves, timing_png, out_dir
+) -> str:
     e = html.escape
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(title)}</title><style>{CSS}</style></head><body>"
@@ -425,6 +460,7 @@ def _html(title, records, scenes, policies, headline, whole, curves, timing_png,
         " coverage and appearance:</p>"
     )
     parts += _html_table(scenes, policies, *whole, WHOLE_IMAGE_METRICS)
+    parts += fewer_views.html_parts(fewer)
     parts.append("<h2>Metrics against the number of views</h2>")
     for scene in scenes:
         imgs = "".join(

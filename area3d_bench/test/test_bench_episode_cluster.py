@@ -46,9 +46,8 @@ def one_process(tmp_path_factory) -> dict:
 
 
 def test_episodes_on_two_local_workers_equal_those_run_in_one_process(tmp_path, one_process):
-    result = run_episode_bench(
-        **SMALL, out=tmp_path, console=_console(), in_process=True, workers=[2]
-    )
+    console = _console()
+    result = run_episode_bench(**SMALL, out=tmp_path, console=console, in_process=True, workers=[2])
     assert result["failures"] == []
     (run,) = result["runs"]
     assert run["workers"] == 2
@@ -61,6 +60,13 @@ def test_episodes_on_two_local_workers_equal_those_run_in_one_process(tmp_path, 
     assert all(row["runs"] == 1 for row in result["rows"])
     assert Path(result["report"]).is_file()
     assert not (run["out_dir"] / "attempts").exists()  # no worker died: nothing left there
+    # and how many views each policy took to reach uniform's final completion, uniform's own too
+    printed = console.file.getvalue()
+    assert "views to reach uniform's final completion" in printed
+    (line,) = [
+        line for line in printed.splitlines() if "single_object" in line and " of 6 " in line
+    ]
+    assert line.count(" of 6 (") + line.count("not reached (") == 2, line
 
 
 def _dies_at_its_first_frame(out: Path, marker: Path):

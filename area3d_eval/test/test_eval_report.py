@@ -136,8 +136,8 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
 
     rows = [line for line in md.splitlines() if line.startswith("| ")]
     starts = [i for i, r in enumerate(rows) if r.startswith("| Policy |")]
-    assert len(starts) == 2  # the headline table and the whole-image table
-    headline, second = rows[: starts[1]], rows[starts[1] :]
+    assert len(starts) == 3  # the headline table, the whole-image table, the views to reach
+    headline, second, fewer = rows[: starts[1]], rows[starts[1] : starts[2]], rows[starts[2] :]
     assert headline[0].startswith("| Policy | synthetic_object: Comp. ratio")
     # headline table: PSNR / SSIM on the region; the whole-image ones in a second table
     assert "PSNR region [dB]" in headline[0] and "whole image" not in headline[0]
@@ -151,6 +151,25 @@ def test_report_has_a_row_per_policy_and_every_figure_it_links(tmp_path, scene):
     for table in (headline, second):
         assert sum(r.startswith("| uniform |") for r in table) == 1
         assert sum(r.startswith("| area3d |") for r in table) == 1
+    # the views each row took to reach uniform's final mean completion, from the runs' curves
+    assert "## Views to reach `uniform`'s final completion" in md
+    assert "<h2>Views to reach <code>uniform</code>'s final completion</h2>" in page
+    curves = [json.loads((r / "metrics.json").read_text())["curve"] for r in runs]
+    target = np.mean([curve[-1]["completion"] for curve in curves[:2]])
+    for name, curve in (("area3d", curves[2]), ("uniform", None)):
+        if curve is None:  # uniform's own: the mean of its two seeds per checkpoint
+            curve = [
+                {"num_views": a["num_views"], "completion": (a["completion"] + b["completion"]) / 2}
+                for a, b in zip(*curves[:2], strict=True)
+            ]
+        reached = [p["num_views"] for p in curve if p["completion"] >= target]
+        last = curve[-1]["num_views"]
+        expected = (
+            f"{min(reached)} of {last} ({100 * min(reached) / last:.0f} %)"
+            if reached
+            else f"not reached ({curve[-1]['completion']:.3f} < {target:.3f})"
+        )
+        assert next(r for r in fewer if r.startswith(f"| {name} |")) == f"| {name} | {expected} |"
     uniform_row = next(r for r in headline if r.startswith("| uniform |"))
     assert "±" in uniform_row  # two seeds: mean ± std
     assert "How to read this report" in md and "How to read this report" in page
