@@ -54,6 +54,11 @@ class VisibilityParams:
     # ... also over the region (above its top, within its footprint) at object level (off: a view
     # from above sees the region through it; a stereo pair leaves much of it uncarved).
     unknown_above_occludes: bool = False
+    # ... but only this deep (metres, whole voxels; 0 = at once): a view sees into unknown space
+    # behind the boundary of carved space as far as this and counts what it sees there, where the
+    # surface it may add lies (a side of an object in the shadow of the initial views), not only
+    # the boundary layer, and not the whole depth of an unknown column.
+    unknown_see_through: float = 0.0
     # Weigh each voxel by the cosine between its free-space side and the direction to the camera
     # (the surface it may hold is seen foreshortened at a grazing angle).
     incidence: bool = False
@@ -100,6 +105,10 @@ class VisibilityParams:
                 "pitch_min_deg/pitch_max_deg",
                 (self.pitch_min_deg, self.pitch_max_deg),
                 "-90 < pitch_min_deg <= pitch_max_deg < 90",
+            )
+        if not (np.isfinite(self.unknown_see_through) and self.unknown_see_through >= 0):
+            raise InputError(
+                "unknown_see_through", self.unknown_see_through, "a finite value >= 0 metres"
             )
 
     @property

@@ -227,6 +227,13 @@ class PlannerConfig:
         "object level: unknown space over the region (above its top, within its footprint) "
         "hides what lies below it too (off: a view from above sees the region through it)",
     )
+    unknown_see_through: float = described(
+        0.0,
+        "with unknown_occludes: a view sees this far into unknown space behind the boundary of "
+        "carved space and counts what it sees there (0: the boundary layer only)",
+        "m",
+        (0.0, 10.0),
+    )
     incidence: bool = described(
         False, "a surface seen at a grazing angle counts by its cosine (off: no gain measured)"
     )
@@ -463,6 +470,7 @@ class PlannerConfig:
                 pixels_per_voxel=self.pixels_per_voxel or LEVEL_DEFAULTS[level]["pixels_per_voxel"],
                 unknown_occludes=self.unknown_occludes,
                 unknown_above_occludes=self.unknown_above_occludes,
+                unknown_see_through=self.unknown_see_through,
                 incidence=self.incidence,
                 range_profile=self.range_profile,
                 repeat_gain=self.repeat_gain,

@@ -257,7 +257,8 @@ class PlanningContext:
         relevant = self._relevant(kind, occupancy)
         occluders = self.occluders(occupancy)
         if occluders is not None:
-            relevant = relevant & occluders
+            seen_into = self.seen_into(occupancy)
+            relevant &= occluders if seen_into is None else occluders | seen_into
         base = self._caches.get(kind) or self._previous.pop(kind, None)
         if base is not None:  # what the map changed since, re-examined only where it shows
             return base.update(occupancy, seeds, rotations, relevant, occluders=occluders)
@@ -275,16 +276,39 @@ class PlanningContext:
     def occluders(self, occupancy: np.ndarray) -> np.ndarray | None:
         """(N,) bool: the voxels that hide what lies behind them, or None where only occupied
         voxels do (`unknown_occludes: false`). Everything not carved hides what is behind it,
-        so only its boundary with carved space can be seen; at object level, unknown space over
-        the region (above its top, within its footprint) does not (`unknown_above_occludes:
+        so only its boundary with carved space can be seen; with `unknown_see_through`, unknown
+        space hides what lies deeper than that behind the boundary (its layer at that depth
+        occludes; `seen_into` is what a view sees in front of it). At object level, unknown space
+        over the region (above its top, within its footprint) does not (`unknown_above_occludes:
         false`): a view from above sees the region through it, and a surface there occludes
         once a frame maps it."""
         if not self.visibility.unknown_occludes:
             return None
         occluders = self.grid.boundary(occupancy)
+        if layers := self._see_through_layers():
+            unknown = occupancy == UNKNOWN
+            deeper = self.grid.near_free(occupancy, layers + 1)
+            deeper &= unknown & ~self.grid.near_free(occupancy, layers)
+            occluders = (occluders & ~unknown) | deeper
+        return self._over_region_hides_nothing(occluders, occupancy)
+
+    def seen_into(self, occupancy: np.ndarray) -> np.ndarray | None:
+        """(N,) bool: the unknown voxels within `unknown_see_through` of carved space, which a
+        view sees in front of the layer that occludes (`occluders`); None without see-through."""
+        if not self.visibility.unknown_occludes or not (layers := self._see_through_layers()):
+            return None
+        seen = (occupancy == UNKNOWN) & self.grid.near_free(occupancy, layers)
+        return self._over_region_hides_nothing(seen, occupancy)
+
+    def _see_through_layers(self) -> int:
+        return int(round(self.visibility.unknown_see_through / self.grid.spec.voxel_size))
+
+    def _over_region_hides_nothing(self, mask: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
+        """`mask` without the unknown voxels over the region, at object level unless
+        `unknown_above_occludes`: neither occluders nor counted."""
         if self.visibility.level == "object" and not self.visibility.unknown_above_occludes:
-            occluders &= ~self.grid.over_region | (occupancy != UNKNOWN)
-        return occluders
+            mask &= ~self.grid.over_region | (occupancy != UNKNOWN)
+        return mask
 
     def install(self, candidates: tuple, caches: dict) -> None:
         """Use candidates and caches made by `build` (replaces the current ones and the fields)."""

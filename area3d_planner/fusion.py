@@ -344,6 +344,13 @@ class FusedGrid:
         near = ndimage.maximum_filter(occupied, size=2 * reach + 1, mode="constant")
         return near.reshape(-1).astype(bool)
 
+    def near_free(self, occ: np.ndarray, layers: int) -> np.ndarray:
+        """(N,) bool: voxels within `layers` whole voxels (on every axis) of a known-free one,
+        the free ones included (a separable maximum filter)."""
+        free = (occ == FREE).reshape(self.spec.shape).view(np.uint8)
+        near = ndimage.maximum_filter(free, size=2 * int(layers) + 1, mode="constant")
+        return near.reshape(-1).astype(bool)
+
     def boundary(self, occ: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: voxels that are not known free but have a known-free face neighbour: the
         surface of everything the camera has not carved away (occupied or unknown)."""

@@ -540,3 +540,36 @@ def test_unknown_space_over_the_region_hides_nothing_at_object_level(above_occlu
     else:
         assert seen[top].sum() >= 0.8 * top.sum()  # from above, through the column
         assert not grid.over_region[grid.roi_mask].any()
+
+
+@pytest.mark.parametrize("see_through", [0.0, 0.03])
+def test_a_view_sees_into_unknown_space_as_deep_as_the_see_through_and_no_deeper(see_through):
+    # a block of unknown space (the shadow an object leaves) in a region carved free around it:
+    # the masks record the block's boundary layer, and with see-through the unknown voxels up to
+    # that many voxels deep, never the block's core behind them
+    from area3d_planner.test.conftest import set_occupancy
+
+    config = PlannerConfig(level="object", unknown_see_through=see_through)
+    grid = config.fused_grid()
+    context = config.planning_context(grid)
+    centres = grid.spec.centers_of(np.arange(grid.spec.num_voxels))
+    occ = np.where(grid.roi_mask, 0, -1).astype(np.int8)
+    block = np.all(np.abs(centres - np.array([0.0, 0.0, 0.25])) <= 0.075, axis=1)
+    occ[block] = -1
+    set_occupancy(grid, occ)
+    (seeds, _), caches = context.build(occ, kinds=("roi_not_free",))
+    cache = caches["roi_not_free"]
+    assert len(seeds) > 0
+    seen = np.zeros(grid.spec.num_voxels, bool)
+    for view in range(cache.num_views):
+        seen[cache.mask(view)[0]] = True
+    # depth into the block: whole voxels (on every axis) to the nearest free voxel
+    from scipy import ndimage
+
+    not_free = (occ != 0).reshape(grid.spec.shape)
+    depth = ndimage.distance_transform_cdt(not_free, metric="chessboard").reshape(-1)
+    layers = int(round(see_through / grid.spec.voxel_size))
+    assert depth[block].max() >= layers + 3  # a core deeper than any view may see
+    for d in range(1, layers + 2):  # the boundary, the layers seen into, the occluding layer
+        assert seen[block & (depth == d)].mean() >= 0.3, d  # its bottom faces the table
+    assert not seen[block & (depth > layers + 1)].any()
