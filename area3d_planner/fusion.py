@@ -337,18 +337,21 @@ class FusedGrid:
         """(N,) bool: voxels within `unobserved_reach` (whole voxels on every axis) of an occupied
         voxel (a separable maximum filter: tens of milliseconds at the 4 M-voxel cap)."""
         occ = self.occupancy() if occ is None else occ
-        reach = int(round(self.unobserved_reach / self.spec.voxel_size))
-        occupied = (occ == OCCUPIED).reshape(self.spec.shape).view(np.uint8)
-        if reach == 0:
-            return occupied.reshape(-1).astype(bool)
-        near = ndimage.maximum_filter(occupied, size=2 * reach + 1, mode="constant")
-        return near.reshape(-1).astype(bool)
+        return self._within(
+            occ == OCCUPIED, int(round(self.unobserved_reach / self.spec.voxel_size))
+        )
 
     def near_free(self, occ: np.ndarray, layers: int) -> np.ndarray:
         """(N,) bool: voxels within `layers` whole voxels (on every axis) of a known-free one,
-        the free ones included (a separable maximum filter)."""
-        free = (occ == FREE).reshape(self.spec.shape).view(np.uint8)
-        near = ndimage.maximum_filter(free, size=2 * int(layers) + 1, mode="constant")
+        the free ones included."""
+        return self._within(occ == FREE, int(layers))
+
+    def _within(self, mask: np.ndarray, layers: int) -> np.ndarray:
+        """(N,) bool: voxels within `layers` whole voxels on every axis of one in `mask` (N,)."""
+        if layers == 0:
+            return np.asarray(mask, bool).copy()
+        grid = mask.reshape(self.spec.shape).view(np.uint8)
+        near = ndimage.maximum_filter(grid, size=2 * layers + 1, mode="constant")
         return near.reshape(-1).astype(bool)
 
     def boundary(self, occ: np.ndarray | None = None) -> np.ndarray:
