@@ -288,34 +288,9 @@ def write_report(
     curves, timing_png = draw_figures(records, fig_dir) if records else ({}, None)
     md_path = out_dir / "report.md"
     html_path = out_dir / "report.html"
-    md_path.write_text(
-        _markdown(
-            title,
-            records,
-            scenes,
-            policies,
-            (cells, bold),
-            whole,
-            fewer,
-            curves,
-            timing_png,
-            out_dir,
-        )
-    )
-    html_path.write_text(
-        _html(
-            title,
-            records,
-            scenes,
-            policies,
-            (cells, bold),
-            whole,
-            fewer,
-            curves,
-            timing_png,
-            out_dir,
-        )
-    )
+    parts = (title, records, scenes, policies, (cells, bold), whole, fewer, curves, timing_png)
+    md_path.write_text(_markdown(*parts, out_dir))
+    html_path.write_text(_html(*parts, out_dir))
     return md_path, html_path
 
 

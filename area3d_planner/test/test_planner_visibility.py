@@ -509,22 +509,20 @@ def test_a_minimum_range_leaves_the_shells_in_place_and_moves_them_out_only_when
     assert cdist(far, occupied).min() >= 1.0 - half_diagonal
 
 
-@pytest.mark.parametrize("above_occludes", [False, True])
-def test_unknown_space_over_the_region_hides_nothing_at_object_level(above_occludes):
-    # the region carved free around an object, everything outside it unknown (a stereo pair's
-    # unmatched background carves nothing): by default (`unknown_above_occludes: false`) a view
-    # from above sees the object's top through the unknown column over the region (a cupboard's
-    # top was never looked at from above: that column hid it); unknown space beside the region
-    # still hides what is behind it; `true` hides the object from every view
+def _region_around_a_block(half: float, block_state: int, **config):
+    """An object-level map: the region carved free around a block (`half` metres either side of
+    (0, 0, 0.25), set to `block_state`), everything outside the region unknown (a stereo pair's
+    unmatched background carves nothing). Returns (grid, occupancy, block, the voxels any
+    candidate view's mask records)."""
     from area3d_planner.test.conftest import set_occupancy
 
-    config = PlannerConfig(level="object", unknown_above_occludes=above_occludes)
+    config = PlannerConfig(level="object", **config)
     grid = config.fused_grid()
     context = config.planning_context(grid)
     centres = grid.spec.centers_of(np.arange(grid.spec.num_voxels))
     occ = np.where(grid.roi_mask, 0, -1).astype(np.int8)
-    block = np.all(np.abs(centres - np.array([0.0, 0.0, 0.25])) <= 0.05, axis=1)
-    occ[block] = 1
+    block = np.all(np.abs(centres - np.array([0.0, 0.0, 0.25])) <= half, axis=1)
+    occ[block] = block_state
     set_occupancy(grid, occ)
     (seeds, _), caches = context.build(occ, kinds=("roi_not_free",))
     cache = caches["roi_not_free"]
@@ -532,6 +530,18 @@ def test_unknown_space_over_the_region_hides_nothing_at_object_level(above_occlu
     seen = np.zeros(grid.spec.num_voxels, bool)
     for view in range(cache.num_views):
         seen[cache.mask(view)[0]] = True
+    return grid, occ, block, seen
+
+
+@pytest.mark.parametrize("above_occludes", [False, True])
+def test_unknown_space_over_the_region_hides_nothing_at_object_level(above_occludes):
+    # the region carved free around an object, everything outside it unknown: by default
+    # (`unknown_above_occludes: false`) a view from above sees the object's top through the
+    # unknown column over the region (a cupboard's top was never looked at from above: that
+    # column hid it); unknown space beside the region still hides what is behind it; `true`
+    # hides the object from every view
+    grid, occ, block, seen = _region_around_a_block(0.05, 1, unknown_above_occludes=above_occludes)
+    centres = grid.spec.centers_of(np.arange(grid.spec.num_voxels))
     faces = block & grid.boundary(occ)  # the voxels beside carved space
     top = faces & (centres[:, 2] > 0.29)
     assert top.sum() >= 50 and grid.over_region[centres[:, 2] > 0.55].any()
@@ -547,22 +557,7 @@ def test_a_view_sees_into_unknown_space_as_deep_as_the_see_through_and_no_deeper
     # a block of unknown space (the shadow an object leaves) in a region carved free around it:
     # the masks record the block's boundary layer, and with see-through the unknown voxels up to
     # that many voxels deep, never the block's core behind them
-    from area3d_planner.test.conftest import set_occupancy
-
-    config = PlannerConfig(level="object", unknown_see_through=see_through)
-    grid = config.fused_grid()
-    context = config.planning_context(grid)
-    centres = grid.spec.centers_of(np.arange(grid.spec.num_voxels))
-    occ = np.where(grid.roi_mask, 0, -1).astype(np.int8)
-    block = np.all(np.abs(centres - np.array([0.0, 0.0, 0.25])) <= 0.075, axis=1)
-    occ[block] = -1
-    set_occupancy(grid, occ)
-    (seeds, _), caches = context.build(occ, kinds=("roi_not_free",))
-    cache = caches["roi_not_free"]
-    assert len(seeds) > 0
-    seen = np.zeros(grid.spec.num_voxels, bool)
-    for view in range(cache.num_views):
-        seen[cache.mask(view)[0]] = True
+    grid, occ, block, seen = _region_around_a_block(0.075, -1, unknown_see_through=see_through)
     # depth into the block: whole voxels (on every axis) to the nearest free voxel
     from scipy import ndimage
 
