@@ -154,15 +154,13 @@ def _run_set(
 
 
 def _print_table(run: RunSet, console: Console) -> list[dict]:
-    from area3d_eval import rundir
     from area3d_eval.report import TABLE_METRICS, aggregate, load_runs
 
-    run_dirs = run.run_dirs()
-    records = load_runs(run_dirs, evaluate_missing=False)
+    records = load_runs(run.run_dirs(), evaluate_missing=False)
     rows = aggregate(records)
     episode_seconds: dict[tuple[str, str], list[float]] = defaultdict(list)
-    for run_dir in run_dirs:
-        episode = rundir.read_episode(run_dir)
+    for record in records:  # the runs of the table's rows: those with metrics
+        episode = record.episode
         episode_seconds[(episode.scene, episode.policy)].append(
             episode.timings_s.get("episode_total", np.nan)
         )

@@ -1,7 +1,6 @@
 """The planner's configuration: every parameter with its default and description
 (`PlannerConfig`; the paper's settings per level: `levels.py`), and the grid and planning context
-the configuration describes. No state: `server.py` builds the
-planner from it."""
+the configuration describes. No state: `server.py` builds the planner from it."""
 
 from __future__ import annotations
 

@@ -255,9 +255,8 @@ class PlanningContext:
         self, kind: str, occupancy: np.ndarray, seeds: np.ndarray, rotations: np.ndarray
     ) -> VisibilityCache:
         relevant = self._relevant(kind, occupancy)
-        occluders = self.occluders(occupancy)
+        occluders, seen_into = self._unknown_in_view(occupancy)
         if occluders is not None:
-            seen_into = self.seen_into(occupancy)
             relevant &= occluders if seen_into is None else occluders | seen_into
         base = self._caches.get(kind) or self._previous.pop(kind, None)
         if base is not None:  # what the map changed since, re-examined only where it shows
@@ -282,23 +281,25 @@ class PlanningContext:
         over the region (above its top, within its footprint) does not (`unknown_above_occludes:
         false`): a view from above sees the region through it, and a surface there occludes
         once a frame maps it."""
-        if not self.visibility.unknown_occludes:
-            return None
-        occluders = self.grid.boundary(occupancy)
-        if layers := self._see_through_layers():
-            unknown = occupancy == UNKNOWN
-            deeper = self.grid.near_free(occupancy, layers + 1)
-            deeper &= unknown & ~self.grid.near_free(occupancy, layers)
-            occluders = (occluders & ~unknown) | deeper
-        return self._over_region_hides_nothing(occluders, occupancy)
+        return self._unknown_in_view(occupancy)[0]
 
     def seen_into(self, occupancy: np.ndarray) -> np.ndarray | None:
         """(N,) bool: the unknown voxels within `unknown_see_through` of carved space, which a
         view sees in front of the layer that occludes (`occluders`); None without see-through."""
-        if not self.visibility.unknown_occludes or not (layers := self._see_through_layers()):
-            return None
-        seen = (occupancy == UNKNOWN) & self.grid.near_free(occupancy, layers)
-        return self._over_region_hides_nothing(seen, occupancy)
+        return self._unknown_in_view(occupancy)[1]
+
+    def _unknown_in_view(self, occupancy: np.ndarray) -> tuple:
+        """(`occluders`, `seen_into`) of one occupancy, each dilation of carved space done once."""
+        if not self.visibility.unknown_occludes:
+            return None, None
+        occluders = self.grid.boundary(occupancy)
+        if not (layers := self._see_through_layers()):
+            return self._over_region_hides_nothing(occluders, occupancy), None
+        unknown = occupancy == UNKNOWN
+        seen = unknown & self.grid.near_free(occupancy, layers)
+        deeper = unknown & self.grid.near_free(occupancy, layers + 1) & ~seen
+        occluders = (occluders & ~unknown) | deeper
+        return tuple(self._over_region_hides_nothing(m, occupancy) for m in (occluders, seen))
 
     def _see_through_layers(self) -> int:
         return int(round(self.visibility.unknown_see_through / self.grid.spec.voxel_size))
