@@ -45,7 +45,7 @@ import rclpy  # noqa: E402
 from builtin_interfaces.msg import Time  # noqa: E402
 from geometry_msgs.msg import PoseStamped, TransformStamped  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
-from rclpy.executors import ExternalShutdownException  # noqa: E402
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.qos import (  # noqa: E402
     DurabilityPolicy,
@@ -54,6 +54,7 @@ from rclpy.qos import (  # noqa: E402
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
@@ -420,18 +421,27 @@ class Driver(Node):
         self.captured.publish(String(data=json.dumps({"stamp_ns": ns, "goal": goal_ns})))
 
 
-def _stop(*_):
-    # as Ctrl-C: spin ends where it is, even inside a callback; shutting the context down from
-    # the handler instead let a tick interrupted mid-way publish on a dead context (a traceback)
-    raise KeyboardInterrupt
+_STOP: list[int] = []  # the signals received
+
+
+def _stop(signum, _frame):
+    # only noted: the loop in main ends after the callback in progress. Raising here (as Ctrl-C
+    # does) landed once in a finaliser rclpy runs (a traceback: "Exception ignored in ... Future
+    # .__del__"), and shutting the context down from here let a tick interrupted mid-way
+    # publish on a dead context
+    _STOP.append(signum)
 
 
 def main(config):
-    signal.signal(signal.SIGTERM, _stop)
-    rclpy.init()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _stop)
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = Driver(config)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
     try:
-        rclpy.spin(node)
+        while not _STOP:
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

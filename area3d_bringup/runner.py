@@ -29,7 +29,6 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 
 from area3d_bringup.episode_config import EpisodeConfig, EpisodeError
 from area3d_bringup.episode_record import EpisodeRecord
@@ -39,7 +38,7 @@ from area3d_bringup.mission_sync import READS, REPLAY_RESEND_S, NodeRespawned
 from area3d_bringup.recorder import BagRecorder
 from area3d_eval import rundir
 from area3d_msgs_py import codecs, middleware, msgs, topics
-from area3d_msgs_py.spinning import Spinner
+from area3d_msgs_py.spinning import GuardedExecutor, Spinner
 
 __all__ = ["EpisodeConfig", "EpisodeError", "run_episode"]
 
@@ -156,7 +155,7 @@ class _Episode(EpisodeRecord):
             namespace=config.namespace or None,
         )
         restore_sigint = self._note_sigint(context)
-        executor = SingleThreadedExecutor(context=context)
+        executor = GuardedExecutor(context=context)
         executor.add_node(self.manager)
         spinner = Spinner(executor, name=NAME)
         where = (

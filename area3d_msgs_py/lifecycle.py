@@ -17,11 +17,12 @@ from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 import rclpy
-from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException
 from rclpy.node import Node
 
 from area3d_msgs_py import middleware
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.spinning import GuardedExecutor
 
 # What a node's constructor raises for a configuration it cannot start with (bad parameters, a
 # missing file, model or library): logged as fatal, exit code 1.
@@ -177,7 +178,7 @@ def run_node(
     name: str,
     args: Sequence[str] | None = None,
     startup_errors: tuple[type[Exception], ...] = STARTUP_ERRORS,
-    executor: Callable[[], Executor] = SingleThreadedExecutor,
+    executor: Callable[[], Executor] = GuardedExecutor,
     on_stop: Callable[[Node], None] | None = None,
 ) -> int:
     """Run one node process: 0 after a clean stop (SIGINT, shutdown), 1 when it could not start.

@@ -16,11 +16,10 @@ from collections.abc import Callable
 from typing import Any
 
 import rclpy
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.qos import QoSProfile
 
 from area3d_msgs_py import qos, services
-from area3d_msgs_py.spinning import Spinner
+from area3d_msgs_py.spinning import GuardedMultiThreadedExecutor, Spinner
 
 
 class Probe:
@@ -30,7 +29,7 @@ class Probe:
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = rclpy.create_node(name, context=self.context, namespace=namespace)
-        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        self.executor = GuardedMultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)
         self._spinner = Spinner(self.executor, name=f"{name}-spin")
 

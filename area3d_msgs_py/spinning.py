@@ -1,4 +1,5 @@
-"""An executor spun on a thread of its own that is stopped before the executor is shut down.
+"""Executors: one spun on a thread of its own and stopped before it is shut down; executors that
+survive a message they cannot take.
 
 rclpy's ``Executor.shutdown`` (Jazzy) destroys the executor's guard condition without waiting for
 a ``spin`` in progress on another thread: the spinning thread, woken inside its wait, then reads
@@ -8,15 +9,37 @@ future's completion wakes the wait and the wait returns; ``Executor.wake`` alone
 wait again). ``stop`` completes the future, joins the thread, waits for the callbacks a
 ``MultiThreadedExecutor`` handed to its pool (``shutdown`` does not wait for them either), and
 only then shuts the executor down, so the nodes can be destroyed after it.
+
+``GuardedExecutor`` and ``GuardedMultiThreadedExecutor`` are rclpy's executors that survive a
+message they cannot take. rclpy (Jazzy) builds the Python message inside ``take``; when that
+fails (the message class raised while being built), ``take`` raises ("Unable to convert call
+argument '0' to Python object") from inside the executor's task, *before* the task marks the
+subscription taken and releases its callback group: the exception ends ``spin``, and every later
+``spin`` serves neither that subscription nor anything else in its callback group (a node's
+default group: all its subscriptions and timers). The node looks alive and does nothing. These
+executors drop such a message as a lost one, log it (at most once a second per topic, with the
+count), count it per topic (``untaken``; the status line's ``messages_dropped_untaken``) and go
+on serving everything.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections import Counter
+from typing import Any
 
-from rclpy.executors import Executor, ExternalShutdownException, ShutdownException
+import rclpy.logging
+from rclpy.executors import (
+    Executor,
+    ExternalShutdownException,
+    MultiThreadedExecutor,
+    ShutdownException,
+    SingleThreadedExecutor,
+)
 from rclpy.task import Future
+
+LOG_PERIOD_S = 1.0  # per topic, the most often a dropped message is logged
 
 
 class Spinner:
@@ -52,3 +75,60 @@ class Spinner:
         stopped = not self._thread.is_alive() and all(f.done() for f in in_flight)
         self.executor.shutdown()
         return stopped
+
+
+class _TakeGuard:
+    """The executor mixin behind `GuardedExecutor` (see the module's docstring)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._untaken_lock = threading.Lock()
+        self._untaken: Counter[str] = Counter()
+        self._untaken_logged: dict[str, tuple[float, int]] = {}  # topic: (when, count then)
+
+    def _take_subscription(self, sub: Any) -> Any:
+        try:
+            return super()._take_subscription(sub)
+        except Exception as exc:
+            if not self.context.ok():  # shutting down: what rclpy does then, unchanged
+                raise
+            self._dropped(sub, exc)
+            return None  # no callback: the task marks it taken and frees its group
+
+    def _dropped(self, sub: Any, exc: Exception) -> None:
+        topic = sub.topic_name
+        now = time.monotonic()
+        with self._untaken_lock:
+            self._untaken[topic] += 1
+            count = self._untaken[topic]
+            last = self._untaken_logged.get(topic)
+            log = last is None or now - last[0] >= LOG_PERIOD_S
+            if log:
+                self._untaken_logged[topic] = (now, count)
+        if not log:
+            return
+        since = "" if last is None else f"; {count - last[1] - 1} more not logged since"
+        kind = getattr(sub.msg_type, "__name__", str(sub.msg_type))
+        self._logger_of(sub).warning(
+            f"{topic}: a {kind} message could not be taken ({type(exc).__name__}: {exc}); "
+            f"dropped as a lost message ({count} on this topic so far{since})"
+        )
+
+    def _logger_of(self, sub: Any) -> Any:
+        for node in self.get_nodes():
+            if sub in node.subscriptions:
+                return node.get_logger()
+        return rclpy.logging.get_logger("executor")
+
+    def untaken(self) -> dict[str, int]:
+        """Messages dropped because they could not be taken, per topic (JSON-ready)."""
+        with self._untaken_lock:
+            return dict(self._untaken)
+
+
+class GuardedExecutor(_TakeGuard, SingleThreadedExecutor):
+    """rclpy's `SingleThreadedExecutor`, surviving a message it cannot take."""
+
+
+class GuardedMultiThreadedExecutor(_TakeGuard, MultiThreadedExecutor):
+    """rclpy's `MultiThreadedExecutor`, surviving a message it cannot take."""

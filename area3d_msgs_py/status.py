@@ -61,8 +61,16 @@ class StatusPublisher:
         self._soon.cancel()
         self.publish()
 
-    def _heartbeat(self) -> None:
+    def _state_now(self) -> dict:
+        """`state()`, with the messages the node's executor could not take (a `GuardedExecutor`'s
+        `untaken`), per topic, once there are any."""
         state = self._state()
+        untaken = getattr(getattr(self._node, "executor", None), "untaken", None)
+        counts = untaken() if callable(untaken) else None
+        return {**state, "messages_dropped_untaken": counts} if counts else state
+
+    def _heartbeat(self) -> None:
+        state = self._state_now()
         if self._json_heartbeat:
             self._pub.publish(msgs.String(data=json.dumps(state)))
         self._publish_diagnostics(state)
@@ -71,7 +79,7 @@ class StatusPublisher:
 
     def publish(self) -> dict:
         """Publish the state now (JSON and diagnostics); returns it."""
-        state = self._state()
+        state = self._state_now()
         if self._pub is not None:
             self._pub.publish(msgs.String(data=json.dumps(state)))
         self._publish_diagnostics(state)

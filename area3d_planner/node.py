@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
 from area3d_msgs_py import codecs, map_files, msgs, qos, topics
@@ -49,6 +48,7 @@ from area3d_msgs_py.parameters import (
 from area3d_msgs_py.pose_source import PoseSourceConfig
 from area3d_msgs_py.posed_frames import PosedFrames
 from area3d_msgs_py.scheduling import FrameWorker
+from area3d_msgs_py.spinning import GuardedMultiThreadedExecutor
 from area3d_msgs_py.status import StatusPublisher
 from area3d_planner import map_io
 from area3d_planner.config import PlannerConfig
@@ -487,7 +487,7 @@ def main(args: Sequence[str] | None = None) -> int:
         PlannerNode,
         "planner",
         args,
-        executor=lambda: MultiThreadedExecutor(num_threads=EXECUTOR_THREADS),
+        executor=lambda: GuardedMultiThreadedExecutor(num_threads=EXECUTOR_THREADS),
         on_stop=lambda node: node.stop(),
     )
 

@@ -1,13 +1,19 @@
-"""An executor spun on its own thread stops without its thread touching what shutdown destroyed."""
+"""An executor spun on its own thread stops without its thread touching what shutdown destroyed;
+the guarded executors survive a message they cannot take."""
 
 import threading
 import time
 
 import pytest
 import rclpy
+import std_msgs.msg._string as string_module
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.qos import QoSProfile
+from std_msgs.msg import String
 
-from area3d_msgs_py.spinning import Spinner
+from area3d_msgs_py import diagnostics, spinning
+from area3d_msgs_py.spinning import GuardedExecutor, GuardedMultiThreadedExecutor, Spinner
+from area3d_msgs_py.status import StatusPublisher
 
 TIMEOUT_S = 60.0
 
@@ -87,3 +93,107 @@ def test_an_idle_spinner_stops_without_waiting_out_its_timeout(thread_errors):
     finally:
         context.try_shutdown()
     assert thread_errors == []
+
+
+class _Untakeable:
+    """Makes the next `failures` String messages rclpy takes fail to build, as one the CI saw
+    did: rclpy builds a taken message by calling the class its module names, and this puts a
+    class there whose constructor raises."""
+
+    def __init__(self, monkeypatch, failures: int) -> None:
+        self.left = failures
+        owner = self
+
+        class Failing(String):
+            def __init__(self, **kwargs):
+                if owner.left > 0:
+                    owner.left -= 1
+                    raise RuntimeError("the message class raised")
+                super().__init__(**kwargs)
+
+        monkeypatch.setattr(string_module, "String", Failing)
+
+
+def _talk(context, name: str):
+    """A node with a String subscription, a timer in the same (default) callback group, and a
+    publisher to the subscription; what arrives and the ticks are recorded."""
+    node = rclpy.create_node(name, context=context)
+    got: list[str] = []
+    ticks: list[int] = []
+    node.create_subscription(String, "said", lambda m: got.append(m.data), QoSProfile(depth=10))
+    node.create_timer(0.01, lambda: ticks.append(1))
+    pub = node.create_publisher(String, "said", QoSProfile(depth=10))
+    return node, pub, got, ticks
+
+
+def _spin_until(executor, done, timeout_s: float = TIMEOUT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not done() and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+
+
+def test_rclpy_alone_stops_serving_a_node_after_a_message_it_cannot_take(monkeypatch):
+    """Why the guarded executors exist: rclpy's own executor raises the CI's error from `spin`,
+    and from then on serves neither the subscription nor the timer beside it."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node, pub, got, ticks = _talk(context, "plain")
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        messages = [String(data=str(i)) for i in range(3)]  # built before the class is swapped
+        _Untakeable(monkeypatch, 1)
+        pub.publish(messages[0])
+        with pytest.raises(RuntimeError, match="Unable to convert call argument '0'"):
+            _spin_until(executor, lambda: False)
+        before = len(ticks)
+        for message in messages[1:]:
+            pub.publish(message)
+        for _ in range(40):  # 2 s of spinning: enough for 200 ticks
+            executor.spin_once(timeout_sec=0.05)
+        assert got == [] and len(ticks) == before
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
+
+
+@pytest.mark.parametrize("make", [GuardedExecutor, GuardedMultiThreadedExecutor])
+def test_a_message_that_cannot_be_taken_is_dropped_counted_and_logged_and_the_node_serves_on(
+    make, monkeypatch, capfd
+):
+    monkeypatch.setattr(spinning, "LOG_PERIOD_S", 3600.0)  # one log line per topic, then counts
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node, pub, got, ticks = _talk(context, "guarded")
+        executor = make(context=context)
+        executor.add_node(node)
+        status = StatusPublisher(node, None, lambda: {"frames": 0})
+        assert status.publish() == {"frames": 0}
+        messages = [String(data=str(i)) for i in range(5)]
+        untakeable = _Untakeable(monkeypatch, 2)
+        pub.publish(messages[0])
+        _spin_until(executor, lambda: untakeable.left == 1)
+        pub.publish(messages[1])
+        _spin_until(executor, lambda: untakeable.left == 0)
+        assert executor.untaken() == {"/said": 2}
+        # the node's status says so, and its diagnostics warn
+        state = status.publish()
+        assert state == {"frames": 0, "messages_dropped_untaken": {"/said": 2}}
+        assessment = diagnostics.assess(state, {"frames": 0})
+        assert assessment.level == diagnostics.WARN
+        assert "2 dropped (messages_dropped_untaken./said)" in assessment.message
+        before = len(ticks)
+        for message in messages[2:]:
+            pub.publish(message)
+        _spin_until(executor, lambda: len(got) == 3 and len(ticks) > before)
+        assert got == ["2", "3", "4"]  # the two that could not be taken are lost, no other
+        assert len(ticks) > before  # the timer in the same callback group still fires
+        err = capfd.readouterr().err
+        # the first is logged with the topic, the type and the error; the second only counted
+        assert err.count("could not be taken") == 1, err
+        assert "/said: a String message could not be taken (RuntimeError: Unable to convert" in err
+        assert "dropped as a lost message (1 on this topic so far)" in err
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
