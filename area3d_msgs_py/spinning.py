@@ -19,7 +19,7 @@ subscription taken and releases its callback group: the exception ends ``spin``,
 default group: all its subscriptions and timers). The node looks alive and does nothing. These
 executors drop such a message as a lost one, log it (at most once a second per topic, with the
 count), count it per topic (``untaken``; the status line's ``messages_dropped_untaken``) and go
-on serving everything.
+on serving everything; a service request or response that cannot be taken likewise.
 """
 
 from __future__ import annotations
@@ -39,7 +39,8 @@ from rclpy.executors import (
 )
 from rclpy.task import Future
 
-LOG_PERIOD_S = 1.0  # per topic, the most often a dropped message is logged
+LOG_PERIOD_S = 1.0  # per topic or service, the most often a dropped message is logged
+_NAMES = {"message": "topic", "request": "service", "response": "service"}
 
 
 class Spinner:
@@ -90,13 +91,26 @@ class _TakeGuard:
         try:
             return super()._take_subscription(sub)
         except Exception as exc:
-            if not self.context.ok():  # shutting down: what rclpy does then, unchanged
-                raise
-            self._dropped(sub, exc)
-            return None  # no callback: the task marks it taken and frees its group
+            return self._dropped(sub, sub.topic_name, sub.msg_type, "message", exc)
 
-    def _dropped(self, sub: Any, exc: Exception) -> None:
-        topic = sub.topic_name
+    def _take_service(self, srv: Any) -> Any:
+        try:
+            return super()._take_service(srv)
+        except Exception as exc:  # the request is lost: its client's call times out
+            return self._dropped(srv, srv.service_name, srv.srv_type, "request", exc)
+
+    def _take_client(self, client: Any) -> Any:
+        try:
+            return super()._take_client(client)
+        except Exception as exc:  # the response is lost: the call's future never completes
+            return self._dropped(client, client.service_name, client.srv_type, "response", exc)
+
+    def _dropped(self, entity: Any, topic: str, kind: Any, what: str, exc: Exception) -> None:
+        """Count and log what could not be taken; None: no callback, so the executor's task
+        marks the entity taken and frees its callback group. While the context shuts down,
+        what rclpy does then, unchanged."""
+        if not self.context.ok():
+            raise exc
         now = time.monotonic()
         with self._untaken_lock:
             self._untaken[topic] += 1
@@ -106,22 +120,28 @@ class _TakeGuard:
             if log:
                 self._untaken_logged[topic] = (now, count)
         if not log:
-            return
+            return None
         since = "" if last is None else f"; {count - last[1] - 1} more not logged since"
-        kind = getattr(sub.msg_type, "__name__", str(sub.msg_type))
-        self._logger_of(sub).warning(
-            f"{topic}: a {kind} message could not be taken ({type(exc).__name__}: {exc}); "
-            f"dropped as a lost message ({count} on this topic so far{since})"
+        name = getattr(kind, "__name__", str(kind))
+        cause = exc.__cause__ or exc.__context__
+        why = f"{type(exc).__name__}: {exc}" + (
+            "" if cause is None else f", from {type(cause).__name__}: {cause}"
         )
+        self._logger_of(entity).warning(
+            f"{topic}: a {name} {what} could not be taken ({why}); "
+            f"dropped as a lost {what} ({count} on this {_NAMES[what]} so far{since})"
+        )
+        return None
 
-    def _logger_of(self, sub: Any) -> Any:
+    def _logger_of(self, entity: Any) -> Any:
         for node in self.get_nodes():
-            if sub in node.subscriptions:
+            if any(entity in group for group in (node.subscriptions, node.services, node.clients)):
                 return node.get_logger()
         return rclpy.logging.get_logger("executor")
 
     def untaken(self) -> dict[str, int]:
-        """Messages dropped because they could not be taken, per topic (JSON-ready)."""
+        """Messages, requests and responses dropped because they could not be taken, per topic or
+        service (JSON-ready)."""
         with self._untaken_lock:
             return dict(self._untaken)
 

@@ -7,9 +7,11 @@ import time
 import pytest
 import rclpy
 import std_msgs.msg._string as string_module
+import std_srvs.srv._trigger as trigger_module
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from area3d_msgs_py import diagnostics, spinning
 from area3d_msgs_py.spinning import GuardedExecutor, GuardedMultiThreadedExecutor, Spinner
@@ -96,22 +98,23 @@ def test_an_idle_spinner_stops_without_waiting_out_its_timeout(thread_errors):
 
 
 class _Untakeable:
-    """Makes the next `failures` String messages rclpy takes fail to build, as one the CI saw
+    """Makes the next `failures` messages of a type rclpy takes fail to build, as one the CI saw
     did: rclpy builds a taken message by calling the class its module names, and this puts a
     class there whose constructor raises."""
 
-    def __init__(self, monkeypatch, failures: int) -> None:
+    def __init__(self, monkeypatch, failures: int, module=string_module, name="String") -> None:
         self.left = failures
         owner = self
+        base = getattr(module, name)
 
-        class Failing(String):
+        class Failing(base):
             def __init__(self, **kwargs):
                 if owner.left > 0:
                     owner.left -= 1
                     raise RuntimeError("the message class raised")
                 super().__init__(**kwargs)
 
-        monkeypatch.setattr(string_module, "String", Failing)
+        monkeypatch.setattr(module, name, Failing)
 
 
 def _talk(context, name: str):
@@ -195,5 +198,39 @@ def test_a_message_that_cannot_be_taken_is_dropped_counted_and_logged_and_the_no
         assert "/said: a String message could not be taken (RuntimeError: Unable to convert" in err
         assert "dropped as a lost message (1 on this topic so far)" in err
         node.destroy_node()
+    finally:
+        context.try_shutdown()
+
+
+def test_a_request_that_cannot_be_taken_is_dropped_and_the_service_answers_the_next(
+    monkeypatch, capfd
+):
+    """The same for a service: the request that cannot be built is lost (its call gets no
+    answer, as a lost request), the next one is answered."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        server = rclpy.create_node("server", context=context)
+        server.create_service(Trigger, "trigger", lambda _, r: setattr(r, "success", True) or r)
+        caller = rclpy.create_node("caller", context=context)
+        client = caller.create_client(Trigger, "trigger")
+        executor = GuardedExecutor(context=context)
+        executor.add_node(server)
+        executor.add_node(caller)
+        _spin_until(executor, client.service_is_ready)
+        untakeable = _Untakeable(monkeypatch, 1, trigger_module, "Trigger_Request")
+        lost = client.call_async(Trigger.Request())
+        _spin_until(executor, lambda: untakeable.left == 0)
+        answered = client.call_async(Trigger.Request())
+        _spin_until(executor, answered.done)
+        assert answered.result().success and not lost.done()
+        assert executor.untaken() == {"/trigger": 1}
+        err = capfd.readouterr().err
+        # (rclpy's service take reports the class's error as the cause of its own)
+        assert "/trigger: a Trigger request could not be taken (" in err, err
+        assert "from RuntimeError: the message class raised)" in err, err
+        assert "dropped as a lost request (1 on this service so far)" in err
+        server.destroy_node()
+        caller.destroy_node()
     finally:
         context.try_shutdown()
