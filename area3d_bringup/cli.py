@@ -108,6 +108,7 @@ def _fail(message: str) -> None:
 
 @app.command()
 def run(
+    ctx: typer.Context,
     scene: str = typer.Option(
         "single_object", help="bundled scene name or path to a MuJoCo MJCF file"
     ),
@@ -134,8 +135,9 @@ def run(
     out: Path = typer.Option(Path("runs"), help="where run directories are created"),
     resume: Path = typer.Option(
         None,
-        help="continue an interrupted run directory (with the run's own scene, policy, seed, "
-        "budget, mode and depth source: those options are not read)",
+        help="continue an interrupted run directory, with the run's own scene, policy, seed, "
+        "budget, mode and depth source (one of those options given with another value is "
+        "refused)",
     ),
     record: bool = typer.Option(True, help="record the episode as rosbag2 (MCAP)"),
     evaluate: bool = typer.Option(
@@ -169,7 +171,7 @@ def run(
     foxglove_address: str = typer.Option("127.0.0.1", help=FOXGLOVE_ADDRESS_HELP),
 ) -> None:
     """Run one episode over the node graph, then evaluate it and write the report."""
-    from area3d_bringup.episode_config import EpisodeConfig, EpisodeError
+    from area3d_bringup.episode_config import RESUMED_FIELDS, EpisodeConfig, EpisodeError
     from area3d_bringup.runner import run_episode
 
     config = EpisodeConfig(
@@ -191,6 +193,12 @@ def run(
         respawn_max_retries=respawn_retries,
         foxglove_port=foxglove,
         foxglove_address=foxglove_address,
+        # (typer's own click: its ParameterSource is not click's, so by name)
+        given=frozenset(
+            name
+            for name in RESUMED_FIELDS
+            if getattr(ctx.get_parameter_source(name), "name", "") == "COMMANDLINE"
+        ),
         **({} if min_free_mb is None else {"min_free_mb": min_free_mb}),
     )
     columns = (

@@ -31,6 +31,10 @@ class EpisodeError(RuntimeError):
     """The episode could not go on; the message says why and what was kept."""
 
 
+# what a resumed run reads from its own episode.json, not from the config
+RESUMED_FIELDS = ("scene", "policy", "mode", "seed", "budget", "depth_source")
+
+
 @dataclass
 class EpisodeConfig:
     scene: str = "single_object"
@@ -67,6 +71,9 @@ class EpisodeConfig:
     # serve every topic on a Foxglove WebSocket on this port (None: no live view)
     foxglove_port: int | None = None
     foxglove_address: str = "127.0.0.1"  # this machine only unless told otherwise
+    # the fields of RESUMED_FIELDS the user gave (the CLI's options on the command line): a
+    # resumed run keeps its own and refuses one of these that differs from it
+    given: frozenset[str] = frozenset()
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that cannot run."""

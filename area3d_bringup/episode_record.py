@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from area3d_bringup.episode_config import EpisodeConfig, episode_budget
+from area3d_bringup.episode_config import RESUMED_FIELDS, EpisodeConfig, episode_budget
 from area3d_bringup.launch_description import merge
 from area3d_bringup.launcher import Launcher
 from area3d_bringup.mission_manager import NAME, MissionManager
@@ -96,6 +96,7 @@ class EpisodeRecord:
         for key in ("scene", "policy", "mode", "seed", "budget", "views"):
             if key not in saved:
                 raise InputError(f"{episode_path}: {key}", "missing", "the run's own")
+        _check_given(config, saved)
         config.scene, config.policy, config.mode = saved["scene"], saved["policy"], saved["mode"]
         config.seed, self.budget = saved["seed"], saved["budget"]
         config.depth_source = saved.get("depth_source", config.depth_source)
@@ -190,4 +191,32 @@ class EpisodeRecord:
                 completed=len(self.frames),
                 description=f"{self.scene.name} / {self.config.policy}: view "
                 f"{len(self.frames)}/{self.budget} ({kind}){extra}",
+            )
+
+
+def _check_given(config: EpisodeConfig, saved: dict) -> None:
+    """Refuse a run option the user gave that differs from the resumed run's own (it would be
+    ignored: the run goes on as it began)."""
+    from sim_bridge.scenes import load_scene, scene_reference
+
+    def _scene_key(scene) -> str:
+        reference = scene_reference(scene)
+        return reference if reference == scene.name else str(Path(reference).resolve())
+
+    for key in RESUMED_FIELDS:
+        if key not in config.given:
+            continue
+        ours = getattr(config, key)
+        theirs = saved.get(key, "sensor" if key == "depth_source" else None)
+        if key == "scene":  # a bundled scene by its name, any other by its file
+            same = _scene_key(load_scene(ours)) == _scene_key(load_scene(theirs))
+        else:
+            same = ours == theirs
+        if not same:
+            raise InputError(
+                f"--{key.replace('_', '-')}",
+                ours,
+                f"the resumed run's own {theirs!r} (a run goes on with its own "
+                + ", ".join(f.replace("_", " ") for f in RESUMED_FIELDS)
+                + ": leave the option out)",
             )

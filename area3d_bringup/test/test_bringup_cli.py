@@ -176,3 +176,51 @@ def test_a_stop_while_evaluating_names_the_command_that_finishes_the_report(tmp_
     # on one line, whatever the terminal's width: a folded path would not paste as one
     line = next(row for row in result.output.splitlines() if "episode is complete" in row)
     assert f"`area3d report '{run_dir}'` evaluates it" in line, result.output
+
+
+def _saved_run(tmp_path, **fields):
+    """A run directory whose episode.json is what a run that stopped before its first view
+    wrote (what --resume reads first)."""
+    import json
+
+    run_dir = tmp_path / "stopped"
+    run_dir.mkdir()
+    saved = {"scene": "single_object", "policy": "area3d", "mode": "closed_loop", "seed": 0}
+    saved |= {"budget": 10, "depth_source": "sensor", "views": []} | fields
+    (run_dir / "episode.json").write_text(json.dumps(saved))
+    return run_dir
+
+
+def test_resume_refuses_a_run_option_that_differs_from_the_runs_own(tmp_path):
+    run_dir = _saved_run(tmp_path)
+    for option, value, theirs in (
+        ("--seed", "3", "0"),
+        ("--policy", "uniform", "'area3d'"),
+        ("--scene", "five_objects", "'single_object'"),
+        ("--depth-source", "estimated", "'sensor'"),
+        ("--budget", "12", "10"),
+    ):
+        text = _refused_run(tmp_path, "--resume", str(run_dir), option, value)
+        shown = value if option in ("--seed", "--budget") else f"'{value}'"
+        assert f"{option}: got {shown}, expected the resumed run's own {theirs}" in text, text
+        assert "leave the option out" in text
+
+
+def test_resume_takes_the_runs_own_options_and_those_given_with_the_same_values():
+    from pathlib import Path
+
+    from area3d_bringup.episode_config import EpisodeConfig
+    from area3d_bringup.episode_record import _check_given
+    from sim_bridge.scenes import load_scene
+
+    saved = {"scene": "single_object", "policy": "area3d", "mode": "closed_loop", "seed": 0}
+    saved |= {"budget": 10, "depth_source": "estimated"}
+    bundled = str(Path(load_scene("single_object").mjcf_path))  # the same scene by its file
+    given = frozenset({"scene", "policy", "mode", "seed", "budget", "depth_source"})
+    same = EpisodeConfig(scene=bundled, budget=10, depth_source="estimated", given=given)
+    _check_given(same, saved)  # nothing refused
+    # options not given are never compared (they are the CLI's defaults, not the user's)
+    _check_given(EpisodeConfig(seed=5, policy="uniform"), saved)
+    # an older run's episode.json without depth_source ran on the camera's depth
+    older = {k: v for k, v in saved.items() if k != "depth_source"}
+    _check_given(EpisodeConfig(given=frozenset({"depth_source"})), older)
