@@ -136,8 +136,8 @@ def run(
     resume: Path = typer.Option(
         None,
         help="continue an interrupted run directory, with the run's own scene, policy, seed, "
-        "budget, mode and depth source (one of those options given with another value is "
-        "refused)",
+        "budget, mode, depth source and node parameters (one of those given with another value "
+        "is refused)",
     ),
     record: bool = typer.Option(True, help="record the episode as rosbag2 (MCAP)"),
     evaluate: bool = typer.Option(

@@ -42,7 +42,7 @@ class EpisodeRecord:
         self.stopped_early = ""  # why this run of the episode ended before the budget, if it did
         if resume is not None:
             self._resume(Path(resume))
-            self.specs = self._specs()
+            self.specs = self._resumed_specs()
         else:
             # the parameters are checked before the run directory is made: a run refused for a
             # parameter leaves nothing behind
@@ -108,6 +108,44 @@ class EpisodeRecord:
         ]
         self.timings = saved.get("timings_s", {})
         self.recorded = dict(saved.get("recorded", {}))
+        # every node's parameters as the run began ({} from a run that did not save them)
+        self.saved_parameters: dict[str, dict] = dict(saved.get("config") or {})
+
+    def _resumed_specs(self) -> list:
+        """The graph's node specs of a resumed run: each node with the parameters the run began
+        with (episode.json's `config`), the camera's noise going on after the saved captures. A
+        parameter given now (`-p`, `--camera`) with another value than the run's own, or a
+        parameter file, is refused by name: the rest of the run would not be the run it was."""
+        saved = self.saved_parameters
+        if not saved:  # a run directory from before the parameters were saved: as given now
+            return self._specs()
+        if self.config.params_file is not None:
+            raise InputError(
+                "--params",
+                str(self.config.params_file),
+                "none with --resume (a resumed run keeps the parameters it began with, "
+                "episode.json's config)",
+            )
+        for node, parameters in self.config.overrides.items():
+            own = saved.get(node, {})
+            for key, value in parameters.items():
+                if key not in own or own[key] != value:
+                    theirs = repr(own[key]) if key in own else "the node's default (not set)"
+                    raise InputError(
+                        f"{node}.{key} (-p, --camera)",
+                        value,
+                        f"the resumed run's own {theirs} (a run goes on with the parameters it "
+                        "began with: leave it out)",
+                    )
+        specs = self._specs()
+        for spec in specs:
+            if spec.name in saved:
+                resumed = {k: v for k, v in saved[spec.name].items() if k != "noise_skip"}
+                for key in ("noise_skip", "readers.all"):  # this run's, not the saved one's
+                    if key in spec.parameters:
+                        resumed[key] = spec.parameters[key]
+                spec.parameters = resumed
+        return specs
 
     # -- the run directory ----------------------------------------------------------------------
     def save(self) -> None:

@@ -4,6 +4,7 @@ loads none of them."""
 
 from __future__ import annotations
 
+import pytest
 import typer
 from typer.testing import CliRunner
 
@@ -224,3 +225,43 @@ def test_resume_takes_the_runs_own_options_and_those_given_with_the_same_values(
     # an older run's episode.json without depth_source ran on the camera's depth
     older = {k: v for k, v in saved.items() if k != "depth_source"}
     _check_given(EpisodeConfig(given=frozenset({"depth_source"})), older)
+
+
+def _resumed(run_dir, **config):
+    from area3d_bringup.episode_config import EpisodeConfig
+    from area3d_bringup.episode_record import EpisodeRecord
+
+    return EpisodeRecord(EpisodeConfig(**config), run_dir)
+
+
+def test_a_resumed_run_goes_on_with_the_parameters_it_began_with(tmp_path):
+    """A run begun with stereo perception and a planner's eta of 0.5, resumed without them: the
+    graph starts with the run's own parameters, not the defaults; given again with the same
+    values they are accepted, with other values or as a parameter file they are refused by
+    name before anything starts."""
+    from area3d_bringup.presets import episode_specs
+
+    began = {"perception": {"backend": "stereo"}, "planner": {"eta": 0.5}}
+    camera = {"sim_bridge": {"readers.all": ["mission_manager"]}}  # as the runner adds it
+    specs = episode_specs("single_object", "area3d", 0, 10, "closed_loop", began | camera)
+    saved_config = {spec.name: spec.parameters for spec in specs}
+    run_dir = _saved_run(tmp_path, config=saved_config)
+
+    def parameters(record):
+        return {spec.name: spec.parameters for spec in record.specs}
+
+    resumed = parameters(_resumed(run_dir))
+    assert resumed["perception"]["backend"] == "stereo" and resumed["planner"]["eta"] == 0.5
+    assert resumed == saved_config  # every node's, nothing from the defaults
+    assert parameters(_resumed(run_dir, overrides=began)) == saved_config
+    with pytest.raises(ValueError, match=r"planner.eta \(-p, --camera\): got 0.3, expected the "
+                       r"resumed run's own 0.5"):  # fmt: skip
+        _resumed(run_dir, overrides={"planner": {"eta": 0.3}})
+    with pytest.raises(ValueError, match=r"perception.sensor.max_range .*the node's default"):
+        _resumed(run_dir, overrides={"perception": {"sensor.max_range": 3.0}})  # --camera d435
+    with pytest.raises(ValueError, match="--params: got .*, expected none with --resume"):
+        _resumed(run_dir, params_file=tmp_path / "any.yaml")
+    # a run directory from before the parameters were saved resumes with what is given now
+    (tmp_path / "older").mkdir()
+    older = _saved_run(tmp_path / "older")
+    assert parameters(_resumed(older))["perception"]["backend"] == "rgbd"
