@@ -97,6 +97,15 @@ def test_an_idle_spinner_stops_without_waiting_out_its_timeout(thread_errors):
     assert thread_errors == []
 
 
+@pytest.fixture
+def context():
+    """A context of the test's own, shut down after it."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    yield context
+    context.try_shutdown()
+
+
 class _Untakeable:
     """Makes the next `failures` messages of a type rclpy takes fail to build, as one the CI saw
     did: rclpy builds a taken message by calling the class its module names, and this puts a
@@ -135,102 +144,87 @@ def _spin_until(executor, done, timeout_s: float = TIMEOUT_S) -> None:
         executor.spin_once(timeout_sec=0.05)
 
 
-def test_rclpy_alone_stops_serving_a_node_after_a_message_it_cannot_take(monkeypatch):
+def test_rclpy_alone_stops_serving_a_node_after_a_message_it_cannot_take(context, monkeypatch):
     """Why the guarded executors exist: rclpy's own executor raises the CI's error from `spin`,
     and from then on serves neither the subscription nor the timer beside it."""
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
-        node, pub, got, ticks = _talk(context, "plain")
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        messages = [String(data=str(i)) for i in range(3)]  # built before the class is swapped
-        _Untakeable(monkeypatch, 1)
-        pub.publish(messages[0])
-        with pytest.raises(RuntimeError, match="Unable to convert call argument '0'"):
-            _spin_until(executor, lambda: False)
-        before = len(ticks)
-        for message in messages[1:]:
-            pub.publish(message)
-        for _ in range(40):  # 2 s of spinning: enough for 200 ticks
-            executor.spin_once(timeout_sec=0.05)
-        assert got == [] and len(ticks) == before
-        node.destroy_node()
-    finally:
-        context.try_shutdown()
+    node, pub, got, ticks = _talk(context, "plain")
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    messages = [String(data=str(i)) for i in range(3)]  # built before the class is swapped
+    _Untakeable(monkeypatch, 1)
+    pub.publish(messages[0])
+    with pytest.raises(RuntimeError, match="Unable to convert call argument '0'"):
+        _spin_until(executor, lambda: False)
+    before = len(ticks)
+    for message in messages[1:]:
+        pub.publish(message)
+    for _ in range(40):  # 2 s of spinning: enough for 200 ticks
+        executor.spin_once(timeout_sec=0.05)
+    assert got == [] and len(ticks) == before
+    node.destroy_node()
 
 
 @pytest.mark.parametrize("make", [GuardedExecutor, GuardedMultiThreadedExecutor])
 def test_a_message_that_cannot_be_taken_is_dropped_counted_and_logged_and_the_node_serves_on(
-    make, monkeypatch, capfd
+    make, context, monkeypatch, capfd
 ):
     monkeypatch.setattr(spinning, "LOG_PERIOD_S", 3600.0)  # one log line per topic, then counts
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
-        node, pub, got, ticks = _talk(context, "guarded")
-        executor = make(context=context)
-        executor.add_node(node)
-        status = StatusPublisher(node, None, lambda: {"frames": 0})
-        assert status.publish() == {"frames": 0}
-        messages = [String(data=str(i)) for i in range(5)]
-        untakeable = _Untakeable(monkeypatch, 2)
-        pub.publish(messages[0])
-        _spin_until(executor, lambda: untakeable.left == 1)
-        pub.publish(messages[1])
-        _spin_until(executor, lambda: untakeable.left == 0)
-        assert executor.untaken() == {"/said": 2}
-        # the node's status says so, and its diagnostics warn
-        state = status.publish()
-        assert state == {"frames": 0, "messages_dropped_untaken": {"/said": 2}}
-        assessment = diagnostics.assess(state, {"frames": 0})
-        assert assessment.level == diagnostics.WARN
-        assert "2 dropped (messages_dropped_untaken./said)" in assessment.message
-        before = len(ticks)
-        for message in messages[2:]:
-            pub.publish(message)
-        _spin_until(executor, lambda: len(got) == 3 and len(ticks) > before)
-        assert got == ["2", "3", "4"]  # the two that could not be taken are lost, no other
-        assert len(ticks) > before  # the timer in the same callback group still fires
-        err = capfd.readouterr().err
-        # the first is logged with the topic, the type and the error; the second only counted
-        assert err.count("could not be taken") == 1, err
-        assert "/said: a String message could not be taken (RuntimeError: Unable to convert" in err
-        assert "dropped as a lost message (1 on this topic so far)" in err
-        node.destroy_node()
-    finally:
-        context.try_shutdown()
+    node, pub, got, ticks = _talk(context, "guarded")
+    executor = make(context=context)
+    executor.add_node(node)
+    status = StatusPublisher(node, None, lambda: {"frames": 0})
+    assert status.publish() == {"frames": 0}
+    messages = [String(data=str(i)) for i in range(5)]
+    untakeable = _Untakeable(monkeypatch, 2)
+    pub.publish(messages[0])
+    _spin_until(executor, lambda: untakeable.left == 1)
+    pub.publish(messages[1])
+    _spin_until(executor, lambda: untakeable.left == 0)
+    assert executor.untaken() == {"/said": 2}
+    # the node's status says so, and its diagnostics warn
+    state = status.publish()
+    assert state == {"frames": 0, "messages_dropped_untaken": {"/said": 2}}
+    assessment = diagnostics.assess(state, {"frames": 0})
+    assert assessment.level == diagnostics.WARN
+    assert "2 dropped (messages_dropped_untaken./said)" in assessment.message
+    before = len(ticks)
+    for message in messages[2:]:
+        pub.publish(message)
+    _spin_until(executor, lambda: len(got) == 3 and len(ticks) > before)
+    assert got == ["2", "3", "4"]  # the two that could not be taken are lost, no other
+    assert len(ticks) > before  # the timer in the same callback group still fires
+    err = capfd.readouterr().err
+    # the first is logged with the topic, the type and the error; the second only counted
+    assert err.count("could not be taken") == 1, err
+    assert "/said: a String message could not be taken (RuntimeError: Unable to convert" in err
+    assert "dropped as a lost message (1 on this topic so far)" in err
+    node.destroy_node()
 
 
 def test_a_request_that_cannot_be_taken_is_dropped_and_the_service_answers_the_next(
-    monkeypatch, capfd
+    context, monkeypatch, capfd
 ):
     """The same for a service: the request that cannot be built is lost (its call gets no
     answer, as a lost request), the next one is answered."""
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
-        server = rclpy.create_node("server", context=context)
-        server.create_service(Trigger, "trigger", lambda _, r: setattr(r, "success", True) or r)
-        caller = rclpy.create_node("caller", context=context)
-        client = caller.create_client(Trigger, "trigger")
-        executor = GuardedExecutor(context=context)
-        executor.add_node(server)
-        executor.add_node(caller)
-        _spin_until(executor, client.service_is_ready)
-        untakeable = _Untakeable(monkeypatch, 1, trigger_module, "Trigger_Request")
-        lost = client.call_async(Trigger.Request())
-        _spin_until(executor, lambda: untakeable.left == 0)
-        answered = client.call_async(Trigger.Request())
-        _spin_until(executor, answered.done)
-        assert answered.result().success and not lost.done()
-        assert executor.untaken() == {"/trigger": 1}
-        err = capfd.readouterr().err
-        # (rclpy's service take reports the class's error as the cause of its own)
-        assert "/trigger: a Trigger request could not be taken (" in err, err
-        assert "from RuntimeError: the message class raised)" in err, err
-        assert "dropped as a lost request (1 on this service so far)" in err
-        server.destroy_node()
-        caller.destroy_node()
-    finally:
-        context.try_shutdown()
+    server = rclpy.create_node("server", context=context)
+    server.create_service(Trigger, "trigger", lambda _, r: setattr(r, "success", True) or r)
+    caller = rclpy.create_node("caller", context=context)
+    client = caller.create_client(Trigger, "trigger")
+    executor = GuardedExecutor(context=context)
+    executor.add_node(server)
+    executor.add_node(caller)
+    _spin_until(executor, client.service_is_ready)
+    untakeable = _Untakeable(monkeypatch, 1, trigger_module, "Trigger_Request")
+    lost = client.call_async(Trigger.Request())
+    _spin_until(executor, lambda: untakeable.left == 0)
+    answered = client.call_async(Trigger.Request())
+    _spin_until(executor, answered.done)
+    assert answered.result().success and not lost.done()
+    assert executor.untaken() == {"/trigger": 1}
+    err = capfd.readouterr().err
+    # (rclpy's service take reports the class's error as the cause of its own)
+    assert "/trigger: a Trigger request could not be taken (" in err, err
+    assert "from RuntimeError: the message class raised)" in err, err
+    assert "dropped as a lost request (1 on this service so far)" in err
+    server.destroy_node()
+    caller.destroy_node()
