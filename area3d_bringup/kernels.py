@@ -12,12 +12,15 @@ The work is split in three parts (`PARTS`) that compile different kernels, so th
 running them at once share the compiling (numba compiles on one core; a cache file is written
 whole by one process, so two processes compiling the same small kernel leave a valid cache):
 - "masks": the planner's visibility masks of a box, built, then updated after the box changed
-  (the incremental update's kernel alone takes 15-20 s to compile); no ROS 2 interface needed,
-  so `make install` runs it while the interfaces build;
+  (the incremental update's kernel alone takes 15-20 s to compile), and what the planner node
+  loads when it starts (`greedy.warm_up_kernels`: the scoring of a list of views, which no
+  episode's request uses, and the lazy greedy); no ROS 2 interface needed, so `make install`
+  runs it while the interfaces build;
 - "camera": an episode with camera depth and the area3d policy, budget 5 (one planned view: the
   masks built, never updated): the simulation, the sensor model, fusion, the selection;
 - "stereo": an episode with stereo depth and the uniform policy (no masks) and its evaluation:
-  the simulated pair, stereo matching, the metrics.
+  the simulated pair, stereo matching, the metrics; and a frame integrated into a TSDF volume, as
+  the reconstruction node integrates each frame (`_tsdf`).
 The two episodes run the nodes' code in one process, which needs the interfaces. `main` runs the
 three at once.
 """
@@ -43,6 +46,8 @@ def warm_kernels(parts: tuple[str, ...] = PARTS) -> float:
     for part in ("camera", "stereo"):
         if part in parts:
             _episode(part)
+    if "stereo" in parts:
+        _tsdf()
     return time.monotonic() - t0
 
 
@@ -69,6 +74,30 @@ def _masks() -> None:
     _, caches = context.build(occupancy.ravel(), ("roi_not_free",))
     if not caches["roi_not_free"].report.get("updated"):
         raise RuntimeError("the masks were not updated: the update's kernel was not compiled")
+    from area3d_planner.greedy import warm_up_kernels
+
+    warm_up_kernels()  # the planner node's own, at its start
+
+
+def _tsdf() -> None:
+    """One frame of a plane 0.5 m ahead, integrated with a confidence into a TSDF volume (the
+    reconstruction node's and the evaluation's weighted integration)."""
+    import numpy as np
+
+    from area3d_eval.reconstruct import TsdfFusion
+
+    h, w = 12, 16
+    K = np.array([[10.0, 0.0, w / 2], [0.0, 10.0, h / 2], [0.0, 0.0, 1.0]])
+    fusion = TsdfFusion()
+    fusion.integrate(
+        np.full((h, w, 3), 128, np.uint8),
+        np.full((h, w), 0.5, np.float32),
+        K,
+        np.eye(4),
+        np.full((h, w), 0.8, np.float32),
+    )
+    if fusion.num_frames != 1:
+        raise RuntimeError("the TSDF frame was not integrated")
 
 
 def _episode(part: str) -> None:

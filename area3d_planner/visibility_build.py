@@ -88,7 +88,9 @@ class Geometry:
         rotations = np.asarray(rotations, np.float64)
         if rotations.ndim == 3:
             rotations = np.broadcast_to(rotations, (seeds.shape[0], *rotations.shape))
-        rotations = np.ascontiguousarray(rotations)
+        # a copy where it is a broadcast: one seed's broadcast is contiguous but read-only, and
+        # a read-only array is another type to numba (the lazy greedy compiled twice)
+        rotations = np.require(rotations, requirements=("C", "W"))
         if rotations.shape[:1] != seeds.shape[:1] or rotations.shape[2:] != (3, 3):
             raise InputError(
                 "rotations", rotations.shape, f"({seeds.shape[0]}, B, 3, 3) view rotations"
