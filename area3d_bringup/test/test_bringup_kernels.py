@@ -52,3 +52,45 @@ def test_an_unknown_part_is_refused(capsys):
     with pytest.raises(SystemExit):
         kernels.main(["--part", "everything"])
     assert "invalid choice: 'everything'" in capsys.readouterr().err
+
+
+def test_the_warm_up_compiles_what_the_planner_and_reconstruction_nodes_run_first():
+    """In a fresh process (as `make install` runs a part): the masks part leaves the planner
+    node's own warm-up compiled (the scoring of a list of views, the lazy greedy with the
+    writable rotations every request passes), the stereo part's TSDF frame the weighted
+    integration. Before, a fresh install's first graph compiled them while its first frames
+    waited (over 5 s on a 2-core machine)."""
+    import json
+    import subprocess
+    import sys
+
+    script = (
+        "import json; from area3d_bringup import kernels; "
+        "kernels._masks(); kernels._tsdf(); "
+        "from area3d_planner import lazy, masks; from area3d_eval import reconstruct; "
+        "print(json.dumps({'lazy': [s[9].mutable for s in lazy.lazy_select.signatures], "
+        "'score_view_list': len(masks.score_view_list.signatures), "
+        "'tsdf': len(reconstruct._integrate_weighted.signatures)}))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=600, check=True
+    )
+    compiled = json.loads(out.stdout.strip().splitlines()[-1])
+    assert compiled == {"lazy": [True], "score_view_list": 1, "tsdf": 1}, out.stderr
+
+
+def test_the_rotations_of_one_seed_are_writable_as_those_of_many():
+    import numpy as np
+
+    from area3d_msgs_py.grid import GridSpec
+    from area3d_planner.candidates import VisibilityParams, orientation_bins
+    from area3d_planner.visibility import VisibilityCache
+
+    spec = GridSpec.from_bounds(np.zeros(3), np.ones(3), 0.25)
+    occupancy = np.zeros(spec.num_voxels, np.int8)
+    params = VisibilityParams(level="room", face_res=16, yaw_bins=2, pitch_bins=1)
+    rotations = orientation_bins(params)[1]
+    for seeds in (np.array([[0.5, 0.5, 0.9]]), np.array([[0.5, 0.5, 0.9], [0.4, 0.5, 0.9]])):
+        cache = VisibilityCache.build(spec, occupancy, seeds, rotations, params)
+        assert cache.rotations.shape == (len(seeds), 2, 3, 3)
+        assert cache.rotations.flags.writeable and cache.rotations.flags.c_contiguous
