@@ -245,7 +245,7 @@ def _check_given(config: EpisodeConfig, saved: dict) -> None:
         if key not in config.given:
             continue
         ours = getattr(config, key)
-        theirs = saved.get(key, "sensor" if key == "depth_source" else None)
+        theirs = saved.get(key, rundir.Episode.depth_source if key == "depth_source" else None)
         if key == "scene":  # a bundled scene by its name, any other by its file
             same = _scene_key(load_scene(ours)) == _scene_key(load_scene(theirs))
         else:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import Counter
 from typing import Any
 
 import rclpy.logging
@@ -39,7 +38,9 @@ from rclpy.executors import (
 )
 from rclpy.task import Future
 
-LOG_PERIOD_S = 1.0  # per topic or service, the most often a dropped message is logged
+from area3d_msgs_py.guard import Rejections
+
+_UNTAKEN = "untaken"  # the field a message that could not be taken is counted under
 _NAMES = {"message": "topic", "request": "service", "response": "service"}
 
 
@@ -83,9 +84,9 @@ class _TakeGuard:
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self._untaken_lock = threading.Lock()
-        self._untaken: Counter[str] = Counter()
-        self._untaken_logged: dict[str, tuple[float, int]] = {}  # topic: (when, count then)
+        # counted per topic, logged at most once a `guard.LOG_PERIOD_S` per topic, as the nodes'
+        # rejected inputs are
+        self._untaken = Rejections()
 
     def _take_subscription(self, sub: Any) -> Any:
         try:
@@ -111,17 +112,12 @@ class _TakeGuard:
         what rclpy does then, unchanged."""
         if not self.context.ok():
             raise exc
-        now = time.monotonic()
-        with self._untaken_lock:
-            self._untaken[topic] += 1
-            count = self._untaken[topic]
-            last = self._untaken_logged.get(topic)
-            log = last is None or now - last[0] >= LOG_PERIOD_S
-            if log:
-                self._untaken_logged[topic] = (now, count)
-        if not log:
+        unlogged = self._untaken.to_log(topic, _UNTAKEN)
+        self._untaken.count(topic, _UNTAKEN)
+        if unlogged is None:
             return None
-        since = "" if last is None else f"; {count - last[1] - 1} more not logged since"
+        count = self.untaken()[topic]
+        since = f"; {unlogged} more not logged since" if unlogged else ""
         name = getattr(kind, "__name__", str(kind))
         cause = exc.__cause__ or exc.__context__
         why = f"{type(exc).__name__}: {exc}" + (
@@ -142,8 +138,7 @@ class _TakeGuard:
     def untaken(self) -> dict[str, int]:
         """Messages, requests and responses dropped because they could not be taken, per topic or
         service (JSON-ready)."""
-        with self._untaken_lock:
-            return dict(self._untaken)
+        return self._untaken.snapshot()["by_topic"]
 
 
 class GuardedExecutor(_TakeGuard, SingleThreadedExecutor):

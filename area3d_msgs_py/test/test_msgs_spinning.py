@@ -13,7 +13,7 @@ from rclpy.qos import QoSProfile
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from area3d_msgs_py import diagnostics, spinning
+from area3d_msgs_py import diagnostics, guard
 from area3d_msgs_py.spinning import GuardedExecutor, GuardedMultiThreadedExecutor, Spinner
 from area3d_msgs_py.status import StatusPublisher
 
@@ -168,7 +168,7 @@ def test_rclpy_alone_stops_serving_a_node_after_a_message_it_cannot_take(context
 def test_a_message_that_cannot_be_taken_is_dropped_counted_and_logged_and_the_node_serves_on(
     make, context, monkeypatch, capfd
 ):
-    monkeypatch.setattr(spinning, "LOG_PERIOD_S", 3600.0)  # one log line per topic, then counts
+    monkeypatch.setattr(guard, "LOG_PERIOD_S", 3600.0)  # one log line per topic, then counts
     node, pub, got, ticks = _talk(context, "guarded")
     executor = make(context=context)
     executor.add_node(node)
