@@ -45,8 +45,9 @@ RUN_PRESETS: dict[str, dict[str, dict]] = {
     # the published method as written (planner README, "The paper, element by element"): U_geo =
     # 1 - mean confidence, a voxel no view covered carries gamma only, a view scores the fused
     # uncertainty under its visibility mask (every visible voxel counts whole: no achievability,
-    # range, direction or resolution term); `--mode batch` plans every view from O_0 as the paper
-    # does. Candidate positions and the orientation fan stay the project's.
+    # range, direction or resolution term) and every view is the greedy's, however small its gain
+    # (no coverage views); `--mode batch` plans every view from O_0 as the paper does. Candidate
+    # positions and the orientation fan stay the project's.
     "paper": {
         "planner": {
             "policy": "area3d",
@@ -56,6 +57,7 @@ RUN_PRESETS: dict[str, dict[str, dict]] = {
             "range_profile": False,
             "repeat_gain": 1.0,
             "pixels_per_voxel": PAPER_PIXELS_PER_VOXEL,
+            "coverage_below": 0.0,
         }
     },
 }

@@ -99,6 +99,10 @@ HEADER_KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "count": (_is_count, "an integer >= 0"),
     "count or null": (lambda v: v is None or _is_count(v), "an integer >= 0 or null"),
     "integer": (_is_int, "an integer"),
+    "number >= 0 or null": (
+        lambda v: v is None or (_is_number(v) and v >= 0),
+        "a finite number >= 0 or null",
+    ),
     "bool": (lambda v: isinstance(v, bool), "true or false"),
     "integers or null": (
         lambda v: v is None or (isinstance(v, list) and all(_is_int(x) for x in v)),

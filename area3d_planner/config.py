@@ -303,6 +303,14 @@ class PlannerConfig:
         "degrees",
         (0.0, 180.0),
     )
+    coverage_below: float = described(
+        0.05,
+        "object level, one view per request: once the best view's gain falls below this share "
+        "of the first planned view's, the view taken is, of those with half the best gain or "
+        "more, the one farthest in direction from every captured view (0 = off)",
+        "fraction",
+        (0.0, 1.0),
+    )
     carve_stride: int = described(
         2, "free space is carved along every n-th pixel row and column", "pixels", (1, 64)
     )
@@ -482,6 +490,7 @@ class PlannerConfig:
                 nms_centre_angle_deg=self.nms_centre_angle_deg,
                 range_sigma=self.range_sigma,
                 decay=self.decay,
+                coverage_below=self.coverage_below,
             ),
             rng_seed=self.seed,
         )

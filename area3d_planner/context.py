@@ -81,6 +81,9 @@ class PlanningContext:
     # how many of the fused frames were the initial views (set at the first plan): the working
     # distance is theirs, the operator's choice, and does not drift with the views planned since
     initial_views: int | None = None
+    # the gain of the first view planned after them (`GreedyParams.coverage_below` compares with
+    # it); None before the first plan
+    first_gain: float | None = None
     # (S,) bool: candidate positions a view may not be taken from although the masks allow it
     # (the planner's newest frames, which the masks leave out, show them too close to geometry)
     blocked_seeds: np.ndarray | None = None
@@ -157,8 +160,10 @@ class PlanningContext:
         )
 
     def adopt(self, snapshot: PlanningContext) -> None:
-        """Keep the committed decay of views selected on `snapshot` (taken from this context)."""
+        """Keep the committed decay of views selected on `snapshot` (taken from this context)
+        and the first planned view's gain."""
         self.committed_decay = snapshot.committed_decay
+        self.first_gain = snapshot.first_gain
 
     def commit(self, cache: VisibilityCache, views: list[int], poses: list[np.ndarray]) -> None:
         """Remember the decay u <- (1 - eta) u of committed views (at the poses really taken) for

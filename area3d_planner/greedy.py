@@ -45,6 +45,11 @@ class GreedyParams:
     # Where a committed view decays the field: "frustum" (the paper: every voxel inside the view's
     # frustum, occluded or not) or "visible" (only its visibility mask).
     decay: str = "frustum"
+    # Object level, one view per request: once the best view's gain falls below this share of the
+    # first planned view's, the gains no longer tell the views apart (a few voxels each, many of
+    # them a depth estimator's false hits): of the views with half the best gain or more, the one
+    # farthest in direction from every captured view is taken (`policies.coverage_view`). 0 = off.
+    coverage_below: float = 0.0
 
     def validate(self) -> None:
         if self.decay not in DECAY_REGIONS:
@@ -61,6 +66,8 @@ class GreedyParams:
             )
         if not (0 <= self.nms_angle_deg <= 180):
             raise InputError("nms_angle_deg", self.nms_angle_deg, "a value in [0, 180] degrees")
+        if not (0.0 <= self.coverage_below <= 1.0):
+            raise InputError("coverage_below", self.coverage_below, "a share in [0, 1]")
         if not (0 <= self.nms_centre_angle_deg <= 180):
             raise InputError(
                 "nms_centre_angle_deg", self.nms_centre_angle_deg, "a value in [0, 180] degrees"

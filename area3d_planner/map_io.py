@@ -49,6 +49,8 @@ HEADER_FIELDS = {
     "base": "integers or null",
     "camera": "camera",
 }
+# ... and those older files lack (`restore` then takes what a new map starts with)
+OPTIONAL_HEADER_FIELDS = {"first_gain": "number >= 0 or null"}
 
 
 def _poses(poses: list) -> np.ndarray:
@@ -134,6 +136,7 @@ def snapshot(server) -> tuple[dict, dict]:
             "initial_frames": server.initial_frames,
             "initial_counted": server.initial_counted,
             "initial_views": context.initial_views,
+            "first_gain": context.first_gain,
             "last_fused_stamp": server.last_fused_stamp,
             "handed_out": server._handed_out,
             "has_sequence": sequence is not None,
@@ -175,6 +178,7 @@ def read(server, path, world_frame: str | None = None) -> mapfile.MapFile:
             raise InputError(f"{source}: {key}", "missing", "a planner map's header whole")
         mapfile.check_same(source, key, h[key], running)
     loaded.require(HEADER_FIELDS)
+    loaded.require({k: v for k, v in OPTIONAL_HEADER_FIELDS.items() if k in h})
     n = server.grid.spec.num_voxels
     ids = loaded.array("voxel_ids", np.int64, (None,))
     if ids.size and (ids.min() < 0 or ids.max() >= n):
@@ -248,6 +252,7 @@ def restore(server, loaded: mapfile.MapFile) -> None:
         context.camera_poses = [T.copy() for T in a["camera_poses"]]
         context.camera_positions = [T[:3, 3].copy() for T in a["camera_poses"]]
         context.initial_views = h["initial_views"]
+        context.first_gain = h.get("first_gain")  # absent from older files: set by the next plan
         stamps = [int(s) for s in a["fused_stamps"]]
         server._fused_order = stamps
         server._fused_stamps = set(stamps)

@@ -51,6 +51,10 @@ class Policy:
 
 # selections run again when an aimed view repeats a taken one (each run leaves those views out)
 AIM_RETRIES = 4
+# Once the gains collapse (`coverage_below`), the views within this share of the best gain are
+# taken as equals and the one in the direction least seen is chosen among them (our choice: a
+# gain of a few voxels, many of them a depth estimator's false hits, tells views apart no better).
+COVERAGE_KEEP = 0.5
 
 
 class GreedyFieldPolicy(Policy):
@@ -76,12 +80,7 @@ class GreedyFieldPolicy(Policy):
             raise InputError("uncertainty field", "NaN or inf voxels", "finite uncertainties")
         cache = context.cache(self.relevant)
         gain = context.range_gain(cache.seeds)
-        centre = context.region_centre() if context.visibility.level == "object" else None
-        taken = taken_views(cache, context.camera_poses, context.greedy, centre)
-        if taken.all():  # every candidate was taken already: allow them again
-            taken[:] = False
-        if context.blocked_seeds is not None:
-            taken[context.blocked_seeds] = True
+        taken = excluded_views(context, cache)
         taken.reshape(-1)[list(also_excluded)] = True
         return lazy_greedy(
             cache, U, budget, context.greedy, context.start_position, gain, excluded=taken
@@ -91,6 +90,11 @@ class GreedyFieldPolicy(Policy):
         cache = context.cache(self.relevant)
         U = context.policy_field(self)  # one decayed copy per request (10^6 voxels in a room)
         selection = self.selection(context, budget, U)
+        if len(selection.views) == 1 and gains_collapsed(context, selection.utilities[0]):
+            view, utility = coverage_view(context, cache, U, selection.utilities[0])
+            T = aim_at_uncertainty(cache, view, U) if context.aim_views else cache.view_pose(view)
+            context.commit(cache, [view], [T])
+            return SelectedViews([T], [utility])
         if context.aim_views:
             poses = [aim_at_uncertainty(cache, v, U) for v in selection.views]
             # a view turned to its uncertainty may face where a taken view faced (its bin did
@@ -115,6 +119,58 @@ class GreedyFieldPolicy(Policy):
         views = selection.views
         context.commit(cache, views, poses)
         return SelectedViews(poses, [float(u) for u in selection.utilities])
+
+
+def excluded_views(context: PlanningContext, cache: VisibilityCache) -> np.ndarray:
+    """(S, B) bool: the candidate views a selection leaves out: those near a view already taken
+    (`taken_views`; all of them allowed again once every one is) and the seeds the newest frames
+    block (`context.blocked_seeds`)."""
+    centre = context.region_centre() if context.visibility.level == "object" else None
+    taken = taken_views(cache, context.camera_poses, context.greedy, centre)
+    if taken.all():  # every candidate was taken already: allow them again
+        taken[:] = False
+    if context.blocked_seeds is not None:
+        taken[context.blocked_seeds] = True
+    return taken
+
+
+def gains_collapsed(context: PlanningContext, best: float) -> bool:
+    """Whether the best view's gain `best` is below `coverage_below` times the first planned
+    view's (`context.first_gain`, set here by the first plan, which it never is); object level
+    only, never with `coverage_below` 0."""
+    share = context.greedy.coverage_below
+    if share <= 0 or context.visibility.level != "object":
+        return False
+    if context.first_gain is None:
+        context.first_gain = float(best)
+        return False
+    return best < share * context.first_gain
+
+
+def coverage_view(
+    context: PlanningContext, cache: VisibilityCache, U: np.ndarray, best: float
+) -> tuple[int, float]:
+    """(view, its gain): of the candidate views the selection allows (`excluded_views`) whose
+    gain under `U` reaches COVERAGE_KEEP of the best one's (`best`), the one whose direction from
+    the region centre is farthest from every captured camera's (the largest least angle; ties:
+    the higher gain). The best view itself qualifies, so there always is one."""
+    scores = cache.score(U).reshape(cache.num_seeds, cache.num_bins)
+    gain = context.range_gain(cache.seeds)
+    if gain is not None:
+        scores = scores * gain[:, None]
+    allowed = (scores >= COVERAGE_KEEP * best) & ~excluded_views(context, cache)
+    centre = context.region_centre()
+    rays = _unit(cache.seeds - centre)
+    seen = np.asarray([T[:3, 3] for T in context.camera_poses], np.float64).reshape(-1, 3)
+    closest = (rays @ _unit(seen - centre).T).max(axis=1) if len(seen) else np.zeros(len(rays))
+    # least cosine first (the farthest direction), then the gain
+    order = np.lexsort((-scores.reshape(-1), np.repeat(closest, cache.num_bins)))
+    view = int(order[np.flatnonzero(allowed.reshape(-1)[order])[0]])
+    return view, float(scores.reshape(-1)[view])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
 
 
 def aim_at_uncertainty(cache: VisibilityCache, view: int, U: np.ndarray) -> np.ndarray:

@@ -173,12 +173,30 @@ def test_truncated_foreign_missing_and_future_files_are_refused(tmp_path):
         ({"handed_out": [1, 2]}, "handed_out: got [1, 2], expected 3 integers or null"),
         ({"base": "x"}, "base: got 'x', expected a list of integers or null"),
         ({"camera": {"hfov_deg": 90.0}}, "camera: got"),
+        ({"first_gain": "x"}, "first_gain: got 'x', expected a finite number >= 0 or null"),
+        ({"first_gain": -1.0}, "first_gain: got -1.0, expected a finite number >= 0 or null"),
     ],
 )
 def test_a_header_entry_missing_or_of_another_kind_is_refused_naming_it(tmp_path, change, message):
     path = rewrite_map(saved(tmp_path), tmp_path / "bad.a3map", header=change)
     with pytest.raises(InputError, match=re.escape(message)):
         map_io.read(NextBestViewServer(config()), path)
+
+
+def test_the_first_planned_gain_is_kept_and_a_file_without_it_loads_with_none(tmp_path):
+    # what `coverage_below` compares each later gain with
+    srv = NextBestViewServer(config())
+    run(srv, range(2))
+    srv.context.first_gain = 12.5
+    path = tmp_path / "planner.a3map"
+    map_io.save(srv, path)
+    resumed = NextBestViewServer(config())
+    map_io.restore(resumed, map_io.read(resumed, path))
+    assert resumed.context.first_gain == 12.5
+    older = rewrite_map(path, tmp_path / "older.a3map", header={"first_gain": MISSING})
+    resumed = NextBestViewServer(config())
+    map_io.restore(resumed, map_io.read(resumed, older))
+    assert resumed.context.first_gain is None and resumed.grid.frames == 2
 
 
 def test_an_array_of_nan_is_refused_naming_it(tmp_path):
