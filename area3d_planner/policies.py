@@ -55,6 +55,8 @@ AIM_RETRIES = 4
 # taken as equals and the one in the direction least seen is chosen among them (our choice: a
 # gain of a few voxels, many of them a depth estimator's false hits, tells views apart no better).
 COVERAGE_KEEP = 0.5
+# ... ordered by direction (a cosine) first: a gain counts as a cosine this many times smaller
+DIRECTION_FIRST = 1e6
 
 
 class GreedyFieldPolicy(Policy):
@@ -152,8 +154,9 @@ def coverage_view(
 ) -> tuple[int, float]:
     """(view, its gain): of the candidate views the selection allows (`excluded_views`) whose
     gain under `U` reaches COVERAGE_KEEP of the best one's (`best`), the one whose direction from
-    the region centre is farthest from every captured camera's (the largest least angle; ties:
-    the higher gain). The best view itself qualifies, so there always is one."""
+    the region centre is farthest from every captured camera's (the largest least angle; within
+    a rounding error of it: the higher gain). The best view itself qualifies, so there always is
+    one."""
     scores = cache.score(U).reshape(cache.num_seeds, cache.num_bins)
     gain = context.range_gain(cache.seeds)
     if gain is not None:
@@ -163,9 +166,10 @@ def coverage_view(
     rays = _unit(cache.seeds - centre)
     seen = np.asarray([T[:3, 3] for T in context.camera_poses], np.float64).reshape(-1, 3)
     closest = (rays @ _unit(seen - centre).T).max(axis=1) if len(seen) else np.zeros(len(rays))
-    # least cosine first (the farthest direction), then the gain
-    order = np.lexsort((-scores.reshape(-1), np.repeat(closest, cache.num_bins)))
-    view = int(order[np.flatnonzero(allowed.reshape(-1)[order])[0]])
+    # the least cosine first (the farthest direction); directions a rounding error apart (mirror
+    # images on the shells) are told apart by the gain, not by that error
+    key = np.where(allowed, scores - DIRECTION_FIRST * closest[:, None], -np.inf)
+    view = int(np.argmax(key))
     return view, float(scores.reshape(-1)[view])
 
 
