@@ -57,6 +57,7 @@ AIM_RETRIES = 4
 COVERAGE_KEEP = 0.5
 # ... ordered by direction (a cosine) first: a gain counts as a cosine this many times smaller
 DIRECTION_FIRST = 1e6
+DIRECTION_BLOCK = 4096  # captured cameras compared with every candidate at once, at most
 
 
 class GreedyFieldPolicy(Policy):
@@ -165,7 +166,11 @@ def coverage_view(
     centre = context.region_centre()
     rays = _unit(cache.seeds - centre)
     seen = np.asarray([T[:3, 3] for T in context.camera_poses], np.float64).reshape(-1, 3)
-    closest = (rays @ _unit(seen - centre).T).max(axis=1) if len(seen) else np.zeros(len(rays))
+    closest = np.zeros(len(rays))
+    # in blocks of captured cameras: a streaming camera fuses thousands of frames
+    for start in range(0, len(seen), DIRECTION_BLOCK):
+        block = (rays @ _unit(seen[start : start + DIRECTION_BLOCK] - centre).T).max(axis=1)
+        closest = block if start == 0 else np.maximum(closest, block)
     # the least cosine first (the farthest direction); directions a rounding error apart (mirror
     # images on the shells) are told apart by the gain, not by that error
     key = np.where(allowed, scores - DIRECTION_FIRST * closest[:, None], -np.inf)

@@ -131,3 +131,18 @@ def test_at_room_level_the_gains_never_collapse():
     context = object_context(0.5)
     assert not gains_collapsed(context, 10.0) and context.first_gain == 10.0  # the first plan
     assert not gains_collapsed(context, 5.0) and gains_collapsed(context, 4.9)
+
+
+def test_thousands_of_streamed_frames_choose_as_the_places_they_were_taken_from(monkeypatch):
+    # a streaming camera fuses a frame at every step of its path: the captured directions are
+    # compared in blocks, and a camera's repeated frames change nothing
+    import area3d_planner.policies as policies
+
+    monkeypatch.setattr(policies, "DIRECTION_BLOCK", 3)
+    few, many = object_context(), object_context()
+    many.camera_poses = [T for T in many.camera_poses for _ in range(5)]
+    chosen = []
+    for context in (few, many):
+        policy, _ = collapsed(context)
+        chosen.append(policy.select_views(context, 1).poses[0])
+    np.testing.assert_array_equal(chosen[0], chosen[1])
