@@ -37,10 +37,12 @@ class SelectedViews:
     predicted gain of each: the utility the greedy selection committed it with (the mask-weighted
     uncertainty it sees, times the range prior, plus the distance prior), before the committed
     view is turned to the centroid of what it sees. 0 for the policies that predict none (uniform,
-    random)."""
+    random). `note`: what the answer should tell the caller about how they were chosen (a
+    coverage view, `policies.coverage_view`), or ""."""
 
     poses: list = field(default_factory=list)
     gains: list = field(default_factory=list)
+    note: str = ""
 
     @classmethod
     def unscored(cls, poses: list) -> SelectedViews:

@@ -97,7 +97,13 @@ class GreedyFieldPolicy(Policy):
             view, utility = coverage_view(context, cache, U, selection.utilities[0])
             T = aim_at_uncertainty(cache, view, U) if context.aim_views else cache.view_pose(view)
             context.commit(cache, [view], [T])
-            return SelectedViews([T], [utility])
+            note = (
+                f"coverage view: the best gain ({selection.utilities[0]:.3g}) is below "
+                f"coverage_below={context.greedy.coverage_below} of the first plan's "
+                f"({context.first_gain:.3g}); of the views with half of it, the direction least "
+                "seen"
+            )
+            return SelectedViews([T], [utility], note)
         if context.aim_views:
             poses = [aim_at_uncertainty(cache, v, U) for v in selection.views]
             # a view turned to its uncertainty may face where a taken view faced (its bin did

@@ -407,7 +407,7 @@ class NextBestViewServer(MaskRebuilds):
                 if ticket.closed_loop and request.stamp_ns > 0
                 else None
             )
-            note = self._repeats(views.poses)
+            note = "; ".join(n for n in (views.note, self._repeats(views.poses)) if n)
             self._answered += [(np.array(T, float), int(request.stamp_ns)) for T in views.poses]
             return Plan(list(views.poses), list(views.gains), "", note)
 

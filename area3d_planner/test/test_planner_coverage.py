@@ -101,6 +101,9 @@ def test_once_the_gains_collapse_the_view_is_the_least_seen_direction_among_near
     # ... and it is not the greedy's view, which looks from a direction seen more closely
     assert angles[view] > angles[best.views[0]] + 0.1
     assert views.gains[0] < best.utilities[0]
+    assert (
+        views.note.startswith("coverage view: the best gain") and "coverage_below=0.5" in views.note
+    )
 
 
 def test_a_blocked_seed_is_never_taken_for_coverage():
@@ -122,6 +125,7 @@ def test_off_or_for_several_views_at_once_every_view_is_the_greedys(share, budge
     greedy = policy.selection(dataclasses.replace(context), budget)
     views = policy.select_views(context, budget)
     assert views.gains == pytest.approx(greedy.utilities) and len(views.gains) == budget
+    assert views.note == ""
 
 
 def test_at_room_level_the_gains_never_collapse():
