@@ -163,6 +163,11 @@ def near_taken(pose: np.ndarray, poses: list[np.ndarray], params: GreedyParams) 
     return bool(np.any(poses_alike(poses, pose, params.nms_radius, params.nms_angle_deg)))
 
 
+def unit_rows(v: np.ndarray) -> np.ndarray:
+    """(N, 3) rows of `v` scaled to unit length (a zero row stays zero)."""
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+
+
 def taken_views(
     cache: VisibilityCache,
     poses: list[np.ndarray],
@@ -190,10 +195,8 @@ def taken_views(
     )
     seed_idx, pose_idx = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
     if centre is not None and params.nms_centre_angle_deg > 0:
-        rays = cache.seeds - np.asarray(centre, np.float64)
-        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
-        taken = positions - np.asarray(centre, np.float64)
-        taken /= np.maximum(np.linalg.norm(taken, axis=1, keepdims=True), 1e-12)
+        rays = unit_rows(cache.seeds - np.asarray(centre, np.float64))
+        taken = unit_rows(positions - np.asarray(centre, np.float64))
         s_dir, p_dir = np.nonzero(rays @ taken.T >= np.cos(np.radians(params.nms_centre_angle_deg)))
         pairs = np.unique(
             np.stack([np.append(seed_idx, s_dir), np.append(pose_idx, p_dir)]), axis=1

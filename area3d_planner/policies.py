@@ -21,6 +21,7 @@ from area3d_planner.greedy import (
     lazy_greedy,
     near_taken,
     taken_views,
+    unit_rows,
 )
 from area3d_planner.visibility import (
     VisibilityCache,
@@ -170,22 +171,18 @@ def coverage_view(
         scores = scores * gain[:, None]
     allowed = (scores >= COVERAGE_KEEP * best) & ~excluded_views(context, cache)
     centre = context.region_centre()
-    rays = _unit(cache.seeds - centre)
-    seen = np.asarray([T[:3, 3] for T in context.camera_poses], np.float64).reshape(-1, 3)
+    rays = unit_rows(cache.seeds - centre)
+    seen = np.asarray(context.camera_positions, np.float64).reshape(-1, 3)
     closest = np.zeros(len(rays))
     # in blocks of captured cameras: a streaming camera fuses thousands of frames
     for start in range(0, len(seen), DIRECTION_BLOCK):
-        block = (rays @ _unit(seen[start : start + DIRECTION_BLOCK] - centre).T).max(axis=1)
+        block = (rays @ unit_rows(seen[start : start + DIRECTION_BLOCK] - centre).T).max(axis=1)
         closest = block if start == 0 else np.maximum(closest, block)
     # the least cosine first (the farthest direction); directions a rounding error apart (mirror
     # images on the shells) are told apart by the gain, not by that error
     key = np.where(allowed, scores - DIRECTION_FIRST * closest[:, None], -np.inf)
     view = int(np.argmax(key))
     return view, float(scores.reshape(-1)[view])
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
 
 
 def aim_at_uncertainty(cache: VisibilityCache, view: int, U: np.ndarray) -> np.ndarray:

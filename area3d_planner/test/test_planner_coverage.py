@@ -145,6 +145,7 @@ def test_thousands_of_streamed_frames_choose_as_the_places_they_were_taken_from(
     monkeypatch.setattr(policies, "DIRECTION_BLOCK", 3)
     few, many = object_context(), object_context()
     many.camera_poses = [T for T in many.camera_poses for _ in range(5)]
+    many.camera_positions = [T[:3, 3].copy() for T in many.camera_poses]
     chosen = []
     for context in (few, many):
         policy, _ = collapsed(context)
