@@ -33,6 +33,12 @@ STARTUP_ERRORS: tuple[type[Exception], ...] = (InputError, FileNotFoundError)
 # list of them, or shutting the context down beside it, can crash the process (a planner exited
 # with -11 on SIGINT on a loaded machine) or end it with a traceback (rcl_shutdown twice).
 SIGNAL_SHUTDOWN_WAIT_S = 10.0
+# Destroying the node and the context is the middleware's work. Once, on a loaded 2-core machine, a
+# planner stayed in rclpy's `destroy_node` (the node's last step, after its publishers, services
+# and timers were gone) until its launcher killed it 32 s after the Ctrl-C. The node's own work
+# has stopped by then (`destroy_node` overrides stop their workers first, each within a second or
+# two): past this long the process logs where its threads are and exits without the rest.
+TEARDOWN_LIMIT_S = 10.0
 # glibc gives each new thread an arena of its own, up to 8 per core, and memory freed in one arena
 # is reused by that arena only. A node's executor, middleware and worker threads each take and
 # free frames of megabytes, so each arena kept its own peak: in 2-minute soaks (`area3d bench
@@ -234,10 +240,39 @@ def run_node(
             _wait_for_signal_shutdown(SIGNAL_SHUTDOWN_WAIT_S)
         if spinner is not None:
             spinner.shutdown()
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        with _bounded(name, TEARDOWN_LIMIT_S, "destroying the node and the context"):
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
     return 0
+
+
+class _bounded:
+    """A step of a node process's teardown that must end within `limit_s`: past it, the process
+    logs the step, its threads' stacks and that it exits without the rest, and exits with code 0
+    (`exit_process`; the stop was asked for and the node's own work is done). For a node's own
+    process only, as `run_node`."""
+
+    def __init__(self, name: str, limit_s: float, step: str) -> None:
+        self.name, self.limit_s, self.step = name, limit_s, step
+        self._timer = threading.Timer(limit_s, self._expired)
+        self._timer.daemon = True
+
+    def __enter__(self) -> None:
+        self._timer.start()
+
+    def __exit__(self, *exc) -> None:
+        self._timer.cancel()
+
+    def _expired(self) -> None:
+        print(
+            f"[WARN] [{self.name}]: {self.step} did not finish in {self.limit_s:g} s; "
+            "the process exits without it. Its threads:",
+            file=sys.stderr,
+            flush=True,
+        )
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        exit_process(0)
 
 
 def _spin(spinner: Executor, node: Node) -> None:

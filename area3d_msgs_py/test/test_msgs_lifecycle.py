@@ -236,3 +236,54 @@ def test_a_callback_that_raises_is_logged_and_the_node_goes_on():
     assert process.returncode == 0, out[-3000:]
     assert "a callback raised; spinning on" in out and "ZeroDivisionError: tick three" in out, out
     assert out.count("Traceback") == 1, out[-3000:]
+    assert "did not finish" not in out, out[-3000:]  # a teardown that ends is never cut short
+
+
+STUCK_NODE = """
+import pathlib, sys, time
+from rclpy.node import Node
+from area3d_msgs_py import lifecycle
+
+class Stuck(Node):
+    def __init__(self):
+        super().__init__("stuck")
+        pathlib.Path(sys.argv[1]).write_text("built")
+
+    def destroy_node(self):
+        time.sleep(3600)  # as rclpy's destroy_node once stayed until the launcher's SIGKILL
+
+lifecycle.TEARDOWN_LIMIT_S = 1.0
+sys.exit(lifecycle.run_node(Stuck, "stuck"))
+"""
+
+
+def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logged(tmp_path):
+    """Past TEARDOWN_LIMIT_S in destroying the node, the process says where it was and exits 0:
+    the stop was asked for and the node's own work is done, so no launcher has to kill it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    built = tmp_path / "built"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    process = subprocess.Popen(
+        [sys.executable, "-c", STUCK_NODE, str(built)], env=env, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not built.exists() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert built.exists(), process.poll()
+    finally:
+        process.send_signal(signal.SIGINT)
+        out, _ = process.communicate(timeout=120)
+    assert process.returncode == 0, out[-3000:]
+    warning = [line for line in out.splitlines() if "did not finish" in line]
+    assert warning == [
+        "[WARN] [stuck]: destroying the node and the context did not finish in 1 s; the process "
+        "exits without it. Its threads:"
+    ], out[-3000:]
+    assert "in destroy_node" in out, out[-3000:]  # the stuck thread's stack
