@@ -57,7 +57,7 @@ def scene_samples(name: str, params: StereoParams | None = None) -> dict:
             ok = depth_right(out.depth[estimated], truth)
             features.append(calibration_features(out.disparity, params.downscale)[estimated])
             right.append(ok)
-            confidence.append(out.confidence[estimated])
+            confidence.append(out.weight[estimated])  # the matcher's, whatever the model
     finally:
         camera.close()
         matcher.close()
