@@ -39,6 +39,9 @@ SIGNAL_SHUTDOWN_WAIT_S = 10.0
 # has stopped by then (`destroy_node` overrides stop their workers first, each within a second or
 # two): past this long the process logs where its threads are and exits without the rest.
 TEARDOWN_LIMIT_S = 10.0
+# A teardown stuck in C code that holds the GIL never lets the Python watchdog run: faulthandler's
+# own thread then prints the stacks this much later and ends the process with code 1.
+TEARDOWN_GIL_FALLBACK_S = 5.0
 # glibc gives each new thread an arena of its own, up to 8 per core, and memory freed in one arena
 # is reused by that arena only. A node's executor, middleware and worker threads each take and
 # free frames of megabytes, so each arena kept its own peak: in 2-minute soaks (`area3d bench
@@ -250,8 +253,9 @@ def run_node(
 class _bounded:
     """A step of a node process's teardown that must end within `limit_s`: past it, the process
     logs the step, its threads' stacks and that it exits without the rest, and exits with code 0
-    (`exit_process`; the stop was asked for and the node's own work is done). For a node's own
-    process only, as `run_node`."""
+    (`exit_process`; the stop was asked for and the node's own work is done). If the step holds
+    the GIL, faulthandler's thread (C, no GIL) prints the stacks TEARDOWN_GIL_FALLBACK_S later and
+    exits with code 1. For a node's own process only, as `run_node`."""
 
     def __init__(self, name: str, limit_s: float, step: str) -> None:
         self.name, self.limit_s, self.step = name, limit_s, step
@@ -260,11 +264,14 @@ class _bounded:
 
     def __enter__(self) -> None:
         self._timer.start()
+        faulthandler.dump_traceback_later(self.limit_s + TEARDOWN_GIL_FALLBACK_S, exit=True)
 
     def __exit__(self, *exc) -> None:
         self._timer.cancel()
+        faulthandler.cancel_dump_traceback_later()
 
     def _expired(self) -> None:
+        faulthandler.cancel_dump_traceback_later()
         print(
             f"[WARN] [{self.name}]: {self.step} did not finish in {self.limit_s:g} s; "
             "the process exits without it. Its threads:",

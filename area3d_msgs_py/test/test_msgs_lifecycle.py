@@ -240,7 +240,7 @@ def test_a_callback_that_raises_is_logged_and_the_node_goes_on():
 
 
 STUCK_NODE = """
-import pathlib, sys, time
+import ctypes, pathlib, sys, time
 from rclpy.node import Node
 from area3d_msgs_py import lifecycle
 
@@ -250,16 +250,22 @@ class Stuck(Node):
         pathlib.Path(sys.argv[1]).write_text("built")
 
     def destroy_node(self):
-        time.sleep(3600)  # as rclpy's destroy_node once stayed until the launcher's SIGKILL
+        # as rclpy's destroy_node once stayed until the launcher's SIGKILL
+        if sys.argv[2] == "holding the GIL":
+            ctypes.PyDLL(None).sleep(3600)  # a PyDLL call keeps the GIL
+        time.sleep(3600)
 
 lifecycle.TEARDOWN_LIMIT_S = 1.0
+lifecycle.TEARDOWN_GIL_FALLBACK_S = 2.0
 sys.exit(lifecycle.run_node(Stuck, "stuck"))
 """
 
 
-def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logged(tmp_path):
+@pytest.mark.parametrize("how", ["releasing the GIL", "holding the GIL"])
+def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logged(tmp_path, how):
     """Past TEARDOWN_LIMIT_S in destroying the node, the process says where it was and exits 0:
-    the stop was asked for and the node's own work is done, so no launcher has to kill it."""
+    the stop was asked for and the node's own work is done, so no launcher has to kill it. Stuck
+    in C code that holds the GIL, faulthandler's thread prints the stacks and exits 1."""
     import os
     import signal
     import subprocess
@@ -269,7 +275,7 @@ def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logge
     built = tmp_path / "built"
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     process = subprocess.Popen(
-        [sys.executable, "-c", STUCK_NODE, str(built)], env=env, text=True,
+        [sys.executable, "-c", STUCK_NODE, str(built), how], env=env, text=True,
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )  # fmt: skip
     try:
@@ -280,10 +286,13 @@ def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logge
     finally:
         process.send_signal(signal.SIGINT)
         out, _ = process.communicate(timeout=120)
+    assert "in destroy_node" in out, out[-3000:]  # the stuck thread's stack
+    if how == "holding the GIL":
+        assert process.returncode == 1 and "Timeout (0:00:03)!" in out, out[-3000:]
+        return
     assert process.returncode == 0, out[-3000:]
     warning = [line for line in out.splitlines() if "did not finish" in line]
     assert warning == [
         "[WARN] [stuck]: destroying the node and the context did not finish in 1 s; the process "
         "exits without it. Its threads:"
     ], out[-3000:]
-    assert "in destroy_node" in out, out[-3000:]  # the stuck thread's stack
