@@ -28,8 +28,8 @@ from sim_bridge.scenes import list_scenes, load_scene
 
 TARGET_MS = 60.0  # stereo depth per 640x480 frame on a 2-core machine (issue 14)
 HELD_OUT_VIEWS = 6  # held-out views per scene besides O_0 (room scenes: O_0 has 15 views)
-# the defaults until full-size "3way" matching: OpenCV's one-pass SGBM at half size
-REFERENCE = StereoParams(mode="sgbm", downscale=2, num_disparities=64)
+# the defaults until full-size "3way" matching: OpenCV's one-pass SGBM at half size, unrefined
+REFERENCE = StereoParams(mode="sgbm", downscale=2, num_disparities=64, refine=False)
 
 
 def _views(scene, max_views: int) -> np.ndarray:
