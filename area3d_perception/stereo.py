@@ -407,12 +407,16 @@ def refine_disparity(
     step = np.zeros_like(d)
     ok = (
         valid
+        & (d > 0)  # 0 is at infinity: nothing to refine
         & (energy > np.float32(min_gradient**2 * window_px * window_px))
         & (spread <= max_spread_px)
         & (share >= 0.5)
     )
     step[ok] = np.clip(correlation[ok] / energy[ok], -REFINE_MAX_STEP_PX, REFINE_MAX_STEP_PX)
     refined = d - step
+    # a step to zero or beyond would put the surface at or past infinity: none
+    beyond = refined <= 0
+    refined[beyond] = d[beyond]
     refined[~valid] = np.nan
     return refined
 
@@ -490,7 +494,8 @@ class StereoMatcher:
         filled = support > 0
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.float32(fx * baseline) / disp_left
-            depth[~(depth <= p.max_range)] = np.nan  # also drops d = 0 (inf) and NaN
+            # also drops d = 0 (inf), NaN and a depth <= 0 (none leaves the backend)
+            depth[~((depth > 0) & (depth <= p.max_range))] = np.nan
             if p.lr_drop_refused:
                 depth[~((diff <= p.lr_max_diff_px) | filled)] = np.nan
         weight = self._matcher_confidence(disp_left, diff, texture, filled, support)

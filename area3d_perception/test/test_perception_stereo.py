@@ -246,6 +246,12 @@ def test_refinement_leaves_blank_windows_two_surfaces_and_invalid_pixels_as_they
     # never more than a pixel from the matcher's value
     far = np.full((60, 80), 7.0, np.float32)
     assert np.abs(refine_disparity(far, left, right, *args) - far).max() <= 1.0 + 1e-6
+    # never to zero or below (a depth at or past infinity): a surface at infinity (disparity 0)
+    # matched at 0.4 px, and one matched at 0 itself, keep positive or zero disparities
+    for matched in (0.4, 0.0):
+        near_zero = np.full((60, 80), matched, np.float32)
+        refined = refine_disparity(near_zero, left, left, *args)
+        assert (refined > 0).all() if matched > 0 else np.array_equal(refined, near_zero)
 
 
 def test_bad_parameters_are_refused():
