@@ -33,14 +33,16 @@ STARTUP_ERRORS: tuple[type[Exception], ...] = (InputError, FileNotFoundError)
 # list of them, or shutting the context down beside it, can crash the process (a planner exited
 # with -11 on SIGINT on a loaded machine) or end it with a traceback (rcl_shutdown twice).
 SIGNAL_SHUTDOWN_WAIT_S = 10.0
-# Destroying the node and the context is the middleware's work. Once, on a loaded 2-core machine, a
-# planner stayed in rclpy's `destroy_node` (the node's last step, after its publishers, services
-# and timers were gone) until its launcher killed it 32 s after the Ctrl-C. The node's own work
-# has stopped by then (`destroy_node` overrides stop their workers first, each within a second or
-# two): past this long the process logs where its threads are and exits without the rest.
+# Destroying the node and the context is the middleware's work. On a loaded 2-core machine, in runs
+# of the test suite, a planner and a perception node stayed in rclpy's `destroy_node` (the node's
+# last step, after its publishers, services and timers were gone), once until the launcher killed
+# it 32 s after the Ctrl-C. The node's own work has stopped by then (`destroy_node` overrides stop
+# their workers first, each within a second or two): past this long the process logs where its
+# threads are and exits without the rest.
 TEARDOWN_LIMIT_S = 10.0
-# A teardown stuck in C code that holds the GIL never lets the Python watchdog run: faulthandler's
-# own thread then prints the stacks this much later and ends the process with code 1.
+# A teardown stuck in C code that holds the GIL never lets the Python watchdog run (so it was in
+# the one such hang seen with both in place): faulthandler's own thread then prints the stacks
+# this much later and ends the process with code 1.
 TEARDOWN_GIL_FALLBACK_S = 5.0
 # glibc gives each new thread an arena of its own, up to 8 per core, and memory freed in one arena
 # is reused by that arena only. A node's executor, middleware and worker threads each take and
