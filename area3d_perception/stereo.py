@@ -34,6 +34,11 @@ from area3d_msgs_py.camera import PAPER_MAX_RANGE
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.param_fields import described
 from area3d_perception.blank_fill import fill_blank_planes
+from area3d_perception.disparity import (
+    disparity_neighbourhood,
+    lr_difference,
+    refine_disparity,
+)
 
 # OpenCV's StereoSGBM returns fixed-point disparities with 4 fractional bits.
 SGBM_DISPARITY_SCALE = 16.0
@@ -296,21 +301,6 @@ def texture_factor(grey: np.ndarray, window_px: int, texture_ref: float) -> np.n
     return (energy / (energy + np.float32(texture_ref) ** 2)).astype(np.float32)
 
 
-def disparity_neighbourhood(disparity: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """(spread, valid share), both (H, W) float32: the standard deviation of the valid disparities
-    in a window around each pixel (px) and the share of the window's pixels that are valid."""
-    valid = np.isfinite(disparity).astype(np.float32)
-    d = np.where(valid > 0, disparity, 0.0).astype(np.float32)
-    size = (window_px, window_px)
-    count = cv2.boxFilter(valid, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    total = cv2.boxFilter(d, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    squares = cv2.boxFilter(d * d, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    n = np.maximum(count, 1.0)
-    mean = total / n
-    spread = np.sqrt(np.maximum(squares / n - mean * mean, 0.0))
-    return spread.astype(np.float32), (count / np.float32(window_px * window_px)).astype(np.float32)
-
-
 def calibration_features(disparity: np.ndarray, downscale: int = 1) -> np.ndarray:
     """(H, W, 3) float32 features of the calibrated confidence: ln d, ln(1 + s) and v, d the
     disparity and s its spread in pixels of the matching size (d at least 0.5), v the share of
@@ -342,83 +332,6 @@ def confidence_of_features(features: np.ndarray, calibration: tuple) -> np.ndarr
     z = np.asarray(features, np.float32) @ w + np.float32(calibration[3])
     with np.errstate(over="ignore"):  # exp overflows to inf for z << 0: the chance is 0
         return (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
-
-
-def lr_difference(disp_left: np.ndarray, disp_right: np.ndarray) -> np.ndarray:
-    """|d_L(x) - d_R(x - d_L(x))| per left pixel, px; NaN where either side is invalid.
-
-    disp_left: (H, W) left disparity (x_right = x - d), disp_right: (H, W) right disparity
-    (x_left = x + d), both NaN = invalid.
-    """
-    h, w = disp_left.shape
-    cols = np.arange(w, dtype=np.float32)[None, :]
-    target = np.rint(cols - np.nan_to_num(disp_left, nan=-1.0)).astype(np.int64)
-    inside = np.isfinite(disp_left) & (target >= 0) & (target < w)
-    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
-    back = np.full((h, w), np.nan, dtype=np.float32)
-    back[inside] = disp_right[rows[inside], target[inside]]
-    return np.abs(disp_left - back)
-
-
-REFINE_MAX_STEP_PX = 1.0  # a refinement stays within a pixel of SGBM's disparity
-
-
-def refine_disparity(
-    disparity: np.ndarray,
-    left_grey: np.ndarray,
-    right_grey: np.ndarray,
-    window_px: int,
-    min_gradient: float,
-    max_spread_px: float,
-) -> np.ndarray:
-    """(H, W) float32: `disparity` (px, NaN = invalid, x_right = x - d) after one Gauss-Newton step
-    on the images, against the pull of SGBM's sub-pixel estimate towards whole disparities.
-
-    Each left pixel is compared with the right image at its own disparity, e = L(x) - R(x - d),
-    with the right image's horizontal gradient g there; over a window the least-squares step is
-    sum(g e) / sum(g^2), subtracted from every pixel's disparity (one linearisation: more steps
-    add each pixel's own noise back into its neighbours' residuals). No step where the window's
-    RMS gradient is below `min_gradient` (nothing to lock on), where its valid disparities spread
-    more than `max_spread_px` or fewer than half its pixels are valid (two surfaces, or an edge
-    of the valid matches); at most REFINE_MAX_STEP_PX. Invalid pixels stay NaN and add nothing."""
-    h, w = disparity.shape
-    valid = np.isfinite(disparity)
-    d = np.where(valid, disparity, 0.0).astype(np.float32)
-    right = right_grey.astype(np.float32)
-    columns = np.arange(w, dtype=np.float32)[None, :]
-    map_x = columns - d
-    map_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
-    # the right image at x - d, linearly interpolated, and the derivative of that interpolation:
-    # the difference of the two pixels it lies between (a smoothed gradient such as Sobel's
-    # underestimates it on fine texture, and the step overshoots)
-    forward = np.zeros_like(right)
-    forward[:, :-1] = right[:, 1:] - right[:, :-1]
-    warped = cv2.remap(right, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    slope = cv2.remap(
-        forward, np.floor(map_x), map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE
-    )
-    mask = valid.astype(np.float32)
-    g = slope * mask
-    e = (left_grey.astype(np.float32) - warped) * mask
-    size = (window_px, window_px)
-    sums = cv2.boxFilter(cv2.merge([g * g, g * e]), -1, size, normalize=False)
-    energy, correlation = sums[..., 0], sums[..., 1]
-    spread, share = disparity_neighbourhood(disparity, window_px)
-    step = np.zeros_like(d)
-    ok = (
-        valid
-        & (d > 0)  # 0 is at infinity: nothing to refine
-        & (energy > np.float32(min_gradient**2 * window_px * window_px))
-        & (spread <= max_spread_px)
-        & (share >= 0.5)
-    )
-    step[ok] = np.clip(correlation[ok] / energy[ok], -REFINE_MAX_STEP_PX, REFINE_MAX_STEP_PX)
-    refined = d - step
-    # a step to zero or beyond would put the surface at or past infinity: none
-    beyond = refined <= 0
-    refined[beyond] = d[beyond]
-    refined[~valid] = np.nan
-    return refined
 
 
 class StereoMatcher:

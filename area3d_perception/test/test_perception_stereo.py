@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from area3d_msgs_py.errors import InputError
+from area3d_perception.disparity import lr_difference, refine_disparity
 from area3d_perception.estimator import FrameEstimator
 from area3d_perception.stereo import (
     CALIBRATION,
@@ -16,8 +17,6 @@ from area3d_perception.stereo import (
     StereoMatcher,
     StereoParams,
     calibrated_confidence,
-    lr_difference,
-    refine_disparity,
 )
 
 W, H = 640, 480
