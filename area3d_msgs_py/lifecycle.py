@@ -37,8 +37,9 @@ SIGNAL_SHUTDOWN_WAIT_S = 10.0
 # of the test suite, a planner and a perception node stayed in rclpy's `destroy_node` (the node's
 # last step, after its publishers, services and timers were gone), once until the launcher killed
 # it 32 s after the Ctrl-C. The node's own work has stopped by then (`destroy_node` overrides stop
-# their workers first, each within a second or two): past this long the process logs where its
-# threads are and exits without the rest.
+# their workers first, each within a second or two): past this long in one step of the teardown
+# (stopping the node's work, the executor, destroying the node, the context), the process logs
+# where its threads are and exits without the rest.
 TEARDOWN_LIMIT_S = 10.0
 # A teardown stuck in C code that holds the GIL never lets the Python watchdog run (so it was in
 # the one such hang seen with both in place): faulthandler's own thread then prints the stacks
@@ -239,43 +240,67 @@ def run_node(
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         if log_handler is not None:
             logging.getLogger().removeHandler(log_handler)
-        if on_stop is not None and node is not None:
-            on_stop(node)
         if signalled:
-            _wait_for_signal_shutdown(SIGNAL_SHUTDOWN_WAIT_S)
-        if spinner is not None:
-            spinner.shutdown()
-        with _bounded(name, TEARDOWN_LIMIT_S, "destroying the node and the context"):
+            _wait_for_signal_shutdown(SIGNAL_SHUTDOWN_WAIT_S)  # bounded itself
+        # Each step below has TEARDOWN_LIMIT_S, and a step that overruns is named. A Ctrl-C raises
+        # KeyboardInterrupt wherever the main thread is, also inside the executor between taking
+        # a callback and marking it done, and then `shutdown` waits for it forever.
+        with _bounded(name, TEARDOWN_LIMIT_S, "stopping the node's work") as bound:
+            if on_stop is not None and node is not None:
+                on_stop(node)
+            bound.next_step("stopping the executor")
+            if spinner is not None:
+                spinner.shutdown()
+            bound.next_step("destroying the node")
             if node is not None:
                 node.destroy_node()
+            bound.next_step("shutting down the context")
             rclpy.try_shutdown()
     return 0
 
 
 class _bounded:
-    """A step of a node process's teardown that must end within `limit_s`: past it, the process
-    logs the step, its threads' stacks and that it exits without the rest, and exits with code 0
-    (`exit_process`; the stop was asked for and the node's own work is done). If the step holds
-    the GIL, faulthandler's thread (C, no GIL) prints the stacks TEARDOWN_GIL_FALLBACK_S later and
-    exits with code 1. For a node's own process only, as `run_node`."""
+    """Steps of a node process's teardown, each of which must end within `limit_s`: past it, the
+    process logs the step, its threads' stacks and that it exits without the rest, and exits with
+    code 0 (`exit_process`; the stop was asked for and the node's own work is done). If the step
+    holds the GIL, faulthandler's thread (C, no GIL) prints the stacks TEARDOWN_GIL_FALLBACK_S
+    later and exits with code 1; it stays armed while the watchdog reports, so that a report that
+    blocks (on a full pipe, on a C stream's lock) ends too. For a node's own process only, as
+    `run_node`."""
 
     def __init__(self, name: str, limit_s: float, step: str) -> None:
         self.name, self.limit_s, self.step = name, limit_s, step
-        self._timer = threading.Timer(limit_s, self._expired)
-        self._timer.daemon = True
+        self._timer: threading.Timer | None = None
 
-    def __enter__(self) -> None:
+    def _arm(self) -> None:
+        self._timer = threading.Timer(self.limit_s, self._expired, args=(self.step,))
+        self._timer.daemon = True
         self._timer.start()
         faulthandler.dump_traceback_later(self.limit_s + TEARDOWN_GIL_FALLBACK_S, exit=True)
 
-    def __exit__(self, *exc) -> None:
-        self._timer.cancel()
+    def _disarm(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
         faulthandler.cancel_dump_traceback_later()
 
-    def _expired(self) -> None:
-        faulthandler.cancel_dump_traceback_later()
+    def next_step(self, step: str) -> None:
+        """The step before ended in time: the next one gets `limit_s` of its own."""
+        self._disarm()
+        self.step = step
+        self._arm()
+
+    def __enter__(self) -> _bounded:
+        self._arm()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._disarm()
+
+    def _expired(self, step: str) -> None:
+        if step != self.step:  # that step ended as the timer fired: the next one has its own
+            return
         print(
-            f"[WARN] [{self.name}]: {self.step} did not finish in {self.limit_s:g} s; "
+            f"[WARN] [{self.name}]: {step} did not finish in {self.limit_s:g} s; "
             "the process exits without it. Its threads:",
             file=sys.stderr,
             flush=True,

@@ -253,19 +253,29 @@ class Stuck(Node):
         # as rclpy's destroy_node once stayed until the launcher's SIGKILL
         if sys.argv[2] == "holding the GIL":
             ctypes.PyDLL(None).sleep(3600)  # a PyDLL call keeps the GIL
-        time.sleep(3600)
+        if sys.argv[2] != "stopping the executor":
+            time.sleep(3600)
+        super().destroy_node()
+
+class StuckShutdown(lifecycle.GuardedExecutor):
+    def shutdown(self, timeout_sec=None):
+        # as an executor waits forever on a callback a Ctrl-C interrupted half-way
+        if sys.argv[2] == "stopping the executor":
+            time.sleep(3600)
+        return super().shutdown(timeout_sec)
 
 lifecycle.TEARDOWN_LIMIT_S = 1.0
 lifecycle.TEARDOWN_GIL_FALLBACK_S = 2.0
-sys.exit(lifecycle.run_node(Stuck, "stuck"))
+sys.exit(lifecycle.run_node(Stuck, "stuck", executor=StuckShutdown))
 """
 
 
-@pytest.mark.parametrize("how", ["releasing the GIL", "holding the GIL"])
+@pytest.mark.parametrize("how", ["releasing the GIL", "holding the GIL", "stopping the executor"])
 def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logged(tmp_path, how):
-    """Past TEARDOWN_LIMIT_S in destroying the node, the process says where it was and exits 0:
-    the stop was asked for and the node's own work is done, so no launcher has to kill it. Stuck
-    in C code that holds the GIL, faulthandler's thread prints the stacks and exits 1."""
+    """Past TEARDOWN_LIMIT_S in destroying the node (or in stopping the executor), the process
+    says where it was and exits 0: the stop was asked for and the node's own work is done, so no
+    launcher has to kill it. Stuck in C code that holds the GIL, faulthandler's thread prints the
+    stacks and exits 1."""
     import os
     import signal
     import subprocess
@@ -286,13 +296,14 @@ def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logge
     finally:
         process.send_signal(signal.SIGINT)
         out, _ = process.communicate(timeout=120)
-    assert "in destroy_node" in out, out[-3000:]  # the stuck thread's stack
+    step = "stopping the executor" if how == "stopping the executor" else "destroying the node"
+    stuck_in = "in shutdown" if how == "stopping the executor" else "in destroy_node"
+    assert stuck_in in out, out[-3000:]  # the stuck thread's stack
     if how == "holding the GIL":
         assert process.returncode == 1 and "Timeout (0:00:03)!" in out, out[-3000:]
         return
     assert process.returncode == 0, out[-3000:]
     warning = [line for line in out.splitlines() if "did not finish" in line]
     assert warning == [
-        "[WARN] [stuck]: destroying the node and the context did not finish in 1 s; the process "
-        "exits without it. Its threads:"
+        f"[WARN] [stuck]: {step} did not finish in 1 s; the process exits without it. Its threads:"
     ], out[-3000:]
