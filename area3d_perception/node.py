@@ -19,6 +19,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 from rclpy.node import Node
 
 from area3d_msgs_py import codecs, topics
@@ -57,11 +58,13 @@ from area3d_perception.estimator import (
     FEEDFORWARD_WINDOW,
     NO_RETURN_RULES,
     FrameEstimator,
+    FrameResult,
     check_frame,
 )
 from area3d_perception.sensor_model import RgbdSensorParams
 from area3d_perception.stamp_watch import StampWatch
 from area3d_perception.stereo import StereoParams
+from area3d_perception.undistort import Undistortion, undistortion
 
 FRAME = "frame"  # rejections of a complete frame whose parts do not fit together
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
@@ -105,6 +108,13 @@ PARAMS = (
         "confidence 1 on every valid pixel, on the backend's depth (the w/o feed-forward ablation)",
     ),
     Param("use_depth", True, "pair frames with the camera's depth (False: colour-only backends)"),
+    Param(
+        "undistort",
+        True,
+        "remap images whose camera_info has lens distortion (plumb_bob, rational_polynomial, "
+        "equidistant) into the pinhole camera k before anything else (False: used as they come, "
+        "with a standing warning)",
+    ),
     Param(
         "sync_max_age_s",
         MAX_AGE_NS / 1e9,
@@ -172,7 +182,11 @@ class PerceptionNode(Node):
         self.world_frame = p["world_frame"]
         self.max_stamp_ahead_s = p["max_stamp_ahead_s"]
         self.stamps = StampWatch(p["max_stamp_lag_s"])  # late and backward stamps
+        self.undistort = p["undistort"]
         self.distortion: str | None = None  # what the camera info says of lens distortion
+        # the remap of each camera's raw images into k (`undistort`), by camera info topic
+        self.undistortions: dict[str, Undistortion | None] = {"left": None, "right": None}
+        self._distortion_seen: dict[str, tuple] = {}
         self.status = StatusPublisher(self, topics.PERCEPTION_STATUS, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
@@ -251,6 +265,8 @@ class PerceptionNode(Node):
             "frames_dropped_backlog": self.worker.dropped,
             "workers": {"estimator": self.worker.alive or self.worker.stopping},
             "warnings": [w for w in warnings if w],
+            # the distortion model whose images are remapped into k, by camera
+            "undistorted": {k: v.model for k, v in self.undistortions.items() if v is not None},
             **self.stamps.status(),
             "last_frame_age_s": None
             if self.last_frame_age_s is None
@@ -284,7 +300,7 @@ class PerceptionNode(Node):
     def on_camera_info(self, msg: Any) -> None:
         check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
         K, width, height = decode_camera_info(msg)
-        note = distortion_note(msg)
+        note = self._distortion("left", K, width, height, msg)
         if note != self.distortion:
             self.distortion = note
             if note:
@@ -293,9 +309,29 @@ class PerceptionNode(Node):
         self.camera = (K, width, height)
         self._release_waiting()
 
+    def _distortion(self, side: str, K: Any, width: int, height: int, msg: Any) -> str | None:
+        """Keep the remap of `side`'s camera up to date (built again only when its camera info
+        changes); the standing warning, if any, of its distortion."""
+        if not self.undistort:
+            return distortion_note(msg)
+        key = (K.tobytes(), width, height, str(msg.distortion_model), tuple(msg.d))
+        if self._distortion_seen.get(side, (None, None))[0] != key:
+            remap, note = undistortion(K, width, height, msg.distortion_model, msg.d)
+            self.undistortions[side] = remap
+            self._distortion_seen[side] = (key, note)
+            if remap is not None:
+                self.get_logger().info(
+                    f"{side} camera: distortion_model {remap.model!r} with d "
+                    f"{[round(v, 4) for v in remap.d]}: images undistorted into k"
+                )
+        return self._distortion_seen[side][1]
+
     def on_right_camera_info(self, msg: Any) -> None:
         check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
-        _, width, height = decode_camera_info(msg)
+        K, width, height = decode_camera_info(msg)
+        note = self._distortion("right", K, width, height, msg)
+        if note:
+            self.get_logger().warning(note, throttle_duration_sec=10.0)
         self.right_camera = (codecs.camera_info_to_baseline(msg), width, height)
         self._release_waiting()
 
@@ -351,7 +387,8 @@ class PerceptionNode(Node):
     def _process(self, stamp: int, parts: dict) -> None:
         """Hand a keyframe to the estimator's worker with the camera it was taken with; one that
         finds the backlog full is dropped, logged and counted (`frames_dropped_backlog`)."""
-        if not self.worker.submit(stamp, parts, (self.camera, self.right_camera)):
+        cameras = (self.camera, self.right_camera, dict(self.undistortions))
+        if not self.worker.submit(stamp, parts, cameras):
             self.get_logger().warning(
                 f"frame at stamp {stamp} dropped: {self.worker.backlog} frames wait for the "
                 f"{self.estimator.backend} backend already (the camera outruns it)",
@@ -369,11 +406,12 @@ class PerceptionNode(Node):
     def _estimate(self, stamp: int, parts: dict, cameras: tuple) -> bool:
         """The worker's step: depth and confidence of one keyframe, published; False when it
         was rejected or the backend failed (said, counted)."""
-        (K, width, height), right_camera = cameras
+        (K, width, height), right_camera, undistortions = cameras
         rgb, color_frame = parts["color"]
         depth, depth_frame = parts["depth"] if "depth" in parts else (None, None)
         T_world_cam, _ = parts["pose"]
         right, _ = parts["right"] if "right" in parts else (None, None)
+        rgb, depth, right = undistorted(rgb, depth, right, undistortions)
         baseline = None
         frame_id = depth_frame or color_frame
         try:
@@ -395,6 +433,8 @@ class PerceptionNode(Node):
             result = self.estimator.process(
                 rgb, depth, K, T_world_cam, right=right, baseline=baseline
             )
+            if undistortions["left"] is not None:
+                result = nothing_outside(result, undistortions["left"])
         except InputError as exc:
             with self.gate as running:
                 if running:
@@ -431,6 +471,45 @@ class PerceptionNode(Node):
         # stamp is its capture time; recorded or simulated stamps make this meaningless)
         self.last_frame_age_s = (self._now_ns() - stamp) / 1e9
         return True
+
+
+def undistorted(
+    rgb: np.ndarray, depth: np.ndarray | None, right: np.ndarray | None, undistortions: dict
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A frame's images remapped into the pinhole camera k of their camera info, where it has
+    distortion (`undistort`); an image of another size than its camera info's is left to
+    `check_frame` to refuse by name."""
+    left, right_remap = undistortions["left"], undistortions["right"]
+
+    def fits(image: np.ndarray | None, remap: Undistortion | None) -> bool:
+        return image is not None and remap is not None and image.shape[1::-1] == remap.size
+
+    if fits(rgb, left):
+        rgb = left.color(rgb)
+    if fits(depth, left):  # registered to the colour image: the same camera
+        depth = left.depth(depth)
+    if fits(right, right_remap):
+        right = right_remap.color(right)
+    return rgb, depth, right
+
+
+def nothing_outside(result: FrameResult, remap: Undistortion) -> FrameResult:
+    """No estimate where the undistorted image's rays land outside the raw image: the rgbd
+    backend takes a region without depth for one of no return (`no_return`), which the planner
+    would carve free."""
+    outside = remap.outside
+    if result.depth.shape != outside.shape:
+        return result
+    weight = result.weight
+    confidence = np.where(outside, np.float32(0.0), result.confidence)
+    return dataclasses.replace(
+        result,
+        depth=np.where(outside, np.float32(np.nan), result.depth),
+        confidence=confidence,
+        weight=confidence
+        if weight is None or weight is result.confidence
+        else np.where(outside, np.float32(0.0), weight),
+    )
 
 
 def estimator_from_parameters(p: dict) -> FrameEstimator:

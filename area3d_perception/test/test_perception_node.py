@@ -292,12 +292,13 @@ def test_stamps_that_go_back_are_a_warning_until_the_stream_is_past_its_newest_a
     assert node.node._status()["warnings"] == []
 
 
-def test_a_camera_info_with_lens_distortion_is_a_standing_warning_and_binning_is_refused():
-    """A camera info with distortion (plumb_bob with d non-zero, a fisheye model) was read as an
-    undistorted pinhole camera without a word (surfaces 1-4 cm off near the image's edges in a
-    walkthrough): /diagnostics warns, naming the model and d, until an undistorted one comes.
-    Binning or a region of interest describe another image than the one sent: refused by field."""
-    node = FakeNode()
+def test_without_undistortion_lens_distortion_is_a_standing_warning_and_binning_is_refused():
+    """With `undistort` off, a camera info with distortion (plumb_bob with d non-zero, a fisheye
+    model) is read as an undistorted pinhole camera (surfaces 1-4 cm off near the image's edges
+    in a walkthrough): /diagnostics warns, naming the model and d, until an undistorted one
+    comes. Binning or a region of interest describe another image than the one sent: refused by
+    field."""
+    node = FakeNode({"undistort": False})
     info = codecs.intrinsics_to_camera_info(K, W, H, 1 * S, FRAME)
     info.d = [0.1, -0.2, 0.001, 0.001, 0.05]
     node.subs[INFO_TOPIC](info)
@@ -313,6 +314,7 @@ def test_a_camera_info_with_lens_distortion_is_a_standing_warning_and_binning_is
     assert "'equidistant'" in node.node._status()["warnings"][0]
     node.subs[INFO_TOPIC](codecs.intrinsics_to_camera_info(K, W, H, 3 * S, FRAME))
     assert node.node._status()["warnings"] == []
+    assert node.node._status()["undistorted"] == {}
     binned = codecs.intrinsics_to_camera_info(K, W, H, 4 * S, FRAME)
     binned.binning_x = 2
     node.subs[INFO_TOPIC](binned)
@@ -606,3 +608,75 @@ def test_a_torch_device_name_is_checked_before_a_backend_is_made():
         assert parameter_values(PARAMS, {"device": device})["device"] == device
     with pytest.raises(InputError, match="device: got 'tpu', expected auto, cpu, cuda or cuda:N"):
         parameter_values(PARAMS, {"device": "tpu"})
+
+
+def test_a_distorted_cameras_frames_are_undistorted_into_k_and_said_so():
+    """`undistort` (the default): a frame of a camera whose camera info has plumb_bob distortion
+    is published as the pinhole camera k sees it, depth from the nearest raw pixel; no warning,
+    and the status names the model. A model it cannot undistort stays a standing warning."""
+    from area3d_perception.undistort import undistortion
+
+    d = [-0.3, 0.1, 0.001, -0.002, 0.0]  # a wide-angle lens's barrel
+    # a slanted plane, 1 cm deeper each pixel right or down, and a step of 1 m
+    v, u = np.mgrid[0:H, 0:W]
+    truth = (1.0 + 0.01 * (u + v) + (u >= W // 2 + 3)).astype(np.float32)
+    # the raw image the camera sends: at each raw pixel, the pinhole image where its ray lands
+    import cv2
+
+    K_cv = K.copy()
+    K_cv[:2, 2] -= 0.5
+    raw_px = np.stack(np.meshgrid(np.arange(W), np.arange(H)), -1).reshape(-1, 1, 2)
+    pinhole_px = cv2.undistortPoints(raw_px.astype(np.float64), K_cv, np.array(d), P=K_cv)
+    map_x, map_y = pinhole_px.reshape(H, W, 2).transpose(2, 0, 1).astype(np.float32)
+    raw = cv2.remap(truth, map_x, map_y, cv2.INTER_NEAREST, borderValue=float("nan"))
+
+    node = FakeNode()
+    info = codecs.intrinsics_to_camera_info(K, W, H, 1 * S, FRAME)
+    info.d = d
+    node.subs[INFO_TOPIC](info)
+    send_frame(node, 1 * S, depth=raw, info=False)
+    (depth_msg,) = node.pubs[OUT_DEPTH_TOPIC].sent
+    published = codecs.msg_to_image(depth_msg)
+    expected = undistortion(K, W, H, "plumb_bob", d)[0].depth(raw)
+    np.testing.assert_array_equal(published, expected)
+    # every depth is one the camera sent (none mixes the two sides of the step) ...
+    assert np.isin(published[np.isfinite(published)], raw).all()
+    # ... and, away from the step and the edges, k's own within the nearest pixel's 1-2 cm,
+    # where the raw image was up to 7 pixels off
+    inner = np.zeros((H, W), bool)
+    inner[4:-4, 4:-4] = True
+    inner[:, W // 2 - 3 : W // 2 + 9] = False
+    assert np.mean(np.abs(published - truth)[inner] <= 0.0201) > 0.99
+    assert np.mean(np.abs(raw - truth)[inner] > 0.0201) > 0.3
+    status = node.node._status()
+    assert status["warnings"] == [] and status["undistorted"] == {"left": "plumb_bob"}
+    assert any("images undistorted into k" in m for level, m in node.log.lines)
+    odd = codecs.intrinsics_to_camera_info(K, W, H, 2 * S, FRAME)
+    odd.distortion_model, odd.d = "kannala_brandt_8", [0.1, 0.0]
+    node.subs[INFO_TOPIC](odd)
+    (warning,) = node.node._status()["warnings"]
+    assert "'kannala_brandt_8'" in warning and "not one the graph can undistort" in warning
+    assert node.node._status()["undistorted"] == {}
+
+
+def test_where_an_undistorted_pixel_has_no_raw_pixel_nothing_is_estimated_or_carved():
+    """A pincushion lens: the corners of the pinhole image k have no raw pixel. Without depth
+    there, the rgbd backend would declare them beyond the camera's range (`no_return: all`), and
+    the planner would carve free space where nothing was measured: they are no estimate."""
+    from area3d_perception.undistort import undistortion
+
+    d = [0.05, 0.0, 0.0, 0.0, 0.0]
+    outside = undistortion(K, W, H, "plumb_bob", d)[0].outside
+    assert 0 < outside.sum() < 0.2 * outside.size and outside[0, 0] and not outside[H // 2, W // 2]
+    node = FakeNode({"no_return": "all"})
+    info = codecs.intrinsics_to_camera_info(K, W, H, 1 * S, FRAME)
+    info.d = d
+    node.subs[INFO_TOPIC](info)
+    depth = np.full((H, W), 2.0, np.float32)
+    depth[H // 2, : W // 4] = np.nan  # a dropout inside the image: no return, as the rule says
+    send_frame(node, 1 * S, depth=depth, info=False)
+    published = codecs.msg_to_image(node.pubs[OUT_DEPTH_TOPIC].sent[0])
+    confidence = codecs.msg_to_image(node.pubs[OUT_CONFIDENCE_TOPIC].sent[0])
+    assert np.isnan(published[outside]).all() and (confidence[outside] == 0).all()
+    assert np.isposinf(published[H // 2, 4 : W // 4 - 2]).all()
+    assert (published[~outside & np.isfinite(published)] == 2.0).all()
