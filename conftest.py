@@ -21,7 +21,11 @@ middleware.configure()
 def pytest_sessionstart(session) -> None:
     """Compile the numba kernels into their on-disk cache once, before any test waits on a node
     process that would otherwise compile them inside a bounded wait (`area3d_bringup.kernels`;
-    `make install` has run it already, and then this loads them in a few seconds)."""
+    `make install` has run it already, and then this loads them in a few seconds). With test
+    processes (pytest-xdist), once, in the process that starts them, before it does: each would
+    otherwise load every kernel (about 5 s of CPU each) whether its tests run them or not."""
+    if hasattr(session.config, "workerinput"):  # a test process: the cache is written
+        return
     from area3d_bringup.kernels import warm_kernels
 
     seconds = warm_kernels()
