@@ -36,6 +36,7 @@ from area3d_msgs_py.inputs import (
     distortion_note,
 )
 from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
+from area3d_msgs_py.lens import Remap, undistortion
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
@@ -64,7 +65,6 @@ from area3d_perception.estimator import (
 from area3d_perception.sensor_model import RgbdSensorParams
 from area3d_perception.stamp_watch import StampWatch
 from area3d_perception.stereo import StereoParams
-from area3d_perception.undistort import Undistortion, undistortion
 
 FRAME = "frame"  # rejections of a complete frame whose parts do not fit together
 # Complete frames held while no camera info has arrived yet (oldest dropped beyond this).
@@ -185,7 +185,7 @@ class PerceptionNode(Node):
         self.undistort = p["undistort"]
         self.distortion: str | None = None  # what the camera info says of lens distortion
         # the remap of each camera's raw images into k (`undistort`), by camera info topic
-        self.undistortions: dict[str, Undistortion | None] = {"left": None, "right": None}
+        self.undistortions: dict[str, Remap | None] = {"left": None, "right": None}
         self._distortion_seen: dict[str, tuple] = {}
         self.status = StatusPublisher(self, topics.PERCEPTION_STATUS, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
@@ -481,7 +481,7 @@ def undistorted(
     `check_frame` to refuse by name."""
     left, right_remap = undistortions["left"], undistortions["right"]
 
-    def fits(image: np.ndarray | None, remap: Undistortion | None) -> bool:
+    def fits(image: np.ndarray | None, remap: Remap | None) -> bool:
         return image is not None and remap is not None and image.shape[1::-1] == remap.size
 
     if fits(rgb, left):
@@ -493,7 +493,7 @@ def undistorted(
     return rgb, depth, right
 
 
-def nothing_outside(result: FrameResult, remap: Undistortion) -> FrameResult:
+def nothing_outside(result: FrameResult, remap: Remap) -> FrameResult:
     """No estimate where the undistorted image's rays land outside the raw image: the rgbd
     backend takes a region without depth for one of no return (`no_return`), which the planner
     would carve free."""

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE
+from area3d_msgs_py.camera import PAPER_HFOV_DEG, PAPER_MAX_RANGE, intrinsics
 from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from sim_bridge.noise import add_depth_noise, draw_depth_noise
 from sim_bridge.render import RgbdRenderer
@@ -136,7 +136,9 @@ class SimCamera:
 
     @property
     def K(self) -> np.ndarray:
-        return self.renderer.K
+        """The renderer's intrinsics, without making the renderer: its GL context is current in
+        the thread that makes it, and the node renders in its executor's."""
+        return intrinsics(self.width, self.height, self.hfov_deg)
 
     def capture(self, T_world_cam: np.ndarray) -> Capture:
         """Render at a (4, 4) optical-frame pose, or say why the pose is refused."""

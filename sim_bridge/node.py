@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from collections import Counter, deque
 from collections.abc import Sequence
@@ -25,6 +26,7 @@ from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from area3d_msgs_py.errors import InputError
 from area3d_msgs_py.guard import Rejections, guarded
 from area3d_msgs_py.inputs import check_frame_id, check_stamp
+from area3d_msgs_py.lens import distortion
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     MAX_STAMP_AHEAD_PARAM,
@@ -103,6 +105,16 @@ PARAMS = (
     *params_of(RgbdSensorParams, "sensor.", skip=("max_range",)),
     Param("stereo", False, "also render and publish the right image of a rectified stereo pair"),
     Param(
+        "lens_d",
+        (0.0,) * 5,
+        "plumb_bob distortion (k1, k2, p1, p2, k3) of the colour and depth images sent, and of "
+        "their camera_info's d, as a driver sends raw images; all 0: a pinhole camera (the "
+        "rendering is pinhole either way; the in-process episodes never distort)",
+        check=lambda v: (
+            None if len(v) == 5 and all(math.isfinite(x) for x in v) else "5 finite coefficients"
+        ),
+    ),
+    Param(
         "stereo_baseline",
         STEREO_BASELINE,
         "stereo baseline, metres (right = left + B along optical x)",
@@ -143,7 +155,11 @@ class SimBridgeNode(Node):
         p = declare_parameters(self, PARAMS)
         report_unknown_parameters(self)
         self.scene = load_scene(p["scene"])
+        self.lens_d = [float(v) for v in p["lens_d"]]
+        if any(self.lens_d) and p["stereo"]:
+            raise InputError("lens_d", self.lens_d, "all 0 with stereo (a pair comes rectified)")
         self.camera = camera_from_parameters(self.scene, p)
+        self.lens = distortion(self.camera.K, self.camera.width, self.camera.height, self.lens_d)
         self.pub_color = self._publisher(topics.COLOR)
         self.pub_depth = self._publisher(topics.DEPTH)
         self.pub_info = self._publisher(topics.CAMERA_INFO)
@@ -287,13 +303,16 @@ class SimBridgeNode(Node):
 
     def _send(self, stamp_ns: int, capture: Capture) -> None:
         T = capture.T_world_cam
-        self.pub_color.publish(codecs.image_to_msg(capture.rgb, "rgb8", stamp_ns, OPTICAL_FRAME))
-        self.pub_depth.publish(codecs.image_to_msg(capture.depth, "32FC1", stamp_ns, OPTICAL_FRAME))
-        self.pub_info.publish(
-            codecs.intrinsics_to_camera_info(
-                self.camera.K, self.camera.width, self.camera.height, stamp_ns, OPTICAL_FRAME
-            )
+        rgb, depth = capture.rgb, capture.depth
+        info = codecs.intrinsics_to_camera_info(
+            self.camera.K, self.camera.width, self.camera.height, stamp_ns, OPTICAL_FRAME
         )
+        if self.lens is not None:  # as the lens would have sent them
+            rgb, depth = self.lens.color(rgb), self.lens.depth(depth)
+            info.d = self.lens_d
+        self.pub_color.publish(codecs.image_to_msg(rgb, "rgb8", stamp_ns, OPTICAL_FRAME))
+        self.pub_depth.publish(codecs.image_to_msg(depth, "32FC1", stamp_ns, OPTICAL_FRAME))
+        self.pub_info.publish(info)
         if self.pub_right is not None:
             self.pub_right.publish(
                 codecs.image_to_msg(capture.rgb_right, "rgb8", stamp_ns, RIGHT_OPTICAL_FRAME)

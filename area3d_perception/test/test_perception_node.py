@@ -614,7 +614,7 @@ def test_a_distorted_cameras_frames_are_undistorted_into_k_and_said_so():
     """`undistort` (the default): a frame of a camera whose camera info has plumb_bob distortion
     is published as the pinhole camera k sees it, depth from the nearest raw pixel; no warning,
     and the status names the model. A model it cannot undistort stays a standing warning."""
-    from area3d_perception.undistort import undistortion
+    from area3d_msgs_py.lens import undistortion
 
     d = [-0.3, 0.1, 0.001, -0.002, 0.0]  # a wide-angle lens's barrel
     # a slanted plane, 1 cm deeper each pixel right or down, and a step of 1 m
@@ -663,7 +663,7 @@ def test_where_an_undistorted_pixel_has_no_raw_pixel_nothing_is_estimated_or_car
     """A pincushion lens: the corners of the pinhole image k have no raw pixel. Without depth
     there, the rgbd backend would declare them beyond the camera's range (`no_return: all`), and
     the planner would carve free space where nothing was measured: they are no estimate."""
-    from area3d_perception.undistort import undistortion
+    from area3d_msgs_py.lens import undistortion
 
     d = [0.05, 0.0, 0.0, 0.0, 0.0]
     outside = undistortion(K, W, H, "plumb_bob", d)[0].outside

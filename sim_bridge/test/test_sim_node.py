@@ -360,3 +360,56 @@ def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
     finally:
         spinner.stop(10)
         context.try_shutdown()
+
+
+def test_a_lens_distorts_the_images_sent_and_says_so_in_the_camera_info():
+    """`lens_d`: the colour and depth images go out as a plumb_bob lens sends them (what
+    perception's `undistort` takes out again), with the coefficients in the camera info; no
+    lens with a stereo pair, and five finite coefficients."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from area3d_msgs_py import codecs
+    from area3d_msgs_py.errors import InputError
+    from area3d_msgs_py.lens import distortion
+    from sim_bridge.node import SimBridgeNode
+
+    class Pub:
+        def __init__(self):
+            self.sent = []
+
+        def publish(self, msg):
+            self.sent.append(msg)
+
+    d = [-0.2, 0.05, 0.0, 0.001, 0.0]
+    base = {"scene": "single_object", "width": 160, "height": 120}
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+
+        def node(**p):
+            overrides = [Parameter(k, value=v) for k, v in {**base, **p}.items()]
+            return SimBridgeNode(context=context, parameter_overrides=overrides)
+
+        sim = node(lens_d=d)
+        for name in ("pub_color", "pub_depth", "pub_info"):
+            setattr(sim, name, Pub())
+        T = sim.scene.initial_views[0]
+        capture = sim.camera.capture(T)
+        sim._send(1_000, capture)
+        (info,) = sim.pub_info.sent
+        assert list(info.d) == d and info.distortion_model == "plumb_bob"
+        lens = distortion(sim.camera.K, 160, 120, d)
+        rgb = codecs.msg_to_image(sim.pub_color.sent[0])
+        depth = codecs.msg_to_image(sim.pub_depth.sent[0])
+        np.testing.assert_array_equal(rgb, lens.color(capture.rgb))
+        np.testing.assert_array_equal(depth, lens.depth(capture.depth))
+        assert not np.array_equal(rgb, capture.rgb)
+        sim.camera.close()
+        sim.destroy_node()
+        with pytest.raises(InputError, match="lens_d.*with stereo"):
+            node(lens_d=d, stereo=True)
+        with pytest.raises(InputError, match="5 finite coefficients"):
+            node(lens_d=[0.1, 0.2])
+    finally:
+        context.try_shutdown()

@@ -1,11 +1,11 @@
-"""Lens distortion taken out (`area3d_perception.undistort`): each output pixel of the pinhole
+"""Lens distortion taken out (`area3d_msgs_py.lens`): each output pixel of the pinhole
 camera k reads the raw image where the lens put its ray, by the models' own formulas with the
 graph's pixel centres (u + 0.5, v + 0.5); what cannot be undistorted is said."""
 
 import numpy as np
 import pytest
 
-from area3d_perception.undistort import undistortion
+from area3d_msgs_py.lens import undistortion
 
 H, W = 60, 80
 K = np.array([[70.0, 0, 41.0], [0, 68.0, 29.5], [0, 0, 1]])
@@ -84,3 +84,29 @@ def test_no_distortion_needs_no_remap_and_what_cannot_be_undistorted_is_said():
     assert remap is None and "'kannala_brandt_8'" in note and "plumb_bob" in note
     remap, note = undistortion(K, W, H, "equidistant", [0.1, 0.2])
     assert remap is None and "4 expected" in note
+
+
+def test_a_pinhole_image_sent_through_a_lens_and_undistorted_again_comes_back():
+    """`distortion` (the simulated camera's lens) and `undistortion` (perception's) are inverse
+    maps: a smooth pinhole image, distorted and undistorted again, is itself where the raw image
+    covers it, and was not in between."""
+    from area3d_msgs_py.lens import distortion
+
+    d = [-0.25, 0.08, 0.001, -0.001, 0.0]
+    v, u = np.mgrid[0:H, 0:W]
+    image = (128 + 60 * np.sin(u / 5.0) * np.cos(v / 7.0)).astype(np.uint8)
+    lens = distortion(K, W, H, d)
+    raw = lens.color(image)
+    back = undistortion(K, W, H, "plumb_bob", d)[0].color(raw)
+    inner = (slice(6, H - 6), slice(6, W - 6))
+    error = np.abs(back.astype(float) - image)[inner]
+    assert np.median(error) <= 1.0 and error.max() <= 8.0
+    assert np.mean(np.abs(raw.astype(float) - image)[inner]) > 4 * np.mean(error)
+    # the maps themselves are inverse: where a pinhole pixel reads the raw image, the raw image
+    # reads that pinhole pixel
+    remap = undistortion(K, W, H, "plumb_bob", d)[0]
+    np.testing.assert_allclose(remap.color(lens.map_x)[inner], u[inner], atol=0.02)
+    np.testing.assert_allclose(remap.color(lens.map_y)[inner], v[inner], atol=0.02)
+    assert distortion(K, W, H, [0.0] * 5) is None
+    with pytest.raises(ValueError, match="expected 5"):
+        distortion(K, W, H, [0.1, 0.0])

@@ -1,4 +1,5 @@
-"""Lens distortion taken out of a camera's images before anything is estimated from them.
+"""Lens distortion: taken out of a camera's images before anything is estimated from them
+(`undistortion`, perception), and put into the simulated camera's (`distortion`, sim_bridge).
 
 The graph projects every image with the CameraInfo's `k` as a pinhole camera (perception, the
 planner and the reconstruction alike). A driver that publishes raw images with their distortion
@@ -31,17 +32,18 @@ ZERO = 1e-9
 
 
 @dataclass(frozen=True)
-class Undistortion:
-    """The remap of one camera's raw images into the pinhole camera `K` of the same size."""
+class Remap:
+    """A remap of one camera's images between its raw (distorted) pixels and the pinhole camera
+    `K` of the same size: each output pixel reads the input at (map_x, map_y)."""
 
     model: str
     d: tuple[float, ...]
-    map_x: np.ndarray  # (H, W) float32: the raw image's column of each output pixel
+    map_x: np.ndarray  # (H, W) float32: the input image's column of each output pixel
     map_y: np.ndarray
 
     @cached_property
     def outside(self) -> np.ndarray:
-        """(H, W) bool: the output pixels whose ray lands outside the raw image (no estimate
+        """(H, W) bool: the output pixels whose ray lands outside the input image (no estimate
         there, whatever a backend makes of a pixel without depth)."""
         return np.isnan(self.depth(np.ones(self.map_x.shape, np.float32)))
 
@@ -50,15 +52,15 @@ class Undistortion:
         return self.map_x.shape[1], self.map_x.shape[0]
 
     def color(self, image: np.ndarray) -> np.ndarray:
-        """A colour or grey image, bilinear; black where the raw image has no pixel."""
+        """A colour or grey image, bilinear; black where the input image has no pixel."""
         return cv2.remap(
             image, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
             borderValue=0,
         )  # fmt: skip
 
     def depth(self, depth: np.ndarray) -> np.ndarray:
-        """A float depth image, from the nearest raw pixel; NaN (no estimate) where the raw image
-        has no pixel."""
+        """A float depth image, from the nearest input pixel; NaN (no estimate) where the input
+        image has no pixel."""
         return cv2.remap(
             depth.astype(np.float32, copy=False), self.map_x, self.map_y, cv2.INTER_NEAREST,
             borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"),
@@ -67,7 +69,7 @@ class Undistortion:
 
 def undistortion(
     K: np.ndarray, width: int, height: int, model: str, d: Any
-) -> tuple[Undistortion | None, str | None]:
+) -> tuple[Remap | None, str | None]:
     """(the remap for a camera with distortion `model` and coefficients `d`, or None when there
     is none to take out; a note when its images cannot be undistorted). A pinhole model with all
     of `d` zero needs nothing; a model OpenCV has no undistortion for is used as a pinhole
@@ -104,4 +106,25 @@ def undistortion(
         )
     else:
         map_x, map_y = cv2.initUndistortRectifyMap(K_cv, D, np.eye(3), K_cv, size, cv2.CV_32FC1)
-    return Undistortion(model, tuple(coeffs), map_x, map_y), None
+    return Remap(model, tuple(coeffs), map_x, map_y), None
+
+
+def distortion(K: np.ndarray, width: int, height: int, d: Any) -> Remap | None:
+    """The remap of a pinhole camera `K`'s images into those of a lens with plumb_bob
+    coefficients `d` (k1, k2, p1, p2, k3): each raw pixel reads the pinhole image where its ray
+    lands (OpenCV's `undistortPoints`, the inverse of `undistortion`'s map); None without
+    distortion. What a simulated camera with that lens sends."""
+    coeffs = [float(v) for v in d]
+    if len(coeffs) != MODELS["plumb_bob"]:
+        raise ValueError(f"d: got {len(coeffs)} coefficients, expected 5 (k1, k2, p1, p2, k3)")
+    if not any(abs(v) > ZERO for v in coeffs):
+        return None
+    K_cv = np.asarray(K, np.float64).copy()
+    K_cv[:2, 2] -= 0.5
+    v, u = np.mgrid[0:height, 0:width]
+    raw = np.stack([u, v], -1).reshape(-1, 1, 2).astype(np.float64)
+    pinhole = cv2.undistortPoints(raw, K_cv, np.array(coeffs), P=K_cv).reshape(height, width, 2)
+    return Remap(
+        "plumb_bob", tuple(coeffs), pinhole[..., 0].astype(np.float32),
+        pinhole[..., 1].astype(np.float32),
+    )  # fmt: skip
