@@ -299,13 +299,16 @@ class _bounded:
     def _expired(self, step: str) -> None:
         if step != self.step:  # that step ended as the timer fired: the next one has its own
             return
-        print(
-            f"[WARN] [{self.name}]: {step} did not finish in {self.limit_s:g} s; "
-            "the process exits without it. Its threads:",
-            file=sys.stderr,
-            flush=True,
-        )
-        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        try:  # the output may go nowhere (a launcher gone, its pipe closed): exit all the same
+            print(
+                f"[WARN] [{self.name}]: {step} did not finish in {self.limit_s:g} s; "
+                "the process exits without it. Its threads:",
+                file=sys.stderr,
+                flush=True,
+            )
+            faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        except (OSError, ValueError):
+            pass
         exit_process(0)
 
 

@@ -307,3 +307,33 @@ def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logge
     assert warning == [
         f"[WARN] [stuck]: {step} did not finish in 1 s; the process exits without it. Its threads:"
     ], out[-3000:]
+
+
+def test_a_stuck_teardown_whose_output_goes_nowhere_still_ends_the_process():
+    """Its reader gone (a launcher killed, a test ended), a node's output pipe is closed: the
+    watchdog's report then raised BrokenPipeError, its thread died, and the process stayed (one
+    was found an hour later, asleep in destroy_node). It exits with code 0 all the same."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import tempfile
+    import time
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as folder:
+        built = Path(folder) / "built"
+        env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        process = subprocess.Popen(
+            [sys.executable, "-c", STUCK_NODE, str(built), "releasing the GIL"], env=env,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 120
+            while not built.exists() and process.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert built.exists(), process.poll()
+        finally:
+            process.stdout.close()  # nobody reads it any more
+            process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=120) == 0
