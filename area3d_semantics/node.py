@@ -28,8 +28,10 @@ from area3d_msgs_py.inputs import (
     check_stamp,
     check_unit_range,
     decode_camera_depth,
+    decode_camera_info,
     decode_image,
 )
+from area3d_msgs_py.lens import Remap, undistortion
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
@@ -107,6 +109,12 @@ PARAMS = (
     ),
     Param("require_depth", True, "a view needs its depth before it is analysed"),
     Param(
+        "undistort",
+        True,
+        "remap colour and depth of a camera whose camera_info has lens distortion into its "
+        "pinhole k, as perception does, so that the weight maps lie on perception's pixels",
+    ),
+    Param(
         "require_confidence",
         True,
         "a view needs perception's confidence before it is analysed: the views are the frames "
@@ -152,6 +160,10 @@ class SemanticsNode(Node):
         self.analysis_error: str | None = None
 
         self.views = ViewCollector(self.require_depth, require_confidence=self.require_confidence)
+        # the remap of the camera's images into k (`undistort`), from its latest camera_info
+        self.undistort = p["undistort"]
+        self.lens: Remap | None = None
+        self._lens_key: tuple | None = None
         self.weights: dict[int, np.ndarray] = {}  # stamp -> weight map of the latest analysis
         self.published_usem: set[int] = set()
         self.queried = False
@@ -178,6 +190,7 @@ class SemanticsNode(Node):
             (topics.DEPTH, self.on_depth, IMAGE_QUEUE_DEPTH),
             (topics.PERCEPTION_CONFIDENCE, self.on_confidence, IMAGE_QUEUE_DEPTH),
             (topics.SEMANTIC_REQUEST, self.on_request, None),
+            *([(topics.CAMERA_INFO, self.on_camera_info, None)] if p["undistort"] else []),
         ):
             subscribe(
                 self, topic.msg_type, topic.name, callback,
@@ -217,6 +230,7 @@ class SemanticsNode(Node):
                 "analysis_pending": self.worker.pending,
                 "analysis_retry_pending": self._retry is not None,
                 "workers": {"analysis": self.worker.healthy},
+                "undistorted": None if self.lens is None else self.lens.model,
                 "rejected": self.rejections.snapshot(),
             }
 
@@ -227,17 +241,35 @@ class SemanticsNode(Node):
     def on_color(self, msg) -> None:
         stamp = self._stamp(msg)
         frame_id = check_frame_id(msg)
-        rgb = decode_image(msg, COLOR_ENCODINGS)
+        rgb = self._undistorted(decode_image(msg, COLOR_ENCODINGS), Remap.color)
         with self._lock:
             self.views.add_color(stamp, rgb, frame_id)
         self._maybe_start_initial()
 
     def on_depth(self, msg) -> None:
         stamp = self._stamp(msg)
-        depth = decode_camera_depth(msg)
+        depth = self._undistorted(decode_camera_depth(msg), Remap.depth)
         with self._lock:
             self.views.add_depth(stamp, depth)
         self._maybe_start_initial()
+
+    def on_camera_info(self, msg) -> None:
+        """The camera's lens, as perception reads it (`area3d_msgs_py.lens`): its images are
+        remapped into k from then on. A model the graph cannot undistort is perception's to
+        warn of."""
+        if not self.undistort:  # (not subscribed then)
+            return
+        K, width, height = decode_camera_info(msg)
+        key = (K.tobytes(), width, height, str(msg.distortion_model), tuple(msg.d))
+        if key != self._lens_key:
+            self._lens_key = key
+            self.lens, _ = undistortion(K, width, height, msg.distortion_model, msg.d)
+
+    def _undistorted(self, image: np.ndarray, remap) -> np.ndarray:
+        lens = self.lens
+        if lens is None or image.shape[1::-1] != lens.size:  # another camera's: as it comes
+            return image
+        return remap(lens, image)
 
     def on_confidence(self, msg) -> None:
         stamp = self._stamp(msg)

@@ -483,3 +483,50 @@ def test_a_query_that_ends_after_the_node_was_destroyed_publishes_nothing_and_ra
         assert len(rig.regions) == 1 and rig.semantics.analyses == 1
     finally:
         rig.close()
+
+
+def test_a_distorted_cameras_images_are_undistorted_as_perception_undistorts_them():
+    """`undistort`: colour and depth of a camera whose camera_info has lens distortion are
+    remapped into its pinhole k, as perception remaps them, so that a frame's weight map and U_sem
+    lie on the pixels of perception's confidence; without a camera_info, or with `undistort`
+    off, they are used as they come."""
+    from area3d_msgs_py.lens import undistortion
+
+    K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])
+    d = [-0.3, 0.1, 0.0, 0.0, 0.0]
+    lens, _ = undistortion(K, W, H, "plumb_bob", d)
+    stamp, image, depth, _ = frames(1)[0]
+    depth = depth + np.linspace(0.0, 1.0, W, dtype=np.float32)[None]  # a slanted wall
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        for undistort in (True, False):
+            node = SemanticsNode(
+                context=context,
+                parameter_overrides=[
+                    Parameter("undistort", value=undistort), Parameter("backend", value="heuristic"),
+                ],
+            )  # fmt: skip
+            try:
+                info = codecs.intrinsics_to_camera_info(K, W, H, stamp, "camera_optical_frame")
+                info.d = d
+                node.on_color(codecs.image_to_msg(image, "rgb8", stamp, "camera_optical_frame"))
+                before = node.views.get(stamp).rgb  # no camera_info yet: as it came
+                np.testing.assert_array_equal(before, image)
+                node.on_camera_info(info)
+                later = stamp + 1_000
+                node.on_color(codecs.image_to_msg(image, "rgb8", later, "camera_optical_frame"))
+                node.on_depth(codecs.image_to_msg(depth, "32FC1", later, "camera_optical_frame"))
+                view = node.views.get(later)
+                if undistort:
+                    np.testing.assert_array_equal(view.rgb, lens.color(image))
+                    np.testing.assert_array_equal(view.depth, lens.depth(depth))
+                    assert node._status()["undistorted"] == "plumb_bob"
+                else:
+                    np.testing.assert_array_equal(view.rgb, image)
+                    np.testing.assert_array_equal(view.depth, depth)
+                    assert node._status()["undistorted"] is None
+            finally:
+                node.destroy_node()
+    finally:
+        context.try_shutdown()
