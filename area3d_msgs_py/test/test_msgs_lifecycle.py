@@ -270,28 +270,36 @@ sys.exit(lifecycle.run_node(Stuck, "stuck", executor=StuckShutdown))
 """
 
 
+def start_stuck_node(built, how: str):
+    """STUCK_NODE in a process of its own, its output piped, once it has built its node (it
+    writes `built`)."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    process = subprocess.Popen(
+        [sys.executable, "-c", STUCK_NODE, str(built), how], env=env, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while not built.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return process
+
+
 @pytest.mark.parametrize("how", ["releasing the GIL", "holding the GIL", "stopping the executor"])
 def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logged(tmp_path, how):
     """Past TEARDOWN_LIMIT_S in destroying the node (or in stopping the executor), the process
     says where it was and exits 0: the stop was asked for and the node's own work is done, so no
     launcher has to kill it. Stuck in C code that holds the GIL, faulthandler's thread prints the
     stacks and exits 1."""
-    import os
     import signal
-    import subprocess
-    import sys
-    import time
 
     built = tmp_path / "built"
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    process = subprocess.Popen(
-        [sys.executable, "-c", STUCK_NODE, str(built), how], env=env, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-    )  # fmt: skip
+    process = start_stuck_node(built, how)
     try:
-        deadline = time.monotonic() + 120
-        while not built.exists() and process.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
         assert built.exists(), process.poll()
     finally:
         process.send_signal(signal.SIGINT)
@@ -309,31 +317,17 @@ def test_a_teardown_stuck_in_destroy_node_ends_the_process_with_its_stacks_logge
     ], out[-3000:]
 
 
-def test_a_stuck_teardown_whose_output_goes_nowhere_still_ends_the_process():
+def test_a_stuck_teardown_whose_output_goes_nowhere_still_ends_the_process(tmp_path):
     """Its reader gone (a launcher killed, a test ended), a node's output pipe is closed: the
     watchdog's report then raised BrokenPipeError, its thread died, and the process stayed (one
     was found an hour later, asleep in destroy_node). It exits with code 0 all the same."""
-    import os
     import signal
-    import subprocess
-    import sys
-    import tempfile
-    import time
-    from pathlib import Path
 
-    with tempfile.TemporaryDirectory() as folder:
-        built = Path(folder) / "built"
-        env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        process = subprocess.Popen(
-            [sys.executable, "-c", STUCK_NODE, str(built), "releasing the GIL"], env=env,
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        )  # fmt: skip
-        try:
-            deadline = time.monotonic() + 120
-            while not built.exists() and process.poll() is None and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert built.exists(), process.poll()
-        finally:
-            process.stdout.close()  # nobody reads it any more
-            process.send_signal(signal.SIGINT)
-        assert process.wait(timeout=120) == 0
+    built = tmp_path / "built"
+    process = start_stuck_node(built, "releasing the GIL")
+    try:
+        assert built.exists(), process.poll()
+    finally:
+        process.stdout.close()  # nobody reads it any more
+        process.send_signal(signal.SIGINT)
+    assert process.wait(timeout=120) == 0
