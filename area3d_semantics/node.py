@@ -259,6 +259,7 @@ class SemanticsNode(Node):
         warn of."""
         if not self.undistort:  # (not subscribed then)
             return
+        self._stamp(msg)  # checked as perception checks it
         K, width, height = decode_camera_info(msg)
         key = (K.tobytes(), width, height, str(msg.distortion_model), tuple(msg.d))
         if key != self._lens_key:

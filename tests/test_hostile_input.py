@@ -32,6 +32,7 @@ SUBSCRIBED = {
     "semantics": (
         "/area3d/camera/color/image_raw",
         "/area3d/camera/depth/image_raw",
+        "/area3d/camera/camera_info",  # its lens (`undistort`)
         "/area3d/perception/confidence",
         "/area3d/semantics/request",
     ),
