@@ -110,9 +110,10 @@ PARAMS = (
     Param("require_depth", True, "a view needs its depth before it is analysed"),
     Param(
         "undistort",
-        True,
+        False,
         "remap colour and depth of a camera whose camera_info has lens distortion into its "
-        "pinhole k, as perception does, so that the weight maps lie on perception's pixels",
+        "pinhole k, as perception does, so that the weight maps lie on perception's pixels "
+        "(off: used as they come, a few pixels off near the edges of a distorted image)",
     ),
     Param(
         "require_confidence",

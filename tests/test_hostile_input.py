@@ -32,7 +32,6 @@ SUBSCRIBED = {
     "semantics": (
         "/area3d/camera/color/image_raw",
         "/area3d/camera/depth/image_raw",
-        "/area3d/camera/camera_info",  # its lens (`undistort`)
         "/area3d/perception/confidence",
         "/area3d/semantics/request",
     ),

@@ -247,6 +247,11 @@ from area3d_msgs_py import lifecycle
 class Stuck(Node):
     def __init__(self):
         super().__init__("stuck")
+        # said from a callback: the node spins (a Ctrl-C while a node starts was seen lost)
+        self.said = self.create_timer(0.05, self.say)
+
+    def say(self):
+        self.said.cancel()
         pathlib.Path(sys.argv[1]).write_text("built")
 
     def destroy_node(self):

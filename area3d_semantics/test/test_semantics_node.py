@@ -486,10 +486,10 @@ def test_a_query_that_ends_after_the_node_was_destroyed_publishes_nothing_and_ra
 
 
 def test_a_distorted_cameras_images_are_undistorted_as_perception_undistorts_them():
-    """`undistort`: colour and depth of a camera whose camera_info has lens distortion are
+    """`undistort` on: colour and depth of a camera whose camera_info has lens distortion are
     remapped into its pinhole k, as perception remaps them, so that a frame's weight map and U_sem
     lie on the pixels of perception's confidence; without a camera_info, or with `undistort`
-    off, they are used as they come."""
+    off (the default), they are used as they come."""
     from area3d_msgs_py.lens import undistortion
 
     K = np.array([[W / 2, 0, W / 2], [0, W / 2, H / 2], [0, 0, 1.0]])
