@@ -37,7 +37,7 @@ from area3d_bringup.mission_sync import (
 from area3d_bringup.recorder import BagRecorder
 from area3d_eval.rundir import Frame
 from area3d_msgs_py import codecs, msgs, qos, services, topics
-from area3d_msgs_py.lens import Remap, undistortion
+from area3d_msgs_py.lens import camera_undistortion
 from area3d_msgs_py.topics import Service, Topic
 
 NAME = topics.MISSION_MANAGER
@@ -99,7 +99,6 @@ class MissionManager(GraphSync, Node):
         # {stamp: {"depth" | "confidence" | "weight": image}} of perception's outputs, when the
         # run keeps them
         self.estimates: dict[int, dict[str, np.ndarray]] | None = {} if keep_estimates else None
-        self._lenses: dict[tuple, Remap | None] = {}  # by camera info (`_lens`)
         self.recorder = recorder
         self.launcher = launcher  # the graph's processes: who died, who was restarted when
         self.acknowledged: dict[str, int] = self.respawns()  # restarts already caught up with
@@ -277,7 +276,7 @@ class MissionManager(GraphSync, Node):
         # a camera with lens distortion: the frame is kept as the graph sees it, undistorted
         # into k (`area3d_msgs_py.lens`, as perception and semantics remap it), so that the
         # evaluation and a replay read a pinhole camera's
-        lens = self._lens(K, width, height, info.distortion_model, tuple(info.d))
+        lens, _ = camera_undistortion(K, width, height, info.distortion_model, info.d)
         if lens is not None and rgb.shape[1::-1] == lens.size == depth.shape[::-1]:
             rgb, depth = lens.color(rgb), lens.depth(depth)
         return Frame(
@@ -287,13 +286,6 @@ class MissionManager(GraphSync, Node):
             T_world_cam=codecs.pose_to_matrix(parts["pose"].pose),
             stamp_ns=stamp,
         )
-
-    def _lens(self, K, width, height, model, d) -> Remap | None:
-        """The remap of a camera's frames into k, made once per camera info."""
-        key = (np.asarray(K, np.float64).tobytes(), width, height, str(model), d)
-        if key not in self._lenses:
-            self._lenses[key] = undistortion(K, width, height, model, d)[0]
-        return self._lenses[key]
 
     def replay(self, frame: Frame) -> None:
         """Publish a saved frame on the camera topics, as the camera did when it was captured."""

@@ -19,7 +19,7 @@ pair must come rectified (stereo_image_proc) as before.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import cv2
@@ -107,6 +107,23 @@ def undistortion(
     else:
         map_x, map_y = cv2.initUndistortRectifyMap(K_cv, D, np.eye(3), K_cv, size, cv2.CV_32FC1)
     return Remap(model, tuple(coeffs), map_x, map_y), None
+
+
+def camera_undistortion(
+    K: np.ndarray, width: int, height: int, model: str, d: Any
+) -> tuple[Remap | None, str | None]:
+    """`undistortion`, made once per camera (the last few kept) and the same `Remap` object
+    after: a driver sends its camera info with every frame."""
+    K_bytes = np.asarray(K, np.float64).tobytes()
+    return _undistortion_of(K_bytes, int(width), int(height), str(model), tuple(map(float, d)))
+
+
+@lru_cache(maxsize=8)
+def _undistortion_of(
+    K_bytes: bytes, width: int, height: int, model: str, d: tuple[float, ...]
+) -> tuple[Remap | None, str | None]:
+    K = np.frombuffer(K_bytes, np.float64).reshape(3, 3)
+    return undistortion(K, width, height, model, d)
 
 
 def distortion(K: np.ndarray, width: int, height: int, d: Any) -> Remap | None:

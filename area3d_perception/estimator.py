@@ -29,6 +29,7 @@ import numpy as np
 
 from area3d_msgs_py.depth_sensor import RgbdSensorParams
 from area3d_msgs_py.errors import InputError
+from area3d_msgs_py.lens import Remap
 from area3d_perception.feedforward import (
     DepthAnything3Backend,
     FeedForwardOutput,
@@ -290,3 +291,68 @@ class FrameEstimator:
 
 def _default_model_factory(backend: str) -> Callable[[str, str], object]:
     return VggtBackend if backend == "vggt" else DepthAnything3Backend
+
+
+def undistorted(
+    rgb: np.ndarray, depth: np.ndarray | None, right: np.ndarray | None, undistortions: dict
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A frame's images remapped into the pinhole camera k of their camera info, where it has
+    distortion (`undistort`); an image of another size than its camera info's is left to
+    `check_frame` to refuse by name."""
+    left, right_remap = undistortions["left"], undistortions["right"]
+
+    def fits(image: np.ndarray | None, remap: Remap | None) -> bool:
+        return image is not None and remap is not None and image.shape[1::-1] == remap.size
+
+    if fits(rgb, left):
+        rgb = left.color(rgb)
+    if fits(depth, left):  # registered to the colour image: the same camera
+        depth = left.depth(depth)
+    if fits(right, right_remap):
+        right = right_remap.color(right)
+    return rgb, depth, right
+
+
+def nothing_outside(result: FrameResult, remap: Remap) -> FrameResult:
+    """No estimate where the undistorted image's rays land outside the raw image: the rgbd
+    backend takes a region without depth for one of no return (`no_return`), which the planner
+    would carve free."""
+    outside = remap.outside
+    if result.depth.shape != outside.shape:
+        return result
+    weight = result.weight
+    confidence = np.where(outside, np.float32(0.0), result.confidence)
+    return dataclasses.replace(
+        result,
+        depth=np.where(outside, np.float32(np.nan), result.depth),
+        confidence=confidence,
+        weight=confidence
+        if weight is None or weight is result.confidence
+        else np.where(outside, np.float32(0.0), weight),
+    )
+
+
+def estimator_from_parameters(p: dict) -> FrameEstimator:
+    """The estimator the perception node's parameters `p` describe (also what
+    `area3d_bringup.inprocess` estimates with)."""
+    sensor = RgbdSensorParams(
+        **{f.name: p[f"sensor.{f.name}"] for f in dataclasses.fields(RgbdSensorParams)}
+    )
+    stereo = StereoParams(
+        **{
+            f.name: p[f"stereo.{f.name}"]
+            for f in dataclasses.fields(StereoParams)
+            if f.name != "max_range"
+        }
+    )
+    return FrameEstimator(
+        backend=p["backend"],
+        sensor=sensor,
+        checkpoint=p["checkpoint"],
+        device=p["device"],
+        window=p["window"],
+        confidence_normalization=p["confidence_normalization"],
+        stereo=stereo,
+        uniform_confidence=p["uniform_confidence"],
+        no_return=p["no_return"],
+    )

@@ -19,7 +19,6 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 from rclpy.node import Node
 
 from area3d_msgs_py import codecs, topics
@@ -36,7 +35,7 @@ from area3d_msgs_py.inputs import (
     distortion_note,
 )
 from area3d_msgs_py.keyframes import KeyframeConfig, KeyframeSelector
-from area3d_msgs_py.lens import Remap, undistortion
+from area3d_msgs_py.lens import Remap, camera_undistortion
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
@@ -58,9 +57,10 @@ from area3d_perception.estimator import (
     BACKENDS,
     FEEDFORWARD_WINDOW,
     NO_RETURN_RULES,
-    FrameEstimator,
-    FrameResult,
     check_frame,
+    estimator_from_parameters,
+    nothing_outside,
+    undistorted,
 )
 from area3d_perception.sensor_model import RgbdSensorParams
 from area3d_perception.stamp_watch import StampWatch
@@ -186,7 +186,6 @@ class PerceptionNode(Node):
         self.distortion: str | None = None  # what the camera info says of lens distortion
         # the remap of each camera's raw images into k (`undistort`), by camera info topic
         self.undistortions: dict[str, Remap | None] = {"left": None, "right": None}
-        self._distortion_seen: dict[str, tuple] = {}
         self.status = StatusPublisher(self, topics.PERCEPTION_STATUS, self._status)
         self.rejections = Rejections(on_count=self.status.changed)
         self.dropped = 0
@@ -314,17 +313,14 @@ class PerceptionNode(Node):
         changes); the standing warning, if any, of its distortion."""
         if not self.undistort:
             return distortion_note(msg)
-        key = (K.tobytes(), width, height, str(msg.distortion_model), tuple(msg.d))
-        if self._distortion_seen.get(side, (None, None))[0] != key:
-            remap, note = undistortion(K, width, height, msg.distortion_model, msg.d)
-            self.undistortions[side] = remap
-            self._distortion_seen[side] = (key, note)
-            if remap is not None:
-                self.get_logger().info(
-                    f"{side} camera: distortion_model {remap.model!r} with d "
-                    f"{[round(v, 4) for v in remap.d]}: images undistorted into k"
-                )
-        return self._distortion_seen[side][1]
+        remap, note = camera_undistortion(K, width, height, msg.distortion_model, msg.d)
+        if remap is not None and remap is not self.undistortions[side]:
+            self.get_logger().info(
+                f"{side} camera: distortion_model {remap.model!r} with d "
+                f"{[round(v, 4) for v in remap.d]}: images undistorted into k"
+            )
+        self.undistortions[side] = remap
+        return note
 
     def on_right_camera_info(self, msg: Any) -> None:
         check_stamp(msg, self._now_ns(), self.max_stamp_ahead_s)
@@ -411,7 +407,6 @@ class PerceptionNode(Node):
         depth, depth_frame = parts["depth"] if "depth" in parts else (None, None)
         T_world_cam, _ = parts["pose"]
         right, _ = parts["right"] if "right" in parts else (None, None)
-        rgb, depth, right = undistorted(rgb, depth, right, undistortions)
         baseline = None
         frame_id = depth_frame or color_frame
         try:
@@ -422,6 +417,7 @@ class PerceptionNode(Node):
                     f"the color image's {color_frame!r} (depth registered to color)",
                 )
             check_frame(rgb, depth, (width, height))
+            rgb, depth, right = undistorted(rgb, depth, right, undistortions)
             if self.stereo:
                 baseline, right_width, right_height = right_camera
                 if (right_width, right_height) != (width, height):
@@ -471,71 +467,6 @@ class PerceptionNode(Node):
         # stamp is its capture time; recorded or simulated stamps make this meaningless)
         self.last_frame_age_s = (self._now_ns() - stamp) / 1e9
         return True
-
-
-def undistorted(
-    rgb: np.ndarray, depth: np.ndarray | None, right: np.ndarray | None, undistortions: dict
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """A frame's images remapped into the pinhole camera k of their camera info, where it has
-    distortion (`undistort`); an image of another size than its camera info's is left to
-    `check_frame` to refuse by name."""
-    left, right_remap = undistortions["left"], undistortions["right"]
-
-    def fits(image: np.ndarray | None, remap: Remap | None) -> bool:
-        return image is not None and remap is not None and image.shape[1::-1] == remap.size
-
-    if fits(rgb, left):
-        rgb = left.color(rgb)
-    if fits(depth, left):  # registered to the colour image: the same camera
-        depth = left.depth(depth)
-    if fits(right, right_remap):
-        right = right_remap.color(right)
-    return rgb, depth, right
-
-
-def nothing_outside(result: FrameResult, remap: Remap) -> FrameResult:
-    """No estimate where the undistorted image's rays land outside the raw image: the rgbd
-    backend takes a region without depth for one of no return (`no_return`), which the planner
-    would carve free."""
-    outside = remap.outside
-    if result.depth.shape != outside.shape:
-        return result
-    weight = result.weight
-    confidence = np.where(outside, np.float32(0.0), result.confidence)
-    return dataclasses.replace(
-        result,
-        depth=np.where(outside, np.float32(np.nan), result.depth),
-        confidence=confidence,
-        weight=confidence
-        if weight is None or weight is result.confidence
-        else np.where(outside, np.float32(0.0), weight),
-    )
-
-
-def estimator_from_parameters(p: dict) -> FrameEstimator:
-    """The estimator this node's parameters `p` describe (also what `area3d_bringup.inprocess`
-    estimates with)."""
-    sensor = RgbdSensorParams(
-        **{f.name: p[f"sensor.{f.name}"] for f in dataclasses.fields(RgbdSensorParams)}
-    )
-    stereo = StereoParams(
-        **{
-            f.name: p[f"stereo.{f.name}"]
-            for f in dataclasses.fields(StereoParams)
-            if f.name != "max_range"
-        }
-    )
-    return FrameEstimator(
-        backend=p["backend"],
-        sensor=sensor,
-        checkpoint=p["checkpoint"],
-        device=p["device"],
-        window=p["window"],
-        confidence_normalization=p["confidence_normalization"],
-        stereo=stereo,
-        uniform_confidence=p["uniform_confidence"],
-        no_return=p["no_return"],
-    )
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -31,7 +31,7 @@ from area3d_msgs_py.inputs import (
     decode_camera_info,
     decode_image,
 )
-from area3d_msgs_py.lens import Remap, undistortion
+from area3d_msgs_py.lens import Remap, camera_undistortion
 from area3d_msgs_py.lifecycle import PublishGate, exit_process, run_node
 from area3d_msgs_py.parameters import (
     CAMERA_QOS_PARAM,
@@ -164,7 +164,6 @@ class SemanticsNode(Node):
         # the remap of the camera's images into k (`undistort`), from its latest camera_info
         self.undistort = p["undistort"]
         self.lens: Remap | None = None
-        self._lens_key: tuple | None = None
         self.weights: dict[int, np.ndarray] = {}  # stamp -> weight map of the latest analysis
         self.published_usem: set[int] = set()
         self.queried = False
@@ -262,10 +261,7 @@ class SemanticsNode(Node):
             return
         self._stamp(msg)  # checked as perception checks it
         K, width, height = decode_camera_info(msg)
-        key = (K.tobytes(), width, height, str(msg.distortion_model), tuple(msg.d))
-        if key != self._lens_key:
-            self._lens_key = key
-            self.lens, _ = undistortion(K, width, height, msg.distortion_model, msg.d)
+        self.lens, _ = camera_undistortion(K, width, height, msg.distortion_model, msg.d)
 
     def _undistorted(self, image: np.ndarray, remap) -> np.ndarray:
         lens = self.lens

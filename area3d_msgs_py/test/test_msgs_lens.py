@@ -110,3 +110,15 @@ def test_a_pinhole_image_sent_through_a_lens_and_undistorted_again_comes_back():
     assert distortion(K, W, H, [0.0] * 5) is None
     with pytest.raises(ValueError, match="expected 5"):
         distortion(K, W, H, [0.1, 0.0])
+
+
+def test_a_camera_sending_the_same_camera_info_gets_the_same_remap_made_once():
+    from area3d_msgs_py.lens import camera_undistortion
+
+    d = [-0.2, 0.05, 0.0, 0.0, 0.0]
+    first, note = camera_undistortion(K, W, H, "plumb_bob", d)
+    again, _ = camera_undistortion(K.copy(), W, H, "plumb_bob", list(d))
+    assert note is None and again is first  # a driver sends its camera info every frame
+    other, _ = camera_undistortion(K, W, H, "plumb_bob", [-0.1, 0.0, 0.0, 0.0, 0.0])
+    assert other is not first and not np.array_equal(other.map_x, first.map_x)
+    assert camera_undistortion(K, W, H, "plumb_bob", [0.0] * 5) == (None, None)
