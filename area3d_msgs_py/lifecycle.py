@@ -204,6 +204,8 @@ def run_node(
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     tune_process()  # before rclpy and the node start their threads
     middleware.configure()
+    interrupt = _StopSignal()
+    interrupt.install()  # before rclpy.init: rclpy's own handler calls this one after its own
     try:
         rclpy.init(args=args)
     except Exception as exc:  # rcl parses --ros-args: a params file missing or not YAML
@@ -223,6 +225,7 @@ def run_node(
             return 1
         log_handler = forward_python_logging(node)
         spinner.add_node(node)
+        interrupt.spinning = True
         _spin(spinner, node)
         signalled = True  # spin returns only once the context is shut down: a signal
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -257,6 +260,25 @@ def run_node(
             bound.next_step("shutting down the context")
             rclpy.try_shutdown()
     return 0
+
+
+class _StopSignal:
+    """Python's side of Ctrl-C in a node process. While the node is built, Ctrl-C raises
+    KeyboardInterrupt (a constructor that loads a model stops at once); once it spins, it raises
+    nothing: rclpy's signal thread shuts the context down and the executor's `spin` returns. A
+    KeyboardInterrupt raised inside the executor lands anywhere (in the suite, inside an rclpy
+    Task's constructor, whose finaliser then printed a traceback as the node exited)."""
+
+    def __init__(self) -> None:
+        self.spinning = False
+
+    def install(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, self)
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        if not self.spinning:
+            raise KeyboardInterrupt
 
 
 class _bounded:

@@ -336,3 +336,69 @@ def test_a_stuck_teardown_whose_output_goes_nowhere_still_ends_the_process(tmp_p
         process.stdout.close()  # nobody reads it any more
         process.send_signal(signal.SIGINT)
     assert process.wait(timeout=120) == 0
+
+
+SLOW_NODE = """
+import pathlib, sys, time
+from rclpy.node import Node
+from area3d_msgs_py import lifecycle
+
+said = pathlib.Path(sys.argv[1])
+
+def busy(seconds):  # Python bytecode all along: where a KeyboardInterrupt would land
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+class Slow(Node):
+    def __init__(self):
+        super().__init__("slow")
+        if sys.argv[2] == "building":
+            said.write_text("building")
+            busy(3600)  # a model that loads for long
+        self.work = self.create_timer(0.05, self.callback)
+
+    def callback(self):
+        self.work.cancel()
+        said.write_text("in a callback")
+        busy(2.0)
+        said.write_text("callback done")
+
+sys.exit(lifecycle.run_node(Slow, "slow"))
+"""
+
+
+@pytest.mark.parametrize("when", ["building", "spinning"])
+def test_ctrl_c_stops_a_node_being_built_at_once_and_a_spinning_one_after_its_callback(
+    tmp_path, when
+):
+    """Ctrl-C while the node is built interrupts its constructor; once it spins, Ctrl-C raises
+    nothing in the node's callbacks (a KeyboardInterrupt in the executor, inside an rclpy Task's
+    constructor, printed a traceback as a perception node exited): the callback in progress
+    ends, then the node stops. Both exit 0 without a traceback."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    said = tmp_path / "said"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    process = subprocess.Popen(
+        [sys.executable, "-c", SLOW_NODE, str(said), when], env=env, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    waiting_for = "building" if when == "building" else "in a callback"
+    try:
+        deadline = time.monotonic() + 120
+        while process.poll() is None and time.monotonic() < deadline:
+            if said.exists() and said.read_text() == waiting_for:
+                break
+            time.sleep(0.01)
+        assert said.read_text() == waiting_for, process.poll()
+    finally:
+        process.send_signal(signal.SIGINT)
+        out, _ = process.communicate(timeout=120)
+    assert process.returncode == 0, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+    assert said.read_text() == ("building" if when == "building" else "callback done")
