@@ -160,7 +160,7 @@ class PlannerConfig:
         choices=GAIN_RULES,
     )
     retry_gain: float = described(
-        0.5,
+        0.25,
         "after each distinct direction a voxel was observed from without being pinned down, the "
         "share of its uncertainty a new direction is expected to resolve is multiplied by this",
         "",
