@@ -16,6 +16,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from rclpy.exceptions import InvalidHandle
+
 from area3d_msgs_py import diagnostics, msgs, qos
 from area3d_msgs_py.topics import Topic
 
@@ -54,8 +56,13 @@ class StatusPublisher:
         node.create_timer(HEARTBEAT_S, self._heartbeat)
 
     def changed(self) -> None:
-        """Something in the state changed: publish it shortly (repeated calls coalesce)."""
-        self._soon.reset()
+        """Something in the state changed: publish it shortly (repeated calls coalesce). From a
+        worker thread this may come as the node is destroyed: its timer is gone, and so is anyone
+        to tell (rclpy raised InvalidHandle on the semantics node's VLM thread as a test ended)."""
+        try:
+            self._soon.reset()
+        except InvalidHandle:
+            pass
 
     def _publish_soon(self) -> None:
         self._soon.cancel()

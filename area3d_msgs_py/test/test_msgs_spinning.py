@@ -228,3 +228,28 @@ def test_a_request_that_cannot_be_taken_is_dropped_and_the_service_answers_the_n
     assert "dropped as a lost request (1 on this service so far)" in err
     server.destroy_node()
     caller.destroy_node()
+
+
+def test_a_status_change_from_a_worker_as_the_node_is_destroyed_raises_nothing(
+    context, thread_errors
+):
+    """A worker thread (the semantics node's VLM thread scheduling a retry) may say its status
+    changed just as the node is destroyed: rclpy raised InvalidHandle on that thread (its
+    timer was gone) and the thread died with a traceback. Before the node goes, a change still
+    publishes shortly after."""
+    node = rclpy.create_node("status_at_the_end", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    published = []
+    status = StatusPublisher(node, None, lambda: published.append(1) or {"frames": 0})
+    status.changed()
+    deadline = time.monotonic() + 60
+    while not published and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    assert published  # the change was published by the node's timer
+    node.destroy_node()
+    worker = threading.Thread(target=status.changed)
+    worker.start()
+    worker.join(30)
+    assert not worker.is_alive() and thread_errors == []
+    executor.shutdown()
