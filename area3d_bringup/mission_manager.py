@@ -277,7 +277,7 @@ class MissionManager(GraphSync, Node):
         # into k (`area3d_msgs_py.lens`, as perception and semantics remap it), so that the
         # evaluation and a replay read a pinhole camera's
         lens, _ = camera_undistortion(K, width, height, info.distortion_model, info.d)
-        if lens is not None and rgb.shape[1::-1] == lens.size == depth.shape[::-1]:
+        if lens is not None and lens.fits(rgb) and lens.fits(depth):
             rgb, depth = lens.color(rgb), lens.depth(depth)
         return Frame(
             rgb=rgb,

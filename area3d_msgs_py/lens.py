@@ -51,6 +51,11 @@ class Remap:
     def size(self) -> tuple[int, int]:
         return self.map_x.shape[1], self.map_x.shape[0]
 
+    def fits(self, image: np.ndarray | None) -> bool:
+        """Whether `image` (H x W, or H x W x C) is of this camera's size: one of another size
+        is left as it comes, for the node's size check to refuse by name."""
+        return image is not None and image.shape[1::-1] == self.size
+
     def color(self, image: np.ndarray) -> np.ndarray:
         """A colour or grey image, bilinear; black where the input image has no pixel."""
         return cv2.remap(
@@ -65,6 +70,14 @@ class Remap:
             depth.astype(np.float32, copy=False), self.map_x, self.map_y, cv2.INTER_NEAREST,
             borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"),
         )  # fmt: skip
+
+
+def _opencv_K(K: np.ndarray) -> np.ndarray:
+    """`K` as OpenCV reads it: OpenCV puts pixel centres at integer coordinates, the graph at
+    (u + 0.5, v + 0.5) of k."""
+    K_cv = np.asarray(K, np.float64).copy()
+    K_cv[:2, 2] -= 0.5
+    return K_cv
 
 
 def undistortion(
@@ -96,9 +109,7 @@ def undistortion(
         )
     D = np.zeros(n, np.float64)  # the model's own coefficients; missing ones are zero
     D[: min(len(coeffs), n)] = coeffs[:n]
-    # OpenCV puts pixel centres at integer coordinates, the graph at (u + 0.5, v + 0.5) of k
-    K_cv = np.asarray(K, np.float64).copy()
-    K_cv[:2, 2] -= 0.5
+    K_cv = _opencv_K(K)
     size = (int(width), int(height))
     if model == "equidistant":
         map_x, map_y = cv2.fisheye.initUndistortRectifyMap(
@@ -136,8 +147,7 @@ def distortion(K: np.ndarray, width: int, height: int, d: Any) -> Remap | None:
         raise ValueError(f"d: got {len(coeffs)} coefficients, expected 5 (k1, k2, p1, p2, k3)")
     if not any(abs(v) > ZERO for v in coeffs):
         return None
-    K_cv = np.asarray(K, np.float64).copy()
-    K_cv[:2, 2] -= 0.5
+    K_cv = _opencv_K(K)
     v, u = np.mgrid[0:height, 0:width]
     raw = np.stack([u, v], -1).reshape(-1, 1, 2).astype(np.float64)
     pinhole = cv2.undistortPoints(raw, K_cv, np.array(coeffs), P=K_cv).reshape(height, width, 2)

@@ -300,15 +300,11 @@ def undistorted(
     distortion (`undistort`); an image of another size than its camera info's is left to
     `check_frame` to refuse by name."""
     left, right_remap = undistortions["left"], undistortions["right"]
-
-    def fits(image: np.ndarray | None, remap: Remap | None) -> bool:
-        return image is not None and remap is not None and image.shape[1::-1] == remap.size
-
-    if fits(rgb, left):
+    if left is not None and left.fits(rgb):
         rgb = left.color(rgb)
-    if fits(depth, left):  # registered to the colour image: the same camera
+    if left is not None and left.fits(depth):  # registered to the colour image: the same camera
         depth = left.depth(depth)
-    if fits(right, right_remap):
+    if right_remap is not None and right_remap.fits(right):
         right = right_remap.color(right)
     return rgb, depth, right
 

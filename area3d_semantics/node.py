@@ -265,7 +265,7 @@ class SemanticsNode(Node):
 
     def _undistorted(self, image: np.ndarray, remap) -> np.ndarray:
         lens = self.lens
-        if lens is None or image.shape[1::-1] != lens.size:  # another camera's: as it comes
+        if lens is None or not lens.fits(image):  # another camera's: as it comes
             return image
         return remap(lens, image)
 
