@@ -156,10 +156,14 @@ class SimBridgeNode(Node):
         report_unknown_parameters(self)
         self.scene = load_scene(p["scene"])
         self.lens_d = [float(v) for v in p["lens_d"]]
-        if any(self.lens_d) and p["stereo"]:
-            raise InputError("lens_d", self.lens_d, "all 0 with stereo (a pair comes rectified)")
         self.camera = camera_from_parameters(self.scene, p)
+        # None when every coefficient is below lens.ZERO (a driver's 1e-12 is no lens)
         self.lens = distortion(self.camera.K, self.camera.width, self.camera.height, self.lens_d)
+        if self.lens is not None and p["stereo"]:
+            self.camera.close()
+            raise InputError(
+                "lens_d", self.lens_d, "all 0 (below 1e-9) with stereo (a pair comes rectified)"
+            )
         self.pub_color = self._publisher(topics.COLOR)
         self.pub_depth = self._publisher(topics.DEPTH)
         self.pub_info = self._publisher(topics.CAMERA_INFO)

@@ -365,7 +365,7 @@ def test_the_first_frame_waits_for_its_readers_without_holding_up_the_node():
 def test_a_lens_distorts_the_images_sent_and_says_so_in_the_camera_info():
     """`lens_d`: the colour and depth images go out as a plumb_bob lens sends them (what
     perception's `undistort` takes out again), with the coefficients in the camera info; no
-    lens with a stereo pair, and five finite coefficients."""
+    lens with a stereo pair (coefficients below 1e-9 are none), and five finite coefficients."""
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -409,6 +409,14 @@ def test_a_lens_distorts_the_images_sent_and_says_so_in_the_camera_info():
         sim.destroy_node()
         with pytest.raises(InputError, match="lens_d.*with stereo"):
             node(lens_d=d, stereo=True)
+        # coefficients a driver publishes for none are no lens, with a pair too
+        pair = node(lens_d=[1e-12, 0.0, 0.0, -1e-12, 0.0], stereo=True)
+        assert pair.lens is None
+        pair.pub_info = Pub()
+        pair._send(2_000, pair.camera.capture(T))
+        assert not any(pair.pub_info.sent[0].d)
+        pair.camera.close()
+        pair.destroy_node()
         with pytest.raises(InputError, match="5 finite coefficients"):
             node(lens_d=[0.1, 0.2])
     finally:
