@@ -7,8 +7,20 @@ Arrays in, arrays out; no ROS here.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
+
+
+@lru_cache(maxsize=4)
+def _pixel_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """(columns, rows) (H, W) float32, each pixel's own coordinates: the identity maps of
+    `cv2.remap`, made once per image size (read only)."""
+    cols = np.ascontiguousarray(np.broadcast_to(np.arange(w, dtype=np.float32), (h, w)))
+    rows = np.ascontiguousarray(np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w)))
+    cols.flags.writeable = rows.flags.writeable = False
+    return cols, rows
 
 
 def disparity_neighbourhood(disparity: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
@@ -48,20 +60,19 @@ def refine_disparity(
     more than `max_spread_px` or fewer than half its pixels are valid (two surfaces, or an edge
     of the valid matches); at most REFINE_MAX_STEP_PX. Invalid pixels stay NaN and add nothing."""
     h, w = disparity.shape
+    columns, rows = _pixel_grid(h, w)
     valid = np.isfinite(disparity)
-    d = np.where(valid, disparity, 0.0).astype(np.float32)
+    d = np.where(valid, disparity, np.float32(0.0)).astype(np.float32)
     right = right_grey.astype(np.float32)
-    columns = np.arange(w, dtype=np.float32)[None, :]
     map_x = columns - d
-    map_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
     # the right image at x - d, linearly interpolated, and the derivative of that interpolation:
     # the difference of the two pixels it lies between (a smoothed gradient such as Sobel's
     # underestimates it on fine texture, and the step overshoots)
     forward = np.zeros_like(right)
-    forward[:, :-1] = right[:, 1:] - right[:, :-1]
-    warped = cv2.remap(right, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    np.subtract(right[:, 1:], right[:, :-1], out=forward[:, :-1])
+    warped = cv2.remap(right, map_x, rows, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     slope = cv2.remap(
-        forward, np.floor(map_x), map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE
+        forward, np.floor(map_x), rows, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE
     )
     mask = valid.astype(np.float32)
     g = slope * mask
@@ -70,7 +81,6 @@ def refine_disparity(
     sums = cv2.boxFilter(cv2.merge([g * g, g * e]), -1, size, normalize=False)
     energy, correlation = sums[..., 0], sums[..., 1]
     spread, share = disparity_neighbourhood(disparity, window_px)
-    step = np.zeros_like(d)
     ok = (
         valid
         & (d > 0)  # 0 is at infinity: nothing to refine
@@ -78,7 +88,8 @@ def refine_disparity(
         & (spread <= max_spread_px)
         & (share >= 0.5)
     )
-    step[ok] = np.clip(correlation[ok] / energy[ok], -REFINE_MAX_STEP_PX, REFINE_MAX_STEP_PX)
+    step = np.divide(correlation, energy, out=np.zeros_like(d), where=ok)
+    np.clip(step, -REFINE_MAX_STEP_PX, REFINE_MAX_STEP_PX, out=step)
     refined = d - step
     # a step to zero or beyond would put the surface at or past infinity: none
     beyond = refined <= 0
@@ -94,10 +105,12 @@ def lr_difference(disp_left: np.ndarray, disp_right: np.ndarray) -> np.ndarray:
     (x_left = x + d), both NaN = invalid.
     """
     h, w = disp_left.shape
-    cols = np.arange(w, dtype=np.float32)[None, :]
-    target = np.rint(cols - np.nan_to_num(disp_left, nan=-1.0)).astype(np.int64)
-    inside = np.isfinite(disp_left) & (target >= 0) & (target < w)
-    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
-    back = np.full((h, w), np.nan, dtype=np.float32)
-    back[inside] = disp_right[rows[inside], target[inside]]
+    columns, rows = _pixel_grid(h, w)
+    # the right pixel each left match lands on; -1 (outside: NaN) where the left one is invalid
+    target = np.rint(columns - disp_left).astype(np.float32, copy=False)
+    np.nan_to_num(target, copy=False, nan=-1.0, posinf=-1.0, neginf=-1.0)
+    back = cv2.remap(  # whole-pixel maps: each left pixel reads exactly that right pixel
+        disp_right, target, rows, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float("nan"),
+    )  # fmt: skip
     return np.abs(disp_left - back)

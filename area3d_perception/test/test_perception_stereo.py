@@ -152,6 +152,12 @@ def test_left_right_difference_of_consistent_disparities_is_zero():
     diff = lr_difference(d_left, d_right)
     assert np.isnan(diff[:, :2]).all()  # x - d leaves the right image
     assert diff[0, 5] == 3.0 and diff[0, 6] == 0.0
+    # a sub-pixel match reads the right pixel nearest x - d; invalid on either side: no check
+    d_left[1, 7], d_left[2, 8], d_right[3, 6] = 1.4, np.nan, np.nan  # 7 - 1.4 -> 6
+    d_right[1, 6] = 1.0
+    diff = lr_difference(d_left, d_right)
+    assert diff[1, 7] == pytest.approx(0.4) and np.isnan(diff[2, 8]) and np.isnan(diff[3, 8])
+    assert np.isfinite(diff[:, 2:]).sum() == 4 * 8 - 2
 
 
 def test_pixels_whose_right_match_points_elsewhere_get_no_depth_and_no_confidence(
