@@ -36,6 +36,7 @@ FORMAT = "area3d_map"
 VERSION = 1
 CONTENTS = ("planner", "reconstruction")
 HEADER = "header"
+SUFFIX = ".a3map"  # what a save writes; a load reads any name
 
 
 @dataclass(frozen=True)
@@ -48,11 +49,17 @@ class MapFile:
     size_bytes: int
 
     def array(
-        self, name: str, dtype: Any = None, shape: tuple | None = None, finite: bool = False
+        self,
+        name: str,
+        dtype: Any = None,
+        shape: tuple | None = None,
+        finite: bool = False,
+        bounds: tuple[float | None, float | None] | None = None,
     ) -> np.ndarray:
         """The array `name`, refused with the file's path named when it is missing or has another
-        dtype (`dtype`) or shape (`shape`: None for any length on that axis), or with `finite`
-        when a value is NaN or inf."""
+        dtype (`dtype`) or shape (`shape`: None for any length on that axis), with `finite` when
+        a value is NaN or inf, and with `bounds` (lo, hi; None: open on that side) when a value
+        lies outside them: a value its writer cannot have written would become the running map."""
         if name not in self.arrays:
             raise InputError(f"{self.path}: array {name!r}", "missing", "an area3d map file whole")
         value = self.arrays[name]
@@ -68,6 +75,18 @@ class MapFile:
             raise InputError(f"{self.path}: array {name!r}", value.shape, f"shape {shape}")
         if finite and not np.isfinite(value).all():
             raise InputError(f"{self.path}: array {name!r}", "NaN or inf", "finite values")
+        if bounds is not None and value.size:
+            lo, hi = bounds
+            below = np.zeros(value.shape, bool) if lo is None else value < lo
+            above = np.zeros(value.shape, bool) if hi is None else value > hi
+            if (out := int(np.count_nonzero(below | above))) > 0:
+                worst = value[below | above]
+                found = f"{out} values outside, from {worst.min():g} to {worst.max():g}"
+                expected = (
+                    f"values >= {lo:g}" if hi is None
+                    else f"values <= {hi:g}" if lo is None else f"values in [{lo:g}, {hi:g}]"
+                )  # fmt: skip
+                raise InputError(f"{self.path}: array {name!r}", found, expected)
         return value
 
     def require(self, fields: dict[str, str]) -> None:
@@ -211,6 +230,12 @@ def write_map(
     to NumPy arrays; `world_frame` the frame the map is expressed in (None: not recorded)."""
     if content not in CONTENTS:
         raise InputError("content", content, f"one of {', '.join(CONTENTS)}")
+    target = resolve(path)
+    if not target.is_dir() and target.suffix.lower() != SUFFIX:  # a folder: `write_file` says so
+        # a map written as mesh.ply would be taken for a mesh and fail in every mesh viewer
+        raise InputError(
+            "path", str(target), f"a file name ending in {SUFFIX} (export_mesh writes .ply)"
+        )
     if HEADER in arrays:
         raise InputError("arrays", HEADER, "names other than 'header'")
     meta = {
@@ -243,7 +268,10 @@ def read_map(path: str | os.PathLike, content: str, world_frame: str | None = No
             arrays = {name: archive[name] for name in archive.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
         # numpy takes a file that is no zip archive for a pickle and advises loading it unsafely
-        why = "not a zip archive" if not zipfile.is_zipfile(source) else f"read failed: {exc}"
+        why = (
+            "not a zip archive, or one cut short" if not zipfile.is_zipfile(source)
+            else f"read failed: {exc}"
+        )  # fmt: skip
         raise InputError("path", str(source), f"a complete area3d map file ({why})") from exc
     if HEADER not in arrays:
         raise InputError("path", str(source), f"an area3d map file (no {HEADER!r} entry)")
@@ -272,8 +300,13 @@ def check_same(source: Path, field: str, saved: Any, running: Any, tol: float = 
     if isinstance(running, str) or isinstance(saved, str):
         same = saved == running
     else:
-        a = np.asarray(saved, dtype=np.float64)
         b = np.asarray(running, dtype=np.float64)
+        try:  # a header entry of another kind (a string, an object) is refused by name too
+            a = np.asarray(saved, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputError(
+                f"{source}: {field}", saved, f"{running} (the running map's; numbers)"
+            ) from exc
         same = a.shape == b.shape and bool(np.all(np.abs(a - b) <= tol))
     if not same:
         raise InputError(f"{source}: {field}", saved, f"{running} (the running map's)")

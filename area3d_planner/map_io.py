@@ -32,6 +32,13 @@ VOXEL_FIELDS = (
     "conf_sum", "hit_count", "log_residual", "free_count", "sem_sum", "sem_count",
     "best_confidence", "directions",
 )  # fmt: skip
+# what the evidence can hold (`FusedGrid.apply_depth`, `integrate_semantic`): counts and sums of
+# confidences are >= 0, a sum of log(1 - confidence) <= 0, a frame's mean confidence at most 1
+# (and a float's rounding); `sem_sum` is left out: a retracted mask can leave it a rounding below 0
+VOXEL_BOUNDS = {
+    "conf_sum": (0.0, None), "hit_count": (0.0, None), "log_residual": (None, 0.0),
+    "free_count": (0.0, None), "sem_count": (0.0, None), "best_confidence": (0.0, 1.0001),
+}  # fmt: skip
 RANGE_FIELDS = ("range_confidence", "range_hits")
 # the header's entries `restore` reads, and their kinds (`mapfile.HEADER_KINDS`)
 HEADER_FIELDS = {
@@ -187,9 +194,12 @@ def read(server, path, world_frame: str | None = None) -> mapfile.MapFile:
         )
     for name in VOXEL_FIELDS:
         dtype = getattr(server.grid, name).dtype
-        loaded.array(f"voxel_{name}", dtype, (ids.size,), finite=dtype.kind == "f")
+        loaded.array(
+            f"voxel_{name}", dtype, (ids.size,), finite=dtype.kind == "f",
+            bounds=VOXEL_BOUNDS.get(name),
+        )  # fmt: skip
     for name in RANGE_FIELDS:
-        loaded.array(name, np.float64, getattr(server.grid, name).shape)
+        loaded.array(name, np.float64, getattr(server.grid, name).shape, bounds=(0.0, None))
     decay_ids = loaded.array("decay_ids", np.int64, (None,))
     loaded.array("decay_values", np.float64, (decay_ids.size,))
     if decay_ids.size and (decay_ids.min() < 0 or decay_ids.max() >= n):

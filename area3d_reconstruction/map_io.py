@@ -21,6 +21,13 @@ from area3d_msgs_py import mapfile
 from area3d_msgs_py.errors import InputError
 
 CONTENT = "reconstruction"
+# each voxel's arrays: (name, channels, the values `TsdfFusion` writes: docs/map_format.md, with
+# room for a float's rounding of a weighted mean at the top of the range)
+VOXEL_ARRAYS = (
+    ("tsdf", 1, (-1.0001, 1.0001)),  # signed distance / truncation
+    ("weight", 1, (0.0, None)),  # summed confidence
+    ("color", 3, (0.0, 255.01)),
+)
 
 
 def volume_header(fusion: TsdfFusion) -> dict:
@@ -63,9 +70,14 @@ def read(fusion: TsdfFusion, path, world_frame: str | None = None) -> mapfile.Ma
         mapfile.check_same(loaded.path, key, saved, running)
     loaded.require({"frames": "count", "blocks": "count"})
     blocks = loaded.header["blocks"]
+    if blocks and not loaded.header["frames"]:
+        raise InputError(
+            f"{loaded.path}: frames", 0, f"at least 1 frame integrated into its {blocks} blocks"
+        )
     _check_blocks(fusion, loaded, loaded.array("block_keys", np.int32, (blocks, 3)))
-    for name, channels in (("tsdf", 1), ("weight", 1), ("color", 3)):
-        loaded.array(name, np.float32, (blocks, None, None, None, channels), finite=True)
+    r = BLOCK_RESOLUTION
+    for name, channels, bounds in VOXEL_ARRAYS:
+        loaded.array(name, np.float32, (blocks, r, r, r, channels), finite=True, bounds=bounds)
     # one stamp a frame integrated (a frame is integrated once, after a load too)
     loaded.array("stamps", np.int64, (loaded.header["frames"],))
     return loaded

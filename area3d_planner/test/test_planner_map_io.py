@@ -208,6 +208,41 @@ def test_an_array_of_nan_is_refused_naming_it(tmp_path):
         map_io.read(NextBestViewServer(config()), bad)
 
 
+@pytest.mark.parametrize(
+    ("name", "scale", "message"),
+    [
+        ("voxel_hit_count", -1.0, "voxel_hit_count'. got '.* values outside, from -.*expected values >= 0"),
+        ("voxel_log_residual", -1.0, "voxel_log_residual'. got .*expected values <= 0"),
+        ("voxel_best_confidence", 3.0, "voxel_best_confidence'. got .*expected values in .0, 1.0001."),
+        ("range_hits", -1.0, "range_hits'. got .*expected values >= 0"),
+    ],
+)  # fmt: skip
+def test_evidence_no_fusion_can_hold_is_refused_naming_the_array_and_its_range(
+    tmp_path, name, scale, message
+):
+    """A negative count or a confidence above 1 (a damaged file whose checksum was made again)
+    would plan from evidence that never was; the saved map itself loads."""
+    path = saved(tmp_path)
+    srv = NextBestViewServer(config())
+    map_io.read(srv, path)  # its own values are within every range
+    with np.load(path) as archive:
+        original = archive[name]
+    changed = original * scale
+    assert np.any(changed != original)
+    bad = rewrite_map(path, tmp_path / "bad.a3map", arrays={name: changed})
+    with pytest.raises(InputError, match=message):
+        map_io.read(srv, bad)
+
+
+def test_a_map_is_saved_only_under_its_own_suffix(tmp_path):
+    srv = NextBestViewServer(config())
+    run(srv, range(1))
+    with pytest.raises(InputError, match=r"mesh.ply', expected a file name ending in .a3map"):
+        map_io.save(srv, tmp_path / "mesh.ply")
+    assert not (tmp_path / "mesh.ply").exists()
+    assert map_io.save(srv, tmp_path / "MAP.A3MAP")[1] > 0
+
+
 def test_a_saved_map_gets_the_mode_of_a_new_file_or_keeps_the_one_it_replaces(tmp_path):
     srv = NextBestViewServer(config())
     run(srv, range(1))

@@ -210,6 +210,8 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
     refusals = [
         (topics.RECONSTRUCTION_SAVE_MAP, tmp_path / "nowhere" / "v.a3map", "existing directory"),
         (topics.RECONSTRUCTION_EXPORT_MESH, tmp_path / "mesh.txt", ".ply"),
+        # a map file under a mesh's name would fail in every mesh viewer
+        (topics.RECONSTRUCTION_SAVE_MAP, tmp_path / "volume.ply", "ending in .a3map"),
         (topics.RECONSTRUCTION_LOAD_MAP, tmp_path / "missing.a3map", "existing map file"),
     ]
     (tmp_path / "foreign.a3map").write_text("not a map")
@@ -221,7 +223,8 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
     # damaged headers and arrays (which crashed the node before): refused, each named
     with np.load(volume) as archive:
         nan_tsdf = np.full_like(archive["tsdf"], np.nan)
-        keys = archive["block_keys"]
+        keys, tsdf = archive["block_keys"], archive["tsdf"]
+        weight, color = archive["weight"], archive["color"]
     repeated = keys.copy()
     repeated[1] = repeated[0]
     for name, change, why in (
@@ -233,7 +236,15 @@ def test_a_saved_volume_loads_into_another_node_and_bad_files_leave_the_volume_a
         ("noframes", {"header": {"frames": MISSING}}, "frames: got 'missing'"),
         ("stamps", {"header": {"frames": 10}}, "array 'stamps': got (3,), expected shape (10,)"),
         ("nan", {"arrays": {"tsdf": nan_tsdf}}, "array 'tsdf': got 'NaN or inf'"),
-    ):
+        # values no volume holds (loaded, they left an empty mesh or noise, "loaded 3 frames")
+        ("negative", {"arrays": {"weight": -weight}}, "array 'weight': got '"),
+        ("scaled", {"arrays": {"tsdf": tsdf * 50}}, "array 'tsdf': got '"),
+        ("bright", {"arrays": {"color": color * 1e4}}, "expected values in [0, 255.01]"),
+        ("blocks", {"arrays": {"tsdf": tsdf[:, :4]}}, "blocks.a3map: array 'tsdf'"),
+        ("zero", {"header": {"frames": 0}, "arrays": {"stamps": np.zeros(0, np.int64)}},
+         "frames: got 0, expected at least 1 frame"),
+        ("words", {"header": {"roi_min": ["a", "b", "c"]}}, "roi_min: got"),
+    ):  # fmt: skip
         bad = rewrite_map(volume, tmp_path / f"{name}.a3map", **change)
         refusals.append((topics.RECONSTRUCTION_LOAD_MAP, bad, why))
     for service, path, why in refusals:
