@@ -31,6 +31,10 @@ class EpisodeError(RuntimeError):
     """The episode could not go on; the message says why and what was kept."""
 
 
+class GraphInUse(EpisodeError):
+    """Nodes of the graph a run would start run already on its domain and namespace."""
+
+
 # what a resumed run reads from its own episode.json, not from the config
 RESUMED_FIELDS = ("scene", "policy", "mode", "seed", "budget", "depth_source")
 

@@ -25,6 +25,7 @@ import numpy as np
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 
+from area3d_bringup.episode_config import GraphInUse
 from area3d_bringup.launcher import Launcher, NodeDied
 from area3d_bringup.mission_sync import (
     CAMERA_PARTS,
@@ -41,6 +42,8 @@ from area3d_msgs_py.lens import camera_undistortion
 from area3d_msgs_py.topics import Service, Topic
 
 NAME = topics.MISSION_MANAGER
+# On a domain in use already, the nodes of the graph a run starts are looked for this long.
+DISCOVERY_WAIT_S = 3.0
 # The simulated camera's fixed frame: goals, replayed poses and requests are in it.
 WORLD_FRAME = "world"
 # The grid is published after every fusion (in a burst, at most once a second and after the
@@ -202,6 +205,26 @@ class MissionManager(GraphSync, Node):
         return handle
 
     # -- discovery -------------------------------------------------------------------------------
+    def refuse_a_running_graph(self, names: set[str], domain_id: int) -> None:
+        """Refuse (GraphInUse) when nodes of `names` run already in this node's namespace on its
+        domain, looked for up to DISCOVERY_WAIT_S (discovery takes a moment): another graph,
+        which a run would drive in place of the one it starts (its planner answers first)."""
+        deadline = time.monotonic() + DISCOVERY_WAIT_S
+        while not (clash := self._running(names)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if clash:
+            raise GraphInUse(
+                f"nodes {', '.join(clash)} run already on ROS_DOMAIN_ID={domain_id} in namespace "
+                f"{self.get_namespace()}: this run would drive them, not its own graph. Stop "
+                "them; drive them on purpose with --nodes none; or give this run a --namespace, "
+                "--domain-id or no ROS_DOMAIN_ID (a free domain is picked)"
+            )
+
+    def _running(self, names: set[str]) -> list[str]:
+        ns = self.get_namespace()
+        found = {n for n, space in self.get_node_names_and_namespaces() if space == ns}
+        return sorted(found & set(names))
+
     def _list(self, key: str) -> list:
         """The readers discovery lists on the runner's topic `key` (all remembered in `listed`)."""
         infos = self.get_subscriptions_info_by_topic(self.runner_pubs[key].topic_name)

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import rclpy
 
-from area3d_bringup.episode_config import EpisodeConfig, EpisodeError
+from area3d_bringup.episode_config import EpisodeConfig, EpisodeError, GraphInUse
 from area3d_bringup.episode_record import EpisodeRecord
 from area3d_bringup.launcher import Launcher, NodeDied
 from area3d_bringup.mission_manager import NAME, MissionManager
@@ -73,14 +73,11 @@ class _Episode(EpisodeRecord):
         super().__init__(config, resume)
         self.catching_up: set[str] = set()  # restarted nodes whose new process is not up yet
         self.replay_due = False  # a restart lost fused evidence that the saved frames give back
-        # After a restart, the camera's own writers may match the new process's readers only
-        # after its next frame went out (discovery between two other processes is not something
-        # the runner can wait on): the first frame captured after a restart is checked as fused,
-        # and replayed through the runner's writers (matched, waited for) if it is not.
+        # After a restart, the camera's writers may match the new process's readers only after
+        # its next frame (discovery between two other processes is not for the runner to wait
+        # on): the first frame after a restart is checked as fused, else replayed by the runner.
         self.check_next_capture = False
-        # A resumed episode's saved planned views that the graph has not been given yet: each is
-        # replayed once the planner has been asked for it again (`_planned_views`).
-        self.held_back = 0
+        self.held_back = 0  # saved planned views not given yet: replayed once asked again
 
     # -- the run --------------------------------------------------------------------------------
     def _note_sigint(self, context: Any) -> Callable[[], None]:
@@ -124,6 +121,7 @@ class _Episode(EpisodeRecord):
         discovery = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
         env = middleware.graph_env(self.domain_id, config.transport, discovery)
         os.environ.update(env)  # this process's own participant: same transport and discovery
+        self.domain_in_use = not lease.picked and middleware.domain_in_use(self.domain_id)
         self._log_file = (self.run_dir / rundir.LOG_FILE).open("a")
         self._log_lock = threading.Lock()
         self.recorder = BagRecorder(rundir.bag_path(self.run_dir)) if config.record else None
@@ -171,6 +169,8 @@ class _Episode(EpisodeRecord):
             self._episode(progress)
             self.add_time("episode_total", time.monotonic() - t0)
             self.save()
+        except GraphInUse:
+            raise
         except (NodeDied, TimeoutError, EpisodeError) as err:
             if self.interrupted:  # Ctrl-C: the nodes and the manager were stopped by it
                 self.stopped_early = ""
@@ -207,6 +207,8 @@ class _Episode(EpisodeRecord):
         """Start the graph's processes and wait until the planner serves and the camera topics
         have their readers."""
         manager, config = self.manager, self.config
+        if self.domain_in_use:  # a given domain: another graph's nodes would answer for ours
+            manager.refuse_a_running_graph(self.started, self.domain_id)
         self.launcher.start()
         if self.interrupted:  # Ctrl-C while the nodes were being started
             self.launcher.interrupt()

@@ -209,6 +209,12 @@ def _try_lock(domain_id: int):
     return handle
 
 
+def domain_in_use(domain_id: int) -> bool:
+    """Whether a DDS participant on this machine uses `domain_id` already (its first unicast
+    discovery port is taken): a moment's check, before this process joins it."""
+    return not _domain_port_free(domain_id)
+
+
 def _domain_port_free(domain_id: int) -> bool:
     port = _PORT_BASE + _DOMAIN_GAIN * domain_id + _UNICAST_OFFSET
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:

@@ -82,3 +82,43 @@ def test_episodes_started_at_once_pick_their_own_domains_and_a_namespaced_graph_
         log = (run_dir / "nodes.log").read_text()
         assert "discovery LOCALHOST" in log and "(picked: free)" in log
     assert episodes["ns"][1]["ros"]["namespace"] == "/robot1"
+
+
+def test_a_run_on_a_given_domain_where_its_nodes_run_already_is_refused_before_it_starts(tmp_path):
+    """With ROS_DOMAIN_ID given (a robot's shell exports one), a graph running there already
+    would answer the run's requests in place of the graph it starts (a run did: its budget and
+    frames were the other graph's, reported as a success): refused, naming the nodes, before any
+    node of its own starts. A node of another name, or of the same name in another namespace,
+    is no clash."""
+    import pytest
+    import rclpy
+
+    from area3d_bringup.episode_config import GraphInUse
+    from area3d_bringup.runner import EpisodeConfig, run_episode
+    from area3d_msgs_py import middleware
+
+    context = rclpy.Context()
+    rclpy.init(context=context)  # the test's domain, given by ROS_DOMAIN_ID
+    others = [
+        rclpy.create_node("planner", context=context),  # another graph's
+        rclpy.create_node("perception", namespace="/robot2", context=context),
+        rclpy.create_node("driver", context=context),
+    ]
+    try:
+        domain = int(os.environ["ROS_DOMAIN_ID"])
+        assert middleware.domain_in_use(domain)
+        config = EpisodeConfig(
+            scene="single_object", policy="uniform", budget=BUDGET, seed=0, out_dir=tmp_path,
+            run_name="clash", record=False,
+        )  # fmt: skip
+        with pytest.raises(GraphInUse) as refused:
+            run_episode(config)
+        message = str(refused.value)
+        assert message.startswith(f"nodes planner run already on ROS_DOMAIN_ID={domain} in ")
+        assert "--nodes none" in message and "--resume" not in message
+        log = (tmp_path / "clash" / "nodes.log").read_text()
+        assert f"ROS_DOMAIN_ID={domain}" in log and "[planner]" not in log  # nothing launched
+    finally:
+        for node in others:
+            node.destroy_node()
+        context.try_shutdown()
