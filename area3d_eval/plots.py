@@ -177,6 +177,15 @@ def hard_voxels_xy(
     return np.asarray(grid["x"], np.float64)[hard], np.asarray(grid["y"], np.float64)[hard]
 
 
+def column_mean(vol: np.ndarray) -> np.ndarray:
+    """(nx, ny) mean along z of a dense (nx, ny, nz) grid volume, its absent voxels (NaN: left out
+    of the published grid as empty) counted as 0; NaN for a column without any voxel."""
+    present = np.isfinite(vol)
+    mean = np.where(present, vol, 0.0).mean(axis=2)
+    mean[~present.any(axis=2)] = np.nan
+    return mean
+
+
 def plot_grid_slices(
     before: Mapping[str, np.ndarray] | None,
     after: Mapping[str, np.ndarray] | None,
@@ -184,10 +193,13 @@ def plot_grid_slices(
     field: str = "uncertainty",
     title: str = "",
 ) -> Path | None:
-    """Rows before / after, columns: horizontal slice at the grid's middle height and the max
-    projection along z, colour = `field` (one colour scale for all panels); the hard voxels (a
-    grid's `hard` field: what no view is expected to resolve) marked in cyan, those of the slice
-    on the slice, every one on the projection. None if no grid."""
+    """Rows before / after, columns: horizontal slice at the grid's middle height and the mean
+    along z of each column (the voxels the grid leaves out, empty ones at no more than gamma,
+    counted as 0), colour = `field` (one colour scale for all panels; white: a voxel left out, or
+    a column of none); the hard voxels (a grid's `hard` field: what no view is expected to
+    resolve) marked in cyan, those of the slice on the slice, every one on the projection. None if
+    no grid. The mean, not the maximum: every column through an object holds its never-seen
+    inside at full uncertainty, so its maximum stays there however well the surface is known."""
     grids = [
         (name, g)
         for name, g in (("before", before), ("after", after))
@@ -205,14 +217,12 @@ def plot_grid_slices(
     hard_grids = [g for _, g in grids]
     for row, (name, vol, (xs, ys, zs)) in enumerate(volumes):
         mid = len(zs) // 2
-        with np.errstate(all="ignore"):
-            proj = np.nanmax(np.where(np.isfinite(vol), vol, -np.inf), axis=2)
-        proj[~np.isfinite(proj)] = np.nan
+        proj = column_mean(vol)
         hx = 0.5 * (xs[1] - xs[0]) if len(xs) > 1 else 0.5
         hy = 0.5 * (ys[1] - ys[0]) if len(ys) > 1 else 0.5
         extent = (xs[0] - hx, xs[-1] + hx, ys[0] - hy, ys[-1] + hy)  # voxel edges, not centres
         for col, (panel, label) in enumerate(
-            [(vol[:, :, mid], f"slice z = {zs[mid]:.3f} m"), (proj, "max over z")]
+            [(vol[:, :, mid], f"slice z = {zs[mid]:.3f} m"), (proj, "mean over z")]
         ):
             ax = axes[row, col]
             image = ax.imshow(
@@ -224,17 +234,16 @@ def plot_grid_slices(
                 cmap="inferno",
                 aspect="equal",
             )
-            ax.set_title(f"{name}: {label}")
+            total = hard_voxels_xy(hard_grids[row])[0].size
+            hard = f"\n{total} hard voxels (cyan)" if col == 1 and total else ""  # no legend box
+            ax.set_title(f"{name}: {label}{hard}")
             ax.set_xlabel("x [m]")
             ax.set_ylabel("y [m]")
             x, y = hard_voxels_xy(hard_grids[row], zs[mid] if col == 0 else None)
             if x.size:
                 ax.scatter(x, y, s=4, c="cyan", marker="s", linewidths=0, label="hard")
-            total = hard_voxels_xy(hard_grids[row])[0].size
-            if col == 1 and total:
-                ax.legend(loc="upper right", fontsize=7, title=f"{total} hard voxels")
     fig.colorbar(image, ax=axes, shrink=0.8, label=field)
-    fig.suptitle(title or f"{field} grid")
+    fig.suptitle(title or f"{field} grid (white: empty, not in the published grid)")
     return _save(fig, out_path)
 
 

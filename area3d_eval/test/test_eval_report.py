@@ -403,3 +403,31 @@ def test_the_curves_mark_whole_numbers_of_views_only(tmp_path, monkeypatch):
     plots.plot_metric_curves({"area3d": [rows]}, "completion", tmp_path / "c.png")
     ticks = figures[0].axes[0].get_xticks()
     assert len(ticks) >= 2 and np.allclose(ticks, np.round(ticks)), ticks
+
+
+def test_the_grid_figure_shows_each_columns_mean_with_the_empty_voxels_as_zero(
+    tmp_path, monkeypatch
+):
+    """Every column through an object holds its never-seen inside at full uncertainty: a maximum
+    along z stayed at 1 there however well the surface was known; the mean falls as it is. The
+    published grid leaves empty voxels out: they count as 0, and a column of none stays blank."""
+    import area3d_eval.plots as plots
+
+    vol = np.full((2, 2, 4), np.nan)
+    vol[0, 0] = [1.0, np.nan, 0.2, np.nan]  # an unseen inside, an empty voxel, a known surface
+    vol[1, 0] = [1.0, 1.0, 1.0, 1.0]
+    vol[0, 1, 3] = 0.4
+    mean = plots.column_mean(vol)
+    assert mean[0, 0] == pytest.approx(0.3) and mean[1, 0] == 1.0 and mean[0, 1] == 0.1
+    assert np.isnan(mean[1, 1])
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figures.append(fig) or path)
+    x, y, z = (
+        a.ravel() for a in np.meshgrid([0.0, 0.1], [0.0, 0.1], [0.0, 0.1, 0.2, 0.3], indexing="ij")
+    )
+    grid = {"x": x, "y": y, "z": z, "uncertainty": vol.ravel(), "hard": np.zeros(x.size)}
+    grid["hard"][0] = 1
+    plots.plot_grid_slices(grid, grid, tmp_path / "g.png")
+    panel = figures[0].axes[1]
+    assert panel.get_title() == "before: mean over z\n1 hard voxels (cyan)"
+    np.testing.assert_allclose(panel.get_images()[0].get_array().T, mean)
