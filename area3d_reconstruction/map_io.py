@@ -14,6 +14,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from area3d_eval.open3d_loader import import_open3d
 from area3d_eval.reconstruct import BLOCK_RESOLUTION, TsdfFusion
@@ -111,8 +112,10 @@ def restore(fusion: TsdfFusion, loaded: mapfile.MapFile) -> list[int]:
 
 
 def export_mesh(mesh, path) -> tuple[Path, int]:
-    """Write an open3d TriangleMesh as binary PLY (vertex colours) to `path` atomically
-    (`mapfile.write_file`)."""
+    """Write an open3d TriangleMesh as binary PLY (vertex normals and colours) to `path`
+    atomically (`mapfile.write_file`). The PLY is made in memory (trimesh) and written by this
+    process's own file handle: open3d's writer leaves its file open when its last write fails
+    (a full disk), which kept the space of the refused file taken until the node stopped."""
     o3d = import_open3d()
     if mapfile.resolve(path).suffix.lower() != ".ply":
         raise InputError("path", str(mapfile.resolve(path)), "a file name ending in .ply")
@@ -124,17 +127,35 @@ def export_mesh(mesh, path) -> tuple[Path, int]:
             "a reconstruction with a surface "
             "(no frame integrated yet, or none since a reset or the load of an empty map)",
         )
+    data = ply_bytes(mesh)
 
     def write(tmp: Path) -> None:
-        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False):
-            raise OSError(f"open3d could not write {tmp}")
-        # read back whole: open3d says it wrote a PLY that a full disk cut short
+        with tmp.open("wb") as out:
+            out.write(data)
+        # read back whole: what a reader gets is what was meant
         back = o3d.io.read_triangle_mesh(str(tmp))
         wrote = (len(back.vertices), len(back.triangles))
         if wrote != (len(mesh.vertices), len(mesh.triangles)):
             raise OSError(
                 f"the mesh written to {tmp} reads back as {wrote[0]} vertices and {wrote[1]} "
-                f"triangles, not {len(mesh.vertices)} and {len(mesh.triangles)} (a full disk?)"
+                f"triangles, not {len(mesh.vertices)} and {len(mesh.triangles)}"
             )
 
     return mapfile.write_file(path, write, suffix=".ply")
+
+
+def ply_bytes(mesh) -> bytes:
+    """An open3d TriangleMesh as a binary little-endian PLY: float32 vertices (0.1 um at 1 m),
+    their normals and 8-bit colours with alpha (when the mesh has them), triangles."""
+    normals = np.asarray(mesh.vertex_normals) if mesh.has_vertex_normals() else None
+    colours = None
+    if mesh.has_vertex_colors():
+        colours = np.round(np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0) * 255.0)
+        colours = colours.astype(np.uint8)
+    out = trimesh.Trimesh(
+        vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.triangles),
+        vertex_normals=normals, vertex_colors=colours, process=False,
+    )  # fmt: skip
+    return trimesh.exchange.ply.export_ply(
+        out, encoding="binary", vertex_normal=normals is not None, include_attributes=False
+    )
