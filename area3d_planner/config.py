@@ -75,11 +75,9 @@ class PlannerConfig:
         4_000_000, "most voxels the grid may hold", "voxels", (1000, 2**31 - 1)
     )
     map_margin: float = described(
-        0.1,
-        "mapped around the region of interest (object level; rooms map the workspace too)",
-        "metres",
-        (0.0, 10.0),
-    )
+        0.1, "mapped around the region of interest (object level; rooms map the workspace too)",
+        "metres", (0.0, 10.0),
+    )  # fmt: skip
     gamma: float = described(
         -1.0,
         "global weight every voxel starts from, so unexplored space stays attractive; < 0 = the "
@@ -99,11 +97,9 @@ class PlannerConfig:
         1.0, "weight of U_sem in the fused uncertainty; 0 = the w/o VLM ablation", "", (0.0, 100.0)
     )
     unobserved_uncertainty: float = described(
-        1.0,
-        "geometric uncertainty of a voxel no view has observed (DESIGN.md: the maximum)",
-        "",
+        1.0, "geometric uncertainty of a voxel no view has observed (DESIGN.md: the maximum)", "",
         (0.0, 10.0),
-    )
+    )  # fmt: skip
     unobserved_reach: float = described(
         0.15,
         "an unknown voxel farther than this from every occupied voxel is probably air: it holds "
@@ -118,6 +114,14 @@ class PlannerConfig:
         f"-1 = the level's ({level_defaults_text('unobserved_far_weight')}: a room is explored)",
         "",
         (-1.0, 1.0),
+    )
+    unobserved_reach_confidence: float = described(
+        0.0,
+        "... an occupied voxel counts for unobserved_reach once two frames hit it or one with at "
+        "least this confidence (a lone uncertain match in the air, as stereo makes on periodic "
+        "texture, does not; 0: every occupied voxel counts)",
+        "confidence in [0, 1]",
+        (0.0, 1.0),
     )
     geometric_rule: str = described(
         "product",
@@ -167,11 +171,9 @@ class PlannerConfig:
         (0.0, 1.0),
     )
     hard_min_directions: int = described(
-        3,
-        "a region voxel observed from at least this many distinct directions ...",
-        "directions",
+        3, "a region voxel observed from at least this many distinct directions ...", "directions",
         (1, 20),
-    )
+    )  # fmt: skip
     hard_max_confidence: float = described(
         0.3,
         "... whose best confidence stayed below this is a hard voxel (reported, not chased)",
@@ -449,6 +451,7 @@ class PlannerConfig:
             self.carve_min_confidence,
             self.unobserved_reach,
             self.resolved_unobserved_far_weight(),
+            self.unobserved_reach_confidence,
         )
 
     def planning_context(self, grid: FusedGrid) -> PlanningContext:

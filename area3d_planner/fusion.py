@@ -85,6 +85,7 @@ class FusedGrid:
         carve_min_confidence: float = 0.0,
         unobserved_reach: float = 0.0,
         unobserved_far_weight: float = 1.0,
+        unobserved_reach_confidence: float = 0.0,
     ) -> None:
         if occupancy_rule not in OCCUPANCY_RULES:
             raise InputError(
@@ -114,6 +115,10 @@ class FusedGrid:
             raise InputError("unobserved_reach", unobserved_reach, "a finite value >= 0 metres")
         if not (0.0 <= unobserved_far_weight <= 1.0):
             raise InputError("unobserved_far_weight", unobserved_far_weight, "a value in [0, 1]")
+        if not (0.0 <= unobserved_reach_confidence <= 1.0):
+            raise InputError(
+                "unobserved_reach_confidence", unobserved_reach_confidence, "a value in [0, 1]"
+            )
         roi_lo = np.asarray(roi_lo, dtype=np.float64)
         roi_hi = np.asarray(roi_hi, dtype=np.float64)
         if roi_lo.shape != (3,) or roi_hi.shape != (3,) or not np.all(roi_hi > roi_lo):
@@ -143,6 +148,7 @@ class FusedGrid:
         self.carve_min_confidence = float(carve_min_confidence)
         self.unobserved_reach = float(unobserved_reach)
         self.unobserved_far_weight = float(unobserved_far_weight)
+        self.unobserved_reach_confidence = float(unobserved_reach_confidence)
         n = spec.num_voxels
         self.conf_sum = np.zeros(n, np.float32)
         self.hit_count = np.zeros(n, np.float32)
@@ -335,11 +341,18 @@ class FusedGrid:
 
     def near_surface(self, occ: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: voxels within `unobserved_reach` (whole voxels on every axis) of an occupied
-        voxel (a separable maximum filter: tens of milliseconds at the 4 M-voxel cap)."""
+        voxel (a separable maximum filter: tens of milliseconds at the 4 M-voxel cap) that two
+        frames hit, or one at `unobserved_reach_confidence` or more: a surface where it is seen
+        again is one, while a lone uncertain match in the air (stereo's, on a periodic texture
+        matched at the wrong disparity, lands elsewhere from every view) would draw views to the
+        empty space around it."""
         occ = self.occupancy() if occ is None else occ
-        return self._within(
-            occ == OCCUPIED, int(round(self.unobserved_reach / self.spec.voxel_size))
-        )
+        surface = occ == OCCUPIED
+        if self.unobserved_reach_confidence > 0.0:
+            surface &= (self.hit_count >= 2.0) | (
+                self.best_confidence >= np.float32(self.unobserved_reach_confidence)
+            )
+        return self._within(surface, int(round(self.unobserved_reach / self.spec.voxel_size)))
 
     def near_free(self, occ: np.ndarray, layers: int) -> np.ndarray:
         """(N,) bool: voxels within `layers` whole voxels (on every axis) of a known-free one,

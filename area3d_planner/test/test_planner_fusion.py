@@ -274,6 +274,38 @@ def test_unknown_space_far_from_every_surface_holds_a_share_of_the_unobserved_un
         make_grid(gamma=0.01, unobserved_reach=-0.1)
 
 
+def test_a_lone_uncertain_hit_makes_no_unknown_space_near_a_surface_until_seen_again():
+    """`unobserved_reach_confidence`: the wall seen once at confidence 0.5 (stereo's wrong match
+    on a periodic texture looks like this, and lands elsewhere from the next view) leaves the
+    unknown space behind it far; seen at 0.85 it is near at once, and a second frame's hit at
+    0.5 makes it near too. Occupancy and the surface's own uncertainty are unchanged."""
+    depth, T = wall_frame()
+    behind = [0.675, 0.5, 0.5]  # unknown, within reach of the wall
+
+    def grid_after(*confidences, reach_confidence=0.8):
+        grid = make_grid(
+            gamma=0.01, unobserved_reach=0.1, unobserved_far_weight=0.25,
+            unobserved_reach_confidence=reach_confidence,
+        )  # fmt: skip
+        for c in confidences:
+            grid.integrate_depth(depth, np.full_like(depth, c), K, T, max_range=5.0, stride=1)
+        return grid
+
+    once = grid_after(0.5)
+    assert once.occupancy()[at(once, behind)] == -1
+    assert once.geometric()[at(once, behind)] == pytest.approx(0.25)
+    assert grid_after(0.5, reach_confidence=0.0).geometric()[at(once, behind)] == 1.0
+    assert grid_after(0.85).geometric()[at(once, behind)] == 1.0
+    twice = grid_after(0.5, 0.5)
+    assert twice.geometric()[at(twice, behind)] == 1.0
+    plain = grid_after(0.5, reach_confidence=0.0)
+    surface = once.occupancy() == 1
+    assert np.array_equal(once.occupancy(), plain.occupancy()) and surface.any()
+    assert np.array_equal(once.geometric()[surface], plain.geometric()[surface])
+    with pytest.raises(InputError, match="unobserved_reach_confidence"):
+        make_grid(gamma=0.01, unobserved_reach_confidence=1.5)
+
+
 def test_unknown_space_far_from_surfaces_weighs_less_at_object_level_only():
     """The level defaults: an object's region box holds air around the objects (the top of a box
     drawn around one tall lamp); a room is explored, all of its unknown space counts."""
