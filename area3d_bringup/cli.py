@@ -325,7 +325,15 @@ def launch(
             ros_args=[arg for rule in remap for arg in ("-r", rule)],
         )
         launcher.start()
-        console.print(f"started {', '.join(s.name for s in specs)}; Ctrl-C stops them")
+        domain = env.get("ROS_DOMAIN_ID") or os.environ.get("ROS_DOMAIN_ID") or "0"
+        reach = env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or os.environ.get(
+            "ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET (ROS 2's default)"
+        )
+        console.print(  # where a user's `ros2` tools find the graph, as `area3d run` says it
+            f"started {', '.join(s.name for s in specs)} on ROS_DOMAIN_ID={domain}, namespace "
+            f"{namespace or '/'}, transport {env.get(middleware.TRANSPORT_ENV)}, discovery "
+            f"{reach}; Ctrl-C stops them"
+        )
         code = 0
         try:
             launcher.wait()

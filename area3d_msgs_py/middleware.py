@@ -209,14 +209,16 @@ def _try_lock(domain_id: int):
     return handle
 
 
-def domain_in_use(domain_id: int) -> bool:
-    """Whether a DDS participant on this machine uses `domain_id` already (its first unicast
-    discovery port is taken): a moment's check, before this process joins it."""
-    return not _domain_port_free(domain_id)
+def domain_in_use(domain_id: int, participants: int = 64) -> bool:
+    """Whether a DDS participant on this machine uses `domain_id` already: the unicast discovery
+    port of one of its first `participants` participant ids is taken (each new participant takes
+    the lowest free id, so once the first has left the others hold higher ones). A moment's
+    check, before this process joins the domain."""
+    return any(not _domain_port_free(domain_id, i) for i in range(participants))
 
 
-def _domain_port_free(domain_id: int) -> bool:
-    port = _PORT_BASE + _DOMAIN_GAIN * domain_id + _UNICAST_OFFSET
+def _domain_port_free(domain_id: int, participant_id: int = 0) -> bool:
+    port = _PORT_BASE + _DOMAIN_GAIN * domain_id + _UNICAST_OFFSET + 2 * participant_id
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         try:
             sock.bind(("0.0.0.0", port))

@@ -7,6 +7,7 @@ same graph plans on its own frames only, and the same episode twice chooses the 
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -51,8 +52,26 @@ def test_episodes_drive_a_graph_launched_elsewhere_each_on_a_reset_map(tmp_path,
         second = subprocess.run(
             _cli(*episode), capture_output=True, text=True, timeout=600, cwd=tmp_path
         )
+        # an episode that would start its own graph on this domain (ROS_DOMAIN_ID is exported)
+        # would be answered by the launched one: refused, naming its nodes, none started
+        clash = subprocess.run(
+            _cli("run", "--budget", str(BUDGET), "--out", str(tmp_path / "clash"), *SIZE),
+            capture_output=True, text=True, timeout=600, cwd=tmp_path,
+        )  # fmt: skip
     finally:
         graph_log = interrupt(graph)
+    domain = os.environ["ROS_DOMAIN_ID"]
+    said = " ".join((clash.stdout + clash.stderr).split())
+    assert clash.returncode != 0, said[-3000:]
+    named = re.search(
+        rf"nodes ([a-z_, ]+) run already on ROS_DOMAIN_ID={domain} in namespace /", said
+    )
+    graph = {"perception", "planner", "reconstruction", "semantics", "sim_bridge"}
+    assert named and set(named.group(1).split(", ")) <= graph, said
+    launched = " ".join(graph_log.split())  # where the launch says the graph is
+    assert re.search(
+        rf"on ROS_DOMAIN_ID={domain}, namespace /, transport \w+, discovery LOCALHOST", launched
+    )
     for run in (first, second):
         assert run.returncode == 0, (run.stdout[-3000:], run.stderr[-3000:], graph_log[-3000:])
     runs = sorted((tmp_path / "runs").iterdir())
