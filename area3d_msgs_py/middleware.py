@@ -156,7 +156,7 @@ def check_domain_id(domain_id: int) -> int:
 class DomainLease:
     """A ROS domain id held for the life of this object: by ``ROS_DOMAIN_ID`` when set, else the
     first domain in 1..101 that no other AREA3D run holds (a lock file) and no DDS participant on
-    this machine uses (its first unicast discovery port is free)."""
+    this machine uses (`domain_in_use`)."""
 
     def __init__(self, domain_id: int | None = None) -> None:
         self._lock_file = None
@@ -174,7 +174,7 @@ class DomainLease:
             lock = _try_lock(candidate)
             if lock is None:
                 continue
-            if _domain_port_free(candidate):
+            if not domain_in_use(candidate):
                 self.domain_id, self._lock_file = candidate, lock
                 return
             lock.close()
