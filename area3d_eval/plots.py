@@ -267,7 +267,8 @@ def plot_timings(
     ax.set_xlabel("seconds")
     ax.set_title(title)
     ax.grid(True, axis="x", alpha=0.3)
-    ax.legend(fontsize=8)
+    # beside the axes: inside, it covered the longest bar (the episode's total)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     return _save(fig, out_path)
 
