@@ -262,6 +262,24 @@ def report(
 
 
 @app.command()
+def export(
+    map_file: Path = typer.Argument(
+        ..., help="a saved reconstruction volume (a run's maps/reconstruction.a3map, or save_map's)"
+    ),
+    out: Path = typer.Argument(..., help="the mesh to write, a .ply file"),
+) -> None:
+    """Write the mesh of a saved reconstruction volume as PLY, with no graph running."""
+    from area3d_msgs_py.errors import InputError
+    from area3d_reconstruction import map_io
+
+    try:
+        written, size = map_io.export_mesh(map_io.mesh_of_file(map_file), out)
+    except (InputError, OSError) as err:
+        _fail(str(err))
+    console.print(f"the mesh of {map_file} written to {written} ({size} bytes)")
+
+
+@app.command()
 def launch(
     params: Path = typer.Option(None, help="ROS 2 parameter YAML replacing the bundled defaults"),
     param: list[str] = typer.Option([], "--param", "-p", help=PARAM_HELP),

@@ -10,14 +10,15 @@ entry.
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
 
 from area3d_eval.open3d_loader import import_open3d
-from area3d_eval.reconstruct import BLOCK_RESOLUTION, TsdfFusion
+from area3d_eval.reconstruct import BLOCK_RESOLUTION, TsdfFusion, TsdfParams
 from area3d_msgs_py import mapfile
 from area3d_msgs_py.errors import InputError
 
@@ -103,6 +104,29 @@ def _check_blocks(fusion: TsdfFusion, loaded: mapfile.MapFile, keys: np.ndarray)
             f"blocks within {fusion.roi_lo.tolist()} .. {fusion.roi_hi.tolist()} grown by "
             f"{grow:g} m",
         )
+
+
+def mesh_of_file(path) -> Any:
+    """The mesh (open3d TriangleMesh) of a saved volume, without a running node: a volume of the
+    file's own parameters and region, the file checked whole by `read` and restored into it."""
+    header = mapfile.read_map(path, CONTENT).header
+    values = {}
+    for field in fields(TsdfParams):
+        key, value = f"tsdf_{field.name}", header.get(f"tsdf_{field.name}")
+        kind = int if field.name == "depth_stride" else float
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+            raise InputError(f"{mapfile.resolve(path)}: {key}", value, "a number > 0")
+        values[field.name] = kind(value)
+    region = [header.get("roi_min"), header.get("roi_max")]
+    if region != [None, None] and not all(
+        isinstance(c, list) and len(c) == 3 and all(isinstance(v, int | float) for v in c)
+        for c in region
+    ):
+        raise InputError(f"{mapfile.resolve(path)}: roi_min, roi_max", region, "[x, y, z] each")
+    lo, hi = (None, None) if region == [None, None] else (np.asarray(c, float) for c in region)
+    fusion = TsdfFusion(TsdfParams(**values), lo, hi)
+    restore(fusion, read(fusion, path))
+    return fusion.extract_mesh()
 
 
 def restore(fusion: TsdfFusion, loaded: mapfile.MapFile) -> list[int]:

@@ -335,3 +335,43 @@ def test_an_export_the_disk_cannot_hold_is_refused_the_mesh_there_kept_and_no_fi
         with contextlib.suppress(OSError):  # the listing's own descriptor is gone by now
             held.append(os.readlink(f"/proc/self/fd/{fd}"))
     assert not [h for h in held if h.startswith(str(tmp_path))], held
+
+
+def test_a_saved_volume_becomes_a_mesh_file_with_no_graph_running(tmp_path):
+    """`area3d export MAP MESH.ply`: the mesh of a saved volume (a run's maps/, or save_map's),
+    the same as the running volume's; a planner's map, a missing file, a header of another kind
+    and a mesh name without .ply are refused by name, nothing written."""
+    from typer.testing import CliRunner
+
+    from area3d_bringup import cli
+    from area3d_planner import map_io as planner_map
+    from area3d_planner.config import PlannerConfig
+    from area3d_planner.server import NextBestViewServer
+
+    fusion = TsdfFusion(
+        TsdfParams(voxel_length=0.01, sdf_trunc=0.04), np.array(ROI[0]), np.array(ROI[1])
+    )
+    for _, rgb, depth, confidence, T in (sphere_frame(i) for i in range(3)):
+        fusion.integrate(rgb, depth, K, T, confidence)
+    volume, _ = map_io.save(fusion, [1, 2, 3], tmp_path / "reconstruction.a3map", "world")
+
+    def export(*args):
+        result = CliRunner().invoke(cli.app, ["export", *map(str, args)], env={"COLUMNS": "300"})
+        return result.exit_code, " ".join(result.output.split())
+
+    code, said = export(volume, tmp_path / "mesh.ply")
+    assert code == 0 and f"written to {tmp_path / 'mesh.ply'}" in said, said
+    a, b = mesh_arrays(read_ply(tmp_path / "mesh.ply")), mesh_arrays(fusion.extract_mesh())
+    np.testing.assert_allclose(a[0], b[0], atol=1e-6)
+    np.testing.assert_array_equal(a[1], b[1])
+    planner, _, _ = planner_map.save(NextBestViewServer(PlannerConfig()), tmp_path / "p.a3map")
+    other = rewrite_map(volume, tmp_path / "other.a3map", header={"tsdf_voxel_length": "x"})
+    for args, why in (
+        ((planner, tmp_path / "a.ply"), "content: got 'planner', expected 'reconstruction'"),
+        ((tmp_path / "none.a3map", tmp_path / "b.ply"), "expected an existing map file"),
+        ((other, tmp_path / "c.ply"), "tsdf_voxel_length: got 'x', expected a number > 0"),
+        ((volume, tmp_path / "mesh.obj"), "expected a file name ending in .ply"),
+    ):
+        code, said = export(*args)
+        assert code == 2 and why in said, said
+        assert not args[1].exists()
