@@ -131,6 +131,13 @@ def planner_region(scene) -> dict:
     }
 
 
+# With stereo depth a lone match under this calibrated confidence (a periodic texture matched at
+# the wrong disparity, floating in the air) makes no unknown space near a surface until a second
+# frame hits its voxel (planner `unobserved_reach_confidence`; docs/results.md, "A lone stereo
+# match in the air draws no views"); a depth camera's lone hit is a surface (0, the planner's).
+STEREO_REACH_CONFIDENCE = 0.8
+
+
 def stereo_min_range(camera: Mapping, perception: Mapping) -> float:
     """The nearest depth the stereo backend can measure on the simulated pair, metres: f B / (the
     disparities it searches, in full-size pixels). A surface nearer than that has a disparity
@@ -173,6 +180,7 @@ def build_graph(
             planner = merged.setdefault("planner", {})
             near = stereo_min_range(merged["sim_bridge"], merged["perception"])
             planner["min_range"] = max(float(planner.get("min_range", 0.0)), near)
+            planner.setdefault("unobserved_reach_confidence", STEREO_REACH_CONFIDENCE)
     shared = merged.get("**", {})
     specs = [NodeSpec(name, module, {**shared, **merged.get(name, {})}) for name, module in nodes]
     for spec in specs:  # a value the node would refuse is refused before anything starts

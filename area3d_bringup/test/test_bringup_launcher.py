@@ -300,6 +300,23 @@ def test_the_stereo_backend_tells_the_planner_the_nearest_depth_its_disparity_se
     assert planner(d435).parameters["min_range"] == pytest.approx(0.28)
 
 
+def test_with_stereo_a_lone_uncertain_match_makes_no_unknown_space_near_a_surface():
+    """The stereo backend's lone matches in the air (a periodic texture at the wrong disparity)
+    need a second frame or a confident match to count for `unobserved_reach`; a depth camera's
+    lone hit is a surface (the planner's default, 0); a value given is kept."""
+    from area3d_bringup.launch_description import STEREO_REACH_CONFIDENCE
+    from area3d_planner.config import PlannerConfig
+
+    def planner(overrides):
+        return next(s for s in build_graph(overrides=overrides) if s.name == "planner")
+
+    key = "unobserved_reach_confidence"
+    assert key not in planner({}).parameters and PlannerConfig().unobserved_reach_confidence == 0
+    stereo = {"perception": {"backend": "stereo"}}
+    assert planner(stereo).parameters[key] == STEREO_REACH_CONFIDENCE > 0
+    assert planner({**stereo, "planner": {key: 0.0}}).parameters[key] == 0.0
+
+
 def test_perceptions_estimates_are_attached_to_the_frames_they_belong_to(tmp_path):
     import numpy as np
 
