@@ -143,9 +143,12 @@ HEADER_KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
 
 
 def resolve(path: str | os.PathLike) -> Path:
-    """`path` as an absolute path (relative to the working directory); an empty one refused."""
+    """`path` as an absolute path (relative to the working directory); an empty one refused, and
+    one ending in a separator (a directory's name: "mesh.ply/" would write mesh.ply)."""
     if not str(path).strip():
         raise InputError("path", str(path), "a file path")
+    if str(path).endswith(("/", os.sep)):
+        raise InputError("path", str(path), "a file path, not a directory (no trailing '/')")
     return Path(os.path.abspath(os.path.expanduser(str(path))))
 
 

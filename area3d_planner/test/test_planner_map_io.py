@@ -298,6 +298,9 @@ def test_unwritable_paths_are_refused_by_name(tmp_path):
         map_io.save(srv, tmp_path)
     with pytest.raises(InputError, match="path"):
         map_io.save(srv, "")
+    with pytest.raises(InputError, match=r"planner.a3map/', expected a file path, not a directory"):
+        map_io.save(srv, f"{tmp_path}/planner.a3map/")  # a directory's name: not planner.a3map
+    assert not (tmp_path / "planner.a3map").exists()
 
 
 def test_a_map_saved_in_one_world_frame_is_refused_by_a_node_in_another(tmp_path):
