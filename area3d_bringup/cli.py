@@ -276,7 +276,8 @@ def export(
         written, size = map_io.export_mesh(map_io.mesh_of_file(map_file), out)
     except (InputError, OSError) as err:
         _fail(str(err))
-    console.print(f"the mesh of {map_file} written to {written} ({size} bytes)")
+    # one line, never wrapped: the paths stay whole (to copy)
+    console.print(f"the mesh of {map_file} written to {written} ({size} bytes)", soft_wrap=True)
 
 
 @app.command()

@@ -92,7 +92,7 @@ def _command_paths(group, ctx, prefix=()) -> list[tuple[tuple[str, ...], object]
 def test_every_help_of_area3d_shows_every_word_of_its_texts(area3d):
     root = typer.main.get_command(cli.app)
     paths = _command_paths(root, typer.Context(root, info_name="area3d"))
-    own = ("run", "report", "launch", "node", "rviz", "scenes", "middleware-profile")
+    own = ("run", "report", "export", "launch", "node", "rviz", "scenes", "middleware-profile")
     assert {path for path, _ in paths} == {
         (),
         *((name,) for name in (*own, "bench")),
