@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rcl_interfaces.srv import GetParameters
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 
@@ -42,8 +43,10 @@ from area3d_msgs_py.lens import camera_undistortion
 from area3d_msgs_py.topics import Service, Topic
 
 NAME = topics.MISSION_MANAGER
-# On a domain in use already, the nodes of the graph a run starts are looked for this long.
+# On a domain in use already, the nodes of the graph a run starts are looked for this long, and
+# those found must answer a parameter request within ANSWER_WAIT_S to count as running.
 DISCOVERY_WAIT_S = 3.0
+ANSWER_WAIT_S = 5.0
 # The simulated camera's fixed frame: goals, replayed poses and requests are in it.
 WORLD_FRAME = "world"
 # The grid is published after every fusion (in a burst, at most once a second and after the
@@ -217,6 +220,7 @@ class MissionManager(GraphSync, Node):
             time.sleep(0.1)
             if len(found := self._running(names)) > len(clash):
                 clash, settled = found, time.monotonic() + 0.5
+        clash = self._answering(clash, ANSWER_WAIT_S) if clash else clash
         if clash:
             raise GraphInUse(
                 f"nodes {', '.join(clash)} run already on ROS_DOMAIN_ID={domain_id} in namespace "
@@ -229,6 +233,23 @@ class MissionManager(GraphSync, Node):
         ns = self.get_namespace()
         found = {n for n, space in self.get_node_names_and_namespaces() if space == ns}
         return sorted(found & set(names))
+
+    def _answering(self, names: list[str], wait_s: float) -> list[str]:
+        """Of the nodes `names` (in this node's namespace), those that answer a parameter request
+        within `wait_s`: discovery still lists a node whose process was killed (until its lease
+        ends), and one created and never spun; neither answers, and neither would plan."""
+        ns = self.get_namespace().rstrip("/")
+        clients = {n: self.create_client(GetParameters, f"{ns}/{n}/get_parameters") for n in names}
+        deadline = time.monotonic() + wait_s
+        futures = {}
+        for name, client in clients.items():  # a request sent before the match would be lost
+            if client.wait_for_service(timeout_sec=max(deadline - time.monotonic(), 0.0)):
+                futures[name] = client.call_async(GetParameters.Request(names=["use_sim_time"]))
+        while not all(f.done() for f in futures.values()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        for client in clients.values():
+            self.destroy_client(client)
+        return sorted(n for n, f in futures.items() if f.done() and f.result() is not None)
 
     def _list(self, key: str) -> list:
         """The readers discovery lists on the runner's topic `key` (all remembered in `listed`)."""

@@ -92,18 +92,24 @@ def test_a_run_on_a_given_domain_where_its_nodes_run_already_is_refused_before_i
     is no clash."""
     import pytest
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
 
     from area3d_bringup.episode_config import GraphInUse
     from area3d_bringup.runner import EpisodeConfig, run_episode
     from area3d_msgs_py import middleware
+    from area3d_msgs_py.spinning import Spinner
 
     context = rclpy.Context()
     rclpy.init(context=context)  # the test's domain, given by ROS_DOMAIN_ID
     others = [
-        rclpy.create_node("planner", context=context),  # another graph's
+        rclpy.create_node("planner", context=context),  # another graph's, serving
         rclpy.create_node("perception", namespace="/robot2", context=context),
         rclpy.create_node("driver", context=context),
     ]
+    executor = SingleThreadedExecutor(context=context)
+    for node in others:
+        executor.add_node(node)
+    spinner = Spinner(executor, name="others")
     try:
         domain = int(os.environ["ROS_DOMAIN_ID"])
         assert middleware.domain_in_use(domain)
@@ -119,6 +125,47 @@ def test_a_run_on_a_given_domain_where_its_nodes_run_already_is_refused_before_i
         log = (tmp_path / "clash" / "nodes.log").read_text()
         assert f"ROS_DOMAIN_ID={domain}" in log and "[planner]" not in log  # nothing launched
     finally:
+        spinner.stop()
         for node in others:
             node.destroy_node()
         context.try_shutdown()
+
+
+def test_a_node_discovery_lists_but_that_answers_nothing_is_no_graph_in_the_way():
+    """Discovery lists a killed process's nodes until their lease ends, and a node created and
+    never spun (a test's, a crashed tool's): neither answers, neither would plan, so neither keeps
+    a run from starting its graph (a run was refused for such a `perception`). Once the same node
+    answers, it is one."""
+    import pytest
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from area3d_bringup.episode_config import GraphInUse
+    from area3d_bringup.mission_manager import MissionManager
+    from area3d_msgs_py.spinning import Spinner
+
+    contexts = [rclpy.Context(), rclpy.Context()]
+    for context in contexts:
+        rclpy.init(context=context)
+    silent = rclpy.create_node("planner", context=contexts[0])  # listed, never spun
+    manager = MissionManager(None, context=contexts[1])
+    executor = SingleThreadedExecutor(context=contexts[1])
+    executor.add_node(manager)
+    spinner = Spinner(executor, name="manager")
+    try:
+        manager.refuse_a_running_graph({"planner", "sim_bridge"}, 0)  # no error: nobody answers
+        assert ("planner", "/") in manager.get_node_names_and_namespaces()  # yet it is listed
+        answering = SingleThreadedExecutor(context=contexts[0])
+        answering.add_node(silent)
+        other = Spinner(answering, name="planner")
+        try:
+            with pytest.raises(GraphInUse, match="nodes planner run already"):
+                manager.refuse_a_running_graph({"planner", "sim_bridge"}, 0)
+        finally:
+            other.stop()
+    finally:
+        spinner.stop()
+        manager.destroy_node()
+        silent.destroy_node()
+        for context in contexts:
+            context.try_shutdown()
