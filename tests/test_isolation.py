@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from mcap.reader import make_reader
 
 SMALL = ["-p", "sim_bridge.width=240", "-p", "sim_bridge.height=180"]
@@ -131,6 +132,9 @@ def test_a_run_on_a_given_domain_where_its_nodes_run_already_is_refused_before_i
         context.try_shutdown()
 
 
+# once spun, the node takes the first look's request too, whose client is gone by then: rclpy
+# warns that its answer found nobody
+@pytest.mark.filterwarnings("ignore:failed to send response")
 def test_a_node_discovery_lists_but_that_answers_nothing_is_no_graph_in_the_way():
     """Discovery lists a killed process's nodes until their lease ends, and a node created and
     never spun (a test's, a crashed tool's): neither answers, neither would plan, so neither keeps
