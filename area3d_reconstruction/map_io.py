@@ -58,7 +58,11 @@ def save(
 def read(fusion: TsdfFusion, path, world_frame: str | None = None) -> mapfile.MapFile:
     """Read a reconstruction file for `fusion`, checked whole (parameters, region, frame,
     arrays)."""
-    loaded = mapfile.read_map(path, CONTENT, world_frame)
+    return check(fusion, mapfile.read_map(path, CONTENT, world_frame))
+
+
+def check(fusion: TsdfFusion, loaded: mapfile.MapFile) -> mapfile.MapFile:
+    """Refuse a read reconstruction file that `fusion` could not have written (`read`)."""
     for key, running in volume_header(fusion).items():
         if key not in loaded.header:
             raise InputError(f"{loaded.path}: {key}", "missing", "a reconstruction file's header")
@@ -108,8 +112,9 @@ def _check_blocks(fusion: TsdfFusion, loaded: mapfile.MapFile, keys: np.ndarray)
 
 def mesh_of_file(path) -> Any:
     """The mesh (open3d TriangleMesh) of a saved volume, without a running node: a volume of the
-    file's own parameters and region, the file checked whole by `read` and restored into it."""
-    header = mapfile.read_map(path, CONTENT).header
+    file's own parameters and region, the file read once, checked whole and restored into it."""
+    loaded = mapfile.read_map(path, CONTENT)
+    header = loaded.header
     values = {}
     for field in fields(TsdfParams):
         key, value = f"tsdf_{field.name}", header.get(f"tsdf_{field.name}")
@@ -125,7 +130,7 @@ def mesh_of_file(path) -> Any:
         raise InputError(f"{mapfile.resolve(path)}: roi_min, roi_max", region, "[x, y, z] each")
     lo, hi = (None, None) if region == [None, None] else (np.asarray(c, float) for c in region)
     fusion = TsdfFusion(TsdfParams(**values), lo, hi)
-    restore(fusion, read(fusion, path))
+    restore(fusion, check(fusion, loaded))
     return fusion.extract_mesh()
 
 
