@@ -213,13 +213,12 @@ class MissionManager(GraphSync, Node):
         domain, looked for up to DISCOVERY_WAIT_S (discovery takes a moment): another graph,
         which a run would drive in place of the one it starts (its planner answers first)."""
         deadline = time.monotonic() + DISCOVERY_WAIT_S
-        while not (clash := self._running(names)) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        settled = time.monotonic() + 0.5  # the first found: the others come in a moment
-        while clash and time.monotonic() < min(settled, deadline + 0.5):
-            time.sleep(0.1)
+        clash: list[str] = []
+        settled = deadline  # until one is found; then until none more came for 0.5 s
+        while time.monotonic() < min(settled, deadline + 0.5):
             if len(found := self._running(names)) > len(clash):
                 clash, settled = found, time.monotonic() + 0.5
+            time.sleep(0.1)
         clash = self._answering(clash, ANSWER_WAIT_S) if clash else clash
         if clash:
             raise GraphInUse(
