@@ -58,6 +58,9 @@ class Log:
         return [m for level, m in self.lines if level == "warning"]
 
 
+UNIT_NAMESPACE = "/perception_unit_tests"
+
+
 class Pub:
     def __init__(self):
         self.sent = []
@@ -68,11 +71,21 @@ class Pub:
 
 @pytest.fixture(scope="module", autouse=True)
 def ros_context():
+    # the nodes here are real participants on the worker's domain, never spun: in a namespace of
+    # their own, no test that looks for a running graph's `perception` finds them
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, args=["--ros-args", "-r", f"__ns:={UNIT_NAMESPACE}"])
     pytest.perception_context = context
     yield context
     context.try_shutdown()
+
+
+@pytest.fixture(autouse=True)
+def destroy_fake_nodes():
+    """Each test's FakeNodes are destroyed when it ends."""
+    yield
+    while FakeNode.made:
+        FakeNode.made.pop().destroy_node()
 
 
 class InlineWorker:
@@ -105,10 +118,13 @@ class FakeNode:
     """A real PerceptionNode whose outputs and log are captured and whose callbacks are called
     directly (no transport): `subs[topic](msg)`, `pubs[topic].sent`, `log.warnings()`."""
 
+    made: list = []  # the nodes of the test running
+
     def __init__(self, parameters=None):
         parameters = {**EVERY_FRAME, **NO_LAG_CHECK, **(parameters or {})}
         overrides = [Parameter(k, value=v) for k, v in parameters.items()]
         self.node = PerceptionNode(context=pytest.perception_context, parameter_overrides=overrides)
+        FakeNode.made.append(self.node)
         self.node.worker = InlineWorker(self.node.worker)
         self.log = Log()
         self.node.get_logger = lambda: self.log
