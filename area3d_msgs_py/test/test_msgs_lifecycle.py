@@ -275,9 +275,9 @@ sys.exit(lifecycle.run_node(Stuck, "stuck", executor=StuckShutdown))
 """
 
 
-def start_stuck_node(built, how: str):
-    """STUCK_NODE in a process of its own, its output piped, once it has built its node (it
-    writes `built`)."""
+def start_node_script(script: str, said, mode: str):
+    """A node `script` in a process of its own (arguments: `said`, `mode`), its output piped,
+    once its node spins (it writes the file `said`)."""
     import os
     import subprocess
     import sys
@@ -285,13 +285,18 @@ def start_stuck_node(built, how: str):
 
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     process = subprocess.Popen(
-        [sys.executable, "-c", STUCK_NODE, str(built), how], env=env, text=True,
+        [sys.executable, "-c", script, str(said), mode], env=env, text=True,
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )  # fmt: skip
     deadline = time.monotonic() + 120
-    while not built.exists() and process.poll() is None and time.monotonic() < deadline:
+    while not said.exists() and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     return process
+
+
+def start_stuck_node(built, how: str):
+    """STUCK_NODE, once it has built its node (it writes `built`)."""
+    return start_node_script(STUCK_NODE, built, how)
 
 
 @pytest.mark.parametrize("how", ["releasing the GIL", "holding the GIL", "stopping the executor"])
@@ -366,22 +371,11 @@ def test_a_context_shut_down_under_a_waiting_executor_ends_the_spin(tmp_path):
     down: an executor that took the trigger in between waited on with its context shut down (a
     Ctrl-C lost about once in 10 to 30 stops on a loaded machine). The node process now ends all
     the same; without the watch (`unwatched`) it does not."""
-    import os
     import subprocess
-    import sys
-    import time
-
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
 
     def start(mode: str):
         said = tmp_path / f"said-{mode}"
-        process = subprocess.Popen(
-            [sys.executable, "-c", UNWOKEN_NODE, str(said), mode], env=env, text=True,
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        )  # fmt: skip
-        deadline = time.monotonic() + 120
-        while not said.exists() and process.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
+        process = start_node_script(UNWOKEN_NODE, said, mode)
         assert said.exists(), process.communicate(timeout=60)[0][-3000:]
         return process
 
