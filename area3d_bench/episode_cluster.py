@@ -115,7 +115,9 @@ class DaskEngine:
                 n_workers=n_workers,
                 threads_per_worker=1,
                 processes=True,
-                dashboard_address=None,
+                # the scheduler's HTTP server on a free port: with none given it takes 8787,
+                # and warns when another cluster (a second benchmark) holds it
+                dashboard_address=":0",
                 silence_logs=logging.ERROR,
             )
         client = distributed.Client(cluster)

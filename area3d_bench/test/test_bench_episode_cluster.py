@@ -102,7 +102,7 @@ def test_an_episode_whose_worker_dies_mid_episode_is_run_again(tmp_path, one_pro
     out = tmp_path / "bench"
     with (
         distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
