@@ -219,7 +219,7 @@ class MissionManager(GraphSync, Node):
             if len(found := self._running(names)) > len(clash):
                 clash, settled = found, time.monotonic() + 0.5
             time.sleep(0.1)
-        clash = self._answering(clash, ANSWER_WAIT_S) if clash else clash
+        clash = self._answering(clash, ANSWER_WAIT_S)  # none found: nothing asked
         if clash:
             raise GraphInUse(
                 f"nodes {', '.join(clash)} run already on ROS_DOMAIN_ID={domain_id} in namespace "

@@ -91,7 +91,6 @@ def test_a_run_on_a_given_domain_where_its_nodes_run_already_is_refused_before_i
     frames were the other graph's, reported as a success): refused, naming the nodes, before any
     node of its own starts. A node of another name, or of the same name in another namespace,
     is no clash."""
-    import pytest
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -140,7 +139,6 @@ def test_a_node_discovery_lists_but_that_answers_nothing_is_no_graph_in_the_way(
     never spun (a test's, a crashed tool's): neither answers, neither would plan, so neither keeps
     a run from starting its graph (a run was refused for such a `perception`). Once the same node
     answers, it is one."""
-    import pytest
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
